@@ -67,3 +67,94 @@ subroutine sparse_solve(n, nnz, nrhs, ap, ai, ax, ax2, b, b2, x, x2, status)
     if (st /= 0) status = int(30 + st, c_int)
     call ls_free(ls)
 end subroutine sparse_solve
+
+!> Simulate a mechanism (see flexmbs.model for the meaning of every array).
+!! status: 0 ok, 1 Newton failed after step cuts, 2 singular iteration matrix,
+!! 3 static equilibrium failed, 4 singular initial system, 5 inconsistent initial
+!! configuration, 6 non-finite values, 7 bad settings, 8 linear solver set-up.
+!! info: time, scaled increment or residual, iterations, extra (row / code).
+!! stats: newton iterations, factorizations, residual evaluations, step cuts,
+!! static iterations, steps completed.
+subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npts, nout, nsteps, &
+                    qref, q0, qd0, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
+                    ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, c_c0, c_law, c_lawcoef, &
+                    law_h, law_val, law_der, law_dd0, &
+                    map_el, map_diag, map_cq, map_qc, map_qq, nap, nai, ap, ai, &
+                    h, rho_inf, tol, max_iter, max_cuts, solver, reuse, static_start, &
+                    kscale, penalty, out_dofs, q_out, qd_out, qdd_out, mu_out, stats, status, info)
+    use iso_c_binding, only: c_double, c_int
+    use model_data, only: mbs_model, model_from_arrays
+    use generalized_alpha, only: ga_settings, ga_stats, ga_simulate
+    implicit none
+    integer(c_int), intent(in) :: ndof, nc, nel, nload, nlaw, nnz   !! true counts
+    integer(c_int), intent(in) :: nela, nca, nlda, nlawa, npts      !! array extents (>= 1)
+    integer(c_int), intent(in) :: nout, nsteps
+    real(c_double), intent(in) :: qref(ndof), q0(ndof), qd0(ndof), lumped(ndof), gacc(ndof)
+    integer(c_int), intent(in) :: el_nen(nela), el_dofs(9, nela)
+    real(c_double), intent(in) :: el_len(nela), el_prop(5, nela)
+    integer(c_int), intent(in) :: ld_dof(nlda), ld_law(nlda)
+    real(c_double), intent(in) :: ld_amp(nlda)
+    integer(c_int), intent(in) :: c_kind(nca), c_dofs(4, nca), c_law(nca)
+    real(c_double), intent(in) :: c_coef(4, nca), c_c0(nca), c_lawcoef(nca)
+    real(c_double), intent(in) :: law_h, law_val(nlawa, npts), law_der(nlawa, npts), law_dd0(nlawa)
+    integer(c_int), intent(in) :: map_el(81, nela), map_diag(ndof)
+    integer(c_int), intent(in) :: map_cq(4, nca), map_qc(4, nca), map_qq(16, nca)
+    integer(c_int), intent(in) :: nap, nai
+    integer(c_int), intent(in) :: ap(nap), ai(nai)
+    real(c_double), intent(in) :: h, rho_inf, tol, kscale, penalty
+    integer(c_int), intent(in) :: max_iter, max_cuts, solver, reuse, static_start
+    integer(c_int), intent(in) :: out_dofs(nout)
+    real(c_double), intent(out) :: q_out(nout, nsteps + 1), qd_out(nout, nsteps + 1)
+    real(c_double), intent(out) :: qdd_out(nout, nsteps + 1), mu_out(nca, nsteps + 1)
+    integer(c_int), intent(out) :: stats(6), status
+    real(c_double), intent(out) :: info(4)
+    type(mbs_model) :: m
+    type(ga_settings) :: s
+    type(ga_stats) :: st
+    integer :: stat
+    call model_from_arrays(m, int(ndof), int(nc), int(nel), int(nload), int(nlaw), int(nnz), &
+                           qref, lumped, gacc, int(el_nen), int(el_dofs), el_len, el_prop, &
+                           int(ld_dof), int(ld_law), ld_amp, int(c_kind), int(c_dofs), c_coef, &
+                           c_c0, int(c_law), c_lawcoef, law_h, law_val, law_der, law_dd0, &
+                           int(map_el), int(map_diag), int(map_cq), int(map_qc), int(map_qq))
+    s%h = h
+    s%rho_inf = rho_inf
+    s%tol = tol
+    s%nsteps = nsteps
+    s%max_iter = max_iter
+    s%max_cuts = max_cuts
+    s%solver = solver
+    s%reuse = reuse /= 0
+    s%static_start = static_start /= 0
+    s%kscale = kscale
+    s%penalty = penalty
+    call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
+                     mu_out, st, stat, info)
+    status = int(stat, c_int)
+    stats = int([st%newton_iterations, st%factorizations, st%residual_evaluations, &
+                 st%step_cuts, st%static_iterations, st%steps], c_int)
+end subroutine simulate
+
+!> Element internal forces and tangent of one beam (for the tangent checker).
+subroutine beam_element(nen, elen, stiff, qref, qe, fe, ke)
+    use iso_c_binding, only: c_double, c_int
+    use beam2d, only: beam_internal_forces
+    implicit none
+    integer(c_int), intent(in) :: nen                     !! 2 or 3
+    real(c_double), intent(in) :: elen                    !! reference length
+    real(c_double), intent(in) :: stiff(3)                !! EA, kGA, EI
+    real(c_double), intent(in) :: qref(3 * nen), qe(3 * nen)
+    real(c_double), intent(out) :: fe(3 * nen), ke(3 * nen, 3 * nen)
+    call beam_internal_forces(int(nen), elen, stiff, qref, qe, fe, ke)
+end subroutine beam_element
+
+!> Beam element mass matrix.
+subroutine beam_element_mass(nen, elen, rho_a, rho_i, me)
+    use iso_c_binding, only: c_double, c_int
+    use beam2d, only: beam_mass
+    implicit none
+    integer(c_int), intent(in) :: nen
+    real(c_double), intent(in) :: elen, rho_a, rho_i
+    real(c_double), intent(out) :: me(3 * nen, 3 * nen)
+    call beam_mass(int(nen), elen, rho_a, rho_i, me)
+end subroutine beam_element_mass

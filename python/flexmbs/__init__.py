@@ -1,5 +1,21 @@
-"""flexmbs: planar flexible multibody simulation and structural optimization."""
-from flexmbs import _core
+"""flexmbs: planar flexible multibody simulation and structural optimization of mechanisms.
 
-__all__ = ["_core"]
+Public API (explicit):
+    Model, Body                  build a mechanism (model.py)
+    Material, Circle, Tube, Rectangle, GivenSection   sections (sections.py)
+    TimeLaw                      motor and load laws with derivatives (laws.py)
+    simulate, Result             generalized-alpha simulation (simulate.py)
+    check_tangent, check_iteration_matrix   derivative checkers (checks.py)
+    FlexmbsError, ModelError, SimulationError, CaseError   exceptions (errors.py)
+"""
+from flexmbs.errors import CaseError, FlexmbsError, ModelError, SimulationError
+from flexmbs.laws import TimeLaw
+from flexmbs.model import Body, Model
+from flexmbs.sections import Circle, GivenSection, Material, Rectangle, Tube
+from flexmbs.simulate import Result, simulate
+
+__all__ = [
+    "Model", "Body", "Material", "Circle", "Tube", "Rectangle", "GivenSection", "TimeLaw",
+    "simulate", "Result", "FlexmbsError", "ModelError", "SimulationError", "CaseError",
+]
 __version__ = "0.1.0"

@@ -1,0 +1,192 @@
+!> Assembly of the residual of eq. (1) and of the iteration matrix of eq. (7).
+!!
+!! Unknowns of a Newton correction: z = [dq (ndof); dlambda (nc)]. The
+!! physical multipliers are mu = k lambda, with k the scaling factor of eq. (1);
+!! p is the penalty of the augmented Lagrangian. Residual:
+!!   r_q = M qdd + f_int(q) - f_ext(t) + Phi_q^T (mu + p Phi)
+!!   r_c = k Phi(q, t)
+!! Iteration matrix (eq. 7, with dqdd = beta' dq; no damping: C_t = 0):
+!!   [ cm M + ck (K_t + p Phi_q^T Phi_q + sum_r (mu_r + p Phi_r) Phi_r,qq)   k Phi_q^T ]
+!!   [ k Phi_q                                                               0         ]
+!! Values go to the positions given by the model's maps, so the same code fills
+!! a dense column-major matrix or the CSC values of the KLU pattern.
+module assembly
+    use flexmbs_kinds, only: wp
+    use beam2d, only: beam_internal_forces, MAX_EDOF
+    use constraints, only: constraint_row, MAX_CDOF
+    use model_data, only: mbs_model, law_value
+    implicit none
+    private
+    public :: internal_forces, mass_times, external_forces, constraint_values
+    public :: residual, iteration_matrix
+
+contains
+
+    !> Internal forces f_int(q); with `vals`, adds ck * K_t at the element positions.
+    subroutine internal_forces(m, q, fint, vals, ck)
+        type(mbs_model), intent(in) :: m
+        real(wp), intent(in) :: q(m%ndof)
+        real(wp), intent(out) :: fint(m%ndof)
+        real(wp), intent(inout), optional :: vals(:)
+        real(wp), intent(in), optional :: ck
+        real(wp) :: fe(MAX_EDOF), ke(MAX_EDOF, MAX_EDOF), qe(MAX_EDOF), qr(MAX_EDOF)
+        integer :: e, ne, a, b, d
+        fint = 0
+        do e = 1, m%nel
+            ne = 3 * m%el_nen(e)
+            do a = 1, ne
+                d = m%el_dofs(a, e)
+                qe(a) = q(d)
+                qr(a) = m%qref(d)
+            end do
+            if (present(vals)) then
+                call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), &
+                                          qr(1:ne), qe(1:ne), fe(1:ne), ke(1:ne, 1:ne))
+                do b = 1, ne
+                    do a = 1, ne
+                        vals(m%map_el(a, b, e)) = vals(m%map_el(a, b, e)) + ck * ke(a, b)
+                    end do
+                end do
+            else
+                call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), &
+                                          qr(1:ne), qe(1:ne), fe(1:ne))
+            end if
+            do a = 1, ne
+                d = m%el_dofs(a, e)
+                fint(d) = fint(d) + fe(a)
+            end do
+        end do
+    end subroutine internal_forces
+
+    !> y = M x with the constant mass matrix (element blocks + lumped diagonal).
+    pure subroutine mass_times(m, x, y)
+        type(mbs_model), intent(in) :: m
+        real(wp), intent(in) :: x(m%ndof)
+        real(wp), intent(out) :: y(m%ndof)
+        integer :: e, ne, a, b
+        real(wp) :: s
+        y = m%lumped * x
+        do e = 1, m%nel
+            ne = 3 * m%el_nen(e)
+            do a = 1, ne
+                s = 0
+                do b = 1, ne
+                    s = s + m%el_mass(a, b, e) * x(m%el_dofs(b, e))
+                end do
+                y(m%el_dofs(a, e)) = y(m%el_dofs(a, e)) + s
+            end do
+        end do
+    end subroutine mass_times
+
+    !> External forces at time t: gravity M g_acc plus the nodal loads.
+    pure subroutine external_forces(m, fgrav, t, fext)
+        type(mbs_model), intent(in) :: m
+        real(wp), intent(in) :: fgrav(m%ndof)   !! M g_acc, computed once
+        real(wp), intent(in) :: t
+        real(wp), intent(out) :: fext(m%ndof)
+        integer :: i
+        fext = fgrav
+        do i = 1, m%nload
+            if (m%ld_law(i) > 0) then
+                fext(m%ld_dof(i)) = fext(m%ld_dof(i)) + m%ld_amp(i) * law_value(m, m%ld_law(i), t)
+            else
+                fext(m%ld_dof(i)) = fext(m%ld_dof(i)) + m%ld_amp(i)
+            end if
+        end do
+    end subroutine external_forces
+
+    !> Value, gradient and Hessian of constraint row r at (q, t).
+    pure subroutine constraint_values(m, r, q, t, phi, grad, hess)
+        type(mbs_model), intent(in) :: m
+        integer, intent(in) :: r
+        real(wp), intent(in) :: q(m%ndof), t
+        real(wp), intent(out) :: phi, grad(MAX_CDOF), hess(MAX_CDOF, MAX_CDOF)
+        real(wp) :: qv(MAX_CDOF), drive
+        integer :: a
+        do a = 1, MAX_CDOF
+            if (m%c_dofs(a, r) > 0) then
+                qv(a) = q(m%c_dofs(a, r))
+            else
+                qv(a) = 0
+            end if
+        end do
+        drive = 0
+        if (m%c_law(r) > 0) drive = m%c_lawcoef(r) * law_value(m, m%c_law(r), t)
+        call constraint_row(m%c_kind(r), m%c_coef(:, r), m%c_c0(r), drive, qv, phi, grad, hess)
+    end subroutine constraint_values
+
+    !> Residual of eq. (1): r_q = cm M qdd + f_int - f_ext + Phi_q^T (mu + p Phi), r_c = k Phi.
+    !! `cm` = 0 gives the static residual. Returns also max |Phi|.
+    subroutine residual(m, q, qdd, mu, t, fgrav, cm, kscale, pen, r, phimax, lf)
+        type(mbs_model), intent(in) :: m
+        real(wp), intent(in) :: q(m%ndof), qdd(m%ndof), mu(m%nc), t, fgrav(m%ndof)
+        real(wp), intent(in) :: cm, kscale, pen
+        real(wp), intent(in), optional :: lf    !! load factor on f_ext (static load stepping)
+        real(wp), intent(out) :: r(m%n)
+        real(wp), intent(out) :: phimax
+        real(wp) :: fint(m%ndof), fext(m%ndof), mq(m%ndof)
+        real(wp) :: phi, grad(MAX_CDOF), hess(MAX_CDOF, MAX_CDOF)
+        integer :: i, a
+        call internal_forces(m, q, fint)
+        call external_forces(m, fgrav, t, fext)
+        if (present(lf)) fext = lf * fext
+        r(1:m%ndof) = fint - fext
+        if (cm /= 0) then
+            call mass_times(m, qdd, mq)
+            r(1:m%ndof) = r(1:m%ndof) + cm * mq
+        end if
+        phimax = 0
+        do i = 1, m%nc
+            call constraint_values(m, i, q, t, phi, grad, hess)
+            phimax = max(phimax, abs(phi))
+            do a = 1, MAX_CDOF
+                if (m%c_dofs(a, i) > 0) r(m%c_dofs(a, i)) = r(m%c_dofs(a, i)) + grad(a) * (mu(i) + pen * phi)
+            end do
+            r(m%ndof + i) = kscale * phi
+        end do
+    end subroutine residual
+
+    !> Iteration matrix of eq. (7) (see the module header) into `vals`.
+    subroutine iteration_matrix(m, q, mu, t, cm, ck, kscale, pen, vals)
+        type(mbs_model), intent(in) :: m
+        real(wp), intent(in) :: q(m%ndof), mu(m%nc), t
+        real(wp), intent(in) :: cm      !! coefficient of M (beta' in dynamics, 0 in statics)
+        real(wp), intent(in) :: ck      !! coefficient of the stiffness terms (1, or 0 for the
+                                        !! initial-acceleration system)
+        real(wp), intent(in) :: kscale, pen
+        real(wp), intent(out) :: vals(:)
+        real(wp) :: fint(m%ndof)
+        real(wp) :: phi, grad(MAX_CDOF), hess(MAX_CDOF, MAX_CDOF), w
+        integer :: e, ne, a, b, i
+        vals = 0
+        if (ck /= 0) call internal_forces(m, q, fint, vals, ck)
+        if (cm /= 0) then
+            do e = 1, m%nel
+                ne = 3 * m%el_nen(e)
+                do b = 1, ne
+                    do a = 1, ne
+                        vals(m%map_el(a, b, e)) = vals(m%map_el(a, b, e)) + cm * m%el_mass(a, b, e)
+                    end do
+                end do
+            end do
+            do a = 1, m%ndof
+                vals(m%map_diag(a)) = vals(m%map_diag(a)) + cm * m%lumped(a)
+            end do
+        end if
+        do i = 1, m%nc
+            call constraint_values(m, i, q, t, phi, grad, hess)
+            w = ck * (mu(i) + pen * phi)
+            do a = 1, MAX_CDOF
+                if (m%c_dofs(a, i) <= 0) cycle
+                vals(m%map_qc(a, i)) = vals(m%map_qc(a, i)) + kscale * grad(a)
+                vals(m%map_cq(a, i)) = vals(m%map_cq(a, i)) + kscale * grad(a)
+                do b = 1, MAX_CDOF
+                    if (m%c_dofs(b, i) <= 0) cycle
+                    vals(m%map_qq(a, b, i)) = vals(m%map_qq(a, b, i)) &
+                        + ck * pen * grad(a) * grad(b) + w * hess(a, b)
+                end do
+            end do
+        end do
+    end subroutine iteration_matrix
+
+end module assembly

@@ -1,0 +1,176 @@
+!> Pure kernels of the planar geometrically exact (Simo–Reissner) beam with
+!! absolute nodal coordinates (x, y, phi) per node, after Géradin & Cardona,
+!! "Flexible Multibody Dynamics: A Finite Element Approach" (2001), ch. 6–7.
+!!
+!! Element nodes are ordered along the beam: 2-node (linear) or 3-node
+!! (quadratic, middle node second) Lagrange interpolation of x, y and phi on
+!! xi in [-1, 1], arc length s = (xi + 1) L / 2.
+!!
+!! Strains (rotation R(phi) of the cross section, x' = dx/ds):
+!!   Gamma_1 = cos(phi) x' + sin(phi) y' - 1      (axial)
+!!   Gamma_2 = -sin(phi) x' + cos(phi) y'         (shear)
+!!   kappa   = phi'                               (curvature)
+!! measured from the strains of the reference configuration, so any initial
+!! (straight or not) element is stress free there. Stress resultants
+!! N = EA Gamma_1, Q = kGA Gamma_2, M = EI kappa. Internal forces and the exact
+!! tangent use reduced Gauss integration (1 point for 2 nodes, 2 points for 3
+!! nodes: no shear locking, no spurious zero-energy mode); the consistent mass
+!! with rotary inertia is integrated exactly. In the planar case the mass
+!! matrix is constant (no complementary inertia forces in g of eq. (1)).
+module beam2d
+    use flexmbs_kinds, only: wp
+    implicit none
+    private
+    public :: beam_internal_forces, beam_mass, MAX_NEN, MAX_EDOF
+
+    integer, parameter :: MAX_NEN = 3            !! nodes per element at most
+    integer, parameter :: MAX_EDOF = 3 * MAX_NEN !! element dofs at most
+
+contains
+
+    !> Shape functions and their xi-derivatives at xi.
+    pure subroutine shape(nen, xi, n, dn)
+        integer, intent(in) :: nen       !! 2 or 3 nodes
+        real(wp), intent(in) :: xi       !! natural coordinate
+        real(wp), intent(out) :: n(nen)  !! shape functions
+        real(wp), intent(out) :: dn(nen) !! dN/dxi
+        if (nen == 2) then
+            n = [0.5_wp * (1.0_wp - xi), 0.5_wp * (1.0_wp + xi)]
+            dn = [-0.5_wp, 0.5_wp]
+        else
+            n = [0.5_wp * xi * (xi - 1.0_wp), 1.0_wp - xi * xi, 0.5_wp * xi * (xi + 1.0_wp)]
+            dn = [xi - 0.5_wp, -2.0_wp * xi, xi + 0.5_wp]
+        end if
+    end subroutine shape
+
+    !> Raw strain measures e1 = c x' + s y', e2 = -s x' + c y', kappa = phi', and phi.
+    pure subroutine raw_strains(nen, qe, dns, n, e1, e2, kap, phi, dx, dy)
+        integer, intent(in) :: nen
+        real(wp), intent(in) :: qe(3 * nen), dns(nen), n(nen)
+        real(wp), intent(out) :: e1, e2, kap, phi, dx, dy
+        integer :: a
+        real(wp) :: c, s
+        dx = 0; dy = 0; kap = 0; phi = 0
+        do a = 1, nen
+            dx = dx + dns(a) * qe(3 * a - 2)
+            dy = dy + dns(a) * qe(3 * a - 1)
+            kap = kap + dns(a) * qe(3 * a)
+            phi = phi + n(a) * qe(3 * a)
+        end do
+        c = cos(phi)
+        s = sin(phi)
+        e1 = c * dx + s * dy
+        e2 = -s * dx + c * dy
+    end subroutine raw_strains
+
+    !> Internal force vector (and its exact tangent) of one beam element.
+    !!
+    !! With `parts` present, the forces are returned per unit stiffness as well:
+    !! parts(:, 1) for EA = 1, parts(:, 2) for kGA = 1, parts(:, 3) for EI = 1,
+    !! so that fe = EA parts(:,1) + kGA parts(:,2) + EI parts(:,3) (the forces
+    !! are linear in the section stiffnesses; used by the design sensitivities).
+    pure subroutine beam_internal_forces(nen, elen, stiff, qref, qe, fe, ke, parts)
+        integer, intent(in) :: nen                   !! nodes of the element (2 or 3)
+        real(wp), intent(in) :: elen                 !! reference length L
+        real(wp), intent(in) :: stiff(3)             !! EA, kGA, EI
+        real(wp), intent(in) :: qref(3 * nen)        !! reference (stress-free) coordinates
+        real(wp), intent(in) :: qe(3 * nen)          !! current coordinates
+        real(wp), intent(out) :: fe(3 * nen)         !! internal forces
+        real(wp), intent(out), optional :: ke(3 * nen, 3 * nen)    !! tangent d fe / d qe
+        real(wp), intent(out), optional :: parts(3 * nen, 3)       !! forces per unit stiffness
+        real(wp) :: xg(2), wg(2), n(nen), dn(nen), dns(nen), jac, w
+        real(wp) :: e1, e2, kap, phi, dx, dy, r1, r2, rk, rphi, rdx, rdy
+        real(wp) :: g1, g2, gk, nf, qf, mf, c, s
+        real(wp) :: b(3, 3 * nen), db(3, 3 * nen)
+        integer :: ig, ng, a, bb, ia, ib, j
+        if (nen == 2) then
+            ng = 1
+            xg(1) = 0.0_wp
+            wg(1) = 2.0_wp
+        else
+            ng = 2
+            xg = [-1.0_wp / sqrt(3.0_wp), 1.0_wp / sqrt(3.0_wp)]
+            wg = [1.0_wp, 1.0_wp]
+        end if
+        jac = 0.5_wp * elen
+        fe = 0
+        if (present(ke)) ke = 0
+        if (present(parts)) parts = 0
+        do ig = 1, ng
+            call shape(nen, xg(ig), n, dn)
+            dns = dn / jac
+            w = wg(ig) * jac
+            call raw_strains(nen, qref, dns, n, r1, r2, rk, rphi, rdx, rdy)
+            call raw_strains(nen, qe, dns, n, e1, e2, kap, phi, dx, dy)
+            ! strains measured from the reference configuration
+            g1 = e1 - r1
+            g2 = e2 - r2
+            gk = kap - rk
+            nf = stiff(1) * g1
+            qf = stiff(2) * g2
+            mf = stiff(3) * gk
+            c = cos(phi)
+            s = sin(phi)
+            ! B = d(Gamma_1, Gamma_2, kappa)/d qe
+            do a = 1, nen
+                ia = 3 * (a - 1)
+                b(1, ia + 1:ia + 3) = [dns(a) * c, dns(a) * s, n(a) * e2]
+                b(2, ia + 1:ia + 3) = [-dns(a) * s, dns(a) * c, -n(a) * e1]
+                b(3, ia + 1:ia + 3) = [0.0_wp, 0.0_wp, dns(a)]
+            end do
+            fe = fe + w * (nf * b(1, :) + qf * b(2, :) + mf * b(3, :))
+            if (present(parts)) then
+                parts(:, 1) = parts(:, 1) + w * g1 * b(1, :)
+                parts(:, 2) = parts(:, 2) + w * g2 * b(2, :)
+                parts(:, 3) = parts(:, 3) + w * gk * b(3, :)
+            end if
+            if (present(ke)) then
+                ! material part B^T D B
+                do j = 1, 3
+                    db(j, :) = stiff(j) * b(j, :)
+                end do
+                ke = ke + w * matmul(transpose(b), db)
+                ! geometric part N d2Gamma_1 + Q d2Gamma_2
+                do a = 1, nen
+                    ia = 3 * (a - 1)
+                    do bb = 1, nen
+                        ib = 3 * (bb - 1)
+                        ! (phi_a, x_b) and (phi_a, y_b), with their symmetric terms
+                        ke(ia + 3, ib + 1) = ke(ia + 3, ib + 1) + w * n(a) * dns(bb) * (-nf * s - qf * c)
+                        ke(ia + 3, ib + 2) = ke(ia + 3, ib + 2) + w * n(a) * dns(bb) * (nf * c - qf * s)
+                        ke(ib + 1, ia + 3) = ke(ib + 1, ia + 3) + w * n(a) * dns(bb) * (-nf * s - qf * c)
+                        ke(ib + 2, ia + 3) = ke(ib + 2, ia + 3) + w * n(a) * dns(bb) * (nf * c - qf * s)
+                        ! (phi_a, phi_b)
+                        ke(ia + 3, ib + 3) = ke(ia + 3, ib + 3) - w * n(a) * n(bb) * (nf * e1 + qf * e2)
+                    end do
+                end do
+            end if
+        end do
+    end subroutine beam_internal_forces
+
+    !> Consistent mass matrix with rotary inertia, exact Gauss integration.
+    pure subroutine beam_mass(nen, elen, rho_a, rho_i, me)
+        integer, intent(in) :: nen                      !! nodes of the element (2 or 3)
+        real(wp), intent(in) :: elen                    !! reference length L
+        real(wp), intent(in) :: rho_a                   !! mass per unit length
+        real(wp), intent(in) :: rho_i                   !! rotary inertia per unit length
+        real(wp), intent(out) :: me(3 * nen, 3 * nen)   !! mass matrix
+        real(wp) :: xg(3), wg(3), n(nen), dn(nen), w
+        integer :: ig, a, bb
+        xg = [-sqrt(0.6_wp), 0.0_wp, sqrt(0.6_wp)]
+        wg = [5.0_wp / 9.0_wp, 8.0_wp / 9.0_wp, 5.0_wp / 9.0_wp]
+        me = 0
+        do ig = 1, 3
+            call shape(nen, xg(ig), n, dn)
+            w = wg(ig) * 0.5_wp * elen
+            do a = 1, nen
+                do bb = 1, nen
+                    me(3 * a - 2, 3 * bb - 2) = me(3 * a - 2, 3 * bb - 2) + w * rho_a * n(a) * n(bb)
+                    me(3 * a - 1, 3 * bb - 1) = me(3 * a - 1, 3 * bb - 1) + w * rho_a * n(a) * n(bb)
+                    me(3 * a, 3 * bb) = me(3 * a, 3 * bb) + w * rho_i * n(a) * n(bb)
+                end do
+            end do
+        end do
+    end subroutine beam_mass
+
+end module beam2d

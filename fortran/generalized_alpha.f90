@@ -1,0 +1,469 @@
+!> Generalized-alpha time integration of the index-3 DAE (1) with
+!! Newton–Raphson on eq. (7), after Chung & Hulbert (1993) and the form of
+!! Arnold & Brüls (2007) used by Géradin & Cardona: eqs. (3)–(6) of the paper.
+!!
+!! Also: the static equilibrium that starts a simulation under its loads at
+!! the initial drive positions, the consistent initial velocities and
+!! accelerations (never assumed zero), step cuts on Newton failure, and
+!! optional Jacobian reuse (modified Newton) with a fall-back to full Newton.
+!! Everything a call needs lives in its own variables: no module state.
+module generalized_alpha
+    use flexmbs_kinds, only: wp
+    use constraints, only: MAX_CDOF
+    use model_data, only: mbs_model, law_rate, law_accel0
+    use assembly, only: residual, iteration_matrix, mass_times, internal_forces, &
+                        external_forces, constraint_values
+    use linear_solver, only: linear_system, ls_init_dense, ls_init_sparse, ls_factor, &
+                             ls_solve, ls_free, SOLVER_DENSE, SOLVER_KLU, LS_OK, LS_SINGULAR
+    implicit none
+    private
+    public :: ga_settings, ga_stats, ga_simulate, ga_coefficients
+    public :: GA_OK, GA_NEWTON_FAILED, GA_SINGULAR, GA_STATIC_FAILED, GA_INITIAL_SINGULAR, &
+              GA_INCONSISTENT_INITIAL, GA_NONFINITE, GA_BAD_INPUT, GA_LINEAR_SOLVER
+
+    integer, parameter :: GA_OK = 0                   !! simulation completed
+    integer, parameter :: GA_NEWTON_FAILED = 1        !! Newton failed after all step cuts
+    integer, parameter :: GA_SINGULAR = 2             !! singular iteration matrix after all cuts
+    integer, parameter :: GA_STATIC_FAILED = 3        !! static equilibrium not found
+    integer, parameter :: GA_INITIAL_SINGULAR = 4     !! [M Phi_q^T; Phi_q 0] singular at t = 0
+    integer, parameter :: GA_INCONSISTENT_INITIAL = 5 !! q0 violates a constraint (rest start)
+    integer, parameter :: GA_NONFINITE = 6            !! NaN/Inf in a law, residual or solution
+    integer, parameter :: GA_BAD_INPUT = 7            !! settings out of range
+    integer, parameter :: GA_LINEAR_SOLVER = 8        !! linear solver set-up failed (memory)
+
+    !> Settings of one simulation (documented defaults are set in Python).
+    type :: ga_settings
+        real(wp) :: h = 5.0e-4_wp        !! time step
+        real(wp) :: rho_inf = 0.5_wp     !! spectral radius at infinite frequency
+        real(wp) :: tol = 1.0e-10_wp     !! Newton tolerance on the scaled increment
+        integer :: nsteps = 0            !! steps (output grid has nsteps + 1 points)
+        integer :: max_iter = 20         !! Newton iterations per step
+        integer :: max_cuts = 6          !! step halvings before giving up
+        integer :: solver = SOLVER_DENSE !! SOLVER_DENSE or SOLVER_KLU
+        logical :: reuse = .false.       !! modified Newton (reuse the factorization)
+        logical :: static_start = .false.!! start from static equilibrium at t = 0
+        real(wp) :: kscale = 0           !! scaling k of eq. (1); <= 0: automatic
+        real(wp) :: penalty = 0          !! penalty p of eq. (1); <= 0: automatic (= k)
+    end type ga_settings
+
+    !> Work counters returned with the result.
+    type :: ga_stats
+        integer :: newton_iterations = 0     !! linear solves in the time loop
+        integer :: factorizations = 0        !! numeric factorizations (all phases)
+        integer :: residual_evaluations = 0  !! residual evaluations (all phases)
+        integer :: step_cuts = 0             !! steps that needed cutting
+        integer :: static_iterations = 0     !! Newton iterations of the static start
+        integer :: steps = 0                 !! grid steps completed
+    end type ga_stats
+
+    !> Integration state at one instant.
+    type :: ga_state
+        real(wp), allocatable :: q(:), qd(:), qdd(:), a(:), mu(:)
+    end type ga_state
+
+contains
+
+    !> Coefficients of eq. (6) from the spectral radius rho_inf.
+    pure subroutine ga_coefficients(rho_inf, alpha_m, alpha_f, gamma, beta)
+        real(wp), intent(in) :: rho_inf
+        real(wp), intent(out) :: alpha_m, alpha_f, gamma, beta
+        alpha_m = (2 * rho_inf - 1) / (rho_inf + 1)
+        alpha_f = rho_inf / (rho_inf + 1)
+        gamma = 0.5_wp - alpha_m + alpha_f
+        beta = 0.25_wp * (gamma + 0.5_wp)**2
+    end subroutine ga_coefficients
+
+    !> Mean diagonal of the mass matrix: the scaling k of the initial systems.
+    pure function mass_scale(m) result(sc)
+        type(mbs_model), intent(in) :: m
+        real(wp) :: sc
+        integer :: e, a, cnt
+        sc = 0
+        cnt = 0
+        do e = 1, m%nel
+            do a = 1, 3 * m%el_nen(e)
+                sc = sc + m%el_mass(a, a, e)
+                cnt = cnt + 1
+            end do
+        end do
+        do a = 1, m%ndof
+            if (m%lumped(a) > 0) then
+                sc = sc + m%lumped(a)
+                cnt = cnt + 1
+            end if
+        end do
+        if (cnt > 0) sc = sc / cnt
+        if (.not. (sc > 0)) sc = 1.0_wp
+    end function mass_scale
+
+    !> Mean diagonal of cm M + K_t at q: the automatic k and p of eq. (1).
+    function diagonal_scale(m, q, cm) result(sc)
+        type(mbs_model), intent(in) :: m
+        real(wp), intent(in) :: q(m%ndof), cm
+        real(wp) :: sc, fint(m%ndof)
+        real(wp), allocatable :: vals(:)
+        integer :: e, ne, a, cnt
+        allocate (vals(m%nnz))
+        vals = 0
+        call internal_forces(m, q, fint, vals, 1.0_wp)
+        sc = 0
+        cnt = 0
+        do e = 1, m%nel
+            ne = 3 * m%el_nen(e)
+            do a = 1, ne
+                sc = sc + abs(vals(m%map_el(a, a, e))) + cm * m%el_mass(a, a, e)
+                cnt = cnt + 1
+            end do
+        end do
+        do a = 1, m%ndof
+            if (m%lumped(a) > 0) then
+                sc = sc + cm * m%lumped(a)
+                cnt = cnt + 1
+            end if
+        end do
+        if (cnt > 0) sc = sc / cnt
+        if (.not. (sc > 0)) sc = 1.0_wp
+    end function diagonal_scale
+
+    !> Run a whole simulation: initial state, then nsteps generalized-alpha steps.
+    !!
+    !! Outputs on the grid t_j = j h, j = 0..nsteps (column j+1): the coordinates
+    !! `out_dofs` of q, qd, qdd, and all physical multipliers mu = k lambda.
+    !! info(1:4) on failure: time, scaled residual or increment, iterations, row/extra.
+    subroutine ga_simulate(m, s, ap, ai, q0, qd0, out_dofs, q_out, qd_out, qdd_out, mu_out, &
+                           stats, status, info)
+        type(mbs_model), intent(in) :: m
+        type(ga_settings), intent(in) :: s
+        integer, intent(in) :: ap(:), ai(:)           !! CSC pattern (0-based), KLU only
+        real(wp), intent(in) :: q0(m%ndof), qd0(m%ndof)
+        integer, intent(in) :: out_dofs(:)
+        real(wp), intent(out) :: q_out(:, :), qd_out(:, :), qdd_out(:, :), mu_out(:, :)
+        type(ga_stats), intent(out) :: stats
+        integer, intent(out) :: status
+        real(wp), intent(out) :: info(4)
+        type(linear_system) :: ls
+        type(ga_state) :: x, xsave
+        real(wp), allocatable :: fgrav(:), vals(:)
+        real(wp) :: alpha_m, alpha_f, gamma, beta, kdyn, pdyn, t, hs, fact_h
+        integer :: j, nsub, icut, isub, st
+        logical :: fact_valid
+
+        status = GA_OK
+        info = 0
+        q_out = 0; qd_out = 0; qdd_out = 0; mu_out = 0
+        if (.not. (s%h > 0) .or. s%rho_inf < 0 .or. s%rho_inf > 1 .or. s%nsteps < 0) then
+            status = GA_BAD_INPUT
+            return
+        end if
+        call ga_coefficients(s%rho_inf, alpha_m, alpha_f, gamma, beta)
+
+        allocate (vals(m%nnz), fgrav(m%ndof))
+        if (s%solver == SOLVER_KLU) then
+            call ls_init_sparse(ls, m%n, ap, ai, st)
+            if (st /= LS_OK) then
+                status = GA_LINEAR_SOLVER
+                info(4) = st
+                return
+            end if
+        else
+            call ls_init_dense(ls, m%n)
+        end if
+        allocate (x%q(m%ndof), x%qd(m%ndof), x%qdd(m%ndof), x%a(m%ndof), x%mu(m%nc))
+        x%q = q0
+        x%qd = qd0
+        x%qdd = 0
+        x%mu = 0
+        call mass_times(m, m%gacc, fgrav)
+
+        ! --- initial state -----------------------------------------------------
+        if (s%static_start) then
+            call static_equilibrium(m, s, ls, vals, fgrav, x, stats, status, info)
+            if (status /= GA_OK) goto 900
+        else
+            call check_initial(m, x%q, status, info)
+            if (status /= GA_OK) goto 900
+        end if
+        call initial_rates(m, ls, vals, fgrav, x, stats, status, info)
+        if (status /= GA_OK) goto 900
+        x%a = x%qdd
+        call store(0)
+
+        ! --- time loop ---------------------------------------------------------
+        kdyn = s%kscale
+        if (.not. (kdyn > 0)) kdyn = diagonal_scale(m, x%q, (1 - alpha_m) / (beta * s%h**2 * (1 - alpha_f)))
+        pdyn = s%penalty
+        if (.not. (pdyn > 0)) pdyn = kdyn
+        fact_valid = .false.
+        fact_h = 0
+        xsave = x
+        do j = 1, s%nsteps
+            t = (j - 1) * s%h
+            nsub = 1
+            do icut = 0, s%max_cuts
+                hs = s%h / nsub
+                do isub = 1, nsub
+                    call ga_step(t + (isub - 1) * hs, hs, st)
+                    if (st /= GA_OK) exit
+                end do
+                if (st == GA_OK) exit
+                ! failure: restore the state at t_j and cut the step
+                x = xsave
+                fact_valid = .false.
+                if (icut < s%max_cuts) then
+                    stats%step_cuts = stats%step_cuts + 1
+                    nsub = 2 * nsub
+                end if
+            end do
+            if (st /= GA_OK) then
+                status = st
+                goto 900
+            end if
+            stats%steps = j
+            call store(j)
+            xsave = x
+        end do
+
+900     continue
+        stats%factorizations = stats%factorizations + ls%factorizations
+        call ls_free(ls)
+
+    contains
+
+        subroutine store(jj)
+            integer, intent(in) :: jj
+            q_out(:, jj + 1) = x%q(out_dofs)
+            qd_out(:, jj + 1) = x%qd(out_dofs)
+            qdd_out(:, jj + 1) = x%qdd(out_dofs)
+            if (m%nc > 0) mu_out(:, jj + 1) = x%mu
+        end subroutine store
+
+        !> One generalized-alpha step from tn to tn + hh (eqs. 3–5), Newton on eq. (7).
+        subroutine ga_step(tn, hh, stat)
+            real(wp), intent(in) :: tn, hh
+            integer, intent(out) :: stat
+            real(wp) :: betap, gammap, r(m%n), z(m%n, 1), err, err_prev, phimax, tnew
+            real(wp) :: a_new(m%ndof)
+            integer :: it, lst
+            logical :: refresh
+            betap = (1 - alpha_m) / (beta * hh**2 * (1 - alpha_f))
+            gammap = gamma / (beta * hh)
+            tnew = tn + hh
+            ! predictor with qdd_{n+1} = qdd_n, eqs. (3)-(5)
+            a_new = (x%qdd - alpha_m * x%a) / (1 - alpha_m)
+            x%q = x%q + hh * x%qd + hh**2 * ((0.5_wp - beta) * x%a + beta * a_new)
+            x%qd = x%qd + hh * ((1 - gamma) * x%a + gamma * a_new)
+            ! keep the part of a_{n+1} that does not depend on qdd_{n+1} (eq. 3)
+            x%a = a_new - (1 - alpha_f) / (1 - alpha_m) * x%qdd
+            refresh = .not. s%reuse
+            err_prev = huge(1.0_wp)
+            stat = GA_NEWTON_FAILED
+            do it = 1, s%max_iter
+                call residual(m, x%q, x%qdd, x%mu, tnew, fgrav, 1.0_wp, kdyn, pdyn, r, phimax)
+                stats%residual_evaluations = stats%residual_evaluations + 1
+                if (.not. all(abs(r) <= huge(1.0_wp))) then
+                    stat = GA_NONFINITE
+                    info = [tnew, huge(1.0_wp), real(it, wp), 0.0_wp]
+                    return
+                end if
+                if (refresh .or. .not. fact_valid .or. fact_h /= hh) then
+                    call iteration_matrix(m, x%q, x%mu, tnew, betap, 1.0_wp, kdyn, pdyn, vals)
+                    call ls_factor(ls, vals, lst)
+                    if (lst /= LS_OK) then
+                        fact_valid = .false.
+                        stat = GA_SINGULAR
+                        info = [tnew, maxval(abs(r)), real(it, wp), real(lst, wp)]
+                        return
+                    end if
+                    fact_valid = .true.
+                    fact_h = hh
+                    refresh = .not. s%reuse
+                end if
+                z(:, 1) = -r
+                call ls_solve(ls, z, lst)
+                stats%newton_iterations = stats%newton_iterations + 1
+                if (lst /= LS_OK) then
+                    stat = GA_NONFINITE
+                    info = [tnew, maxval(abs(r)), real(it, wp), real(lst, wp)]
+                    return
+                end if
+                x%q = x%q + z(1:m%ndof, 1)
+                x%qd = x%qd + gammap * z(1:m%ndof, 1)
+                x%qdd = x%qdd + betap * z(1:m%ndof, 1)
+                if (m%nc > 0) x%mu = x%mu + kdyn * z(m%ndof + 1:, 1)
+                err = maxval(abs(z(1:m%ndof, 1))) / m%qscale
+                info = [tnew, err, real(it, wp), phimax]
+                if (err <= s%tol) then
+                    stat = GA_OK
+                    exit
+                end if
+                ! modified Newton: refactor when the contraction is poor
+                if (s%reuse .and. err > 0.25_wp * err_prev) refresh = .true.
+                if (err > 1.0e6_wp .or. .not. (err == err)) exit
+                err_prev = err
+            end do
+            if (stat == GA_OK) then
+                x%a = x%a + (1 - alpha_f) / (1 - alpha_m) * x%qdd
+                info = 0
+            end if
+        end subroutine ga_step
+
+    end subroutine ga_simulate
+
+    !> Rest start: the initial configuration must satisfy the constraints.
+    subroutine check_initial(m, q, status, info)
+        type(mbs_model), intent(in) :: m
+        real(wp), intent(in) :: q(m%ndof)
+        integer, intent(out) :: status
+        real(wp), intent(out) :: info(4)
+        real(wp) :: phi, grad(MAX_CDOF), hess(MAX_CDOF, MAX_CDOF)
+        integer :: i
+        status = GA_OK
+        do i = 1, m%nc
+            call constraint_values(m, i, q, 0.0_wp, phi, grad, hess)
+            if (.not. (abs(phi) <= 1.0e-8_wp * m%qscale)) then
+                status = GA_INCONSISTENT_INITIAL
+                info = [0.0_wp, phi, 0.0_wp, real(i, wp)]
+                return
+            end if
+        end do
+    end subroutine check_initial
+
+    !> Static equilibrium at t = 0: f_int(q) - f_ext(0) + Phi_q^T mu = 0, Phi(q, 0) = 0.
+    !! Full load first; on failure, load stepping in 4, then 16 increments.
+    subroutine static_equilibrium(m, s, ls, vals, fgrav, x, stats, status, info)
+        type(mbs_model), intent(in) :: m
+        type(ga_settings), intent(in) :: s
+        type(linear_system), intent(inout) :: ls
+        real(wp), intent(inout) :: vals(:)
+        real(wp), intent(in) :: fgrav(m%ndof)
+        type(ga_state), intent(inout) :: x
+        type(ga_stats), intent(inout) :: stats
+        integer, intent(out) :: status
+        real(wp), intent(out) :: info(4)
+        real(wp), allocatable :: q_start(:)
+        real(wp) :: r(m%n), z(m%n, 1), ks, ps, err, phimax, lf
+        integer :: nincr, inc, it, lst, attempt
+        logical :: ok
+        ks = s%kscale
+        if (.not. (ks > 0)) ks = diagonal_scale(m, x%q, 0.0_wp)
+        ps = s%penalty
+        if (.not. (ps > 0)) ps = ks
+        q_start = x%q
+        nincr = 1
+        do attempt = 1, 3
+            x%q = q_start
+            x%mu = 0
+            ok = .true.
+            do inc = 1, nincr
+                lf = real(inc, wp) / nincr
+                ok = .false.
+                do it = 1, 4 * s%max_iter
+                    call residual(m, x%q, x%qdd, x%mu, 0.0_wp, fgrav, 0.0_wp, ks, ps, r, phimax, lf)
+                    stats%residual_evaluations = stats%residual_evaluations + 1
+                    if (.not. all(abs(r) <= huge(1.0_wp))) exit
+                    call iteration_matrix(m, x%q, x%mu, 0.0_wp, 0.0_wp, 1.0_wp, ks, ps, vals)
+                    call ls_factor(ls, vals, lst)
+                    if (lst /= LS_OK) then
+                        status = GA_STATIC_FAILED
+                        info = [0.0_wp, maxval(abs(r)), real(it, wp), real(10 + lst, wp)]
+                        return
+                    end if
+                    z(:, 1) = -r
+                    call ls_solve(ls, z, lst)
+                    stats%static_iterations = stats%static_iterations + 1
+                    if (lst /= LS_OK) exit
+                    x%q = x%q + z(1:m%ndof, 1)
+                    if (m%nc > 0) x%mu = x%mu + ks * z(m%ndof + 1:, 1)
+                    err = maxval(abs(z(1:m%ndof, 1))) / m%qscale
+                    info = [0.0_wp, err, real(it, wp), phimax]
+                    if (err <= s%tol) then
+                        ok = .true.
+                        exit
+                    end if
+                    if (.not. (err < 1.0e3_wp)) exit
+                end do
+                if (.not. ok) exit
+            end do
+            if (ok) exit
+            nincr = 4 * nincr
+        end do
+        if (ok) then
+            status = GA_OK
+            info = 0
+        else
+            status = GA_STATIC_FAILED
+        end if
+    end subroutine static_equilibrium
+
+    !> Consistent initial velocities and accelerations (and multipliers) at t = 0:
+    !!   [M  k Phi_q^T; k Phi_q  0] [qd; .]   = [M qd0; -k Phi_t]
+    !!   [M  k Phi_q^T; k Phi_q  0] [qdd; lam] = [f_ext - f_int; -k (Phi_tt + qd^T Phi_qq qd)]
+    !! with mu = k lam. The velocity step is a mass-weighted projection of qd0.
+    subroutine initial_rates(m, ls, vals, fgrav, x, stats, status, info)
+        type(mbs_model), intent(in) :: m
+        type(linear_system), intent(inout) :: ls
+        real(wp), intent(inout) :: vals(:)
+        real(wp), intent(in) :: fgrav(m%ndof)
+        type(ga_state), intent(inout) :: x
+        type(ga_stats), intent(inout) :: stats
+        integer, intent(out) :: status
+        real(wp), intent(out) :: info(4)
+        real(wp) :: z(m%n, 2), fint(m%ndof), fext(m%ndof), k0, phi, grad(MAX_CDOF)
+        real(wp) :: hess(MAX_CDOF, MAX_CDOF), qv(MAX_CDOF), rate, acc
+        real(wp) :: mu0(m%nc)
+        integer :: i, a, b, lst
+        status = GA_OK
+        info = 0
+        k0 = mass_scale(m)
+        mu0 = 0
+        call iteration_matrix(m, x%q, mu0, 0.0_wp, 1.0_wp, 0.0_wp, k0, 0.0_wp, vals)
+        call ls_factor(ls, vals, lst)
+        if (lst /= LS_OK) then
+            status = GA_INITIAL_SINGULAR
+            info(4) = lst
+            return
+        end if
+        ! velocities
+        call mass_times(m, x%qd, z(1:m%ndof, 1))
+        do i = 1, m%nc
+            rate = 0
+            if (m%c_law(i) > 0) rate = m%c_lawcoef(i) * law_rate(m, m%c_law(i))
+            z(m%ndof + i, 1) = k0 * rate          ! -k Phi_t, Phi_t = -lawcoef law'
+        end do
+        call ls_solve(ls, z(:, 1:1), lst)
+        if (lst /= LS_OK) then
+            status = GA_NONFINITE
+            return
+        end if
+        x%qd = z(1:m%ndof, 1)
+        ! accelerations and multipliers
+        call internal_forces(m, x%q, fint)
+        call external_forces(m, fgrav, 0.0_wp, fext)
+        stats%residual_evaluations = stats%residual_evaluations + 1
+        z(1:m%ndof, 2) = fext - fint
+        do i = 1, m%nc
+            call constraint_values(m, i, x%q, 0.0_wp, phi, grad, hess)
+            do a = 1, MAX_CDOF
+                qv(a) = 0
+                if (m%c_dofs(a, i) > 0) qv(a) = x%qd(m%c_dofs(a, i))
+            end do
+            acc = 0
+            if (m%c_law(i) > 0) acc = m%c_lawcoef(i) * law_accel0(m, m%c_law(i))
+            ! Phi_tt = -acc
+            z(m%ndof + i, 2) = -k0 * (-acc)
+            do a = 1, MAX_CDOF
+                do b = 1, MAX_CDOF
+                    z(m%ndof + i, 2) = z(m%ndof + i, 2) - k0 * hess(a, b) * qv(a) * qv(b)
+                end do
+            end do
+        end do
+        call ls_solve(ls, z(:, 2:2), lst)
+        if (lst /= LS_OK) then
+            status = GA_NONFINITE
+            return
+        end if
+        x%qdd = z(1:m%ndof, 2)
+        if (m%nc > 0) x%mu = k0 * z(m%ndof + 1:, 2)
+    end subroutine initial_rates
+
+end module generalized_alpha

@@ -1,0 +1,148 @@
+"""Time laws with analytic first and second derivatives (motors, loads)."""
+from __future__ import annotations
+
+import numpy as np
+
+from flexmbs.errors import ModelError
+
+__all__ = ["TimeLaw", "as_law"]
+
+
+class TimeLaw:
+    """A scalar function of time with its first and second derivatives.
+
+    Parameters
+    ----------
+    value, rate, accel : callables of a numpy array of times
+        theta(t), theta'(t), theta''(t). All are evaluated once, vectorized, on
+        the simulation's time grid before the Fortran loop starts. If `rate` or
+        `accel` is missing it is obtained by central differences (step 1e-6 s);
+        give them analytically where you can.
+    name : str
+        Shown in error messages.
+    """
+
+    def __init__(self, value, rate=None, accel=None, name="law"):
+        if not callable(value):
+            raise ModelError(f"time law {name!r}: value must be callable")
+        self.value = value
+        self.rate = rate
+        self.accel = accel
+        self.name = name
+
+    @classmethod
+    def constant(cls, c, name="constant"):
+        """theta(t) = c."""
+        c = float(c)
+        return cls(lambda t: np.full(np.shape(t), c), lambda t: np.zeros(np.shape(t)),
+                   lambda t: np.zeros(np.shape(t)), name=name)
+
+    @classmethod
+    def samples(cls, t, values, name="samples"):
+        """A law through sampled values (cubic spline, not-a-knot)."""
+        from scipy.interpolate import CubicSpline
+        spline = CubicSpline(np.asarray(t, float), np.asarray(values, float))
+        return cls(spline, spline.derivative(1), spline.derivative(2), name=name)
+
+    def _eval(self, f, t, what):
+        out = np.asarray(f(np.asarray(t, float)), dtype=float)
+        out = np.broadcast_to(out, np.shape(t)).astype(float)
+        if not np.all(np.isfinite(out)):
+            bad = np.asarray(t)[~np.isfinite(out)].ravel()
+            raise ModelError(f"time law {self.name!r}: {what} is not finite at t = {bad[0]:.6g} s")
+        return out
+
+    def tabulate(self, t):
+        """(theta, theta') on the grid t and theta''(t[0])."""
+        t = np.asarray(t, float)
+        v = self._eval(self.value, t, "value")
+        if self.rate is not None:
+            d = self._eval(self.rate, t, "rate")
+        else:
+            e = 1e-6
+            d = (self._eval(self.value, t + e, "value") - self._eval(self.value, t - e, "value")) / (2 * e)
+        t0 = t[:1]
+        if self.accel is not None:
+            dd0 = self._eval(self.accel, t0, "acceleration")[0]
+        else:
+            e = 1e-4
+            dd0 = ((self._eval(self.value, t0 + e, "value") - 2 * self._eval(self.value, t0, "value")
+                    + self._eval(self.value, t0 - e, "value")) / e ** 2)[0]
+        return v, d, dd0
+
+
+def as_law(obj, name="law"):
+    """A TimeLaw from a TimeLaw, a number (constant) or a callable."""
+    if isinstance(obj, TimeLaw):
+        return obj
+    if obj is None:
+        return None
+    if np.isscalar(obj):
+        return TimeLaw.constant(obj, name=name)
+    if callable(obj):
+        return TimeLaw(obj, name=name)
+    raise ModelError(f"{name}: expected a TimeLaw, a number or a callable, got {type(obj).__name__}")
+
+
+def planar_2r_inverse(x, y, xd, yd, xdd, ydd, l1, l2, elbow=-1.0):
+    """Inverse kinematics of a planar 2R arm with first and second derivatives.
+
+    Returns (theta1, theta2, dtheta1, dtheta2, ddtheta1, ddtheta2) arrays; theta1 is
+    the first link's angle w.r.t. the ground, theta2 the second's w.r.t. the first;
+    elbow = -1 takes the branch theta2 < 0. Rates from J dtheta = dp and
+    accelerations from J ddtheta = ddp - dJ dtheta (J of eq. 36).
+    """
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    c2 = (x * x + y * y - l1 * l1 - l2 * l2) / (2 * l1 * l2)
+    if np.any(np.abs(c2) > 1 + 1e-12):
+        raise ModelError("2R inverse kinematics: target out of reach")
+    th2 = elbow * np.arccos(np.clip(c2, -1.0, 1.0))
+    th1 = np.arctan2(y, x) - np.arctan2(l2 * np.sin(th2), l1 + l2 * np.cos(th2))
+    s1, c1 = np.sin(th1), np.cos(th1)
+    s12, c12 = np.sin(th1 + th2), np.cos(th1 + th2)
+    j11, j12 = -l1 * s1 - l2 * s12, -l2 * s12
+    j21, j22 = l1 * c1 + l2 * c12, l2 * c12
+    det = j11 * j22 - j12 * j21
+    d1 = (j22 * xd - j12 * yd) / det
+    d2 = (-j21 * xd + j11 * yd) / det
+    # dJ dtheta
+    w1, w12 = d1, d1 + d2
+    bx = -l1 * c1 * w1 * w1 - l2 * c12 * w12 * w12
+    by = -l1 * s1 * w1 * w1 - l2 * s12 * w12 * w12
+    rx, ry = xdd - bx, ydd - by
+    dd1 = (j22 * rx - j12 * ry) / det
+    dd2 = (-j21 * rx + j11 * ry) / det
+    return th1, th2, d1, d2, dd1, dd2
+
+
+def robot_tip_path(t, x0, y0, period=0.5, stroke=0.5):
+    """The paper's eq. (26): x = x0 + D(t), y = y0 + D(t),
+    D(t) = (stroke/T)(t - T/(2 pi) sin(2 pi t/T)); returns (x, y, xd, yd, xdd, ydd)."""
+    t = np.asarray(t, float)
+    w = 2 * np.pi / period
+    d = stroke / period * (t - np.sin(w * t) / w)
+    dd = stroke / period * (1 - np.cos(w * t))
+    ddd = stroke / period * w * np.sin(w * t)
+    return x0 + d, y0 + d, dd, dd, ddd, ddd
+
+
+def robot_joint_laws(l1=0.6, l2=0.6, theta1_0=np.radians(120.0), theta2_0=np.radians(-150.0),
+                     period=0.5, stroke=0.5):
+    """TimeLaws theta1(t) (arm 1 w.r.t. ground), theta2(t) (arm 2 w.r.t. arm 1) and
+    theta1 + theta2 (arm 2 w.r.t. ground) that move the 2R robot's tip along eq. (26)."""
+    x0 = l1 * np.cos(theta1_0) + l2 * np.cos(theta1_0 + theta2_0)
+    y0 = l1 * np.sin(theta1_0) + l2 * np.sin(theta1_0 + theta2_0)
+    elbow = -1.0 if np.sin(theta2_0) < 0 else 1.0
+
+    def joints(t):
+        return planar_2r_inverse(*robot_tip_path(t, x0, y0, period, stroke), l1, l2, elbow)
+
+    def pick(i, j=None):
+        if j is None:
+            return lambda t: joints(t)[i]
+        return lambda t: joints(t)[i] + joints(t)[j]
+
+    th1 = TimeLaw(pick(0), pick(2), pick(4), name="theta1")
+    th2 = TimeLaw(pick(1), pick(3), pick(5), name="theta2")
+    th12 = TimeLaw(pick(0, 1), pick(2, 3), pick(4, 5), name="theta1+theta2")
+    return th1, th2, th12

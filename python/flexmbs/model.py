@@ -1,0 +1,493 @@
+"""Building a planar mechanism: nodes, beams, masses, joints, motors, loads.
+
+Absolute nodal coordinates (x, y, phi) in the inertial frame, three per node;
+every body has its own nodes, never shared with another body (paper 3.3);
+joints connect nodes by constraints (eq. 1). A model compiles, once per
+structure, into the flat arrays of the Fortran core; a change of section
+(a new design) only refreshes the element properties.
+
+Example
+-------
+>>> import numpy as np
+>>> from flexmbs import Model, Material, Circle, TimeLaw, simulate
+>>> steel = Material(E=210e9, nu=0.3, rho=7800)
+>>> m = Model()
+>>> arm = m.add_beam("arm", start=(0, 0), end=(1, 0), elements=4, material=steel,
+...                  section=Circle(0.02))
+>>> m.pin(arm.first)
+>>> m.drive_rotation(arm.first, TimeLaw(lambda t: 0.5 * t**2, lambda t: t, lambda t: 1 + 0 * t))
+>>> m.set_gravity(0, -9.81)
+>>> r = simulate(m, t_end=0.1, h=1e-3)
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from flexmbs.errors import ModelError
+from flexmbs.laws import TimeLaw, as_law
+from flexmbs.sections import Material, Section, section_properties
+
+__all__ = ["Model", "Body", "CompiledModel"]
+
+CON_LINEAR, CON_RIGID_X, CON_RIGID_Y = 1, 2, 3
+MAX_EDOF, MAX_CDOF = 9, 4
+
+
+@dataclass
+class Body:
+    """A named group of nodes: a beam, a rigid body or a point."""
+    name: str
+    kind: str
+    nodes: list
+    elements: list = field(default_factory=list)
+    material: Material | None = None
+    section: Section | None = None
+
+    @property
+    def first(self):
+        """Id of the body's first node (a beam's root)."""
+        return self.nodes[0]
+
+    @property
+    def last(self):
+        """Id of the body's last node (a beam's free end)."""
+        return self.nodes[-1]
+
+    @property
+    def dofs(self):
+        """The body's coordinates (0-based), node by node: x, y, phi."""
+        return np.array([[3 * n, 3 * n + 1, 3 * n + 2] for n in self.nodes]).ravel()
+
+
+@dataclass
+class _Row:
+    kind: int
+    dofs: list
+    coef: list
+    c0: float
+    law: int  # 1-based law index, 0 = none
+    lawcoef: float
+    label: str
+
+
+@dataclass
+class CompiledModel:
+    """Flat arrays of a model for the Fortran core (see fortran/model_data.f90)."""
+    ndof: int
+    nc: int
+    n: int
+    qref: np.ndarray
+    lumped: np.ndarray
+    gacc: np.ndarray
+    el_nen: np.ndarray
+    el_dofs: np.ndarray
+    el_len: np.ndarray
+    ld_dof: np.ndarray
+    ld_law: np.ndarray
+    ld_amp: np.ndarray
+    c_kind: np.ndarray
+    c_dofs: np.ndarray
+    c_coef: np.ndarray
+    c_c0: np.ndarray
+    c_law: np.ndarray
+    c_lawcoef: np.ndarray
+    nel: int
+    nload: int
+    row_labels: list
+    patterns: dict  # 'dense' / 'klu' -> maps
+
+
+class Model:
+    """A planar flexible mechanism. See the module docstring for an example."""
+
+    def __init__(self, name="model"):
+        self.name = name
+        self._nodes = []            # reference (x, y, phi)
+        self.bodies = {}
+        self._elements = []         # (node ids, length, body name)
+        self._lumped = {}           # dof -> mass
+        self._rows = []
+        self._laws = []
+        self._loads = []            # (dof, amp, law index)
+        self._gravity = (0.0, 0.0)
+        self._compiled = None
+
+    # ------------------------------------------------------------------ nodes
+    @property
+    def nnodes(self):
+        return len(self._nodes)
+
+    @property
+    def ndof(self):
+        return 3 * len(self._nodes)
+
+    def _changed(self):
+        self._compiled = None
+
+    def add_node(self, x, y, phi=0.0):
+        """A new node at (x, y) with cross-section rotation phi (rad); returns its id."""
+        vals = [float(x), float(y), float(phi)]
+        if not all(math.isfinite(v) for v in vals):
+            raise ModelError(f"node coordinates must be finite, got ({x}, {y}, {phi})")
+        self._nodes.append(vals)
+        self._changed()
+        return len(self._nodes) - 1
+
+    def _check_node(self, node, what="node"):
+        if isinstance(node, (bool, np.bool_)) or not isinstance(node, (int, np.integer)):
+            raise ModelError(f"{what}: expected a node id (int), got {node!r}")
+        if not 0 <= node < len(self._nodes):
+            raise ModelError(f"{what}: unknown node {node} (the model has {len(self._nodes)} nodes)")
+        return int(node)
+
+    def body(self, name):
+        """The body called `name`."""
+        try:
+            return self.bodies[name]
+        except KeyError:
+            raise ModelError(f"unknown body {name!r}; bodies are {sorted(self.bodies)}") from None
+
+    def node_position(self, node):
+        """Reference position (x, y) of a node."""
+        node = self._check_node(node)
+        return np.array(self._nodes[node][:2])
+
+    def _new_body(self, name, kind, nodes):
+        if not isinstance(name, str) or not name:
+            raise ModelError(f"body name must be a non-empty string, got {name!r}")
+        if name in self.bodies:
+            raise ModelError(f"a body called {name!r} already exists")
+        b = Body(name, kind, nodes)
+        self.bodies[name] = b
+        return b
+
+    # ------------------------------------------------------------------ bodies
+    def add_beam(self, name, start, end, elements=2, *, material=None, section=None, order=2):
+        """A straight beam from `start` to `end` with `elements` elements.
+
+        order=2: 3-node quadratic elements (accurate with 2 per arm, the default);
+        order=1: 2-node linear elements. Returns the Body (its nodes run from start to end).
+        """
+        if not isinstance(section, Section):
+            raise ModelError(f"beam {name!r}: section must be a flexmbs Section, got {section!r}")
+        if material is not None and not isinstance(material, Material):
+            raise ModelError(f"beam {name!r}: material must be a flexmbs Material")
+        section_properties(section, material)   # validates the pair
+        if order not in (1, 2):
+            raise ModelError(f"beam {name!r}: order must be 1 or 2, got {order!r}")
+        if not isinstance(elements, (int, np.integer)) or elements < 1:
+            raise ModelError(f"beam {name!r}: elements must be a positive integer, got {elements!r}")
+        p0 = np.asarray(start, float)
+        p1 = np.asarray(end, float)
+        if p0.shape != (2,) or p1.shape != (2,) or not np.all(np.isfinite(np.r_[p0, p1])):
+            raise ModelError(f"beam {name!r}: start and end must be finite (x, y) pairs")
+        length = float(np.hypot(*(p1 - p0)))
+        if length <= 0:
+            raise ModelError(f"beam {name!r}: start and end coincide")
+        phi = math.atan2(p1[1] - p0[1], p1[0] - p0[0])
+        npts = elements * order + 1
+        body = self._new_body(name, "beam", [])
+        for k in range(npts):
+            x, y = p0 + (p1 - p0) * k / (npts - 1)
+            body.nodes.append(self.add_node(x, y, phi))
+        for e in range(elements):
+            ids = tuple(body.nodes[e * order:e * order + order + 1])
+            body.elements.append(len(self._elements))
+            self._elements.append((ids, length / elements, name))
+        body.material = material
+        body.section = section
+        self._changed()
+        return body
+
+    def set_section(self, body, section):
+        """Change the section of a beam (all its elements): a new design, same structure."""
+        b = self.body(body) if isinstance(body, str) else body
+        if b.kind != "beam":
+            raise ModelError(f"body {b.name!r} is not a beam")
+        section_properties(section, b.material)
+        b.section = section
+
+    def set_element_sections(self, body, sections):
+        """Give each element of a beam its own section (list, root element first)."""
+        b = self.body(body) if isinstance(body, str) else body
+        if len(sections) != len(b.elements):
+            raise ModelError(f"beam {b.name!r} has {len(b.elements)} elements, got {len(sections)} sections")
+        for s in sections:
+            section_properties(s, b.material)
+        b.section = list(sections)
+
+    def element_sections(self, body):
+        """The section of each element of a beam."""
+        b = self.body(body) if isinstance(body, str) else body
+        if isinstance(b.section, list):
+            return list(b.section)
+        return [b.section] * len(b.elements)
+
+    def add_point_mass(self, node, mass, inertia=0.0):
+        """A point mass (kg) with optional rotary inertia (kg m^2) at a node."""
+        node = self._check_node(node)
+        for what, v in (("mass", mass), ("inertia", inertia)):
+            if not (math.isfinite(float(v)) and float(v) >= 0):
+                raise ModelError(f"point mass at node {node}: {what} must be >= 0, got {v!r}")
+        self._lumped[3 * node] = self._lumped.get(3 * node, 0.0) + float(mass)
+        self._lumped[3 * node + 1] = self._lumped.get(3 * node + 1, 0.0) + float(mass)
+        self._lumped[3 * node + 2] = self._lumped.get(3 * node + 2, 0.0) + float(inertia)
+        self._changed()
+
+    def add_rigid_body(self, name, nodes, mass, inertia, center=None):
+        """A rigid body holding `nodes` at fixed distances and relative angles.
+
+        A new node at `center` (default: the nodes' centroid) carries the mass (kg)
+        and the inertia about it (kg m^2); each listed node is tied to it by a rigid
+        link. Returns the Body (its first node is the centre).
+        """
+        ids = [self._check_node(n, f"rigid body {name!r}") for n in nodes]
+        if not ids:
+            raise ModelError(f"rigid body {name!r}: needs at least one node")
+        pts = np.array([self._nodes[i][:2] for i in ids])
+        c = pts.mean(axis=0) if center is None else np.asarray(center, float)
+        cid = self.add_node(c[0], c[1], 0.0)
+        self.add_point_mass(cid, mass, inertia)
+        body = self._new_body(name, "rigid", [cid] + ids)
+        for i in ids:
+            self.rigid_link(cid, i)
+        return body
+
+    # ------------------------------------------------------------------ constraints
+    def _law(self, law, name):
+        law = as_law(law, name)
+        self._laws.append(law)
+        return len(self._laws)
+
+    def _row(self, kind, dofs, coef, c0=0.0, law=0, lawcoef=0.0, label=""):
+        self._rows.append(_Row(kind, list(dofs), list(coef), float(c0), int(law), float(lawcoef), label))
+        self._changed()
+
+    def clamp(self, node):
+        """Clamp a node to the ground at its reference position and rotation."""
+        node = self._check_node(node, "clamp")
+        x, y, phi = self._nodes[node]
+        for k, v, lab in ((0, x, "x"), (1, y, "y"), (2, phi, "phi")):
+            self._row(CON_LINEAR, [3 * node + k], [1.0], v, label=f"clamp node {node} {lab}")
+
+    def pin(self, node):
+        """Pin a node to the ground at its reference position (rotation free)."""
+        node = self._check_node(node, "pin")
+        x, y, _ = self._nodes[node]
+        self._row(CON_LINEAR, [3 * node], [1.0], x, label=f"pin node {node} x")
+        self._row(CON_LINEAR, [3 * node + 1], [1.0], y, label=f"pin node {node} y")
+
+    def hinge(self, node_a, node_b):
+        """A hinge (pin joint) between two nodes of different bodies at the same point."""
+        a = self._check_node(node_a, "hinge")
+        b = self._check_node(node_b, "hinge")
+        if a == b:
+            raise ModelError(f"hinge: both nodes are node {a}")
+        gap = math.dist(self._nodes[a][:2], self._nodes[b][:2])
+        scale = max(1.0, max(abs(v) for n in self._nodes for v in n[:2]))
+        if gap > 1e-9 * scale:
+            raise ModelError(f"hinge between nodes {a} and {b}: they are {gap:.3g} m apart")
+        for k, lab in ((0, "x"), (1, "y")):
+            self._row(CON_LINEAR, [3 * a + k, 3 * b + k], [1.0, -1.0], 0.0, label=f"hinge {a}-{b} {lab}")
+
+    def drive_rotation(self, node, law, relative_to=None):
+        """A motor: prescribe the rotation of `node`.
+
+        Absolute (default): phi_node(t) = law(t), the angle w.r.t. the ground.
+        Relative: phi_node(t) - phi_other(t) = law(t) with other = `relative_to`.
+        `law` is a TimeLaw (analytic rate and acceleration), a callable or a number.
+        """
+        node = self._check_node(node, "drive_rotation")
+        li = self._law(law, f"motor at node {node}")
+        if relative_to is None:
+            self._row(CON_LINEAR, [3 * node + 2], [1.0], 0.0, li, 1.0, label=f"motor node {node}")
+        else:
+            other = self._check_node(relative_to, "drive_rotation relative_to")
+            self._row(CON_LINEAR, [3 * node + 2, 3 * other + 2], [1.0, -1.0], 0.0, li, 1.0,
+                      label=f"motor node {node} relative to node {other}")
+
+    def prescribe_position(self, node, x=None, y=None):
+        """Prescribe x(t) and/or y(t) of a node (laws, callables or numbers)."""
+        node = self._check_node(node, "prescribe_position")
+        for k, law, lab in ((0, x, "x"), (1, y, "y")):
+            if law is None:
+                continue
+            li = self._law(law, f"position {lab} of node {node}")
+            self._row(CON_LINEAR, [3 * node + k], [1.0], 0.0, li, 1.0, label=f"position node {node} {lab}")
+
+    def rigid_link(self, node_i, node_j):
+        """Hold node j at its reference offset and relative angle in the frame of node i."""
+        i = self._check_node(node_i, "rigid_link")
+        j = self._check_node(node_j, "rigid_link")
+        xi, yi, pi = self._nodes[i]
+        xj, yj, pj = self._nodes[j]
+        c, s = math.cos(pi), math.sin(pi)
+        dx = c * (xj - xi) + s * (yj - yi)
+        dy = -s * (xj - xi) + c * (yj - yi)
+        self._row(CON_RIGID_X, [3 * i, 3 * j, 3 * i + 2], [dx, dy], 0.0, label=f"rigid link {i}-{j} x")
+        self._row(CON_RIGID_Y, [3 * i + 1, 3 * j + 1, 3 * i + 2], [dx, dy], 0.0, label=f"rigid link {i}-{j} y")
+        self._row(CON_LINEAR, [3 * j + 2, 3 * i + 2], [1.0, -1.0], pj - pi, label=f"rigid link {i}-{j} angle")
+
+    # ------------------------------------------------------------------ loads
+    def set_gravity(self, gx, gy):
+        """Uniform gravity acceleration (m/s^2), any direction; acts on beams and masses."""
+        g = (float(gx), float(gy))
+        if not all(math.isfinite(v) for v in g):
+            raise ModelError(f"gravity must be finite, got {g}")
+        self._gravity = g
+
+    def add_load(self, node, fx=0.0, fy=0.0, moment=0.0, law=None):
+        """Nodal force (N) and moment (N m), multiplied by law(t) if given (constant otherwise)."""
+        node = self._check_node(node, "add_load")
+        li = self._law(law, f"load at node {node}") if law is not None else 0
+        for k, v in ((0, fx), (1, fy), (2, moment)):
+            v = float(v)
+            if not math.isfinite(v):
+                raise ModelError(f"load at node {node}: components must be finite")
+            if v != 0.0:
+                self._loads.append((3 * node + k, v, li))
+        self._changed()
+
+    # ------------------------------------------------------------------ compile
+    def reference_coordinates(self):
+        """q of the reference (undeformed) configuration."""
+        return np.array(self._nodes, dtype=float).ravel()
+
+    def element_properties(self):
+        """(5, nel) array [EA, kGA, EI, rhoA, rhoI] of every element for the current sections."""
+        props = np.zeros((5, max(len(self._elements), 1)))
+        for b in self.bodies.values():
+            if b.kind != "beam":
+                continue
+            for e, sec in zip(b.elements, self.element_sections(b)):
+                props[:, e] = section_properties(sec, b.material)
+        return props
+
+    def compile(self):
+        """Flat arrays and sparsity patterns (cached until the structure changes)."""
+        if self._compiled is not None:
+            return self._compiled
+        if not self._nodes:
+            raise ModelError("the model has no nodes")
+        ndof = self.ndof
+        nc = len(self._rows)
+        n = ndof + nc
+        nel = len(self._elements)
+        nela = max(nel, 1)
+        el_nen = np.full(nela, 2, np.int32)
+        el_dofs = np.ones((MAX_EDOF, nela), np.int32, order="F")
+        el_len = np.ones(nela)
+        for e, (ids, length, _) in enumerate(self._elements):
+            el_nen[e] = len(ids)
+            d = np.array([[3 * i, 3 * i + 1, 3 * i + 2] for i in ids]).ravel()
+            el_dofs[:len(d), e] = d + 1
+            el_len[e] = length
+        lumped = np.zeros(ndof)
+        for d, mval in self._lumped.items():
+            lumped[d] = mval
+        gacc = np.zeros(ndof)
+        gacc[0::3], gacc[1::3] = self._gravity
+        nca = max(nc, 1)
+        c_kind = np.ones(nca, np.int32)
+        c_dofs = np.zeros((MAX_CDOF, nca), np.int32, order="F")
+        c_coef = np.zeros((MAX_CDOF, nca), order="F")
+        c_c0 = np.zeros(nca)
+        c_law = np.zeros(nca, np.int32)
+        c_lawcoef = np.zeros(nca)
+        for r, row in enumerate(self._rows):
+            c_kind[r] = row.kind
+            c_dofs[:len(row.dofs), r] = np.array(row.dofs) + 1
+            c_coef[:len(row.coef), r] = row.coef
+            c_c0[r] = row.c0
+            c_law[r] = row.law
+            c_lawcoef[r] = row.lawcoef
+        nlda = max(len(self._loads), 1)
+        ld_dof = np.ones(nlda, np.int32)
+        ld_law = np.zeros(nlda, np.int32)
+        ld_amp = np.zeros(nlda)
+        for k, (d, amp, li) in enumerate(self._loads):
+            ld_dof[k], ld_amp[k], ld_law[k] = d + 1, amp, li
+        cm = CompiledModel(ndof=ndof, nc=nc, n=n, qref=self.reference_coordinates(), lumped=lumped,
+                           gacc=gacc, el_nen=el_nen, el_dofs=el_dofs, el_len=el_len,
+                           ld_dof=ld_dof, ld_law=ld_law, ld_amp=ld_amp, c_kind=c_kind,
+                           c_dofs=c_dofs, c_coef=c_coef, c_c0=c_c0, c_law=c_law,
+                           c_lawcoef=c_lawcoef, nel=nel, nload=len(self._loads),
+                           row_labels=[r.label for r in self._rows], patterns={})
+        self._compiled = cm
+        return cm
+
+    def pattern(self, kind):
+        """Value positions of the iteration matrix: kind 'dense' or 'klu' (cached)."""
+        cm = self.compile()
+        if kind in cm.patterns:
+            return cm.patterns[kind]
+        n, ndof, nc = cm.n, cm.ndof, cm.nc
+        nela = cm.el_dofs.shape[1]
+        nca = cm.c_dofs.shape[1]
+        rows, cols = [], []
+        # element blocks
+        ed = cm.el_dofs.astype(np.int64) - 1                  # (9, nela)
+        valid = np.arange(MAX_EDOF)[:, None] < 3 * cm.el_nen[None, :]
+        ed = np.where(valid, ed, 0)
+        er = np.repeat(ed[:, None, :], MAX_EDOF, axis=1)      # (a, b, e) -> row dof a
+        ec = np.repeat(ed[None, :, :], MAX_EDOF, axis=0)      # (a, b, e) -> col dof b
+        rows.append(er.ravel())
+        cols.append(ec.ravel())
+        # diagonal
+        rows.append(np.arange(ndof))
+        cols.append(np.arange(ndof))
+        # constraints
+        cd = cm.c_dofs.astype(np.int64) - 1                   # (4, nca)
+        cvalid = cd >= 0
+        cd0 = np.where(cvalid, cd, 0)
+        rr = ndof + np.arange(nca)[None, :].repeat(MAX_CDOF, 0)
+        rr = np.where(cvalid, rr, 0) if nc > 0 else np.zeros_like(cd0)
+        if nc > 0:
+            rows += [rr.ravel(), cd0.ravel()]
+            cols += [cd0.ravel(), rr.ravel()]
+            qa = np.repeat(cd0[:, None, :], MAX_CDOF, axis=1)
+            qb = np.repeat(cd0[None, :, :], MAX_CDOF, axis=0)
+            rows.append(qa.ravel())
+            cols.append(qb.ravel())
+        r_all = np.concatenate(rows)
+        c_all = np.concatenate(cols)
+        if kind == "dense":
+            def pos(r, c):
+                return (np.asarray(c, np.int64) * n + np.asarray(r, np.int64) + 1)
+            ap = np.zeros(1, np.int32)
+            ai = np.zeros(1, np.int32)
+            nnz = n * n
+        elif kind == "klu":
+            keys = np.unique(c_all * n + r_all)
+            ccol = keys // n
+            ap = np.searchsorted(ccol, np.arange(n + 1)).astype(np.int32)
+            ai = (keys % n).astype(np.int32)
+            nnz = int(keys.size)
+
+            def pos(r, c):
+                return np.searchsorted(keys, np.asarray(c, np.int64) * n + np.asarray(r, np.int64)) + 1
+        else:
+            raise ModelError(f"unknown matrix storage {kind!r}: use 'dense' or 'klu'")
+        # Fortran reads map_el(:, e) as a 9 x 9 array, row index fastest
+        map_el = np.asfortranarray(np.transpose(pos(er, ec), (1, 0, 2)).reshape(MAX_EDOF * MAX_EDOF, nela))
+        map_diag = pos(np.arange(ndof), np.arange(ndof)).astype(np.int32)
+        map_cq = np.asfortranarray(pos(rr, cd0).astype(np.int32))
+        map_qc = np.asfortranarray(pos(cd0, rr).astype(np.int32))
+        qa = np.repeat(cd0[:, None, :], MAX_CDOF, axis=1)
+        qb = np.repeat(cd0[None, :, :], MAX_CDOF, axis=0)
+        map_qq = np.asfortranarray(np.transpose(pos(qa, qb), (1, 0, 2)).reshape(MAX_CDOF * MAX_CDOF, nca))
+        pat = dict(nnz=nnz, ap=ap, ai=ai, map_el=map_el.astype(np.int32), map_diag=map_diag,
+                   map_cq=map_cq, map_qc=map_qc, map_qq=map_qq.astype(np.int32))
+        cm.patterns[kind] = pat
+        return pat
+
+    def laws(self):
+        """The model's time laws (index k+1 in the compiled arrays)."""
+        return list(self._laws)
+
+    def row_label(self, r):
+        """Description of constraint row r (0-based), for messages."""
+        return self._rows[r].label if 0 <= r < len(self._rows) else f"row {r}"

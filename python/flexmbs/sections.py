@@ -1,0 +1,197 @@
+"""Materials and cross sections: EA, kGA, EI, rhoA, rhoI and their derivatives.
+
+Shear correction factors are Cowper's (J. Appl. Mech. 33, 1966): solid circle
+6(1+nu)/(7+6nu), hollow circle 6(1+nu)(1+m^2)^2/((7+6nu)(1+m^2)^2+(20+12nu)m^2)
+with m = inner/outer diameter, rectangle 10(1+nu)/(12+11nu).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from flexmbs.errors import ModelError
+
+__all__ = ["Material", "Section", "Circle", "Tube", "Rectangle", "GivenSection",
+           "section_properties"]
+
+
+def _positive(name, value):
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ModelError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(v) or v <= 0:
+        raise ModelError(f"{name} must be positive and finite, got {value!r}")
+    return v
+
+
+@dataclass(frozen=True)
+class Material:
+    """Linear elastic isotropic material (SI units).
+
+    Parameters
+    ----------
+    E : Young's modulus (Pa).  nu : Poisson's ratio.  rho : density (kg/m^3).
+    """
+    E: float
+    nu: float
+    rho: float
+
+    def __post_init__(self):
+        _positive("Material.E", self.E)
+        _positive("Material.rho", self.rho)
+        if not (-1.0 < float(self.nu) < 0.5):
+            raise ModelError(f"Material.nu must lie in (-1, 0.5), got {self.nu!r}")
+
+    @property
+    def G(self):
+        """Shear modulus E / (2 (1 + nu))."""
+        return self.E / (2.0 * (1.0 + self.nu))
+
+
+class Section:
+    """A cross section; `properties(material)` gives EA, kGA, EI, rhoA, rhoI."""
+
+    #: names of the section's size parameters (design variables may refer to them)
+    parameters: tuple = ()
+
+    def area_inertia_shear(self, nu):
+        """Return (A, I, k) and their derivatives d/dparam, arrays of shape (nparam,)."""
+        raise NotImplementedError
+
+    def properties(self, material: Material):
+        """Stiffness and inertia per unit length: array [EA, kGA, EI, rhoA, rhoI]."""
+        a, i, k, _, _, _ = self.area_inertia_shear(material.nu)
+        return np.array([material.E * a, k * material.G * a, material.E * i,
+                         material.rho * a, material.rho * i])
+
+    def property_derivatives(self, material: Material):
+        """d[EA, kGA, EI, rhoA, rhoI]/d(param), shape (5, nparam)."""
+        a, i, k, da, di, dk = self.area_inertia_shear(material.nu)
+        E, G, rho = material.E, material.G, material.rho
+        return np.array([E * da, G * (dk * a + k * da), E * di, rho * da, rho * di])
+
+
+@dataclass(frozen=True)
+class Circle(Section):
+    """Solid circle of diameter d (m)."""
+    d: float
+    parameters = ("d",)
+
+    def __post_init__(self):
+        _positive("Circle diameter d", self.d)
+
+    def area_inertia_shear(self, nu):
+        d = self.d
+        k = 6 * (1 + nu) / (7 + 6 * nu)
+        a = math.pi / 4 * d * d
+        i = math.pi / 64 * d ** 4
+        return a, i, k, np.array([math.pi / 2 * d]), np.array([math.pi / 16 * d ** 3]), np.zeros(1)
+
+
+@dataclass(frozen=True)
+class Tube(Section):
+    """Hollow circle: outer diameter d (m) and wall thickness t (m), 0 < t <= d/2.
+
+    `Tube.with_wall_ratio(d, 0.1)` gives the paper's robot tube (t = 0.1 d); its
+    single parameter is then d, with the wall following it.
+    """
+    d: float
+    t: float
+    wall_ratio: float | None = None
+
+    def __post_init__(self):
+        _positive("Tube outer diameter d", self.d)
+        _positive("Tube wall thickness t", self.t)
+        if self.t > 0.5 * self.d:
+            raise ModelError(f"Tube wall thickness t = {self.t} is larger than the radius {0.5 * self.d}")
+
+    @property
+    def parameters(self):
+        return ("d",) if self.wall_ratio is not None else ("d", "t")
+
+    @classmethod
+    def with_wall_ratio(cls, d, ratio):
+        """Tube whose wall is `ratio` times the outer diameter."""
+        _positive("Tube outer diameter d", d)
+        if not (0 < ratio <= 0.5):
+            raise ModelError(f"Tube wall ratio must lie in (0, 0.5], got {ratio!r}")
+        return cls(d=d, t=ratio * d, wall_ratio=ratio)
+
+    def area_inertia_shear(self, nu):
+        d, t = self.d, self.t
+        di = d - 2 * t
+        m = di / d
+        a = math.pi / 4 * (d * d - di * di)
+        i = math.pi / 64 * (d ** 4 - di ** 4)
+        s = (1 + m * m) ** 2
+        num = 6 * (1 + nu) * s
+        den = (7 + 6 * nu) * s + (20 + 12 * nu) * m * m
+        k = num / den
+        # derivatives with respect to (d, t) at fixed t / fixed d
+        dm_dd = 2 * t / d ** 2
+        dm_dt = -2 / d
+        ds_dm = 4 * m * (1 + m * m)
+        dk_dm = (6 * (1 + nu) * ds_dm * den - num * ((7 + 6 * nu) * ds_dm + 2 * (20 + 12 * nu) * m)) / den ** 2
+        da = np.array([math.pi / 2 * (d - di), math.pi * di])
+        dI = np.array([math.pi / 16 * (d ** 3 - di ** 3), math.pi / 8 * di ** 3])
+        dk = np.array([dk_dm * dm_dd, dk_dm * dm_dt])
+        if self.wall_ratio is not None:
+            # t = ratio d: total derivative along d (m is then constant, dk = 0)
+            r = self.wall_ratio
+            da = np.array([da[0] + r * da[1]])
+            dI = np.array([dI[0] + r * dI[1]])
+            dk = np.array([dk[0] + r * dk[1]])
+        return a, i, k, da, dI, dk
+
+
+@dataclass(frozen=True)
+class Rectangle(Section):
+    """Solid rectangle: width b (out of plane) and height h (in the plane of bending), m."""
+    b: float
+    h: float
+    parameters = ("b", "h")
+
+    def __post_init__(self):
+        _positive("Rectangle width b", self.b)
+        _positive("Rectangle height h", self.h)
+
+    def area_inertia_shear(self, nu):
+        b, h = self.b, self.h
+        k = 10 * (1 + nu) / (12 + 11 * nu)
+        return (b * h, b * h ** 3 / 12, k, np.array([h, b]), np.array([h ** 3 / 12, b * h * h / 4]),
+                np.zeros(2))
+
+
+@dataclass(frozen=True)
+class GivenSection(Section):
+    """Section given by its values per unit length: EA, kGA, EI (N, N, N m^2), rhoA (kg/m), rhoI (kg m)."""
+    EA: float
+    kGA: float
+    EI: float
+    rhoA: float
+    rhoI: float = 0.0
+    parameters = ()
+
+    def __post_init__(self):
+        for name in ("EA", "kGA", "EI", "rhoA"):
+            _positive(f"GivenSection.{name}", getattr(self, name))
+        if not (math.isfinite(self.rhoI) and self.rhoI >= 0):
+            raise ModelError(f"GivenSection.rhoI must be >= 0, got {self.rhoI!r}")
+
+    def properties(self, material=None):
+        return np.array([self.EA, self.kGA, self.EI, self.rhoA, self.rhoI], dtype=float)
+
+    def property_derivatives(self, material=None):
+        return np.zeros((5, 0))
+
+
+def section_properties(section: Section, material: Material | None):
+    """[EA, kGA, EI, rhoA, rhoI] of a section made of a material."""
+    if isinstance(section, GivenSection):
+        return section.properties()
+    if material is None:
+        raise ModelError(f"section {section!r} needs a material")
+    return section.properties(material)

@@ -1,0 +1,230 @@
+"""simulate(model, ...) and its Result object."""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from flexmbs import _core
+from flexmbs.errors import ModelError, SimulationError
+from flexmbs.model import Model
+
+__all__ = ["simulate", "Result", "DENSE_MAX_UNKNOWNS", "time_grid"]
+
+#: Largest system solved with dense LU when solver="auto" (KLU above); see benchmarks/scaling.py.
+DENSE_MAX_UNKNOWNS = 200
+
+_SOLVERS = {"dense": 1, "klu": 2}
+
+
+def time_grid(t_end, h):
+    """Number of steps and time grid t_j = j h, j = 0..n; t_end must be a multiple of h."""
+    for name, v in (("h", h), ("t_end", t_end)):
+        if not (isinstance(v, (int, float, np.floating, np.integer)) and math.isfinite(v) and v > 0):
+            raise ModelError(f"{name} must be a positive finite number, got {v!r}")
+    nsteps = int(round(t_end / h))
+    if nsteps < 1 or abs(nsteps * h - t_end) > 1e-9 * max(1.0, t_end):
+        raise ModelError(f"t_end = {t_end} s is not a whole number of steps h = {h} s "
+                         f"(nearest: {nsteps * h:.10g} s)")
+    return nsteps, h * np.arange(nsteps + 1)
+
+
+@dataclass
+class Result:
+    """The outcome of a simulation.
+
+    Attributes
+    ----------
+    t : (nt,) time grid.
+    q, qd, qdd : (nt, nout) stored coordinates, velocities, accelerations; columns follow `dofs`.
+    mu : (nt, nc) constraint forces (physical multipliers k*lambda of eq. 1), row order of the model.
+    dofs : (nout,) stored coordinates (0-based indices of q).
+    stats : newton_iterations, factorizations, residual_evaluations, step_cuts,
+        static_iterations, steps, solver, unknowns.
+    wall_time : seconds spent in the simulation (including the set-up in Python).
+    """
+    t: np.ndarray
+    q: np.ndarray
+    qd: np.ndarray
+    qdd: np.ndarray
+    mu: np.ndarray
+    dofs: np.ndarray
+    stats: dict
+    wall_time: float
+    settings: dict = field(default_factory=dict)
+
+    def _col(self, dof):
+        idx = np.searchsorted(self.dofs, dof)
+        if idx >= len(self.dofs) or self.dofs[idx] != dof:
+            raise ModelError(f"coordinate {dof} was not stored; pass store=[...] including its node")
+        return idx
+
+    def position(self, node):
+        """(nt, 2) positions of a node."""
+        return np.column_stack([self.q[:, self._col(3 * node)], self.q[:, self._col(3 * node + 1)]])
+
+    def rotation(self, node):
+        """(nt,) rotation of a node (rad)."""
+        return self.q[:, self._col(3 * node + 2)]
+
+    def velocity(self, node):
+        """(nt, 3) velocities (x, y, phi) of a node."""
+        return np.column_stack([self.qd[:, self._col(3 * node + k)] for k in range(3)])
+
+    def coordinates(self, dofs):
+        """(nt, len(dofs)) history of the given coordinates."""
+        return self.q[:, [self._col(d) for d in dofs]]
+
+    @property
+    def mean_newton_iterations(self):
+        """Newton iterations per time step."""
+        return self.stats["newton_iterations"] / max(self.stats["steps"], 1)
+
+
+def _messages(model, status, info, max_cuts):
+    t, res, it, extra = info
+    if status == 1:
+        return (f"Newton-Raphson did not converge at t = {t:.6g} s even after cutting the "
+                f"step {max_cuts} times: scaled increment {res:.3g} after {int(it)} iterations")
+    if status == 2:
+        return (f"singular iteration matrix at t = {t:.6g} s (Newton iteration {int(it)}): "
+                "the mechanism may be underconstrained (a body not held, a free rotation "
+                "without stiffness) or in a singular posture")
+    if status == 3:
+        return (f"static equilibrium at t = 0 not found (scaled increment {res:.3g} after "
+                f"{int(it)} iterations): the mechanism may not be held against its loads")
+    if status == 4:
+        return ("the initial system [M Phi_q^T; Phi_q 0] is singular: a coordinate has no mass "
+                "and no constraint, or constraints are redundant")
+    if status == 5:
+        r = int(extra) - 1
+        return (f"the initial configuration violates constraint '{model.row_label(r)}' by "
+                f"{res:.3g}: start from 'static' or make the laws match the model at t = 0")
+    if status == 6:
+        return f"non-finite values (NaN/Inf) appeared at t = {t:.6g} s (iteration {int(it)})"
+    if status == 7:
+        return "invalid settings passed to the core"
+    if status == 8:
+        return f"the sparse solver could not be set up (code {int(extra)}): out of memory?"
+    return f"simulation failed with status {status}"
+
+
+def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="all",
+             solver="auto", reuse_jacobian=False, tol=1e-10, max_iter=20, max_cuts=6,
+             kscale=None, penalty=None, q0=None, qd0=None):
+    """Simulate a model with generalized-alpha (eqs. 3-6) and Newton-Raphson (eq. 7).
+
+    Parameters
+    ----------
+    model : Model
+    t_end : float
+        End time (s); a whole number of steps.
+    h : float, default 5e-4
+        Time step (s).
+    rho_inf : float in [0, 1], default 0.5
+        Spectral radius at infinite frequency (1: no numerical damping).
+    start : {'rest', 'static'}, default 'rest'
+        'rest': the reference configuration, velocities from the drives at t = 0;
+        'static': static equilibrium under the loads at the drives' initial positions.
+    store : 'all', or a list of node ids / Body objects, default 'all'
+        Which coordinates to keep at every step (memory for long runs).
+    solver : {'auto', 'dense', 'klu'}, default 'auto'
+        Dense LAPACK LU up to DENSE_MAX_UNKNOWNS unknowns, KLU above.
+    reuse_jacobian : bool, default False
+        Modified Newton: keep the factorization while convergence is fast.
+    tol : float, default 1e-10
+        Newton tolerance on max|dq| / max(1, max|q_ref|, element length).
+    max_iter, max_cuts : int
+        Newton iterations per step, step halvings before failing.
+    kscale, penalty : float or None
+        k and p of eq. (1); None: the mean diagonal of the iteration matrix.
+    q0, qd0 : arrays, optional
+        Initial coordinates (default: reference) and velocities (default: zero;
+        projected onto the velocity constraints).
+
+    Returns
+    -------
+    Result
+
+    Raises
+    ------
+    ModelError for invalid input, SimulationError when no solution is found.
+    """
+    t_start = time.perf_counter()
+    if not isinstance(model, Model):
+        raise ModelError(f"simulate expects a flexmbs Model, got {type(model).__name__}")
+    nsteps, t = time_grid(t_end, h)
+    if not (isinstance(rho_inf, (int, float, np.floating)) and 0.0 <= rho_inf <= 1.0):
+        raise ModelError(f"rho_inf must lie in [0, 1], got {rho_inf!r}")
+    if start not in ("rest", "static"):
+        raise ModelError(f"start must be 'rest' or 'static', got {start!r}")
+    if not (tol > 0 and max_iter >= 1 and max_cuts >= 0):
+        raise ModelError("tol must be > 0, max_iter >= 1, max_cuts >= 0")
+    cm = model.compile()
+    if solver == "auto":
+        solver = "dense" if cm.n <= DENSE_MAX_UNKNOWNS else "klu"
+    if solver not in _SOLVERS:
+        raise ModelError(f"solver must be 'auto', 'dense' or 'klu', got {solver!r}")
+    pat = model.pattern(solver)
+    props = model.element_properties()
+
+    if isinstance(store, str):
+        if store != "all":
+            raise ModelError(f"store must be 'all' or a list of nodes/bodies, got {store!r}")
+        out = np.arange(cm.ndof)
+    else:
+        dofs = []
+        for item in store:
+            if hasattr(item, "dofs"):
+                dofs.extend(item.dofs)
+            else:
+                node = model._check_node(item, "store")
+                dofs.extend([3 * node, 3 * node + 1, 3 * node + 2])
+        out = np.unique(np.asarray(dofs, int))
+        if out.size == 0:
+            raise ModelError("store is empty")
+
+    laws = model.laws()
+    nlaw = len(laws)
+    if nlaw:
+        tab = [law.tabulate(t) for law in laws]
+        law_val = np.asfortranarray(np.array([v for v, _, _ in tab]))
+        law_der = np.asfortranarray(np.array([d for _, d, _ in tab]))
+        law_dd0 = np.array([dd for _, _, dd in tab])
+    else:
+        law_val = np.zeros((1, nsteps + 1), order="F")
+        law_der = np.zeros((1, nsteps + 1), order="F")
+        law_dd0 = np.zeros(1)
+
+    q_init = cm.qref.copy() if q0 is None else np.asarray(q0, float).copy()
+    qd_init = np.zeros(cm.ndof) if qd0 is None else np.asarray(qd0, float).copy()
+    for name, v in (("q0", q_init), ("qd0", qd_init)):
+        if v.shape != (cm.ndof,) or not np.all(np.isfinite(v)):
+            raise ModelError(f"{name} must be a finite array of {cm.ndof} coordinates")
+
+    q_out, qd_out, qdd_out, mu_out, stats, status, info = _core.simulate(
+        nc=cm.nc, nel=cm.nel, nload=cm.nload, nlaw=nlaw, nnz=pat["nnz"], nsteps=nsteps,
+        qref=cm.qref, q0=q_init, qd0=qd_init, lumped=cm.lumped, gacc=cm.gacc,
+        el_nen=cm.el_nen, el_dofs=cm.el_dofs, el_len=cm.el_len, el_prop=np.asfortranarray(props),
+        ld_dof=cm.ld_dof, ld_law=cm.ld_law, ld_amp=cm.ld_amp,
+        c_kind=cm.c_kind, c_dofs=cm.c_dofs, c_coef=cm.c_coef, c_c0=cm.c_c0, c_law=cm.c_law,
+        c_lawcoef=cm.c_lawcoef, law_h=float(h), law_val=law_val, law_der=law_der, law_dd0=law_dd0,
+        map_el=pat["map_el"], map_diag=pat["map_diag"], map_cq=pat["map_cq"], map_qc=pat["map_qc"],
+        map_qq=pat["map_qq"], ap=pat["ap"], ai=pat["ai"],
+        h=float(h), rho_inf=float(rho_inf), tol=float(tol), max_iter=int(max_iter),
+        max_cuts=int(max_cuts), solver=_SOLVERS[solver], reuse=int(bool(reuse_jacobian)),
+        static_start=int(start == "static"), kscale=float(kscale or 0.0),
+        penalty=float(penalty or 0.0), out_dofs=(out + 1).astype(np.int32))
+    st = dict(zip(("newton_iterations", "factorizations", "residual_evaluations", "step_cuts",
+                   "static_iterations", "steps"), (int(v) for v in stats)))
+    st["solver"] = solver
+    st["unknowns"] = cm.n
+    if status != 0:
+        raise SimulationError(_messages(model, int(status), info, max_cuts), time=float(info[0]),
+                              residual=float(info[1]), iterations=int(info[2]), code=int(status))
+    return Result(t=t, q=q_out.T, qd=qd_out.T, qdd=qdd_out.T, mu=mu_out[:cm.nc].T, dofs=out,
+                  stats=st, wall_time=time.perf_counter() - t_start,
+                  settings=dict(h=h, t_end=t_end, rho_inf=rho_inf, start=start, solver=solver,
+                                reuse_jacobian=reuse_jacobian))
