@@ -158,3 +158,45 @@ subroutine beam_element_mass(nen, elen, rho_a, rho_i, me)
     real(c_double), intent(out) :: me(3 * nen, 3 * nen)
     call beam_mass(int(nen), elen, rho_a, rho_i, me)
 end subroutine beam_element_mass
+
+!> Residual of eq. (1) and iteration matrix of eq. (7) of a model at one state
+!! (dense storage: vals is the n x n matrix, column-major). With cm = 0, ck = 1,
+!! kscale = 0, pen = 0 and mu = 0 the leading ndof x ndof block is K_t.
+subroutine system_matrices(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npts, &
+                           qref, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
+                           ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, c_c0, c_law, c_lawcoef, &
+                           law_h, law_val, law_der, law_dd0, &
+                           map_el, map_diag, map_cq, map_qc, map_qq, &
+                           q, qdd, mu, t, cm, ck, kscale, pen, r, vals, phimax)
+    use iso_c_binding, only: c_double, c_int
+    use model_data, only: mbs_model, model_from_arrays
+    use assembly, only: residual, iteration_matrix, mass_times
+    implicit none
+    integer(c_int), intent(in) :: ndof, nc, nel, nload, nlaw, nnz
+    integer(c_int), intent(in) :: nela, nca, nlda, nlawa, npts
+    real(c_double), intent(in) :: qref(ndof), lumped(ndof), gacc(ndof)
+    integer(c_int), intent(in) :: el_nen(nela), el_dofs(9, nela)
+    real(c_double), intent(in) :: el_len(nela), el_prop(5, nela)
+    integer(c_int), intent(in) :: ld_dof(nlda), ld_law(nlda)
+    real(c_double), intent(in) :: ld_amp(nlda)
+    integer(c_int), intent(in) :: c_kind(nca), c_dofs(4, nca), c_law(nca)
+    real(c_double), intent(in) :: c_coef(4, nca), c_c0(nca), c_lawcoef(nca)
+    real(c_double), intent(in) :: law_h, law_val(nlawa, npts), law_der(nlawa, npts), law_dd0(nlawa)
+    integer(c_int), intent(in) :: map_el(81, nela), map_diag(ndof)
+    integer(c_int), intent(in) :: map_cq(4, nca), map_qc(4, nca), map_qq(16, nca)
+    real(c_double), intent(in) :: q(ndof), qdd(ndof), mu(nca), t   !! state
+    real(c_double), intent(in) :: cm, ck, kscale, pen                !! coefficients (see assembly.f90)
+    real(c_double), intent(out) :: r(ndof + nc)                      !! residual
+    real(c_double), intent(out) :: vals(nnz)                         !! iteration matrix values
+    real(c_double), intent(out) :: phimax                            !! max |Phi|
+    type(mbs_model) :: m
+    real(c_double) :: fgrav(ndof)
+    call model_from_arrays(m, int(ndof), int(nc), int(nel), int(nload), int(nlaw), int(nnz), &
+                           qref, lumped, gacc, int(el_nen), int(el_dofs), el_len, el_prop, &
+                           int(ld_dof), int(ld_law), ld_amp, int(c_kind), int(c_dofs), c_coef, &
+                           c_c0, int(c_law), c_lawcoef, law_h, law_val, law_der, law_dd0, &
+                           int(map_el), int(map_diag), int(map_cq), int(map_qc), int(map_qq))
+    call mass_times(m, m%gacc, fgrav)
+    call residual(m, q, qdd, mu(1:max(nc, 0)), t, fgrav, cm, kscale, pen, r, phimax)
+    call iteration_matrix(m, q, mu(1:max(nc, 0)), t, cm, ck, kscale, pen, vals)
+end subroutine system_matrices

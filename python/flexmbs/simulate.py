@@ -11,7 +11,8 @@ from flexmbs import _core
 from flexmbs.errors import ModelError, SimulationError
 from flexmbs.model import Model
 
-__all__ = ["simulate", "Result", "DENSE_MAX_UNKNOWNS", "time_grid"]
+__all__ = ["simulate", "Result", "DENSE_MAX_UNKNOWNS", "time_grid", "system_matrices",
+           "core_model_args"]
 
 #: Largest system solved with dense LU when solver="auto" (KLU above); see benchmarks/scaling.py.
 DENSE_MAX_UNKNOWNS = 200
@@ -111,6 +112,63 @@ def _messages(model, status, info, max_cuts):
     return f"simulation failed with status {status}"
 
 
+def core_model_args(model: Model, storage, t, props=None):
+    """Keyword arguments describing `model` to the Fortran core (flexmbs_api.f90).
+
+    storage: 'dense' or 'klu' (matrix layout); t: the time grid on which the
+    laws are tabulated (uniform); props: (5, nel) element properties (default:
+    the model's current sections).
+    """
+    cm = model.compile()
+    pat = model.pattern(storage)
+    if props is None:
+        props = model.element_properties()
+    t = np.atleast_1d(np.asarray(t, float))
+    if t.size < 2:
+        t = np.array([0.0, 1.0])
+    law_h = float(t[1] - t[0])
+    laws = model.laws()
+    if laws:
+        tab = [law.tabulate(t) for law in laws]
+        law_val = np.asfortranarray(np.array([v for v, _, _ in tab]))
+        law_der = np.asfortranarray(np.array([d for _, d, _ in tab]))
+        law_dd0 = np.array([dd for _, _, dd in tab])
+    else:
+        law_val = np.zeros((1, t.size), order="F")
+        law_der = np.zeros((1, t.size), order="F")
+        law_dd0 = np.zeros(1)
+    return dict(
+        nc=cm.nc, nel=cm.nel, nload=cm.nload, nlaw=len(laws), nnz=pat["nnz"],
+        qref=cm.qref, lumped=cm.lumped, gacc=cm.gacc,
+        el_nen=cm.el_nen, el_dofs=cm.el_dofs, el_len=cm.el_len, el_prop=np.asfortranarray(props),
+        ld_dof=cm.ld_dof, ld_law=cm.ld_law, ld_amp=cm.ld_amp,
+        c_kind=cm.c_kind, c_dofs=cm.c_dofs, c_coef=cm.c_coef, c_c0=cm.c_c0, c_law=cm.c_law,
+        c_lawcoef=cm.c_lawcoef, law_h=law_h, law_val=law_val, law_der=law_der, law_dd0=law_dd0,
+        map_el=pat["map_el"], map_diag=pat["map_diag"], map_cq=pat["map_cq"], map_qc=pat["map_qc"],
+        map_qq=pat["map_qq"])
+
+
+def system_matrices(model: Model, q, qdd=None, mu=None, t=0.0, *, cm=0.0, ck=1.0, kscale=0.0,
+                    penalty=0.0, props=None):
+    """Residual r (n,) of eq. (1) and dense iteration matrix S (n, n) of eq. (7) at a state.
+
+    With the defaults (cm = 0, ck = 1, kscale = 0, penalty = 0, mu = 0) the leading
+    ndof x ndof block of S is the tangent stiffness K_t(q) and r[:ndof] = f_int - f_ext.
+    The time laws are evaluated at t exactly.
+    """
+    c = model.compile()
+    q = np.asarray(q, float)
+    qdd = np.zeros(c.ndof) if qdd is None else np.asarray(qdd, float)
+    mu_arr = np.zeros(max(c.nc, 1))
+    if mu is not None:
+        mu_arr[:c.nc] = mu
+    grid = np.array([0.0, max(float(t), 1e-3)]) if t > 0 else np.array([0.0, 1.0])
+    margs = core_model_args(model, "dense", grid, props)
+    r, vals, _ = _core.system_matrices(**margs, q=q, qdd=qdd, mu=mu_arr, t=float(t), cm=float(cm),
+                                       ck=float(ck), kscale=float(kscale), pen=float(penalty))
+    return r, vals.reshape(c.n, c.n, order="F")
+
+
 def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="all",
              solver="auto", reuse_jacobian=False, tol=1e-10, max_iter=20, max_cuts=6,
              kscale=None, penalty=None, q0=None, qd0=None):
@@ -186,17 +244,7 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         if out.size == 0:
             raise ModelError("store is empty")
 
-    laws = model.laws()
-    nlaw = len(laws)
-    if nlaw:
-        tab = [law.tabulate(t) for law in laws]
-        law_val = np.asfortranarray(np.array([v for v, _, _ in tab]))
-        law_der = np.asfortranarray(np.array([d for _, d, _ in tab]))
-        law_dd0 = np.array([dd for _, _, dd in tab])
-    else:
-        law_val = np.zeros((1, nsteps + 1), order="F")
-        law_der = np.zeros((1, nsteps + 1), order="F")
-        law_dd0 = np.zeros(1)
+    margs = core_model_args(model, solver, t, props)
 
     q_init = cm.qref.copy() if q0 is None else np.asarray(q0, float).copy()
     qd_init = np.zeros(cm.ndof) if qd0 is None else np.asarray(qd0, float).copy()
@@ -205,15 +253,7 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
             raise ModelError(f"{name} must be a finite array of {cm.ndof} coordinates")
 
     q_out, qd_out, qdd_out, mu_out, stats, status, info = _core.simulate(
-        nc=cm.nc, nel=cm.nel, nload=cm.nload, nlaw=nlaw, nnz=pat["nnz"], nsteps=nsteps,
-        qref=cm.qref, q0=q_init, qd0=qd_init, lumped=cm.lumped, gacc=cm.gacc,
-        el_nen=cm.el_nen, el_dofs=cm.el_dofs, el_len=cm.el_len, el_prop=np.asfortranarray(props),
-        ld_dof=cm.ld_dof, ld_law=cm.ld_law, ld_amp=cm.ld_amp,
-        c_kind=cm.c_kind, c_dofs=cm.c_dofs, c_coef=cm.c_coef, c_c0=cm.c_c0, c_law=cm.c_law,
-        c_lawcoef=cm.c_lawcoef, law_h=float(h), law_val=law_val, law_der=law_der, law_dd0=law_dd0,
-        map_el=pat["map_el"], map_diag=pat["map_diag"], map_cq=pat["map_cq"], map_qc=pat["map_qc"],
-        map_qq=pat["map_qq"], ap=pat["ap"], ai=pat["ai"],
-        h=float(h), rho_inf=float(rho_inf), tol=float(tol), max_iter=int(max_iter),
+        **margs, nsteps=nsteps, q0=q_init, qd0=qd_init, ap=pat["ap"], ai=pat["ai"], h=float(h), rho_inf=float(rho_inf), tol=float(tol), max_iter=int(max_iter),
         max_cuts=int(max_cuts), solver=_SOLVERS[solver], reuse=int(bool(reuse_jacobian)),
         static_start=int(start == "static"), kscale=float(kscale or 0.0),
         penalty=float(penalty or 0.0), out_dofs=(out + 1).astype(np.int32))
