@@ -81,7 +81,8 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
                     law_h, law_val, law_der, law_dd0, &
                     map_el, map_diag, map_cq, map_qc, map_qq, nap, nai, ap, ai, &
                     h, rho_inf, tol, max_iter, max_cuts, solver, reuse, static_start, &
-                    kscale, penalty, out_dofs, q_out, qd_out, qdd_out, mu_out, stats, status, info)
+                    kscale, penalty, out_dofs, q_out, qd_out, qdd_out, mu_out, stats, status, info, &
+                    nv, nva, nsens, dprop, sens_dofs, dq_out)
     use iso_c_binding, only: c_double, c_int
     use model_data, only: mbs_model, model_from_arrays
     use generalized_alpha, only: ga_settings, ga_stats, ga_simulate
@@ -108,6 +109,11 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     real(c_double), intent(out) :: qdd_out(nout, nsteps + 1), mu_out(nca, nsteps + 1)
     integer(c_int), intent(out) :: stats(6), status
     real(c_double), intent(out) :: info(4)
+    integer(c_int), intent(in) :: nv                        !! design variables (0: no sensitivities)
+    integer(c_int), intent(in) :: nva, nsens                !! extents (>= 1)
+    real(c_double), intent(in) :: dprop(5, nela, nva)       !! d[EA,kGA,EI,rhoA,rhoI]/dp per element
+    integer(c_int), intent(in) :: sens_dofs(nsens)          !! coordinates whose dq/dp is returned
+    real(c_double), intent(out) :: dq_out(nsens, nva, nsteps + 1)  !! dq/dp on the grid
     type(mbs_model) :: m
     type(ga_settings) :: s
     type(ga_stats) :: st
@@ -128,8 +134,14 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     s%static_start = static_start /= 0
     s%kscale = kscale
     s%penalty = penalty
-    call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
-                     mu_out, st, stat, info)
+    if (nv > 0) then
+        call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
+                         mu_out, st, stat, info, dprop(:, :, 1:nv), int(sens_dofs), dq_out(:, 1:nv, :))
+    else
+        dq_out = 0
+        call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
+                         mu_out, st, stat, info)
+    end if
     status = int(stat, c_int)
     stats = int([st%newton_iterations, st%factorizations, st%residual_evaluations, &
                  st%step_cuts, st%static_iterations, st%steps], c_int)

@@ -13,6 +13,8 @@ module generalized_alpha
     use model_data, only: mbs_model, law_rate, law_accel0
     use assembly, only: residual, iteration_matrix, mass_times, internal_forces, &
                         external_forces, constraint_values
+    use sensitivity, only: force_design_derivative, mass_design_derivative_times, &
+                           stiffness_times, constraint_curvature
     use linear_solver, only: linear_system, ls_init_dense, ls_init_sparse, ls_factor, &
                              ls_solve, ls_free, SOLVER_DENSE, SOLVER_KLU, LS_OK, LS_SINGULAR
     implicit none
@@ -56,9 +58,11 @@ module generalized_alpha
         integer :: steps = 0                 !! grid steps completed
     end type ga_stats
 
-    !> Integration state at one instant.
+    !> Integration state at one instant, with its design derivatives when asked:
+    !! dq(:, v) = dq/dp_v etc. (direct differentiation, nv design variables).
     type :: ga_state
         real(wp), allocatable :: q(:), qd(:), qdd(:), a(:), mu(:)
+        real(wp), allocatable :: dq(:, :), dqd(:, :), dqdd(:, :), da(:, :), dmu(:, :)
     end type ga_state
 
 contains
@@ -130,8 +134,13 @@ contains
     !! Outputs on the grid t_j = j h, j = 0..nsteps (column j+1): the coordinates
     !! `out_dofs` of q, qd, qdd, and all physical multipliers mu = k lambda.
     !! info(1:4) on failure: time, scaled residual or increment, iterations, row/extra.
+    !!
+    !! With `dprop` (5, nel, nv) = d[EA, kGA, EI, rhoA, rhoI]/dp, the design
+    !! derivatives of the discrete equations are carried forward (direct
+    !! differentiation, see sens_step) and dq/dp of the coordinates `sens_dofs` is
+    !! returned in dq_out(:, v, j+1).
     subroutine ga_simulate(m, s, ap, ai, q0, qd0, out_dofs, q_out, qd_out, qdd_out, mu_out, &
-                           stats, status, info)
+                           stats, status, info, dprop, sens_dofs, dq_out)
         type(mbs_model), intent(in) :: m
         type(ga_settings), intent(in) :: s
         integer, intent(in) :: ap(:), ai(:)           !! CSC pattern (0-based), KLU only
@@ -141,11 +150,14 @@ contains
         type(ga_stats), intent(out) :: stats
         integer, intent(out) :: status
         real(wp), intent(out) :: info(4)
+        real(wp), intent(in), optional :: dprop(:, :, :)     !! (5, nel, nv) section derivatives
+        integer, intent(in), optional :: sens_dofs(:)        !! coordinates whose derivatives are returned
+        real(wp), intent(out), optional :: dq_out(:, :, :)   !! (nsens, nv, nsteps + 1)
         type(linear_system) :: ls
         type(ga_state) :: x, xsave
         real(wp), allocatable :: fgrav(:), vals(:)
-        real(wp) :: alpha_m, alpha_f, gamma, beta, kdyn, pdyn, t, hs, fact_h
-        integer :: j, nsub, icut, isub, st
+        real(wp) :: alpha_m, alpha_f, gamma, beta, kdyn, pdyn, t, hs, fact_h, ks, ps
+        integer :: j, nsub, icut, isub, st, nv
         logical :: fact_valid
 
         status = GA_OK
@@ -169,6 +181,14 @@ contains
             call ls_init_dense(ls, m%n)
         end if
         allocate (x%q(m%ndof), x%qd(m%ndof), x%qdd(m%ndof), x%a(m%ndof), x%mu(m%nc))
+        nv = 0
+        if (present(dprop)) nv = size(dprop, 3)
+        if (nv > 0) then
+            allocate (x%dq(m%ndof, nv), x%dqd(m%ndof, nv), x%dqdd(m%ndof, nv), &
+                      x%da(m%ndof, nv), x%dmu(m%nc, nv))
+            x%dq = 0; x%dqd = 0; x%dqdd = 0; x%da = 0; x%dmu = 0
+            dq_out = 0
+        end if
         x%q = q0
         x%qd = qd0
         x%qdd = 0
@@ -177,14 +197,23 @@ contains
 
         ! --- initial state -----------------------------------------------------
         if (s%static_start) then
-            call static_equilibrium(m, s, ls, vals, fgrav, x, stats, status, info)
+            call static_equilibrium(m, s, ls, vals, fgrav, x, stats, status, info, ks, ps)
             if (status /= GA_OK) goto 900
+            if (nv > 0) then
+                call sens_static(m, dprop, ls, vals, ks, ps, x, status)
+                if (status /= GA_OK) goto 900
+            end if
         else
             call check_initial(m, x%q, status, info)
             if (status /= GA_OK) goto 900
         end if
         call initial_rates(m, ls, vals, fgrav, x, stats, status, info)
         if (status /= GA_OK) goto 900
+        if (nv > 0) then
+            call sens_initial(m, dprop, ls, qd0, x, status)
+            if (status /= GA_OK) goto 900
+            x%da = x%dqdd
+        end if
         x%a = x%qdd
         call store(0)
 
@@ -235,6 +264,7 @@ contains
             qd_out(:, jj + 1) = x%qd(out_dofs)
             qdd_out(:, jj + 1) = x%qdd(out_dofs)
             if (m%nc > 0) mu_out(:, jj + 1) = x%mu
+            if (nv > 0) dq_out(:, :, jj + 1) = x%dq(sens_dofs, :)
         end subroutine store
 
         !> One generalized-alpha step from tn to tn + hh (eqs. 3–5), Newton on eq. (7).
@@ -304,8 +334,58 @@ contains
             if (stat == GA_OK) then
                 x%a = x%a + (1 - alpha_f) / (1 - alpha_m) * x%qdd
                 info = 0
+                if (nv > 0) call sens_step(hh, tnew, betap, gammap, stat)
             end if
         end subroutine ga_step
+
+        !> Direct differentiation of one converged step (eqs. 1, 3-5 differentiated
+        !! with respect to p). With qdd'_{n+1} = beta' (q'_{n+1} - Qhat) and
+        !! qd'_{n+1} = Vhat + gamma' (q'_{n+1} - Qhat), where Qhat and Vhat collect the
+        !! known derivatives of step n, the derivative of the residual gives
+        !!   S [q'; lambda'] = [ -dr/dp + beta' M Qhat ; 0 ],  mu' = k lambda',
+        !! with S the iteration matrix of eq. (7) at the converged state: the
+        !! factorization Newton already holds (full Newton: taken within `tol` of
+        !! the solution), or a fresh one in modified Newton.
+        subroutine sens_step(hh, tnew, betap, gammap, stat)
+            real(wp), intent(in) :: hh, tnew, betap, gammap
+            integer, intent(out) :: stat
+            real(wp) :: ap_(m%ndof, nv), qhat(m%ndof, nv), vhat(m%ndof, nv)
+            real(wp) :: rhs(m%n, nv), fd(m%ndof, nv), md(m%ndof, nv), mq(m%ndof)
+            integer :: v, lst
+            stat = GA_OK
+            if (s%reuse) then
+                call iteration_matrix(m, x%q, x%mu, tnew, betap, 1.0_wp, kdyn, pdyn, vals)
+                call ls_factor(ls, vals, lst)
+                if (lst /= LS_OK) then
+                    stat = GA_SINGULAR
+                    info = [tnew, 0.0_wp, 0.0_wp, real(lst, wp)]
+                    return
+                end if
+                fact_valid = .true.
+                fact_h = hh
+            end if
+            ap_ = (alpha_f * x%dqdd - alpha_m * x%da) / (1 - alpha_m)
+            qhat = x%dq + hh * x%dqd + hh**2 * ((0.5_wp - beta) * x%da + beta * ap_)
+            vhat = x%dqd + hh * ((1 - gamma) * x%da + gamma * ap_)
+            call force_design_derivative(m, dprop, x%q, fd)
+            call mass_design_derivative_times(m, dprop, x%qdd - m%gacc, md)
+            do v = 1, nv
+                call mass_times(m, qhat(:, v), mq)
+                rhs(1:m%ndof, v) = -(fd(:, v) + md(:, v)) + betap * mq
+                rhs(m%ndof + 1:, v) = 0
+            end do
+            call ls_solve(ls, rhs, lst)
+            if (lst /= LS_OK) then
+                stat = GA_NONFINITE
+                info = [tnew, 0.0_wp, 0.0_wp, real(lst, wp)]
+                return
+            end if
+            x%dq = rhs(1:m%ndof, :)
+            if (m%nc > 0) x%dmu = kdyn * rhs(m%ndof + 1:, :)
+            x%dqdd = betap * (x%dq - qhat)
+            x%dqd = vhat + gammap * (x%dq - qhat)
+            x%da = ap_ + (1 - alpha_f) / (1 - alpha_m) * x%dqdd
+        end subroutine sens_step
 
     end subroutine ga_simulate
 
@@ -330,7 +410,7 @@ contains
 
     !> Static equilibrium at t = 0: f_int(q) - f_ext(0) + Phi_q^T mu = 0, Phi(q, 0) = 0.
     !! Full load first; on failure, load stepping in 4, then 16 increments.
-    subroutine static_equilibrium(m, s, ls, vals, fgrav, x, stats, status, info)
+    subroutine static_equilibrium(m, s, ls, vals, fgrav, x, stats, status, info, ks, ps)
         type(mbs_model), intent(in) :: m
         type(ga_settings), intent(in) :: s
         type(linear_system), intent(inout) :: ls
@@ -340,8 +420,9 @@ contains
         type(ga_stats), intent(inout) :: stats
         integer, intent(out) :: status
         real(wp), intent(out) :: info(4)
+        real(wp), intent(out) :: ks, ps          !! k and p used (for the sensitivities)
         real(wp), allocatable :: q_start(:)
-        real(wp) :: r(m%n), z(m%n, 1), ks, ps, err, phimax, lf
+        real(wp) :: r(m%n), z(m%n, 1), err, phimax, lf
         integer :: nincr, inc, it, lst, attempt
         logical :: ok
         ks = s%kscale
@@ -465,5 +546,89 @@ contains
         x%qdd = z(1:m%ndof, 2)
         if (m%nc > 0) x%mu = k0 * z(m%ndof + 1:, 2)
     end subroutine initial_rates
+
+    !> Design derivative of the static equilibrium at t = 0:
+    !!   [K_t + p Phi_q^T Phi_q + mu Phi_qq   k Phi_q^T; k Phi_q  0] [q0'; lambda0'] = [-(df_int/dp - dM/dp g); 0]
+    subroutine sens_static(m, dprop, ls, vals, ks, ps, x, status)
+        type(mbs_model), intent(in) :: m
+        real(wp), intent(in) :: dprop(:, :, :)
+        type(linear_system), intent(inout) :: ls
+        real(wp), intent(inout) :: vals(:)
+        real(wp), intent(in) :: ks, ps
+        type(ga_state), intent(inout) :: x
+        integer, intent(out) :: status
+        real(wp) :: rhs(m%n, size(dprop, 3)), fd(m%ndof, size(dprop, 3)), md(m%ndof, size(dprop, 3))
+        integer :: lst
+        status = GA_OK
+        call iteration_matrix(m, x%q, x%mu, 0.0_wp, 0.0_wp, 1.0_wp, ks, ps, vals)
+        call ls_factor(ls, vals, lst)
+        if (lst /= LS_OK) then
+            status = GA_STATIC_FAILED
+            return
+        end if
+        call force_design_derivative(m, dprop, x%q, fd)
+        call mass_design_derivative_times(m, dprop, -m%gacc, md)
+        rhs(1:m%ndof, :) = -(fd + md)
+        rhs(m%ndof + 1:, :) = 0
+        call ls_solve(ls, rhs, lst)
+        if (lst /= LS_OK) then
+            status = GA_NONFINITE
+            return
+        end if
+        x%dq = rhs(1:m%ndof, :)
+        if (m%nc > 0) x%dmu = ks * rhs(m%ndof + 1:, :)
+    end subroutine sens_static
+
+    !> Design derivatives of the consistent initial velocities and accelerations,
+    !! with the factorization of [M k Phi_q^T; k Phi_q 0] left by initial_rates:
+    !!   M qd'  + k Phi_q^T nu'  = dM/dp (qd0 - qd)           Phi_q qd'  = -(Phi_qq q0') qd
+    !!   M qdd' + k Phi_q^T lam' = dM/dp (g - qdd) - df_int/dp - (K_t + mu Phi_qq) q0'
+    !!                                    Phi_q qdd' = -(Phi_qq q0') qdd - 2 qd^T Phi_qq qd'
+    !! (exact for linear constraints, and for rigid links started at rest; the
+    !! third derivative of a rigid link times qd^2 is neglected).
+    subroutine sens_initial(m, dprop, ls, qd0, x, status)
+        type(mbs_model), intent(in) :: m
+        real(wp), intent(in) :: dprop(:, :, :)
+        type(linear_system), intent(inout) :: ls
+        real(wp), intent(in) :: qd0(m%ndof)
+        type(ga_state), intent(inout) :: x
+        integer, intent(out) :: status
+        integer :: nv, v, lst
+        real(wp) :: k0, rhs(m%n, size(dprop, 3)), md(m%ndof, size(dprop, 3))
+        real(wp) :: fd(m%ndof, size(dprop, 3)), kq(m%ndof), c1(m%nc), c2(m%nc)
+        status = GA_OK
+        nv = size(dprop, 3)
+        k0 = mass_scale(m)
+        ! velocities
+        call mass_design_derivative_times(m, dprop, qd0 - x%qd, md)
+        rhs(1:m%ndof, :) = md
+        do v = 1, nv
+            call constraint_curvature(m, x%q, x%dq(:, v), x%qd, c1)
+            rhs(m%ndof + 1:, v) = -k0 * c1
+        end do
+        call ls_solve(ls, rhs, lst)
+        if (lst /= LS_OK) then
+            status = GA_NONFINITE
+            return
+        end if
+        x%dqd = rhs(1:m%ndof, :)
+        ! accelerations and multipliers
+        call mass_design_derivative_times(m, dprop, m%gacc - x%qdd, md)
+        call force_design_derivative(m, dprop, x%q, fd)
+        do v = 1, nv
+            call stiffness_times(m, x%q, x%mu, x%dq(:, v), kq)
+            rhs(1:m%ndof, v) = md(:, v) - fd(:, v) - kq
+            call constraint_curvature(m, x%q, x%dq(:, v), x%qdd, c1)
+            call constraint_curvature(m, x%q, x%qd, x%dqd(:, v), c2)
+            rhs(m%ndof + 1:, v) = -k0 * (c1 + 2 * c2)
+        end do
+        call ls_solve(ls, rhs, lst)
+        if (lst /= LS_OK) then
+            status = GA_NONFINITE
+            return
+        end if
+        x%dqdd = rhs(1:m%ndof, :)
+        if (m%nc > 0) x%dmu = k0 * rhs(m%ndof + 1:, :)
+    end subroutine sens_initial
 
 end module generalized_alpha

@@ -55,6 +55,20 @@ class Result:
     stats: dict
     wall_time: float
     settings: dict = field(default_factory=dict)
+    sens_dofs: np.ndarray | None = None
+    dq: np.ndarray | None = None
+
+    def position_derivative(self, node):
+        """(nt, 2, nv) design derivatives of a node's position (needs design_derivatives)."""
+        if self.dq is None:
+            raise ModelError("no design derivatives: simulate with design_derivatives=...")
+        cols = []
+        for d in (3 * node, 3 * node + 1):
+            k = np.searchsorted(self.sens_dofs, d)
+            if k >= len(self.sens_dofs) or self.sens_dofs[k] != d:
+                raise ModelError(f"node {node} is not among the sensitivity coordinates")
+            cols.append(k)
+        return self.dq[:, cols, :]
 
     def _col(self, dof):
         idx = np.searchsorted(self.dofs, dof)
@@ -171,7 +185,8 @@ def system_matrices(model: Model, q, qdd=None, mu=None, t=0.0, *, cm=0.0, ck=1.0
 
 def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="all",
              solver="auto", reuse_jacobian=False, tol=1e-10, max_iter=20, max_cuts=6,
-             kscale=None, penalty=None, q0=None, qd0=None):
+             kscale=None, penalty=None, q0=None, qd0=None, design_derivatives=None,
+             sensitivity_dofs=None):
     """Simulate a model with generalized-alpha (eqs. 3-6) and Newton-Raphson (eq. 7).
 
     Parameters
@@ -201,6 +216,13 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     q0, qd0 : arrays, optional
         Initial coordinates (default: reference) and velocities (default: zero;
         projected onto the velocity constraints).
+    design_derivatives : array (5, nel, nv), optional
+        d[EA, kGA, EI, rhoA, rhoI]/dp of every element for nv design variables p.
+        When given, the discrete generalized-alpha equations (and the static start
+        and initial accelerations) are differentiated directly, in Fortran, after
+        every converged step, and `Result.dq` holds dq/dp.
+    sensitivity_dofs : array of int, optional
+        Coordinates (0-based) whose derivatives are kept (default: the stored ones).
 
     Returns
     -------
@@ -252,11 +274,26 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         if v.shape != (cm.ndof,) or not np.all(np.isfinite(v)):
             raise ModelError(f"{name} must be a finite array of {cm.ndof} coordinates")
 
-    q_out, qd_out, qdd_out, mu_out, stats, status, info = _core.simulate(
+    nel = cm.el_dofs.shape[1]
+    if design_derivatives is not None:
+        dprop = np.asarray(design_derivatives, float)
+        if dprop.ndim != 3 or dprop.shape[:2] != (5, cm.nel) or not np.all(np.isfinite(dprop)):
+            raise ModelError(f"design_derivatives must be a finite array of shape (5, {cm.nel}, nv)")
+        nv = dprop.shape[2]
+        sdofs = out if sensitivity_dofs is None else np.unique(np.asarray(sensitivity_dofs, int))
+        if sdofs.size == 0 or sdofs.min() < 0 or sdofs.max() >= cm.ndof:
+            raise ModelError(f"sensitivity_dofs must be coordinates in [0, {cm.ndof})")
+        dprop_f = np.zeros((5, nel, max(nv, 1)), order="F")
+        dprop_f[:, :cm.nel, :nv] = dprop
+    else:
+        nv, sdofs = 0, np.zeros(1, int)
+        dprop_f = np.zeros((5, nel, 1), order="F")
+    q_out, qd_out, qdd_out, mu_out, stats, status, info, dq_out = _core.simulate(
         **margs, nsteps=nsteps, q0=q_init, qd0=qd_init, ap=pat["ap"], ai=pat["ai"], h=float(h), rho_inf=float(rho_inf), tol=float(tol), max_iter=int(max_iter),
         max_cuts=int(max_cuts), solver=_SOLVERS[solver], reuse=int(bool(reuse_jacobian)),
         static_start=int(start == "static"), kscale=float(kscale or 0.0),
-        penalty=float(penalty or 0.0), out_dofs=(out + 1).astype(np.int32))
+        penalty=float(penalty or 0.0), out_dofs=(out + 1).astype(np.int32),
+        nv=nv, dprop=dprop_f, sens_dofs=(sdofs + 1).astype(np.int32))
     st = dict(zip(("newton_iterations", "factorizations", "residual_evaluations", "step_cuts",
                    "static_iterations", "steps"), (int(v) for v in stats)))
     st["solver"] = solver
@@ -267,4 +304,6 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     return Result(t=t, q=q_out.T, qd=qd_out.T, qdd=qdd_out.T, mu=mu_out[:cm.nc].T, dofs=out,
                   stats=st, wall_time=time.perf_counter() - t_start,
                   settings=dict(h=h, t_end=t_end, rho_inf=rho_inf, start=start, solver=solver,
-                                reuse_jacobian=reuse_jacobian))
+                                reuse_jacobian=reuse_jacobian),
+                  sens_dofs=sdofs if nv else None,
+                  dq=np.transpose(dq_out[:, :nv, :], (2, 0, 1)) if nv else None)

@@ -1,0 +1,137 @@
+!> Design derivatives of the residual of eq. (1) for the direct differentiation
+!! of the discrete generalized-alpha equations (see generalized_alpha.f90).
+!!
+!! The design enters through the section properties of each element only:
+!! dprop(:, e, v) = d[EA, kGA, EI, rhoA, rhoI]_e / dp_v. The internal forces are
+!! linear in (EA, kGA, EI) (beam2d: forces per unit stiffness) and the mass
+!! matrix is linear in (rhoA, rhoI), so every partial derivative is exact:
+!!   dr/dp_v = dM/dp_v (qdd - g_acc) + df_int/dp_v
+!! (gravity on the beam's own mass is M g_acc; nodal loads do not depend on p).
+module sensitivity
+    use flexmbs_kinds, only: wp
+    use beam2d, only: beam_internal_forces, beam_mass, MAX_EDOF
+    use constraints, only: MAX_CDOF
+    use model_data, only: mbs_model
+    use assembly, only: constraint_values
+    implicit none
+    private
+    public :: force_design_derivative, mass_design_derivative_times, stiffness_times, &
+              constraint_curvature
+
+contains
+
+    !> df_int/dp_v at q for every design variable: y(ndof, nv).
+    subroutine force_design_derivative(m, dprop, q, y)
+        type(mbs_model), intent(in) :: m
+        real(wp), intent(in) :: dprop(:, :, :)     !! (5, nel, nv)
+        real(wp), intent(in) :: q(m%ndof)
+        real(wp), intent(out) :: y(:, :)           !! (ndof, nv)
+        real(wp) :: fe(MAX_EDOF), parts(MAX_EDOF, 3), qe(MAX_EDOF), qr(MAX_EDOF)
+        integer :: e, ne, a, v, d
+        y = 0
+        do e = 1, m%nel
+            if (all(dprop(1:3, e, :) == 0)) cycle
+            ne = 3 * m%el_nen(e)
+            do a = 1, ne
+                qe(a) = q(m%el_dofs(a, e))
+                qr(a) = m%qref(m%el_dofs(a, e))
+            end do
+            call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), qr(1:ne), &
+                                      qe(1:ne), fe(1:ne), parts=parts(1:ne, :))
+            do v = 1, size(dprop, 3)
+                do a = 1, ne
+                    d = m%el_dofs(a, e)
+                    y(d, v) = y(d, v) + dot_product(dprop(1:3, e, v), parts(a, :))
+                end do
+            end do
+        end do
+    end subroutine force_design_derivative
+
+    !> y(:, v) = dM/dp_v x for every design variable.
+    subroutine mass_design_derivative_times(m, dprop, x, y)
+        type(mbs_model), intent(in) :: m
+        real(wp), intent(in) :: dprop(:, :, :)     !! (5, nel, nv)
+        real(wp), intent(in) :: x(m%ndof)
+        real(wp), intent(out) :: y(:, :)           !! (ndof, nv)
+        real(wp) :: ma(MAX_EDOF, MAX_EDOF), mi(MAX_EDOF, MAX_EDOF), xe(MAX_EDOF)
+        real(wp) :: ya(MAX_EDOF), yi(MAX_EDOF)
+        integer :: e, ne, a, v, d
+        y = 0
+        do e = 1, m%nel
+            if (all(dprop(4:5, e, :) == 0)) cycle
+            ne = 3 * m%el_nen(e)
+            call beam_mass(m%el_nen(e), m%el_len(e), 1.0_wp, 0.0_wp, ma(1:ne, 1:ne))
+            call beam_mass(m%el_nen(e), m%el_len(e), 0.0_wp, 1.0_wp, mi(1:ne, 1:ne))
+            do a = 1, ne
+                xe(a) = x(m%el_dofs(a, e))
+            end do
+            ya(1:ne) = matmul(ma(1:ne, 1:ne), xe(1:ne))
+            yi(1:ne) = matmul(mi(1:ne, 1:ne), xe(1:ne))
+            do v = 1, size(dprop, 3)
+                do a = 1, ne
+                    d = m%el_dofs(a, e)
+                    y(d, v) = y(d, v) + dprop(4, e, v) * ya(a) + dprop(5, e, v) * yi(a)
+                end do
+            end do
+        end do
+    end subroutine mass_design_derivative_times
+
+    !> y = (K_t(q) + sum_r mu_r Phi_r,qq) x, matrix-free (element by element).
+    subroutine stiffness_times(m, q, mu, x, y)
+        type(mbs_model), intent(in) :: m
+        real(wp), intent(in) :: q(m%ndof), mu(m%nc), x(m%ndof)
+        real(wp), intent(out) :: y(m%ndof)
+        real(wp) :: fe(MAX_EDOF), ke(MAX_EDOF, MAX_EDOF), qe(MAX_EDOF), qr(MAX_EDOF), xe(MAX_EDOF)
+        real(wp) :: phi, grad(MAX_CDOF), hess(MAX_CDOF, MAX_CDOF)
+        integer :: e, ne, a, b, r, d
+        y = 0
+        do e = 1, m%nel
+            ne = 3 * m%el_nen(e)
+            do a = 1, ne
+                d = m%el_dofs(a, e)
+                qe(a) = q(d)
+                qr(a) = m%qref(d)
+                xe(a) = x(d)
+            end do
+            call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), qr(1:ne), &
+                                      qe(1:ne), fe(1:ne), ke(1:ne, 1:ne))
+            fe(1:ne) = matmul(ke(1:ne, 1:ne), xe(1:ne))
+            do a = 1, ne
+                y(m%el_dofs(a, e)) = y(m%el_dofs(a, e)) + fe(a)
+            end do
+        end do
+        if (m%linear_constraints) return
+        do r = 1, m%nc
+            call constraint_values(m, r, q, 0.0_wp, phi, grad, hess)
+            do a = 1, MAX_CDOF
+                if (m%c_dofs(a, r) <= 0) cycle
+                do b = 1, MAX_CDOF
+                    if (m%c_dofs(b, r) <= 0) cycle
+                    y(m%c_dofs(a, r)) = y(m%c_dofs(a, r)) + mu(r) * hess(a, b) * x(m%c_dofs(b, r))
+                end do
+            end do
+        end do
+    end subroutine stiffness_times
+
+    !> c(r) = u^T Phi_r,qq w for every constraint row (0 for linear rows).
+    subroutine constraint_curvature(m, q, u, w, c)
+        type(mbs_model), intent(in) :: m
+        real(wp), intent(in) :: q(m%ndof), u(m%ndof), w(m%ndof)
+        real(wp), intent(out) :: c(m%nc)
+        real(wp) :: phi, grad(MAX_CDOF), hess(MAX_CDOF, MAX_CDOF)
+        integer :: a, b, r
+        c = 0
+        if (m%linear_constraints) return
+        do r = 1, m%nc
+            call constraint_values(m, r, q, 0.0_wp, phi, grad, hess)
+            do a = 1, MAX_CDOF
+                if (m%c_dofs(a, r) <= 0) cycle
+                do b = 1, MAX_CDOF
+                    if (m%c_dofs(b, r) <= 0) cycle
+                    c(r) = c(r) + u(m%c_dofs(a, r)) * hess(a, b) * w(m%c_dofs(b, r))
+                end do
+            end do
+        end do
+    end subroutine constraint_curvature
+
+end module sensitivity
