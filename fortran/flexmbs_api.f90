@@ -4,6 +4,21 @@
 !! arrays: real(c_double), integer(c_int), Fortran-ordered. Status codes are
 !! returned, never printed; flexmbs (Python) turns them into exceptions.
 
+!> Make the BLAS used by the core single-threaded (see klu_shim.c); called once
+!! when flexmbs is imported. applied = 1 if the BLAS supports it.
+subroutine blas_single_thread(applied)
+    use iso_c_binding, only: c_int
+    implicit none
+    integer(c_int), intent(out) :: applied
+    interface
+        function fx_blas_single_thread() bind(c, name='fx_blas_single_thread')
+            import :: c_int
+            integer(c_int) :: fx_blas_single_thread
+        end function fx_blas_single_thread
+    end interface
+    applied = fx_blas_single_thread()
+end subroutine blas_single_thread
+
 !> Solve A X = B with the dense LU path (LAPACK).
 subroutine dense_solve(n, nrhs, a, b, x, status)
     use iso_c_binding, only: c_double, c_int

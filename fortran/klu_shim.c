@@ -125,3 +125,22 @@ void fx_klu_free(void *handle)
     free(h->ai);
     free(h);
 }
+
+#ifdef FLEXMBS_HAVE_OPENBLAS
+void openblas_set_num_threads(int);
+#endif
+
+/* Run the BLAS/LAPACK used by the core on one thread. The dense systems of
+ * the core are small (tens of unknowns) and factorized thousands of times per
+ * simulation: a BLAS thread pool only adds synchronisation latency there, and
+ * batch runs parallelise over designs instead. Returns 1 if the setting was
+ * applied (OpenBLAS), 0 if the BLAS offers no such control. */
+int fx_blas_single_thread(void)
+{
+#ifdef FLEXMBS_HAVE_OPENBLAS
+    openblas_set_num_threads(1);
+    return 1;
+#else
+    return 0;
+#endif
+}

@@ -14,6 +14,10 @@ from flexmbs.model import Model
 __all__ = ["simulate", "Result", "DENSE_MAX_UNKNOWNS", "time_grid", "system_matrices",
            "core_model_args"]
 
+# The core's BLAS works on small systems thousands of times per run: one thread
+# (no pool latency); parallelism belongs to batch runs over designs.
+_core.blas_single_thread()
+
 #: Largest system solved with dense LU when solver="auto" (KLU above); see benchmarks/scaling.py.
 DENSE_MAX_UNKNOWNS = 200
 
