@@ -25,6 +25,8 @@ module model_data
         real(wp), allocatable :: el_len(:)       !! reference lengths
         real(wp), allocatable :: el_prop(:, :)   !! (5, nel): EA, kGA, EI, rhoA, rhoI
         real(wp), allocatable :: el_mass(:, :, :)!! (MAX_EDOF, MAX_EDOF, nel) element mass matrices
+        real(wp), allocatable :: el_mass_a(:, :, :) !! element mass matrices per unit rhoA (rhoI = 0)
+        real(wp), allocatable :: el_mass_i(:, :, :) !! element mass matrices per unit rhoI (rhoA = 0)
         integer, allocatable :: ld_dof(:)        !! loaded coordinate
         integer, allocatable :: ld_law(:)        !! law of the load (0: constant)
         real(wp), allocatable :: ld_amp(:)       !! amplitude of the load
@@ -115,13 +117,20 @@ contains
         type(mbs_model), intent(inout) :: m
         integer :: e, ne
         m%n = m%ndof + m%nc
-        if (allocated(m%el_mass)) deallocate (m%el_mass)
-        allocate (m%el_mass(MAX_EDOF, MAX_EDOF, max(m%nel, 1)))
-        m%el_mass = 0
+        if (allocated(m%el_mass)) deallocate (m%el_mass, m%el_mass_a, m%el_mass_i)
+        allocate (m%el_mass(MAX_EDOF, MAX_EDOF, max(m%nel, 1)), &
+                  m%el_mass_a(MAX_EDOF, MAX_EDOF, max(m%nel, 1)), &
+                  m%el_mass_i(MAX_EDOF, MAX_EDOF, max(m%nel, 1)))
+        m%el_mass_a = 0
+        m%el_mass_i = 0
         do e = 1, m%nel
             ne = 3 * m%el_nen(e)
-            call beam_mass(m%el_nen(e), m%el_len(e), m%el_prop(4, e), m%el_prop(5, e), &
-                           m%el_mass(1:ne, 1:ne, e))
+            call beam_mass(m%el_nen(e), m%el_len(e), 1.0_wp, 0.0_wp, m%el_mass_a(1:ne, 1:ne, e))
+            call beam_mass(m%el_nen(e), m%el_len(e), 0.0_wp, 1.0_wp, m%el_mass_i(1:ne, 1:ne, e))
+        end do
+        ! the consistent mass is linear in (rhoA, rhoI)
+        do e = 1, max(m%nel, 1)
+            m%el_mass(:, :, e) = m%el_prop(4, e) * m%el_mass_a(:, :, e) + m%el_prop(5, e) * m%el_mass_i(:, :, e)
         end do
         m%linear_constraints = .true.
         if (m%nc > 0) m%linear_constraints = all(m%c_kind(1:m%nc) == CON_LINEAR)

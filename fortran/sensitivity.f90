@@ -9,7 +9,7 @@
 !! (gravity on the beam's own mass is M g_acc; nodal loads do not depend on p).
 module sensitivity
     use flexmbs_kinds, only: wp
-    use beam2d, only: beam_internal_forces, beam_mass, MAX_EDOF
+    use beam2d, only: beam_internal_forces, MAX_EDOF
     use constraints, only: MAX_CDOF
     use model_data, only: mbs_model
     use assembly, only: constraint_values
@@ -53,20 +53,17 @@ contains
         real(wp), intent(in) :: dprop(:, :, :)     !! (5, nel, nv)
         real(wp), intent(in) :: x(m%ndof)
         real(wp), intent(out) :: y(:, :)           !! (ndof, nv)
-        real(wp) :: ma(MAX_EDOF, MAX_EDOF), mi(MAX_EDOF, MAX_EDOF), xe(MAX_EDOF)
-        real(wp) :: ya(MAX_EDOF), yi(MAX_EDOF)
+        real(wp) :: xe(MAX_EDOF), ya(MAX_EDOF), yi(MAX_EDOF)
         integer :: e, ne, a, v, d
         y = 0
         do e = 1, m%nel
             if (all(dprop(4:5, e, :) == 0)) cycle
             ne = 3 * m%el_nen(e)
-            call beam_mass(m%el_nen(e), m%el_len(e), 1.0_wp, 0.0_wp, ma(1:ne, 1:ne))
-            call beam_mass(m%el_nen(e), m%el_len(e), 0.0_wp, 1.0_wp, mi(1:ne, 1:ne))
             do a = 1, ne
                 xe(a) = x(m%el_dofs(a, e))
             end do
-            ya(1:ne) = matmul(ma(1:ne, 1:ne), xe(1:ne))
-            yi(1:ne) = matmul(mi(1:ne, 1:ne), xe(1:ne))
+            ya(1:ne) = matmul(m%el_mass_a(1:ne, 1:ne, e), xe(1:ne))
+            yi(1:ne) = matmul(m%el_mass_i(1:ne, 1:ne, e), xe(1:ne))
             do v = 1, size(dprop, 3)
                 do a = 1, ne
                     d = m%el_dofs(a, e)
