@@ -19,7 +19,7 @@ __all__ = ["simulate", "Result", "DENSE_MAX_UNKNOWNS", "time_grid", "system_matr
 _core.blas_single_thread()
 
 #: Largest system solved with dense LU when solver="auto" (KLU above); see benchmarks/scaling.py.
-DENSE_MAX_UNKNOWNS = 200
+DENSE_MAX_UNKNOWNS = 60
 
 _SOLVERS = {"dense": 1, "klu": 2}
 
