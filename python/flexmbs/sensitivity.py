@@ -91,7 +91,7 @@ def _sensor_deviation(case, design, t_end, with_derivatives, sim_kw):
         kw.update(design_derivatives=case.element_property_derivatives(design), sensitivity_dofs=dofs)
     r = simulate(model, t_end, **kw, **sim_kw)
     qs = r.coordinates(dofs)
-    dev, jac = case.deviation_from_sensors(qs)
+    dev, jac = case.deviation_from_sensors(qs, t=r.t)
     ddev = None
     if with_derivatives:
         # r.dq columns follow sorted sensitivity dofs; reorder to case.sensor_dofs
