@@ -23,6 +23,7 @@ end subroutine blas_single_thread
 subroutine dense_solve(n, nrhs, a, b, x, status)
     use iso_c_binding, only: c_double, c_int
     use linear_solver, only: linear_system, ls_init_dense, ls_factor, ls_solve, ls_free
+    !f2py threadsafe
     implicit none
     integer(c_int), intent(in) :: n                 !! order
     integer(c_int), intent(in) :: nrhs              !! number of right-hand sides
@@ -45,6 +46,7 @@ end subroutine dense_solve
 subroutine sparse_solve(n, nnz, nrhs, ap, ai, ax, ax2, b, b2, x, x2, status)
     use iso_c_binding, only: c_double, c_int
     use linear_solver, only: linear_system, ls_init_sparse, ls_factor, ls_solve, ls_free
+    !f2py threadsafe
     implicit none
     integer(c_int), intent(in) :: n                 !! order
     integer(c_int), intent(in) :: nnz               !! stored values
@@ -101,6 +103,7 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     use iso_c_binding, only: c_double, c_int
     use model_data, only: mbs_model, model_from_arrays
     use generalized_alpha, only: ga_settings, ga_stats, ga_simulate
+    !f2py threadsafe
     implicit none
     integer(c_int), intent(in) :: ndof, nc, nel, nload, nlaw, nnz   !! true counts
     integer(c_int), intent(in) :: nela, nca, nlda, nlawa, npts      !! array extents (>= 1)
@@ -198,6 +201,7 @@ subroutine system_matrices(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nla
     use iso_c_binding, only: c_double, c_int
     use model_data, only: mbs_model, model_from_arrays
     use assembly, only: residual, iteration_matrix, mass_times
+    !f2py threadsafe
     implicit none
     integer(c_int), intent(in) :: ndof, nc, nel, nload, nlaw, nnz
     integer(c_int), intent(in) :: nela, nca, nlda, nlawa, npts

@@ -112,6 +112,10 @@ def _messages(model, status, info, max_cuts):
                 "the mechanism may be underconstrained (a body not held, a free rotation "
                 "without stiffness) or in a singular posture")
     if status == 3:
+        if extra >= 10:
+            return (f"static equilibrium at t = 0: singular stiffness matrix (Newton iteration "
+                    f"{int(it)}, largest residual {res:.3g}): the mechanism is not held (a body "
+                    "or a rotation without support or stiffness)")
         return (f"static equilibrium at t = 0 not found (scaled increment {res:.3g} after "
                 f"{int(it)} iterations): the mechanism may not be held against its loads")
     if status == 4:
@@ -180,7 +184,8 @@ def system_matrices(model: Model, q, qdd=None, mu=None, t=0.0, *, cm=0.0, ck=1.0
     mu_arr = np.zeros(max(c.nc, 1))
     if mu is not None:
         mu_arr[:c.nc] = mu
-    grid = np.array([0.0, max(float(t), 1e-3)]) if t > 0 else np.array([0.0, 1.0])
+    # the core tabulates laws on a grid from 0; t itself is a grid point
+    grid = np.array([0.0, float(t)]) if t > 0 else np.array([0.0, 1e-6])
     margs = core_model_args(model, "dense", grid, props)
     r, vals, _ = _core.system_matrices(**margs, q=q, qdd=qdd, mu=mu_arr, t=float(t), cm=float(cm),
                                        ck=float(ck), kscale=float(kscale), pen=float(penalty))

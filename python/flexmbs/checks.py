@@ -1,0 +1,260 @@
+"""Derivative checkers shipped with the solver (after MINPACK's ``chkder``).
+
+``check_tangent`` compares the exact tangent stiffness of one beam element
+(``beam2d.f90``) with central finite differences of its internal forces at
+random deformed states; ``check_iteration_matrix`` compares the whole
+iteration matrix of eq. (7) of a model with central finite differences of the
+residual of eq. (1). Both return a :class:`DerivativeCheck`.
+
+Relative errors are measured row by row: the largest entry of the difference
+in a row divided by the largest entry of the analytic row (rows whose analytic
+entries all vanish are measured against the largest entry of the matrix).
+Rows of a beam element or of a mechanism mix axial, shear and bending
+stiffness that differ by orders of magnitude; a single norm of the whole
+matrix would hide an error in the small (bending) entries behind the large
+(axial) ones.
+
+Example
+-------
+>>> from flexmbs.checks import check_tangent
+>>> check_tangent(nen=3).max_relative_error < 1e-6
+True
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from flexmbs import _core
+from flexmbs.errors import ModelError
+
+__all__ = ["DerivativeCheck", "check_tangent", "check_iteration_matrix",
+           "generalized_alpha_beta_prime"]
+
+
+@dataclass
+class DerivativeCheck:
+    """The outcome of a derivative check.
+
+    Attributes
+    ----------
+    max_relative_error : float
+        Largest row-wise relative error over all checked states (see the module docstring).
+    errors : (nstates,) array
+        The row-wise relative error of each checked state (or stiffness part).
+    worst_entry : (int, int)
+        Row and column of the largest relative error in the worst state.
+    analytic, finite_difference : 2-d arrays
+        The two matrices of the worst state.
+    step : float
+        The finite-difference step used.
+    """
+    max_relative_error: float
+    errors: np.ndarray
+    worst_entry: tuple
+    analytic: np.ndarray
+    finite_difference: np.ndarray
+    step: float
+
+    def __float__(self):
+        return float(self.max_relative_error)
+
+    def __repr__(self):
+        return (f"DerivativeCheck(max_relative_error={self.max_relative_error:.3e}, "
+                f"states={self.errors.size}, worst_entry={self.worst_entry}, step={self.step:g})")
+
+
+def _rowwise_error(a, b):
+    """Largest row-wise relative difference of b against a, and its (row, column)."""
+    diff = np.abs(a - b)
+    scale = np.max(np.abs(a), axis=1)
+    floor = max(np.max(np.abs(a)), np.finfo(float).tiny)
+    scale = np.where(scale > 1e-12 * floor, scale, floor)
+    rel = diff / scale[:, None]
+    i, j = np.unravel_index(np.argmax(rel), rel.shape)
+    return float(rel[i, j]), (int(i), int(j))
+
+
+def _central_jacobian(fun, x0, steps):
+    """Central-difference Jacobian of fun at x0 with per-coordinate steps."""
+    f0 = fun(x0)
+    jac = np.empty((f0.size, x0.size))
+    for j in range(x0.size):
+        e = np.zeros_like(x0)
+        e[j] = steps[j]
+        jac[:, j] = (fun(x0 + e) - fun(x0 - e)) / (2 * steps[j])
+    return jac
+
+
+def check_tangent(nen=3, *, states=5, length=0.5, stiffness=None, rotation=np.pi,
+                  strain=0.2, step=1e-6, seed=0):
+    """Check the beam element tangent ``ke`` against central differences of ``fe``.
+
+    At each random state the element (reference straight, of the given length,
+    at a random orientation) is given a random rigid rotation of up to
+    ``rotation`` rad, a random displacement of its nodes of up to
+    ``strain * length`` and random nodal rotations of up to ``strain`` rad, so
+    that axial, shear and bending strains and the geometric stiffness are all
+    present. Every stiffness part (EA alone, kGA alone, EI alone) and the
+    combined stiffness are checked separately, so an error in a small part is
+    not hidden behind a large one.
+
+    Parameters
+    ----------
+    nen : {2, 3}, default 3
+        Nodes of the element (2: linear, 3: quadratic).
+    states : int, default 5
+        Random deformed states checked.
+    length : float, default 0.5
+        Reference element length (m).
+    stiffness : (EA, kGA, EI) or None, default None
+        Combined stiffness checked besides the unit parts; None: random values
+        of order one scaled so that the three parts contribute alike.
+    rotation : float, default pi
+        Largest rigid rotation of the deformed state (rad).
+    strain : float, default 0.2
+        Size of the deformation relative to the element length.
+    step : float, default 1e-6
+        Central-difference step relative to max(1, length) on every coordinate.
+    seed : int, default 0
+        Seed of the random states.
+
+    Returns
+    -------
+    DerivativeCheck
+        ``max_relative_error`` over all states and parts (``errors`` has one
+        entry per state and part).
+    """
+    if nen not in (2, 3):
+        raise ModelError(f"check_tangent: nen must be 2 or 3, got {nen!r}")
+    if not (length > 0 and step > 0 and states >= 1):
+        raise ModelError("check_tangent: length, step and states must be positive")
+    rng = np.random.default_rng(seed)
+    errors = []
+    worst = (-1.0, (0, 0), None, None)
+    h = step * max(1.0, length)
+    for _ in range(states):
+        theta0 = rng.uniform(-np.pi, np.pi)
+        origin = rng.uniform(-1, 1, 2)
+        s = np.linspace(0.0, length, nen)
+        qref = np.column_stack([origin[0] + s * np.cos(theta0), origin[1] + s * np.sin(theta0),
+                                np.full(nen, theta0)]).ravel()
+        alpha = rng.uniform(-rotation, rotation)
+        c, sn = np.cos(alpha), np.sin(alpha)
+        xy = np.column_stack([qref[0::3] - origin[0], qref[1::3] - origin[1]])
+        xy = xy @ np.array([[c, sn], [-sn, c]]) + origin + rng.uniform(-1, 1, 2)
+        xy += strain * length * rng.uniform(-1, 1, (nen, 2))
+        phi = qref[2::3] + alpha + strain * rng.uniform(-1, 1, nen)
+        qe = np.column_stack([xy, phi]).ravel()
+        if stiffness is None:
+            ea = rng.uniform(0.5, 2.0)
+            comb = np.array([ea, rng.uniform(0.5, 2.0), rng.uniform(0.5, 2.0) * length ** 2])
+        else:
+            comb = np.asarray(stiffness, float)
+        for stiff in (np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([0, 0, 1.0]), comb):
+            _, ke = _core.beam_element(length, stiff, qref, qe)
+
+            def fe(q, stiff=stiff):
+                return _core.beam_element(length, stiff, qref, q)[0]
+
+            kfd = _central_jacobian(fe, qe, np.full(qe.size, h))
+            err, ij = _rowwise_error(ke, kfd)
+            errors.append(err)
+            if err > worst[0]:
+                worst = (err, ij, ke.copy(), kfd)
+    errors = np.array(errors)
+    return DerivativeCheck(float(errors.max()), errors, worst[1], worst[2], worst[3], h)
+
+
+def generalized_alpha_beta_prime(h, rho_inf):
+    """beta' = (1 - alpha_m) / (beta h^2 (1 - alpha_f)) of eq. (7) for step h and rho_inf."""
+    if not (h > 0 and 0 <= rho_inf <= 1):
+        raise ModelError(f"need h > 0 and rho_inf in [0, 1], got h={h!r}, rho_inf={rho_inf!r}")
+    alpha_m = (2 * rho_inf - 1) / (rho_inf + 1)
+    alpha_f = rho_inf / (rho_inf + 1)
+    gamma = 0.5 - alpha_m + alpha_f
+    beta = 0.25 * (gamma + 0.5) ** 2
+    return (1 - alpha_m) / (beta * h * h * (1 - alpha_f))
+
+
+def check_iteration_matrix(model, q, qdd=None, mu=None, t=0.0, *, beta_prime=None, kscale=None,
+                           penalty=None, step=1e-6):
+    """Check the iteration matrix of eq. (7) against finite differences of the residual.
+
+    The unknowns of a Newton correction are (dq, dlambda) with the physical
+    multipliers mu = k lambda (see fortran/assembly.f90), and the accelerations
+    follow the positions as dqdd = beta' dq. Column j of the iteration matrix
+    is therefore compared with the central difference of
+
+        r(q + e dq_j, qdd + beta' e dq_j, mu)           for a coordinate j,
+        r(q, qdd, mu + k e)                             for a multiplier,
+
+    where r is the dynamic residual of eq. (1) (mass term with factor 1),
+    computed by :func:`flexmbs.simulate.system_matrices`.
+
+    Parameters
+    ----------
+    model : flexmbs.Model
+    q : (ndof,) array
+        Coordinates of the state (need not satisfy the constraints).
+    qdd : (ndof,) array or None, default None (zero)
+        Accelerations of the state.
+    mu : (nc,) array or None, default None (zero)
+        Physical multipliers of the state.
+    t : float, default 0.0
+        Time at which the drive laws are evaluated.
+    beta_prime : float or None, default None
+        Coefficient of M in the iteration matrix; None: the generalized-alpha
+        value for h = 5e-4 s and rho_inf = 0.5 (the paper's settings).
+    kscale, penalty : float or None, default None
+        k and p of eq. (1); None: k = the mean absolute diagonal of
+        beta' M + K_t (the core's automatic choice), p = k.
+    step : float, default 1e-6
+        Central-difference step on the coordinates, relative to max(1, max|q|).
+
+    Returns
+    -------
+    DerivativeCheck
+        ``analytic`` is the iteration matrix, ``finite_difference`` its
+        difference approximation, both (ndof + nc, ndof + nc).
+    """
+    from flexmbs.simulate import system_matrices
+
+    cm_ = model.compile()
+    ndof, nc = cm_.ndof, cm_.nc
+    q = np.asarray(q, float)
+    qdd = np.zeros(ndof) if qdd is None else np.asarray(qdd, float)
+    mu = np.zeros(nc) if mu is None else np.asarray(mu, float)
+    if q.shape != (ndof,) or qdd.shape != (ndof,) or mu.shape != (nc,):
+        raise ModelError(f"check_iteration_matrix: q and qdd need {ndof} entries, mu {nc}")
+    if beta_prime is None:
+        beta_prime = generalized_alpha_beta_prime(5e-4, 0.5)
+    if kscale is None:
+        _, s0 = system_matrices(model, q, qdd, mu, t, cm=beta_prime, ck=1.0)
+        kscale = float(np.mean(np.abs(np.diag(s0)[:ndof]))) or 1.0
+    if penalty is None:
+        penalty = kscale
+
+    def res(qq, aa, mm):
+        return system_matrices(model, qq, aa, mm, t, cm=1.0, ck=1.0, kscale=kscale,
+                               penalty=penalty)[0]
+
+    _, s = system_matrices(model, q, qdd, mu, t, cm=beta_prime, ck=1.0, kscale=kscale,
+                           penalty=penalty)
+    h = step * max(1.0, float(np.max(np.abs(q))))
+    n = ndof + nc
+    sfd = np.empty((n, n))
+    for j in range(n):
+        if j < ndof:
+            e = np.zeros(ndof)
+            e[j] = h
+            sfd[:, j] = (res(q + e, qdd + beta_prime * e, mu)
+                         - res(q - e, qdd - beta_prime * e, mu)) / (2 * h)
+        else:
+            e = np.zeros(nc)
+            e[j - ndof] = kscale
+            # the residual is linear in mu: a unit step in lambda is exact
+            sfd[:, j] = (res(q, qdd, mu + e) - res(q, qdd, mu - e)) / 2.0
+    err, ij = _rowwise_error(s, sfd)
+    return DerivativeCheck(err, np.array([err]), ij, s, sfd, h)
