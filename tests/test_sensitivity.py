@@ -124,3 +124,24 @@ def test_design_derivative_at_the_maximum_is_consistent():
     np.testing.assert_array_equal(g.d_max_deviation, g.d_deviation[k])
     # thicker arms deflect less: every derivative of the active deviation is negative
     assert np.all(g.d_max_deviation < 0)
+
+
+def test_cli_gradient_json_direct_and_fd_agree():
+    """`flexmbs simulate CASE --design ... --gradient [direct|fd] --json` (issue 5): the
+    derivative of the deviation at its maximum, by direct differentiation and by the paper's
+    forward differences (relative step 1e-6), agree to 1e-4 relative (FD truncation/round-off)."""
+    import json
+    import subprocess
+    import sys
+    out = {}
+    for method in ("direct", "fd"):
+        proc = subprocess.run([sys.executable, "-m", "flexmbs", "simulate", "robot_2dof", "--design",
+                               "39.29,28.33,34.94,25.19", "--gradient", method, "--json"],
+                              capture_output=True, text=True, check=True)
+        out[method] = json.loads(proc.stdout)
+    d, f = out["direct"], out["fd"]
+    assert d["gradient_method"] == "direct" and f["gradient_method"] == "forward"
+    assert d["gradient_simulations"] == 1 and f["gradient_simulations"] == 5
+    np.testing.assert_allclose(d["d_max_deviation_d_design_m_per_mm"],
+                               f["d_max_deviation_d_design_m_per_mm"], rtol=1e-4)
+    np.testing.assert_allclose(d["d_mass_d_design_kg_per_mm"], f["d_mass_d_design_kg_per_mm"], rtol=1e-5)
