@@ -1,0 +1,12 @@
+"""Optimization of mechanism components: the weakly coupled method (ESL cycles, paper 5.3)
+and the objects shared with the fully coupled method.
+
+    optimize_weakly        weakly coupled cycles (weakly.py)
+    OptimizationResult     result of either method (result.py)
+    HistoryWriter          per-cycle/iteration JSON-lines history written as the run goes
+    read_history           read such a file back
+"""
+from flexmbs.optimize.result import HistoryWriter, OptimizationResult, read_history
+from flexmbs.optimize.weakly import optimize_weakly
+
+__all__ = ["optimize_weakly", "OptimizationResult", "HistoryWriter", "read_history"]

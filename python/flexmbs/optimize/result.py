@@ -1,0 +1,190 @@
+"""Result and history objects shared by the weakly and the fully coupled methods.
+
+`OptimizationResult` is what `optimize_weakly` / the fully coupled optimizer return;
+`HistoryWriter` appends one JSON line per cycle (weakly) or iteration (fully) to a file as
+the run goes, so that an interrupted run loses nothing already computed.
+
+History records are plain dicts. Keys used by both methods (others may be added):
+    iteration        1-based cycle / iteration number (the paper's "Iter.")
+    design_mm        design analysed in this cycle / iteration (list, mm)
+    mass_kg          beam mass of that design
+    max_deviation_m  maximum deviation of that design in the full simulation
+    active_steps     {constraint name: [1-based time steps]} (the paper's Table 8)
+Weakly coupled: esl_change (eq. 25, None in the first cycle; esl_change_per_body),
+inner_iterations and predicted_max_deviation_m of the static problem that produced the design,
+active_steps of that static problem, simulation_active_steps (steps where the full simulation
+is within 0.1 % of the limit), static_message (None when SLSQP succeeded), t_at_max_s,
+oscillation_period (when detected). Fully coupled: max_violation.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["OptimizationResult", "HistoryWriter", "read_history", "jsonable"]
+
+
+def jsonable(obj):
+    """A copy of obj made of JSON types (numpy arrays/scalars -> lists/floats, NaN -> None)."""
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return jsonable(obj.tolist())
+    if isinstance(obj, (np.bool_, bool)):
+        return bool(obj)
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        v = float(obj)
+        return v if math.isfinite(v) else None
+    return obj
+
+
+class HistoryWriter:
+    """Append one JSON object per line to a file, flushed at every record.
+
+    Parameters
+    ----------
+    path : str or os.PathLike, or None
+        None: records are only kept in memory (`records`).
+    mode : {'w', 'a'}, default 'w'
+        'w' starts a new file, 'a' appends to an existing one.
+    """
+
+    def __init__(self, path=None, mode="w"):
+        if mode not in ("w", "a"):
+            raise ValueError(f"HistoryWriter mode must be 'w' or 'a', got {mode!r}")
+        self.path = None if path is None else os.fspath(path)
+        self.records = []
+        self._fh = None if self.path is None else open(self.path, mode, encoding="utf-8")
+
+    def write(self, record):
+        """Store a record (dict) and append it to the file as one JSON line."""
+        rec = jsonable(record)
+        self.records.append(rec)
+        if self._fh is not None:
+            self._fh.write(json.dumps(rec) + "\n")
+            self._fh.flush()
+        return rec
+
+    def close(self):
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def read_history(path):
+    """The records of a history file written by HistoryWriter (list of dicts)."""
+    with open(path, encoding="utf-8") as fh:
+        return [json.loads(line) for line in fh if line.strip()]
+
+
+@dataclass
+class OptimizationResult:
+    """Outcome of an optimization of a case (weakly or fully coupled).
+
+    Attributes
+    ----------
+    method : 'weakly' or 'fully'.
+    case : case name.
+    design_mm : (nv,) final design (mm).
+    mass_kg : its beam mass.
+    iterations : cycles (weakly: MBS analyses) or optimizer iterations (fully).
+    inner_iterations : summed iterations of the static problems (weakly), None (fully).
+    simulations : full (dynamic) simulations run.
+    converged : whether the method's stopping test was met.
+    reason : why the run stopped, in words.
+    history : per cycle / iteration records (see the module docstring).
+    max_deviation_m : maximum deviation of the final design in the full simulation
+        (max over the case's deviation measures).
+    wall_time_s : wall time of the whole run.
+    start_mm : starting design.
+    details : method-specific values (also written to JSON at the top level).
+    t, deviation : time grid and deviation history (nt,) of the final design (not in JSON).
+    """
+    method: str
+    case: str
+    design_mm: np.ndarray
+    mass_kg: float
+    iterations: int
+    inner_iterations: int | None
+    simulations: int
+    converged: bool
+    reason: str
+    history: list
+    max_deviation_m: float
+    wall_time_s: float
+    start_mm: np.ndarray | None = None
+    details: dict = field(default_factory=dict)
+    t: np.ndarray | None = field(default=None, repr=False)
+    deviation: np.ndarray | None = field(default=None, repr=False)
+
+    def to_dict(self, history=True):
+        """A JSON-ready dict: the fields above, `details` merged at the top level."""
+        d = dict(method=self.method, case=self.case, design_mm=self.design_mm,
+                 mass_kg=self.mass_kg, iterations=self.iterations,
+                 inner_iterations=self.inner_iterations, simulations=self.simulations,
+                 converged=self.converged, reason=self.reason,
+                 max_deviation_m=self.max_deviation_m, wall_time_s=self.wall_time_s,
+                 start_mm=self.start_mm)
+        for k, v in self.details.items():
+            d.setdefault(k, v)
+        if history:
+            d["history"] = self.history
+        return jsonable(d)
+
+    def to_json(self, history=True, indent=None):
+        """The result as a JSON string (see to_dict)."""
+        return json.dumps(self.to_dict(history=history), indent=indent)
+
+    def summary(self):
+        """A few lines for people."""
+        p = ", ".join(f"{v:.2f}" for v in np.asarray(self.design_mm, float))
+        inner = "" if self.inner_iterations is None else f", {self.inner_iterations} inner iterations"
+        return (f"{self.method} coupled, case {self.case}: "
+                f"{'converged' if self.converged else 'NOT converged'} ({self.reason})\n"
+                f"  design [{p}] mm, mass {self.mass_kg:.4f} kg\n"
+                f"  {self.iterations} iterations{inner}, {self.simulations} simulations, "
+                f"{self.wall_time_s:.2f} s\n"
+                f"  max deviation in the full simulation {self.max_deviation_m * 1e3:.4f} mm")
+
+    def plot(self, path, limit_m=None):
+        """Figure (PNG/PDF by extension): objective history per cycle/iteration and the
+        deviation history of the final design, as the paper's Figs. 5, 6, 8."""
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+        its = [r.get("iteration", k + 1) for k, r in enumerate(self.history)]
+        mass = [r.get("mass_kg") for r in self.history]
+        ax1.plot(its, mass, "o-")
+        ax1.set_xlabel("cycle" if self.method == "weakly" else "iteration")
+        ax1.set_ylabel("mass [kg]")
+        ax1.set_title(f"{self.method} coupled: objective history")
+        ax1.grid(True, alpha=0.3)
+        if self.t is not None and self.deviation is not None:
+            ax2.plot(self.t, np.asarray(self.deviation) * 1e3, lw=1)
+            if limit_m is not None:
+                ax2.axhline(limit_m * 1e3, color="k", ls="--", lw=0.8, label="limit")
+                ax2.legend(loc="best")
+        ax2.set_xlabel("time [s]")
+        ax2.set_ylabel("deviation [mm]")
+        ax2.set_title("final design: deviation in the full simulation")
+        ax2.grid(True, alpha=0.3)
+        fig.tight_layout()
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+        return path
