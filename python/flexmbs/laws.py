@@ -45,7 +45,10 @@ class TimeLaw:
         return cls(spline, spline.derivative(1), spline.derivative(2), name=name)
 
     def _eval(self, f, t, what):
-        out = np.asarray(f(np.asarray(t, float)), dtype=float)
+        try:
+            out = np.asarray(f(np.asarray(t, float)), dtype=float)
+        except ModelError as exc:
+            raise ModelError(f"time law {self.name!r}: {exc}") from None
         out = np.broadcast_to(out, np.shape(t)).astype(float)
         if not np.all(np.isfinite(out)):
             bad = np.asarray(t)[~np.isfinite(out)].ravel()
@@ -94,8 +97,12 @@ def planar_2r_inverse(x, y, xd, yd, xdd, ydd, l1, l2, elbow=-1.0):
     """
     x, y = np.asarray(x, float), np.asarray(y, float)
     c2 = (x * x + y * y - l1 * l1 - l2 * l2) / (2 * l1 * l2)
-    if np.any(np.abs(c2) > 1 + 1e-12):
-        raise ModelError("2R inverse kinematics: target out of reach")
+    out = np.abs(c2) > 1 + 1e-12
+    if np.any(out):
+        k = int(np.flatnonzero(np.ravel(out))[0])
+        err = ModelError(f"2R inverse kinematics: target out of reach (sample {k})")
+        err.index = k
+        raise err
     th2 = elbow * np.arccos(np.clip(c2, -1.0, 1.0))
     th1 = np.arctan2(y, x) - np.arctan2(l2 * np.sin(th2), l1 + l2 * np.cos(th2))
     s1, c1 = np.sin(th1), np.cos(th1)
@@ -135,7 +142,12 @@ def robot_joint_laws(l1=0.6, l2=0.6, theta1_0=np.radians(120.0), theta2_0=np.rad
     elbow = -1.0 if np.sin(theta2_0) < 0 else 1.0
 
     def joints(t):
-        return planar_2r_inverse(*robot_tip_path(t, x0, y0, period, stroke), l1, l2, elbow)
+        try:
+            return planar_2r_inverse(*robot_tip_path(t, x0, y0, period, stroke), l1, l2, elbow)
+        except ModelError as exc:
+            tk = np.ravel(t)[getattr(exc, "index", 0)]
+            raise ModelError(f"the tip path of eq. (26) is out of reach of the arms at "
+                             f"t = {tk:.4f} s (past the singular posture)") from None
 
     def pick(i, j=None):
         if j is None:

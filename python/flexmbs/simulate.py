@@ -267,6 +267,9 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         dofs = []
         for item in store:
             if hasattr(item, "dofs"):
+                if model.bodies.get(getattr(item, "name", None)) is not item:
+                    raise ModelError(f"store: body {getattr(item, 'name', item)!r} is not a body "
+                                     "of this model")
                 dofs.extend(item.dofs)
             else:
                 node = model._check_node(item, "store")
