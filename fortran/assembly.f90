@@ -41,7 +41,7 @@ contains
             end do
             if (present(vals)) then
                 call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), &
-                                          qr(1:ne), qe(1:ne), fe(1:ne), ke(1:ne, 1:ne))
+                                          qr(1:ne), qe(1:ne), fe(1:ne), ke(1:ne, 1:ne), eref=m%el_eref(:, :, e))
                 do b = 1, ne
                     do a = 1, ne
                         vals(m%map_el(a, b, e)) = vals(m%map_el(a, b, e)) + ck * ke(a, b)
@@ -49,7 +49,7 @@ contains
                 end do
             else
                 call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), &
-                                          qr(1:ne), qe(1:ne), fe(1:ne))
+                                          qr(1:ne), qe(1:ne), fe(1:ne), eref=m%el_eref(:, :, e))
             end if
             do a = 1, ne
                 d = m%el_dofs(a, e)

@@ -21,10 +21,11 @@ module beam2d
     use flexmbs_kinds, only: wp
     implicit none
     private
-    public :: beam_internal_forces, beam_mass, MAX_NEN, MAX_EDOF
+    public :: beam_internal_forces, beam_mass, beam_reference_strains, MAX_EDOF, MAX_GAUSS
 
     integer, parameter :: MAX_NEN = 3            !! nodes per element at most
     integer, parameter :: MAX_EDOF = 3 * MAX_NEN !! element dofs at most
+    integer, parameter :: MAX_GAUSS = 2          !! Gauss points of the stiffness at most
 
 contains
 
@@ -63,13 +64,47 @@ contains
         e2 = -s * dx + c * dy
     end subroutine raw_strains
 
+    !> Gauss points and weights of the reduced integration of the stiffness.
+    pure subroutine stiffness_gauss(nen, ng, xg, wg)
+        integer, intent(in) :: nen
+        integer, intent(out) :: ng
+        real(wp), intent(out) :: xg(MAX_GAUSS), wg(MAX_GAUSS)
+        if (nen == 2) then
+            ng = 1
+            xg = 0.0_wp
+            wg = [2.0_wp, 0.0_wp]
+        else
+            ng = 2
+            xg = [-1.0_wp / sqrt(3.0_wp), 1.0_wp / sqrt(3.0_wp)]
+            wg = [1.0_wp, 1.0_wp]
+        end if
+    end subroutine stiffness_gauss
+
+    !> Strains (e1, e2, kappa) of the reference configuration at the Gauss points,
+    !! computed once per model (the stress-free state of beam_internal_forces).
+    pure subroutine beam_reference_strains(nen, elen, qref, eref)
+        integer, intent(in) :: nen                     !! nodes of the element (2 or 3)
+        real(wp), intent(in) :: elen                   !! reference length L
+        real(wp), intent(in) :: qref(3 * nen)          !! reference coordinates
+        real(wp), intent(out) :: eref(3, MAX_GAUSS)    !! reference raw strains per Gauss point
+        real(wp) :: xg(MAX_GAUSS), wg(MAX_GAUSS), n(nen), dn(nen), phi, dx, dy
+        integer :: ig, ng
+        call stiffness_gauss(nen, ng, xg, wg)
+        eref = 0
+        do ig = 1, ng
+            call shape(nen, xg(ig), n, dn)
+            call raw_strains(nen, qref, dn / (0.5_wp * elen), n, eref(1, ig), eref(2, ig), &
+                             eref(3, ig), phi, dx, dy)
+        end do
+    end subroutine beam_reference_strains
+
     !> Internal force vector (and its exact tangent) of one beam element.
     !!
     !! With `parts` present, the forces are returned per unit stiffness as well:
     !! parts(:, 1) for EA = 1, parts(:, 2) for kGA = 1, parts(:, 3) for EI = 1,
     !! so that fe = EA parts(:,1) + kGA parts(:,2) + EI parts(:,3) (the forces
     !! are linear in the section stiffnesses; used by the design sensitivities).
-    pure subroutine beam_internal_forces(nen, elen, stiff, qref, qe, fe, ke, parts)
+    pure subroutine beam_internal_forces(nen, elen, stiff, qref, qe, fe, ke, parts, eref)
         integer, intent(in) :: nen                   !! nodes of the element (2 or 3)
         real(wp), intent(in) :: elen                 !! reference length L
         real(wp), intent(in) :: stiff(3)             !! EA, kGA, EI
@@ -78,20 +113,13 @@ contains
         real(wp), intent(out) :: fe(3 * nen)         !! internal forces
         real(wp), intent(out), optional :: ke(3 * nen, 3 * nen)    !! tangent d fe / d qe
         real(wp), intent(out), optional :: parts(3 * nen, 3)       !! forces per unit stiffness
-        real(wp) :: xg(2), wg(2), n(nen), dn(nen), dns(nen), jac, w
+        real(wp), intent(in), optional :: eref(3, MAX_GAUSS)       !! reference strains (else from qref)
+        real(wp) :: xg(MAX_GAUSS), wg(MAX_GAUSS), n(nen), dn(nen), dns(nen), jac, w
         real(wp) :: e1, e2, kap, phi, dx, dy, r1, r2, rk, rphi, rdx, rdy
         real(wp) :: g1, g2, gk, nf, qf, mf, c, s
         real(wp) :: b(3, 3 * nen), db(3, 3 * nen)
         integer :: ig, ng, a, bb, ia, ib, j
-        if (nen == 2) then
-            ng = 1
-            xg(1) = 0.0_wp
-            wg(1) = 2.0_wp
-        else
-            ng = 2
-            xg = [-1.0_wp / sqrt(3.0_wp), 1.0_wp / sqrt(3.0_wp)]
-            wg = [1.0_wp, 1.0_wp]
-        end if
+        call stiffness_gauss(nen, ng, xg, wg)
         jac = 0.5_wp * elen
         fe = 0
         if (present(ke)) ke = 0
@@ -100,7 +128,13 @@ contains
             call shape(nen, xg(ig), n, dn)
             dns = dn / jac
             w = wg(ig) * jac
-            call raw_strains(nen, qref, dns, n, r1, r2, rk, rphi, rdx, rdy)
+            if (present(eref)) then
+                r1 = eref(1, ig)
+                r2 = eref(2, ig)
+                rk = eref(3, ig)
+            else
+                call raw_strains(nen, qref, dns, n, r1, r2, rk, rphi, rdx, rdy)
+            end if
             call raw_strains(nen, qe, dns, n, e1, e2, kap, phi, dx, dy)
             ! strains measured from the reference configuration
             g1 = e1 - r1

@@ -3,7 +3,7 @@
 !! owns. No module-level state: two models can be simulated side by side.
 module model_data
     use flexmbs_kinds, only: wp
-    use beam2d, only: beam_mass, MAX_EDOF
+    use beam2d, only: beam_mass, beam_reference_strains, MAX_EDOF, MAX_GAUSS
     use constraints, only: MAX_CDOF, CON_LINEAR
     implicit none
     private
@@ -27,6 +27,7 @@ module model_data
         real(wp), allocatable :: el_mass(:, :, :)!! (MAX_EDOF, MAX_EDOF, nel) element mass matrices
         real(wp), allocatable :: el_mass_a(:, :, :) !! element mass matrices per unit rhoA (rhoI = 0)
         real(wp), allocatable :: el_mass_i(:, :, :) !! element mass matrices per unit rhoI (rhoA = 0)
+        real(wp), allocatable :: el_eref(:, :, :)   !! (3, MAX_GAUSS, nel) reference strains
         integer, allocatable :: ld_dof(:)        !! loaded coordinate
         integer, allocatable :: ld_law(:)        !! law of the load (0: constant)
         real(wp), allocatable :: ld_amp(:)       !! amplitude of the load
@@ -127,6 +128,14 @@ contains
             ne = 3 * m%el_nen(e)
             call beam_mass(m%el_nen(e), m%el_len(e), 1.0_wp, 0.0_wp, m%el_mass_a(1:ne, 1:ne, e))
             call beam_mass(m%el_nen(e), m%el_len(e), 0.0_wp, 1.0_wp, m%el_mass_i(1:ne, 1:ne, e))
+        end do
+        if (allocated(m%el_eref)) deallocate (m%el_eref)
+        allocate (m%el_eref(3, MAX_GAUSS, max(m%nel, 1)))
+        m%el_eref = 0
+        do e = 1, m%nel
+            ne = 3 * m%el_nen(e)
+            call beam_reference_strains(m%el_nen(e), m%el_len(e), m%qref(m%el_dofs(1:ne, e)), &
+                                        m%el_eref(:, :, e))
         end do
         ! the consistent mass is linear in (rhoA, rhoI)
         do e = 1, max(m%nel, 1)

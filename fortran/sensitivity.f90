@@ -37,7 +37,7 @@ contains
                 qr(a) = m%qref(m%el_dofs(a, e))
             end do
             call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), qr(1:ne), &
-                                      qe(1:ne), fe(1:ne), parts=parts(1:ne, :))
+                                      qe(1:ne), fe(1:ne), parts=parts(1:ne, :), eref=m%el_eref(:, :, e))
             do v = 1, size(dprop, 3)
                 do a = 1, ne
                     d = m%el_dofs(a, e)
@@ -91,7 +91,7 @@ contains
                 xe(a) = x(d)
             end do
             call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), qr(1:ne), &
-                                      qe(1:ne), fe(1:ne), ke(1:ne, 1:ne))
+                                      qe(1:ne), fe(1:ne), ke(1:ne, 1:ne), eref=m%el_eref(:, :, e))
             fe(1:ne) = matmul(ke(1:ne, 1:ne), xe(1:ne))
             do a = 1, ne
                 y(m%el_dofs(a, e)) = y(m%el_dofs(a, e)) + fe(a)
