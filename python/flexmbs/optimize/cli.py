@@ -26,10 +26,12 @@ __all__ = ["register", "run_optimize", "run_weakly", "add_weakly_options", "star
            "METHODS", "METHOD_OPTIONS"]
 
 #: Optimization methods: name -> "module:function(args, case) -> OptimizationResult".
-METHODS = {"weakly": "flexmbs.optimize.cli:run_weakly"}
+METHODS = {"weakly": "flexmbs.optimize.cli:run_weakly",
+           "fully": "flexmbs.optimize.fully:run_cli"}
 
 #: Functions adding method-specific options to the parser, "module:function(parser)".
-METHOD_OPTIONS = ["flexmbs.optimize.cli:add_weakly_options"]
+METHOD_OPTIONS = ["flexmbs.optimize.cli:add_weakly_options",
+                  "flexmbs.optimize.fully:add_cli_options"]
 
 
 def _load(spec):

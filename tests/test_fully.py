@@ -1,0 +1,248 @@
+"""Tests of the fully coupled method (flexmbs.optimize.fully, flexmbs.optimize.mma).
+
+Published values: the paper (shared/paper, Tromme, Bruls, Duysinx), Tables 1 and 6, as stored
+in shared/reference/paper_tables.json; K. Svanberg (1987), "The method of moving asymptotes",
+Int. J. Numer. Meth. Engng 24, 359-373, section 5 (the cantilever beam).
+"""
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from flexmbs.cases import load_case
+from flexmbs.errors import CaseError, ModelError
+from flexmbs.optimize.fully import (aggregate_constraints, kkt_residual, optimize_fully,
+                                    solve_qp)
+from flexmbs.optimize.mma import MMA
+from flexmbs.optimize.result import read_history
+
+# The paper's Table 1 / Table 6, formulation (28), 0.65 s, fully coupled rows.
+TABLE1_FULLY_P = np.array([39.35, 28.25, 35.14, 24.91])
+TABLE1_MASS = 0.962
+TABLE6_STARTS = [[55, 55, 55, 55], [55, 45, 35, 25], [45, 45, 45, 45]]
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return load_case("robot_2dof")
+
+
+@pytest.fixture(scope="module")
+def table1_direct(robot):
+    return optimize_fully(robot)
+
+
+# ----------------------------------------------------------------------------- building blocks
+def test_solve_qp_satisfies_kkt_conditions():
+    """The LDP/NNLS QP solver returns a KKT point of a random strictly convex QP with many
+    inequality constraints (stationarity, feasibility, complementarity, lambda >= 0)."""
+    rng = np.random.default_rng(3)
+    n, m = 5, 400
+    M = rng.standard_normal((n, n))
+    H = M @ M.T + n * np.eye(n)
+    c = 5 * rng.standard_normal(n)
+    A = rng.standard_normal((m, n))
+    b = rng.random(m)
+    v, lam = solve_qp(c, H, A, b)
+    scale = np.abs(c).max()
+    assert np.max(A @ v - b) < 1e-12 * scale
+    assert lam.min() >= 0
+    np.testing.assert_allclose(H @ v + c + A.T @ lam, 0, atol=1e-11 * scale)
+    assert np.max(np.abs(lam * (A @ v - b))) < 1e-11 * scale
+    assert np.count_nonzero(lam) >= 1
+
+
+def test_kkt_residual_zero_at_optimum_positive_elsewhere():
+    """min x1 + x2 s.t. 1 - x1 x2 <= 0: the optimum (1, 1) has residual 0; (2, 0.5), on the
+    constraint but not optimal, has the residual of the projection of grad f on the constraint
+    normal (analytic)."""
+    def parts(x):
+        df = np.array([1.0, 1.0])
+        g = np.array([1.0 - x[0] * x[1]])
+        dg = np.array([[-x[1], -x[0]]])
+        return df, g, dg
+    lo, up = np.full(2, -1e6), np.full(2, 1e6)        # bounds far away: inactive
+    res, lam = kkt_residual(*parts(np.array([1.0, 1.0])), np.array([1.0, 1.0]), lo, up)
+    assert res < 1e-12 and lam[0] == pytest.approx(1.0)
+    res2, _ = kkt_residual(*parts(np.array([2.0, 0.5])), np.array([2.0, 0.5]), lo, up)
+    # min_l |(1,1) - l (0.5, 2)| / sqrt(2): l = 2.5/4.25, residual |(1,1) - l (0.5, 2)| / sqrt 2
+    lam_opt = 2.5 / 4.25
+    expected = np.linalg.norm(np.array([1.0, 1.0]) - lam_opt * np.array([0.5, 2.0])) / np.sqrt(2)
+    assert res2 == pytest.approx(expected, rel=1e-10)
+
+
+@pytest.mark.parametrize("kind,parameter", [("ks", 100.0), ("pnorm", 50.0)])
+def test_aggregation_bounds_and_gradient(kind, parameter):
+    """KS: max g <= G <= max g + ln(N)/rho; p-norm: max r <= G + 1 <= N^(1/P) max r (analytic
+    bounds), per window; the analytic gradient matches central differences."""
+    rng = np.random.default_rng(0)
+    nt, nv = 1301, 4
+    r = rng.random(nt) * 1.2
+    dr = rng.standard_normal((nt, nv))
+    windows = np.array_split(np.arange(nt), 3)
+    G, dG = aggregate_constraints(r, dr, kind, parameter, windows)
+    for k, idx in enumerate(windows):
+        top = r[idx].max()
+        if kind == "ks":
+            assert top - 1 <= G[k] <= top - 1 + np.log(idx.size) / parameter
+        else:
+            assert top <= G[k] + 1 <= idx.size ** (1 / parameter) * top
+    d = rng.standard_normal(nv)
+    h = 1e-6
+    Gp, _ = aggregate_constraints(r + h * dr @ d, None, kind, parameter, windows)
+    Gm, _ = aggregate_constraints(r - h * dr @ d, None, kind, parameter, windows)
+    np.testing.assert_allclose((Gp - Gm) / (2 * h), dG @ d, rtol=1e-6, atol=1e-8)
+
+
+@pytest.mark.parametrize("conservative", [True, False])
+def test_mma_cantilever_svanberg_1987(conservative):
+    """Svanberg (1987), section 5.1: the cantilever beam, minimize 0.0624 sum x_j subject to
+    61/x1^3 + 37/x2^3 + 19/x3^3 + 7/x4^3 + 1/x5^3 <= 1; published optimum
+    x = (6.016, 5.309, 4.494, 3.502, 2.153), f = 1.340."""
+    a = np.array([61.0, 37.0, 19.0, 7.0, 1.0])
+    opt = MMA(np.full(5, 1.0), np.full(5, 10.0), conservative=conservative)
+    x = np.full(5, 5.0)
+    for _ in range(60):
+        f0, df0 = 0.0624 * x.sum(), np.full(5, 0.0624)
+        g = np.array([np.sum(a / x ** 3) - 1.0])
+        dg = (-3 * a / x ** 4)[None, :]
+        xt = opt.step(x, f0, df0, g, dg)
+        for _ in range(20):
+            f0t, gt = 0.0624 * xt.sum(), np.array([np.sum(a / xt ** 3) - 1.0])
+            if opt.conservative(f0t, gt):
+                break
+            xt = opt.tighten(f0t, gt)
+        if np.max(np.abs(xt - x)) < 1e-7:
+            x = xt
+            break
+        x = xt
+    np.testing.assert_allclose(x, [6.016, 5.309, 4.494, 3.502, 2.153], atol=2e-3)
+    assert 0.0624 * x.sum() == pytest.approx(1.340, abs=5e-4)
+
+
+# ----------------------------------------------------------------------------- the paper's robot
+def test_table1_from_50mm(table1_direct, robot):
+    """Table 1, fully coupled row (formulation (28), 0.65 s, start 50 mm): design within 2 %
+    of [39.35, 28.25, 35.14, 24.91] mm, mass within 1 % of 0.962 kg, the maximum deviation
+    on its 1 mm limit within the stopping tolerance (relative violation < 1e-6, and active)."""
+    r = table1_direct
+    print(f"\nTable 1 fully coupled, direct sensitivities: p = {np.round(r.design_mm, 2)} mm, "
+          f"{r.mass_kg:.4f} kg, {r.iterations} iterations, {r.simulations} simulations, "
+          f"{r.wall_time_s:.2f} s")
+    assert r.converged, r.reason
+    np.testing.assert_allclose(r.design_mm, TABLE1_FULLY_P, rtol=0.02)
+    assert r.mass_kg == pytest.approx(TABLE1_MASS, rel=0.01)
+    limit = robot.limit_m
+    assert r.max_deviation_m <= limit * (1 + 1e-6)
+    assert r.max_deviation_m >= limit * (1 - 1e-3)
+    assert r.details["kkt_residual"] < 1e-3
+    assert r.inner_iterations is None
+    # the mass reported is the beam mass of the design
+    assert r.mass_kg == pytest.approx(robot.mass(r.design_mm), rel=1e-12)
+
+
+@pytest.mark.parametrize("start", TABLE6_STARTS, ids=["55", "55-45-35-25", "45"])
+def test_table6_other_starts(robot, start):
+    """Table 6, fully coupled: from [55]*4, [55, 45, 35, 25] and [45]*4 the paper's optimizer
+    reached 0.962, 0.961, 0.962 kg; the mass must be within 1 % of 0.962 kg, on the limit.
+    (The paper calls [45]*4 infeasible; in the calibrated model its maximum deviation over
+    0.65 s is 0.47 mm, it is infeasible at 0.6685 s, Table 7: 1.26 mm, CASES.md.)"""
+    r = optimize_fully(robot, start)
+    print(f"\nstart {start}: p = {np.round(r.design_mm, 2)} mm, {r.mass_kg:.4f} kg, "
+          f"{r.iterations} iterations, {r.simulations} simulations, {r.wall_time_s:.2f} s")
+    assert r.converged, r.reason
+    assert r.mass_kg == pytest.approx(TABLE1_MASS, rel=0.01)
+    assert r.max_deviation_m <= robot.limit_m * (1 + 1e-6)
+
+
+@pytest.mark.parametrize("start", [[55, 55, 55, 55], [55, 45, 35, 25]], ids=["55", "55-45-35-25"])
+def test_trust_region_sqp_other_starts(robot, start):
+    """The trust-region SQP converges from the starts where plain SLSQP stalls on the bounds
+    (CASES.md), to a mass within 1 % of the paper's 0.962 kg (Table 6)."""
+    r = optimize_fully(robot, start, optimizer="sqp")
+    print(f"\nSQP from {start}: p = {np.round(r.design_mm, 2)} mm, {r.mass_kg:.4f} kg, "
+          f"{r.iterations} iterations, {r.simulations} simulations, {r.wall_time_s:.2f} s")
+    assert r.converged, r.reason
+    assert r.mass_kg == pytest.approx(TABLE1_MASS, rel=0.01)
+    assert r.max_deviation_m <= robot.limit_m * (1 + 1e-6)
+
+
+def test_finite_differences_reach_the_same_design(robot, table1_direct):
+    """The paper's forward finite differences (relative step 1e-6) reach the design of the
+    direct sensitivities within 0.5 % (both wall times printed)."""
+    fd = optimize_fully(robot, sensitivity="fd")
+    d = table1_direct
+    print(f"\nwall time: direct {d.wall_time_s:.2f} s ({d.simulations} simulations), "
+          f"finite differences {fd.wall_time_s:.2f} s ({fd.simulations} simulations)")
+    assert fd.converged, fd.reason
+    np.testing.assert_allclose(fd.design_mm, d.design_mm, rtol=0.005)
+    # n_v + 1 simulations per gradient: more simulations than gradients
+    assert fd.simulations >= 5 * fd.details["gradient_evaluations"]
+
+
+def test_history_written_as_the_run_goes(robot, tmp_path):
+    """The JSON-lines history holds one record per iteration (0 = the start), each with the
+    fields of the paper's Table 8; its last record is the result."""
+    path = tmp_path / "history.jsonl"
+    seen = []
+
+    def progress(rec):            # the file already holds every record handed to progress
+        seen.append(len(read_history(path)))
+
+    r = optimize_fully(robot, history=path, progress=progress)
+    recs = read_history(path)
+    assert seen == list(range(1, len(recs) + 1))
+    assert [rec["iteration"] for rec in recs] == list(range(r.iterations + 1))
+    np.testing.assert_allclose(recs[0]["design_mm"], robot.start_mm)
+    np.testing.assert_allclose(recs[-1]["design_mm"], r.design_mm)
+    assert recs[-1]["mass_kg"] == pytest.approx(r.mass_kg)
+    assert recs[-1]["simulations"] == r.simulations
+    for key in ("max_violation", "active_steps", "kkt_residual", "max_deviation_m"):
+        assert key in recs[-1]
+    # the final design's active steps are 1-based time steps where the deviation is at 1 mm
+    active = recs[-1]["active_steps"]["eq28"]
+    assert active and all(r.deviation[n - 1] >= 0.999 * robot.limit_m for n in active)
+
+
+def test_ks_aggregated_formulation_is_feasible_and_conservative(robot, table1_direct):
+    """Global formulation, eq. (22), KS over 4 windows: a feasible design (the KS constraint
+    bounds the maximum from above), heavier than the local optimum (conservative) but by
+    less than the KS bound ln(N)/rho allows (at most about 7 % on the deviation)."""
+    r = optimize_fully(robot, aggregation="ks", windows=4)
+    assert r.converged, r.reason
+    assert r.max_deviation_m <= robot.limit_m
+    assert r.mass_kg >= table1_direct.mass_kg * (1 - 1e-4)
+    assert r.mass_kg <= table1_direct.mass_kg * 1.07
+    assert r.details["aggregation"] == "ks"
+
+
+def test_cli_json(tmp_path):
+    """``flexmbs optimize robot_2dof --method fully --json`` prints the result fields."""
+    hist = tmp_path / "h.jsonl"
+    out = subprocess.run([sys.executable, "-m", "flexmbs", "optimize", "robot_2dof", "--method",
+                          "fully", "--json", "--history", str(hist)],
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    d = json.loads(out.stdout)
+    for key in ("method", "design_mm", "mass_kg", "iterations", "inner_iterations",
+                "simulations", "gradient_evaluations", "converged", "max_deviation_m",
+                "wall_time_s", "reason", "history"):
+        assert key in d
+    assert d["method"] == "fully" and d["inner_iterations"] is None and d["converged"]
+    assert d["mass_kg"] == pytest.approx(TABLE1_MASS, rel=0.01)
+    assert len(read_history(hist)) == d["iterations"] + 1
+
+
+def test_bad_input(robot):
+    with pytest.raises(ModelError, match="optimizer"):
+        optimize_fully(robot, optimizer="newton")
+    with pytest.raises(ModelError, match="sensitivity"):
+        optimize_fully(robot, sensitivity="adjoint")
+    with pytest.raises(CaseError, match="outside the bounds"):
+        optimize_fully(robot, [10, 50, 50, 50])
+    with pytest.raises(CaseError, match="4 finite values"):
+        optimize_fully(robot, [50, 50, 50])
+    with pytest.raises(ModelError, match="aggregation"):
+        optimize_fully(robot, aggregation="max")
