@@ -224,7 +224,7 @@ contains
         if (.not. (pdyn > 0)) pdyn = kdyn
         fact_valid = .false.
         fact_h = 0
-        xsave = x
+        call copy_state(x, xsave)
         do j = 1, s%nsteps
             t = (j - 1) * s%h
             nsub = 1
@@ -236,7 +236,7 @@ contains
                 end do
                 if (st == GA_OK) exit
                 ! failure: restore the state at t_j and cut the step
-                x = xsave
+                call copy_state(xsave, x)
                 fact_valid = .false.
                 if (icut < s%max_cuts) then
                     stats%step_cuts = stats%step_cuts + 1
@@ -249,7 +249,7 @@ contains
             end if
             stats%steps = j
             call store(j)
-            xsave = x
+            call copy_state(x, xsave)
         end do
 
 900     continue
@@ -349,10 +349,13 @@ contains
         subroutine sens_step(hh, tnew, betap, gammap, stat)
             real(wp), intent(in) :: hh, tnew, betap, gammap
             integer, intent(out) :: stat
-            real(wp) :: ap_(m%ndof, nv), qhat(m%ndof, nv), vhat(m%ndof, nv)
-            real(wp) :: rhs(m%n, nv), fd(m%ndof, nv), md(m%ndof, nv), mq(m%ndof)
+            ! heap arrays: (ndof, nv) blocks can be large for long beams
+            real(wp), allocatable :: ap_(:, :), qhat(:, :), vhat(:, :), rhs(:, :), fd(:, :), md(:, :)
+            real(wp) :: mq(m%ndof)
             integer :: v, lst
             stat = GA_OK
+            allocate (ap_(m%ndof, nv), qhat(m%ndof, nv), vhat(m%ndof, nv), rhs(m%n, nv), &
+                      fd(m%ndof, nv), md(m%ndof, nv))
             if (s%reuse) then
                 call iteration_matrix(m, x%q, x%mu, tnew, betap, 1.0_wp, kdyn, pdyn, vals)
                 call ls_factor(ls, vals, lst)
@@ -388,6 +391,28 @@ contains
         end subroutine sens_step
 
     end subroutine ga_simulate
+
+    !> dst = src for two states of the same shapes, in place (no reallocation per step).
+    subroutine copy_state(src, dst)
+        type(ga_state), intent(in) :: src
+        type(ga_state), intent(inout) :: dst
+        if (.not. allocated(dst%q)) then
+            dst = src
+            return
+        end if
+        dst%q = src%q
+        dst%qd = src%qd
+        dst%qdd = src%qdd
+        dst%a = src%a
+        dst%mu = src%mu
+        if (allocated(src%dq)) then
+            dst%dq = src%dq
+            dst%dqd = src%dqd
+            dst%dqdd = src%dqdd
+            dst%da = src%da
+            dst%dmu = src%dmu
+        end if
+    end subroutine copy_state
 
     !> Rest start: the initial configuration must satisfy the constraints.
     subroutine check_initial(m, q, status, info)
@@ -557,9 +582,10 @@ contains
         real(wp), intent(in) :: ks, ps
         type(ga_state), intent(inout) :: x
         integer, intent(out) :: status
-        real(wp) :: rhs(m%n, size(dprop, 3)), fd(m%ndof, size(dprop, 3)), md(m%ndof, size(dprop, 3))
+        real(wp), allocatable :: rhs(:, :), fd(:, :), md(:, :)
         integer :: lst
         status = GA_OK
+        allocate (rhs(m%n, size(dprop, 3)), fd(m%ndof, size(dprop, 3)), md(m%ndof, size(dprop, 3)))
         call iteration_matrix(m, x%q, x%mu, 0.0_wp, 0.0_wp, 1.0_wp, ks, ps, vals)
         call ls_factor(ls, vals, lst)
         if (lst /= LS_OK) then
@@ -594,10 +620,11 @@ contains
         type(ga_state), intent(inout) :: x
         integer, intent(out) :: status
         integer :: nv, v, lst
-        real(wp) :: k0, rhs(m%n, size(dprop, 3)), md(m%ndof, size(dprop, 3))
-        real(wp) :: fd(m%ndof, size(dprop, 3)), kq(m%ndof), c1(m%nc), c2(m%nc)
+        real(wp) :: k0, kq(m%ndof), c1(m%nc), c2(m%nc)
+        real(wp), allocatable :: rhs(:, :), md(:, :), fd(:, :)
         status = GA_OK
         nv = size(dprop, 3)
+        allocate (rhs(m%n, nv), md(m%ndof, nv), fd(m%ndof, nv))
         k0 = mass_scale(m)
         ! velocities
         call mass_design_derivative_times(m, dprop, qd0 - x%qd, md)
