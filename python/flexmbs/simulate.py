@@ -151,10 +151,17 @@ def core_model_args(model: Model, storage, t, props=None):
     law_h = float(t[1] - t[0])
     laws = model.laws()
     if laws:
-        tab = [law.tabulate(t) for law in laws]
-        law_val = np.asfortranarray(np.array([v for v, _, _ in tab]))
-        law_der = np.asfortranarray(np.array([d for _, d, _ in tab]))
-        law_dd0 = np.array([dd for _, _, dd in tab])
+        # the laws do not depend on the design: tabulate once per model and time grid
+        key = (tuple(id(law) for law in laws), t.size, float(t[0]), float(t[-1]))
+        cache = model.__dict__.setdefault("_law_tables", {})
+        if key not in cache:
+            if len(cache) > 8:
+                cache.clear()
+            tab = [law.tabulate(t) for law in laws]
+            cache[key] = (np.asfortranarray(np.array([v for v, _, _ in tab])),
+                          np.asfortranarray(np.array([d for _, d, _ in tab])),
+                          np.array([dd for _, _, dd in tab]))
+        law_val, law_der, law_dd0 = cache[key]
     else:
         law_val = np.zeros((1, t.size), order="F")
         law_der = np.zeros((1, t.size), order="F")
