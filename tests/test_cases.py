@@ -473,8 +473,8 @@ def test_cli_errors_are_one_line_with_status_2(args, needle):
     assert "Traceback" not in p.stderr
 
 
-def test_cli_demo():
-    """flexmbs demo prints the published Table 1 masses beside flexmbs's."""
-    p = _cli("demo")
+def test_cli_demo(tmp_path):
+    """flexmbs demo prints the published Table 1 masses beside flexmbs's (run in a scratch folder)."""
+    p = _cli("demo", cwd=tmp_path)
     assert p.returncode == 0, p.stderr
     assert "Table 1, weakly coupled optimum" in p.stdout and "0.962" in p.stdout

@@ -6,8 +6,11 @@ Public API (explicit):
     TimeLaw                      motor and load laws with derivatives (laws.py)
     simulate, Result             generalized-alpha simulation (simulate.py)
     check_tangent, check_iteration_matrix   derivative checkers (checks.py)
+    load_case, Case              the paper's mechanisms from cases/*.toml (cases.py)
     FlexmbsError, ModelError, SimulationError, CaseError   exceptions (errors.py)
 """
+from flexmbs.cases import Case, load_case
+from flexmbs.checks import check_iteration_matrix, check_tangent
 from flexmbs.errors import CaseError, FlexmbsError, ModelError, SimulationError
 from flexmbs.laws import TimeLaw
 from flexmbs.model import Body, Model
@@ -16,6 +19,7 @@ from flexmbs.simulate import Result, simulate
 
 __all__ = [
     "Model", "Body", "Material", "Circle", "Tube", "Rectangle", "GivenSection", "TimeLaw",
-    "simulate", "Result", "FlexmbsError", "ModelError", "SimulationError", "CaseError",
+    "simulate", "Result", "check_tangent", "check_iteration_matrix",
+    "FlexmbsError", "ModelError", "SimulationError", "CaseError", "load_case", "Case",
 ]
 __version__ = "0.1.0"

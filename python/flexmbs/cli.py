@@ -4,7 +4,8 @@ Usage::
 
     flexmbs simulate CASE [--design P1,P2,...] [--t-end T] [--h H] [--rho-inf R]
                           [--set KEY=VALUE ...] [--out result.npz] [--plot FILE.png] [--json]
-    flexmbs demo [--plot FILE.png]
+    flexmbs demo [--out DIR] [--workers N]
+    flexmbs reproduce [--table N ...|--all] [--out DIR] [--workers N | --dask ADDRESS] [--quick]
 
 CASE is a case name (``robot_2dof``, ``robot_2dof_tracking``, ``fourbar``, ``fourbar_no_masses``)
 or a path to a TOML case file. Errors in the input or in the simulation print one line on stderr
@@ -38,6 +39,7 @@ COMMANDS = [
     "flexmbs.cli:register_simulate",
     "flexmbs.cli:register_demo",
     "flexmbs.optimize.cli:register",
+    "flexmbs.reproduce:register",
 ]
 
 
@@ -198,51 +200,35 @@ def _save_npz(path, case, r):
 
 
 # ----------------------------------------------------------------------------- demo
-#: The paper's Table 1 (2-dof robot, formulation (28), 0.65 s): published optima and masses.
-_TABLE1 = [("Table 1, weakly coupled optimum", [39.29, 28.33, 34.94, 25.19], 0.962),
-           ("Table 1, fully coupled optimum", [39.35, 28.25, 35.14, 24.91], 0.962)]
-
-
 def register_demo(subparsers):
     p = subparsers.add_parser(
-        "demo", help="simulate the paper's robot at its start design and at the Table 1 optima",
-        description="The paper's 2-dof robot (section 6.2, deviation (28), 0.65 s): beam mass and "
-                    "maximum deviation at the start design and at the published Table 1 optima, "
-                    "beside the paper's values (at an optimum the 1 mm limit is active).")
-    p.add_argument("--plot", metavar="FILE.png",
-                   help="save the overview figure of the Table 1 weakly coupled optimum")
+        "demo", help="reproduce the paper's Table 1 with both methods (under a minute)",
+        description="The paper's 2-dof robot (section 6.2, deviation (28), 0.65 s): optimize "
+                    "it with the weakly and the fully coupled methods from the start design, "
+                    "print the results beside the paper's Table 1, draw Fig. 5 and write a "
+                    "report (DIR/README.md). `flexmbs reproduce` does the same for every table.")
+    p.add_argument("--out", default="reproduction/demo", metavar="DIR",
+                   help="output folder (default: reproduction/demo)")
+    p.add_argument("--workers", type=int, default=2, metavar="N",
+                   help="local worker processes (default 2: one per method; 1: serial)")
     p.set_defaults(func=run_demo)
 
 
 def run_demo(args):
-    from flexmbs.cases import load_case
+    from flexmbs.reproduce import print_report, reproduce
 
-    case = load_case("robot_2dof")
-    rows = [("start design", case.start_mm, None, None)]
-    rows += [(name, p, m, case.limit_m) for name, p, m in _TABLE1]
-    print(f"flexmbs demo: the paper's 2-dof robot (section 6.2), deviation ({case.formulation}), "
-          f"{case.t_end} s ({case.nsteps + 1} time steps), {case.parameters['drive']} motor at A, "
-          f"{case.start_mode} start")
-    print(f"{'':64s}{'beam mass (kg)':>22s}{'max deviation (mm)':>26s}")
-    print(f"{'design':34s}{'p (mm)':30s}{'flexmbs':>11s}{'paper':>11s}{'flexmbs':>13s}{'paper':>13s}")
-    total = 0.0
-    best = None
-    for name, p, m_paper, dev_paper in rows:
-        r = case.simulate(p)
-        total += r.result.wall_time
-        pm = f"{m_paper:.3f}" if m_paper is not None else "-"
-        pd = f"{dev_paper * 1e3:.3f}" if dev_paper is not None else "-"
-        ptxt = "[" + ", ".join(f"{v:.2f}" for v in p) + "]"
-        print(f"{name:34s}{ptxt:30s}{r.mass:11.3f}{pm:>11s}{r.max_deviation * 1e3:13.3f}{pd:>13s}")
-        if name.startswith("Table 1, weakly"):
-            best = r
-    print(f"(paper: at an optimum the deviation limit of 1 mm is active; {len(rows)} simulations "
-          f"in {total:.2f} s)")
-    if args.plot:
-        from flexmbs.plots import plot_case
-        plot_case(best, args.plot)
-        print(f"figure: {args.plot}")
-    return 0
+    print("flexmbs demo: the paper's Table 1 (2-dof robot, deviation (28), 0.65 s), weakly and "
+          "fully coupled optimizations from p = [50, 50, 50, 50] mm", flush=True)
+    report = reproduce([1], args.out, workers=args.workers, force=True,
+                       log=lambda s: print(s, flush=True))
+    print_report(report)
+    print()
+    for r in report.rows.get(1, []):
+        fmt = lambda p: "[" + ", ".join(f"{v:.2f}" for v in p) + "]"     # noqa: E731
+        print(f"Table 1, {r.method} coupled optimum: flexmbs {r.mass_kg:.4f} kg, "
+              f"p = {fmt(r.design_mm)} mm; paper {r.paper['mass']:.3f} kg, "
+              f"p = {fmt(r.paper['p'])} mm")
+    return 1 if report.failures else 0
 
 
 # ----------------------------------------------------------------------------- main
