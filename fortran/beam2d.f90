@@ -44,13 +44,14 @@ contains
         end if
     end subroutine shape
 
-    !> Raw strain measures e1 = c x' + s y', e2 = -s x' + c y', kappa = phi', and phi.
-    pure subroutine raw_strains(nen, qe, dns, n, e1, e2, kap, phi, dx, dy)
+    !> Raw strain measures e1 = c x' + s y', e2 = -s x' + c y', kappa = phi', with
+    !! c = cos(phi), s = sin(phi) of the interpolated rotation (returned for reuse).
+    pure subroutine raw_strains(nen, qe, dns, n, e1, e2, kap, c, s)
         integer, intent(in) :: nen
         real(wp), intent(in) :: qe(3 * nen), dns(nen), n(nen)
-        real(wp), intent(out) :: e1, e2, kap, phi, dx, dy
+        real(wp), intent(out) :: e1, e2, kap, c, s
         integer :: a
-        real(wp) :: c, s
+        real(wp) :: phi, dx, dy
         dx = 0; dy = 0; kap = 0; phi = 0
         do a = 1, nen
             dx = dx + dns(a) * qe(3 * a - 2)
@@ -87,14 +88,14 @@ contains
         real(wp), intent(in) :: elen                   !! reference length L
         real(wp), intent(in) :: qref(3 * nen)          !! reference coordinates
         real(wp), intent(out) :: eref(3, MAX_GAUSS)    !! reference raw strains per Gauss point
-        real(wp) :: xg(MAX_GAUSS), wg(MAX_GAUSS), n(nen), dn(nen), phi, dx, dy
+        real(wp) :: xg(MAX_GAUSS), wg(MAX_GAUSS), n(nen), dn(nen), c, s
         integer :: ig, ng
         call stiffness_gauss(nen, ng, xg, wg)
         eref = 0
         do ig = 1, ng
             call shape(nen, xg(ig), n, dn)
             call raw_strains(nen, qref, dn / (0.5_wp * elen), n, eref(1, ig), eref(2, ig), &
-                             eref(3, ig), phi, dx, dy)
+                             eref(3, ig), c, s)
         end do
     end subroutine beam_reference_strains
 
@@ -115,7 +116,7 @@ contains
         real(wp), intent(out), optional :: parts(3 * nen, 3)       !! forces per unit stiffness
         real(wp), intent(in), optional :: eref(3, MAX_GAUSS)       !! reference strains (else from qref)
         real(wp) :: xg(MAX_GAUSS), wg(MAX_GAUSS), n(nen), dn(nen), dns(nen), jac, w
-        real(wp) :: e1, e2, kap, phi, dx, dy, r1, r2, rk, rphi, rdx, rdy
+        real(wp) :: e1, e2, kap, r1, r2, rk
         real(wp) :: g1, g2, gk, nf, qf, mf, c, s
         real(wp) :: b(3, 3 * nen), db(3, 3 * nen)
         integer :: ig, ng, a, bb, ia, ib, j
@@ -133,9 +134,9 @@ contains
                 r2 = eref(2, ig)
                 rk = eref(3, ig)
             else
-                call raw_strains(nen, qref, dns, n, r1, r2, rk, rphi, rdx, rdy)
+                call raw_strains(nen, qref, dns, n, r1, r2, rk, c, s)
             end if
-            call raw_strains(nen, qe, dns, n, e1, e2, kap, phi, dx, dy)
+            call raw_strains(nen, qe, dns, n, e1, e2, kap, c, s)
             ! strains measured from the reference configuration
             g1 = e1 - r1
             g2 = e2 - r2
@@ -143,8 +144,6 @@ contains
             nf = stiff(1) * g1
             qf = stiff(2) * g2
             mf = stiff(3) * gk
-            c = cos(phi)
-            s = sin(phi)
             ! B = d(Gamma_1, Gamma_2, kappa)/d qe
             do a = 1, nen
                 ia = 3 * (a - 1)

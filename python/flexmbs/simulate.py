@@ -18,8 +18,10 @@ __all__ = ["simulate", "Result", "DENSE_MAX_UNKNOWNS", "time_grid", "system_matr
 # (no pool latency); parallelism belongs to batch runs over designs.
 _core.blas_single_thread()
 
-#: Largest system solved with dense LU when solver="auto" (KLU above); see benchmarks/scaling.py.
-DENSE_MAX_UNKNOWNS = 60
+#: Largest system solved with dense LU when solver="auto" (KLU above). benchmarks/scaling.py
+#: measured KLU faster than LAPACK's dense LU at every size from 18 unknowns up (1.5x at 18,
+#: 2x at 54, 8x at 198, with or without Jacobian reuse), so "auto" always takes KLU.
+DENSE_MAX_UNKNOWNS = 0
 
 _SOLVERS = {"dense": 1, "klu": 2}
 
@@ -145,6 +147,10 @@ def core_model_args(model: Model, storage, t, props=None):
     pat = model.pattern(storage)
     if props is None:
         props = model.element_properties()
+    props = np.asarray(props, float)
+    if props.shape != (5, cm.el_dofs.shape[1]) or not np.all(np.isfinite(props)):
+        raise ModelError(f"props must be a finite (5, {cm.el_dofs.shape[1]}) array of element "
+                         f"properties [EA, kGA, EI, rhoA, rhoI], got shape {props.shape}")
     t = np.atleast_1d(np.asarray(t, float))
     if t.size < 2:
         t = np.array([0.0, 1.0])
@@ -220,7 +226,8 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     store : 'all', or a list of node ids / Body objects, default 'all'
         Which coordinates to keep at every step (memory for long runs).
     solver : {'auto', 'dense', 'klu'}, default 'auto'
-        Dense LAPACK LU up to DENSE_MAX_UNKNOWNS unknowns, KLU above.
+        Dense LAPACK LU up to DENSE_MAX_UNKNOWNS unknowns (currently none: KLU was faster at
+        every size measured), SuiteSparse KLU above.
     reuse_jacobian : bool, default False
         Modified Newton: keep the factorization while convergence is fast.
     tol : float, default 1e-10
@@ -258,6 +265,9 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         raise ModelError(f"start must be 'rest' or 'static', got {start!r}")
     if not (tol > 0 and max_iter >= 1 and max_cuts >= 0):
         raise ModelError("tol must be > 0, max_iter >= 1, max_cuts >= 0")
+    for name, v in (("kscale", kscale), ("penalty", penalty)):
+        if v is not None and not (isinstance(v, (int, float, np.floating)) and math.isfinite(v) and v > 0):
+            raise ModelError(f"{name} must be a positive finite number or None (automatic), got {v!r}")
     cm = model.compile()
     if solver == "auto":
         solver = "dense" if cm.n <= DENSE_MAX_UNKNOWNS else "klu"
