@@ -14,7 +14,7 @@ module generalized_alpha
     use assembly, only: residual, iteration_matrix, mass_times, internal_forces, &
                         external_forces, constraint_values
     use sensitivity, only: force_design_derivative, mass_design_derivative_times, &
-                           stiffness_times, constraint_curvature
+                           stiffness_times, constraint_curvature, step_design_rhs
     use linear_solver, only: linear_system, ls_init_dense, ls_init_sparse, ls_factor, &
                              ls_solve, ls_free, SOLVER_DENSE, SOLVER_KLU, LS_OK, LS_SINGULAR
     implicit none
@@ -158,6 +158,8 @@ contains
         type(linear_system) :: ls
         type(ga_state) :: x, xsave
         real(wp), allocatable :: fgrav(:), vals(:)
+        ! work arrays of the direct differentiation, (ndof or n, nv), allocated once
+        real(wp), allocatable :: ap_(:, :), qhat(:, :), vhat(:, :), rhs(:, :)
         real(wp) :: alpha_m, alpha_f, gamma, beta, kdyn, pdyn, t, hs, fact_h, ks, ps
         integer :: j, nsub, icut, isub, st, nv
         logical :: fact_valid
@@ -192,6 +194,7 @@ contains
             allocate (x%dq(m%ndof, nv), x%dqd(m%ndof, nv), x%dqdd(m%ndof, nv), &
                       x%da(m%ndof, nv), x%dmu(m%nc, nv))
             x%dq = 0; x%dqd = 0; x%dqdd = 0; x%da = 0; x%dmu = 0
+            allocate (ap_(m%ndof, nv), qhat(m%ndof, nv), vhat(m%ndof, nv), rhs(m%n, nv))
             dq_out = 0
         end if
         x%q = q0
@@ -363,13 +366,8 @@ contains
         subroutine sens_step(hh, tnew, betap, gammap, stat)
             real(wp), intent(in) :: hh, tnew, betap, gammap
             integer, intent(out) :: stat
-            ! heap arrays: (ndof, nv) blocks can be large for long beams
-            real(wp), allocatable :: ap_(:, :), qhat(:, :), vhat(:, :), rhs(:, :), fd(:, :), md(:, :)
-            real(wp) :: mq(m%ndof)
-            integer :: v, lst
+            integer :: lst
             stat = GA_OK
-            allocate (ap_(m%ndof, nv), qhat(m%ndof, nv), vhat(m%ndof, nv), rhs(m%n, nv), &
-                      fd(m%ndof, nv), md(m%ndof, nv))
             if (s%reuse) then
                 call iteration_matrix(m, x%q, x%mu, tnew, betap, 1.0_wp, kdyn, pdyn, vals)
                 call ls_factor(ls, vals, lst)
@@ -384,13 +382,8 @@ contains
             ap_ = (alpha_f * x%dqdd - alpha_m * x%da) / (1 - alpha_m)
             qhat = x%dq + hh * x%dqd + hh**2 * ((0.5_wp - beta) * x%da + beta * ap_)
             vhat = x%dqd + hh * ((1 - gamma) * x%da + gamma * ap_)
-            call force_design_derivative(m, dprop, x%q, fd)
-            call mass_design_derivative_times(m, dprop, x%qdd - m%gacc, md)
-            do v = 1, nv
-                call mass_times(m, qhat(:, v), mq)
-                rhs(1:m%ndof, v) = -(fd(:, v) + md(:, v)) + betap * mq
-                rhs(m%ndof + 1:, v) = 0
-            end do
+            call step_design_rhs(m, dprop, x%q, x%qdd - m%gacc, betap, qhat, rhs(1:m%ndof, :))
+            rhs(m%ndof + 1:, :) = 0
             call ls_solve(ls, rhs, lst)
             if (lst /= LS_OK) then
                 stat = GA_NONFINITE

@@ -16,7 +16,7 @@ module sensitivity
     implicit none
     private
     public :: force_design_derivative, mass_design_derivative_times, stiffness_times, &
-              constraint_curvature
+              constraint_curvature, step_design_rhs
 
 contains
 
@@ -46,6 +46,58 @@ contains
             end do
         end do
     end subroutine force_design_derivative
+
+    !> Right-hand sides of the direct differentiation of one step, in one pass over the
+    !! elements: rhs(:, v) = -(df_int/dp_v + dM/dp_v acc) + betap M qhat(:, v), with
+    !! acc = qdd - g_acc (see sens_step in generalized_alpha.f90).
+    subroutine step_design_rhs(m, dprop, q, acc, betap, qhat, rhs)
+        type(mbs_model), intent(in) :: m
+        real(wp), intent(in) :: dprop(:, :, :)     !! (5, nel, nv)
+        real(wp), intent(in) :: q(m%ndof), acc(m%ndof), betap
+        real(wp), intent(in) :: qhat(:, :)         !! (ndof, nv)
+        real(wp), intent(out) :: rhs(:, :)         !! (ndof, nv) (rows of the coordinates only)
+        real(wp) :: fe(MAX_EDOF), parts(MAX_EDOF, 3), qe(MAX_EDOF), qr(MAX_EDOF), acce(MAX_EDOF)
+        real(wp) :: ya(MAX_EDOF), yi(MAX_EDOF), qh(MAX_EDOF), mq(MAX_EDOF)
+        integer :: e, ne, a, v, d, nv
+        logical :: has_stiff, has_mass
+        nv = size(dprop, 3)
+        do v = 1, nv
+            rhs(:, v) = betap * m%lumped * qhat(:, v)
+        end do
+        do e = 1, m%nel
+            ne = 3 * m%el_nen(e)
+            has_stiff = any(dprop(1:3, e, :) /= 0)
+            has_mass = any(dprop(4:5, e, :) /= 0)
+            do a = 1, ne
+                d = m%el_dofs(a, e)
+                qe(a) = q(d)
+                qr(a) = m%qref(d)
+                acce(a) = acc(d)
+            end do
+            if (has_stiff) call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), &
+                qr(1:ne), qe(1:ne), fe(1:ne), parts=parts(1:ne, :), eref=m%el_eref(:, :, e))
+            if (has_mass) then
+                ya(1:ne) = matmul(m%el_mass_a(1:ne, 1:ne, e), acce(1:ne))
+                yi(1:ne) = matmul(m%el_mass_i(1:ne, 1:ne, e), acce(1:ne))
+            end if
+            do v = 1, nv
+                do a = 1, ne
+                    qh(a) = qhat(m%el_dofs(a, e), v)
+                end do
+                mq(1:ne) = betap * matmul(m%el_mass(1:ne, 1:ne, e), qh(1:ne))
+                if (has_stiff) then
+                    do a = 1, ne
+                        mq(a) = mq(a) - dot_product(dprop(1:3, e, v), parts(a, :))
+                    end do
+                end if
+                if (has_mass) mq(1:ne) = mq(1:ne) - dprop(4, e, v) * ya(1:ne) - dprop(5, e, v) * yi(1:ne)
+                do a = 1, ne
+                    d = m%el_dofs(a, e)
+                    rhs(d, v) = rhs(d, v) + mq(a)
+                end do
+            end do
+        end do
+    end subroutine step_design_rhs
 
     !> y(:, v) = dM/dp_v x for every design variable.
     subroutine mass_design_derivative_times(m, dprop, x, y)
