@@ -15,7 +15,7 @@ import os
 import sys
 import time
 
-BENCHMARKS = ("work_precision", "where_time_goes", "scaling")
+BENCHMARKS = ("work_precision", "where_time_goes", "scaling", "sensitivity", "optimization")
 
 
 def main(argv=None):

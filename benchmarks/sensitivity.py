@@ -23,24 +23,33 @@ def best_time(fn, repeat):
     return min(times)
 
 
+def run(quick=False, outdir=None, log=print, repeat=None):
+    """Entry point of benchmarks/run.py."""
+    return measure(repeat or (3 if quick else 7), log)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=7)
     args = ap.parse_args(argv)
+    return measure(repeat, print)
+
+
+def measure(repeat, log):
     case = load_case("robot_2dof")
     p = np.array([39.29, 28.33, 34.94, 25.19])
     rows = []
     for reuse in (False, True):
         opts = dict(reuse_jacobian=reuse)
-        t_sim = best_time(lambda: case.simulate(p, **opts), args.repeat)
-        t_dir = best_time(lambda: case_gradients(case, p, method="direct", **opts), args.repeat)
-        t_fd = best_time(lambda: case_gradients(case, p, method="forward", **opts), args.repeat)
+        t_sim = best_time(lambda: case.simulate(p, **opts), repeat)
+        t_dir = best_time(lambda: case_gradients(case, p, method="direct", **opts), repeat)
+        t_fd = best_time(lambda: case_gradients(case, p, method="forward", **opts), repeat)
         rows.append(("modified" if reuse else "full", t_sim, t_dir, t_fd))
-    print("robot_2dof, Table 1 design, 1301 steps, 4 design variables (best of %d)" % args.repeat)
-    print(f"{'Newton':>9} {'simulation':>11} {'+direct':>9} {'forward FD':>11} "
+    log("robot_2dof, Table 1 design, 1301 steps, 4 design variables (best of %d)" % repeat)
+    log(f"{'Newton':>9} {'simulation':>11} {'+direct':>9} {'forward FD':>11} "
           f"{'direct/sim':>11} {'FD/sim':>8} {'FD/direct':>10}")
     for name, ts, td, tf in rows:
-        print(f"{name:>9} {ts * 1e3:9.1f}ms {td * 1e3:7.1f}ms {tf * 1e3:9.1f}ms "
+        log(f"{name:>9} {ts * 1e3:9.1f}ms {td * 1e3:7.1f}ms {tf * 1e3:9.1f}ms "
               f"{td / ts:11.2f} {tf / ts:8.2f} {tf / td:10.2f}")
     return rows
 
