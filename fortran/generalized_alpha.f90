@@ -13,8 +13,8 @@ module generalized_alpha
     use model_data, only: mbs_model, law_rate, law_accel0
     use assembly, only: residual, iteration_matrix, mass_times, internal_forces, &
                         external_forces, constraint_values
-    use sensitivity, only: force_design_derivative, mass_design_derivative_times, &
-                           stiffness_times, constraint_curvature, step_design_rhs
+    use sensitivity, only: mass_design_derivative_times, stiffness_times, &
+                           constraint_curvature, step_design_rhs
     use linear_solver, only: linear_system, ls_init_dense, ls_init_sparse, ls_factor, &
                              ls_solve, ls_free, SOLVER_DENSE, SOLVER_KLU, LS_OK, LS_SINGULAR
     implicit none
@@ -591,19 +591,19 @@ contains
         real(wp), intent(in) :: ks, ps
         type(ga_state), intent(inout) :: x
         integer, intent(out) :: status
-        real(wp), allocatable :: rhs(:, :), fd(:, :), md(:, :)
+        real(wp), allocatable :: rhs(:, :), zero(:, :)
         integer :: lst
         status = GA_OK
-        allocate (rhs(m%n, size(dprop, 3)), fd(m%ndof, size(dprop, 3)), md(m%ndof, size(dprop, 3)))
+        allocate (rhs(m%n, size(dprop, 3)), zero(m%ndof, size(dprop, 3)))
+        zero = 0
         call iteration_matrix(m, x%q, x%mu, 0.0_wp, 0.0_wp, 1.0_wp, ks, ps, vals)
         call ls_factor(ls, vals, lst)
         if (lst /= LS_OK) then
             status = GA_STATIC_FAILED
             return
         end if
-        call force_design_derivative(m, dprop, x%q, fd)
-        call mass_design_derivative_times(m, dprop, -m%gacc, md)
-        rhs(1:m%ndof, :) = -(fd + md)
+        ! -(df_int/dp - dM/dp g): the step right-hand side with beta' = 0 and qdd = 0
+        call step_design_rhs(m, dprop, x%q, -m%gacc, 0.0_wp, zero, rhs(1:m%ndof, :))
         rhs(m%ndof + 1:, :) = 0
         call ls_solve(ls, rhs, lst)
         if (lst /= LS_OK) then
@@ -630,10 +630,11 @@ contains
         integer, intent(out) :: status
         integer :: nv, v, lst
         real(wp) :: k0, kq(m%ndof), c1(m%nc), c2(m%nc)
-        real(wp), allocatable :: rhs(:, :), md(:, :), fd(:, :)
+        real(wp), allocatable :: rhs(:, :), md(:, :), zero(:, :)
         status = GA_OK
         nv = size(dprop, 3)
-        allocate (rhs(m%n, nv), md(m%ndof, nv), fd(m%ndof, nv))
+        allocate (rhs(m%n, nv), md(m%ndof, nv), zero(m%ndof, nv))
+        zero = 0
         k0 = mass_scale(m)
         ! velocities
         call mass_design_derivative_times(m, dprop, qd0 - x%qd, md)
@@ -649,11 +650,11 @@ contains
         end if
         x%dqd = rhs(1:m%ndof, :)
         ! accelerations and multipliers
-        call mass_design_derivative_times(m, dprop, m%gacc - x%qdd, md)
-        call force_design_derivative(m, dprop, x%q, fd)
+        ! dM/dp (g - qdd) - df_int/dp: the step right-hand side with beta' = 0
+        call step_design_rhs(m, dprop, x%q, x%qdd - m%gacc, 0.0_wp, zero, rhs(1:m%ndof, :))
         do v = 1, nv
             call stiffness_times(m, x%q, x%mu, x%dq(:, v), kq)
-            rhs(1:m%ndof, v) = md(:, v) - fd(:, v) - kq
+            rhs(1:m%ndof, v) = rhs(1:m%ndof, v) - kq
             call constraint_curvature(m, x%q, x%dq(:, v), x%qdd, c1)
             call constraint_curvature(m, x%q, x%qd, x%dqd(:, v), c2)
             rhs(m%ndof + 1:, v) = -k0 * (c1 + 2 * c2)

@@ -15,37 +15,9 @@ module sensitivity
     use assembly, only: constraint_values
     implicit none
     private
-    public :: force_design_derivative, mass_design_derivative_times, stiffness_times, &
-              constraint_curvature, step_design_rhs
+    public :: mass_design_derivative_times, stiffness_times, constraint_curvature, step_design_rhs
 
 contains
-
-    !> df_int/dp_v at q for every design variable: y(ndof, nv).
-    subroutine force_design_derivative(m, dprop, q, y)
-        type(mbs_model), intent(in) :: m
-        real(wp), intent(in) :: dprop(:, :, :)     !! (5, nel, nv)
-        real(wp), intent(in) :: q(m%ndof)
-        real(wp), intent(out) :: y(:, :)           !! (ndof, nv)
-        real(wp) :: fe(MAX_EDOF), parts(MAX_EDOF, 3), qe(MAX_EDOF), qr(MAX_EDOF)
-        integer :: e, ne, a, v, d
-        y = 0
-        do e = 1, m%nel
-            if (all(dprop(1:3, e, :) == 0)) cycle
-            ne = 3 * m%el_nen(e)
-            do a = 1, ne
-                qe(a) = q(m%el_dofs(a, e))
-                qr(a) = m%qref(m%el_dofs(a, e))
-            end do
-            call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), qr(1:ne), &
-                                      qe(1:ne), fe(1:ne), parts=parts(1:ne, :), eref=m%el_eref(:, :, e))
-            do v = 1, size(dprop, 3)
-                do a = 1, ne
-                    d = m%el_dofs(a, e)
-                    y(d, v) = y(d, v) + dot_product(dprop(1:3, e, v), parts(a, :))
-                end do
-            end do
-        end do
-    end subroutine force_design_derivative
 
     !> Right-hand sides of the direct differentiation of one step, in one pass over the
     !! elements: rhs(:, v) = -(df_int/dp_v + dM/dp_v acc) + betap M qhat(:, v), with

@@ -417,6 +417,16 @@ class StaticSolution:
     du: np.ndarray | None
 
 
+def _factor(stiffness: BodyStiffness, props):
+    """K^b(p) and its Cholesky factorization (ModelError if not positive definite)."""
+    K = stiffness.matrix(props)
+    try:
+        return K, sla.cho_factor(K, check_finite=False)
+    except sla.LinAlgError:
+        raise ModelError(f"body {stiffness.name!r}: stiffness not positive definite at this "
+                         "design (a zero section, or the frame does not hold the rigid modes)") from None
+
+
 def solve_static(stiffness: BodyStiffness, g_eq, props, dprops=None):
     """Solve K^b(p) u_n = g_eq,n for every load case with one factorization (problem 23).
 
@@ -432,12 +442,7 @@ def solve_static(stiffness: BodyStiffness, g_eq, props, dprops=None):
     -------
     StaticSolution
     """
-    K = stiffness.matrix(props)
-    try:
-        fac = sla.cho_factor(K, check_finite=False)
-    except sla.LinAlgError:
-        raise ModelError(f"body {stiffness.name!r}: stiffness not positive definite at this "
-                         "design (a zero section, or the frame does not hold the rigid modes)") from None
+    K, fac = _factor(stiffness, props)
     g = np.asarray(g_eq, float)
     u = sla.cho_solve(fac, g.T, check_finite=False).T
     du = None
@@ -468,12 +473,7 @@ def static_response(stiffness: BodyStiffness, g_eq, props, columns, dprops=None)
     -------
     u : (nt, nsel); du : (nv, nt, nsel) or None.
     """
-    K = stiffness.matrix(props)
-    try:
-        fac = sla.cho_factor(K, check_finite=False)
-    except sla.LinAlgError:
-        raise ModelError(f"body {stiffness.name!r}: stiffness not positive definite at this "
-                         "design (a zero section, or the frame does not hold the rigid modes)") from None
+    K, fac = _factor(stiffness, props)
     cols = np.asarray(columns, int)
     g = np.asarray(g_eq, float)
     if dprops is None:
