@@ -15,8 +15,10 @@ demo: setup
 test: setup
 	$(PY) -m pytest -q $(PYTEST_ARGS)
 
+# benchmarks (not tests): Exudyn is the peer of the work-precision study (the `bench` extra)
 bench: setup
-	$(PY) benchmarks/run.py
+	$(PY) -m pip install -q exudyn || echo "exudyn could not be installed: work-precision runs flexmbs alone"
+	$(PY) benchmarks/run.py $(BENCH_ARGS)
 
 clean:
 	rm -rf build $(VENV) .pytest_cache
