@@ -32,7 +32,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=7)
     args = ap.parse_args(argv)
-    return measure(repeat, print)
+    return measure(args.repeat, print)
 
 
 def measure(repeat, log):

@@ -16,7 +16,7 @@ module generalized_alpha
     use sensitivity, only: mass_design_derivative_times, stiffness_times, &
                            constraint_curvature, step_design_rhs
     use linear_solver, only: linear_system, ls_init_dense, ls_init_sparse, ls_factor, &
-                             ls_solve, ls_free, SOLVER_DENSE, SOLVER_KLU, LS_OK, LS_SINGULAR
+                             ls_solve, ls_free, SOLVER_DENSE, SOLVER_KLU, LS_OK
     implicit none
     private
     public :: ga_settings, ga_stats, ga_simulate, ga_coefficients
@@ -455,8 +455,7 @@ contains
         integer, intent(out) :: status
         real(wp), intent(out) :: info(4)
         real(wp), intent(out) :: ks, ps          !! k and p used (for the sensitivities)
-        real(wp), allocatable :: q_start(:)
-        real(wp) :: r(m%n), z(m%n, 1), err, phimax, lf
+        real(wp) :: q_start(m%ndof), r(m%n), z(m%n, 1), err, phimax, lf
         integer :: nincr, inc, it, lst, attempt
         logical :: ok
         ks = s%kscale

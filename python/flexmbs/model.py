@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from flexmbs.errors import ModelError
-from flexmbs.laws import TimeLaw, as_law
+from flexmbs.laws import as_law
 from flexmbs.sections import Material, Section, section_properties
 
 __all__ = ["Model", "Body", "CompiledModel"]

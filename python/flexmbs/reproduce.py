@@ -969,7 +969,7 @@ def print_report(report):
                  + "; ".join(f"Table {c.table}: {c.what}" for c in checks if not c.ok)))
     times = ", ".join(f"Table {t} {report.table_time(t):.1f} s" for t in report.tables if t != 8)
     print(f"serial wall time of the runs: {times}")
-    print(f"elapsed: " + ", ".join(f"{k} {v:.1f} s" for k, v in report.elapsed.items()))
+    print("elapsed: " + ", ".join(f"{k} {v:.1f} s" for k, v in report.elapsed.items()))
     print(f"report: {report.out / 'README.md'}"
           + (f" ({len(report.figures)} figures in {report.out / 'figures'})"
              if report.figures else ""))
