@@ -7,11 +7,13 @@ Public API (explicit):
     simulate, Result             generalized-alpha simulation (simulate.py)
     check_tangent, check_iteration_matrix   derivative checkers (checks.py)
     load_case, Case              the paper's mechanisms from cases/*.toml (cases.py)
-    FlexmbsError, ModelError, SimulationError, CaseError   exceptions (errors.py)
+    FlexmbsError, ModelError, SimulationError, CaseError, ResourceError,
+    InvalidResultError, ValidityWarning   exceptions and warnings (errors.py)
 """
 from flexmbs.cases import Case, load_case
 from flexmbs.checks import check_iteration_matrix, check_tangent
-from flexmbs.errors import CaseError, FlexmbsError, ModelError, SimulationError
+from flexmbs.errors import (CaseError, FlexmbsError, InvalidResultError, ModelError,
+                            ResourceError, SimulationError, ValidityWarning)
 from flexmbs.laws import TimeLaw
 from flexmbs.model import Body, Model
 from flexmbs.sections import Circle, GivenSection, Material, Rectangle, Tube
@@ -20,6 +22,7 @@ from flexmbs.simulate import Result, simulate
 __all__ = [
     "Model", "Body", "Material", "Circle", "Tube", "Rectangle", "GivenSection", "TimeLaw",
     "simulate", "Result", "check_tangent", "check_iteration_matrix",
-    "FlexmbsError", "ModelError", "SimulationError", "CaseError", "load_case", "Case",
+    "FlexmbsError", "ModelError", "SimulationError", "CaseError", "ResourceError",
+    "InvalidResultError", "ValidityWarning", "load_case", "Case",
 ]
 __version__ = "0.1.0"

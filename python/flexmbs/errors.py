@@ -1,6 +1,7 @@
 """Exceptions raised by flexmbs. Every message names the input or the time step at fault."""
 
-__all__ = ["FlexmbsError", "ModelError", "SimulationError", "CaseError"]
+__all__ = ["FlexmbsError", "ModelError", "SimulationError", "CaseError", "ResourceError",
+           "InvalidResultError", "ValidityWarning"]
 
 
 class FlexmbsError(Exception):
@@ -36,3 +37,33 @@ class SimulationError(FlexmbsError, RuntimeError):
         self.residual = residual
         self.iterations = iterations
         self.code = code
+
+
+class ResourceError(FlexmbsError, MemoryError):
+    """A run would not fit (memory or disk), or an allocation in the core failed.
+
+    Raised before the run where an estimate shows it cannot fit, with the estimate and what to
+    change (fewer stored outputs, a coarser step, fewer elements, the KLU solver).
+
+    Attributes
+    ----------
+    required : float or None
+        Bytes the run needs (estimate), or the size of the failed allocation.
+    available : float or None
+        Bytes available (memory or disk) when the estimate was compared.
+    """
+
+    def __init__(self, message, *, required=None, available=None):
+        super().__init__(message)
+        self.required = required
+        self.available = available
+
+
+class InvalidResultError(FlexmbsError, RuntimeError):
+    """A simulation converged numerically but its result lies outside the model's validity
+    (e.g. axial strains far beyond a linear-elastic material's range); the message names the
+    check, the body or element, the value and the limit."""
+
+
+class ValidityWarning(UserWarning):
+    """A result is suspicious but not certainly wrong (a validity check near its limit)."""
