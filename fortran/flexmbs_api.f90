@@ -30,12 +30,23 @@ subroutine dense_solve(n, nrhs, a, b, x, status)
     real(c_double), intent(in) :: a(n, n)           !! matrix
     real(c_double), intent(in) :: b(n, nrhs)        !! right-hand sides
     real(c_double), intent(out) :: x(n, nrhs)       !! solutions
-    integer(c_int), intent(out) :: status           !! 0 ok, 1 singular, 3 invalid, 4 non-finite
+    integer(c_int), intent(out) :: status           !! 0 ok, 1 singular, 2 out of memory,
+                                                    !! 3 invalid, 4 non-finite
     type(linear_system) :: ls
-    integer :: st
-    call ls_init_dense(ls, int(n))
-    call ls_factor(ls, reshape(a, [n * n]), st)
+    real(c_double), allocatable :: av(:)
+    integer :: st, j, ierr
     x = b
+    call ls_init_dense(ls, int(n), st)
+    if (st == 0) then
+        allocate (av(int(n) * int(n)), stat=ierr)
+        if (ierr /= 0) st = 2
+    end if
+    if (st == 0) then
+        do j = 1, n
+            av((j - 1) * n + 1:j * n) = a(:, j)
+        end do
+        call ls_factor(ls, av, st)
+    end if
     if (st == 0) call ls_solve(ls, x, st)
     status = int(st, c_int)
     call ls_free(ls)
@@ -88,8 +99,12 @@ end subroutine sparse_solve
 !> Simulate a mechanism (see flexmbs.model for the meaning of every array).
 !! status: 0 ok, 1 Newton failed after step cuts, 2 singular iteration matrix,
 !! 3 static equilibrium failed, 4 singular initial system, 5 inconsistent initial
-!! configuration, 6 non-finite values, 7 bad settings, 8 linear solver set-up.
-!! info: time, scaled increment or residual, iterations, extra (row / code).
+!! configuration, 6 non-finite values, 7 bad settings, 8 linear solver set-up,
+!! 9 an allocation failed (nothing is left allocated).
+!! info: time, scaled increment or residual, iterations, extra (row / code);
+!! for status 9: time, bytes asked for (-1: unknown), 0, what (1 iteration matrix,
+!! 2 dense LU factors, 3 KLU factorization, 4 state vectors, 5 sensitivity work
+!! arrays, 6 model arrays).
 !! stats: newton iterations, factorizations, residual evaluations, step cuts,
 !! static iterations, steps completed.
 subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npts, nout, nsteps, &
@@ -102,7 +117,7 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
                     nv, nva, nsens, dprop, sens_dofs, dq_out)
     use iso_c_binding, only: c_double, c_int
     use model_data, only: mbs_model, model_from_arrays
-    use generalized_alpha, only: ga_settings, ga_stats, ga_simulate
+    use generalized_alpha, only: ga_settings, ga_stats, ga_simulate, GA_NO_MEMORY, MEM_MODEL
     !f2py threadsafe
     implicit none
     integer(c_int), intent(in) :: ndof, nc, nel, nload, nlaw, nnz   !! true counts
@@ -136,11 +151,18 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     type(ga_settings) :: s
     type(ga_stats) :: st
     integer :: stat
+    real(c_double) :: nbytes
+    q_out = 0; qd_out = 0; qdd_out = 0; mu_out = 0; dq_out = 0; stats = 0; info = 0
     call model_from_arrays(m, int(ndof), int(nc), int(nel), int(nload), int(nlaw), int(nnz), &
-                           qref, lumped, gacc, int(el_nen), int(el_dofs), el_len, el_prop, &
-                           int(ld_dof), int(ld_law), ld_amp, int(c_kind), int(c_dofs), c_coef, &
-                           c_c0, int(c_law), c_lawcoef, law_h, law_val, law_der, law_dd0, &
-                           int(map_el), int(map_diag), int(map_cq), int(map_qc), int(map_qq))
+                           qref, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
+                           ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, &
+                           c_c0, c_law, c_lawcoef, law_h, law_val, law_der, law_dd0, &
+                           map_el, map_diag, map_cq, map_qc, map_qq, stat, nbytes)
+    if (stat /= 0) then
+        status = int(GA_NO_MEMORY, c_int)
+        info = [0.0_c_double, nbytes, 0.0_c_double, real(MEM_MODEL, c_double)]
+        return
+    end if
     s%h = h
     s%rho_inf = rho_inf
     s%tol = tol
@@ -197,7 +219,7 @@ subroutine system_matrices(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nla
                            ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, c_c0, c_law, c_lawcoef, &
                            law_h, law_val, law_der, law_dd0, &
                            map_el, map_diag, map_cq, map_qc, map_qq, &
-                           q, qdd, mu, t, cm, ck, kscale, pen, r, vals, phimax)
+                           q, qdd, mu, t, cm, ck, kscale, pen, r, vals, phimax, status)
     use iso_c_binding, only: c_double, c_int
     use model_data, only: mbs_model, model_from_arrays
     use assembly, only: residual, iteration_matrix, mass_times
@@ -220,13 +242,18 @@ subroutine system_matrices(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nla
     real(c_double), intent(out) :: r(ndof + nc)                      !! residual
     real(c_double), intent(out) :: vals(nnz)                         !! iteration matrix values
     real(c_double), intent(out) :: phimax                            !! max |Phi|
+    integer(c_int), intent(out) :: status                            !! 0 ok, 9 out of memory
     type(mbs_model) :: m
-    real(c_double) :: fgrav(ndof)
+    real(c_double) :: fgrav(ndof), nbytes
+    integer :: stat
+    r = 0; vals = 0; phimax = 0
     call model_from_arrays(m, int(ndof), int(nc), int(nel), int(nload), int(nlaw), int(nnz), &
-                           qref, lumped, gacc, int(el_nen), int(el_dofs), el_len, el_prop, &
-                           int(ld_dof), int(ld_law), ld_amp, int(c_kind), int(c_dofs), c_coef, &
-                           c_c0, int(c_law), c_lawcoef, law_h, law_val, law_der, law_dd0, &
-                           int(map_el), int(map_diag), int(map_cq), int(map_qc), int(map_qq))
+                           qref, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
+                           ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, &
+                           c_c0, c_law, c_lawcoef, law_h, law_val, law_der, law_dd0, &
+                           map_el, map_diag, map_cq, map_qc, map_qq, stat, nbytes)
+    status = int(stat * 9, c_int)
+    if (stat /= 0) return
     call mass_times(m, m%gacc, fgrav)
     call residual(m, q, qdd, mu(1:max(nc, 0)), t, fgrav, cm, kscale, pen, r, phimax)
     call iteration_matrix(m, q, mu(1:max(nc, 0)), t, cm, ck, kscale, pen, vals)

@@ -16,12 +16,14 @@ module generalized_alpha
     use sensitivity, only: mass_design_derivative_times, stiffness_times, &
                            constraint_curvature, step_design_rhs
     use linear_solver, only: linear_system, ls_init_dense, ls_init_sparse, ls_factor, &
-                             ls_solve, ls_free, SOLVER_DENSE, SOLVER_KLU, LS_OK
+                             ls_solve, ls_free, dense_bytes, SOLVER_DENSE, SOLVER_KLU, LS_OK, &
+                             LS_NO_MEMORY
     implicit none
     private
     public :: ga_settings, ga_stats, ga_simulate, ga_coefficients
     public :: GA_OK, GA_NEWTON_FAILED, GA_SINGULAR, GA_STATIC_FAILED, GA_INITIAL_SINGULAR, &
-              GA_INCONSISTENT_INITIAL, GA_NONFINITE, GA_BAD_INPUT, GA_LINEAR_SOLVER
+              GA_INCONSISTENT_INITIAL, GA_NONFINITE, GA_BAD_INPUT, GA_LINEAR_SOLVER, GA_NO_MEMORY
+    public :: MEM_MATRIX, MEM_DENSE_LU, MEM_SPARSE_LU, MEM_STATE, MEM_SENSITIVITY, MEM_MODEL
 
     integer, parameter :: GA_OK = 0                   !! simulation completed
     integer, parameter :: GA_NEWTON_FAILED = 1        !! Newton failed after all step cuts
@@ -31,7 +33,17 @@ module generalized_alpha
     integer, parameter :: GA_INCONSISTENT_INITIAL = 5 !! q0 violates a constraint (rest start)
     integer, parameter :: GA_NONFINITE = 6            !! NaN/Inf in a law, residual or solution
     integer, parameter :: GA_BAD_INPUT = 7            !! settings out of range
-    integer, parameter :: GA_LINEAR_SOLVER = 8        !! linear solver set-up failed (memory)
+    integer, parameter :: GA_LINEAR_SOLVER = 8        !! linear solver set-up failed
+    !> an allocation failed; info = [time, bytes asked for (-1: unknown), 0, MEM_* what]
+    integer, parameter :: GA_NO_MEMORY = 9
+
+    ! what was being allocated when GA_NO_MEMORY is returned (info(4))
+    integer, parameter :: MEM_MATRIX = 1       !! iteration matrix values (nnz) and load vector
+    integer, parameter :: MEM_DENSE_LU = 2     !! dense LU factors (n x n)
+    integer, parameter :: MEM_SPARSE_LU = 3    !! KLU analysis or factorization
+    integer, parameter :: MEM_STATE = 4        !! integration state vectors
+    integer, parameter :: MEM_SENSITIVITY = 5  !! design-derivative work arrays (n x nv)
+    integer, parameter :: MEM_MODEL = 6        !! the model's arrays
 
     !> Settings of one simulation (documented defaults are set in Python).
     type :: ga_settings
@@ -103,13 +115,13 @@ contains
     end function mass_scale
 
     !> Mean diagonal of cm M + K_t at q: the automatic k and p of eq. (1).
-    function diagonal_scale(m, q, cm) result(sc)
+    !! vals: work array of the matrix values (overwritten).
+    function diagonal_scale(m, q, cm, vals) result(sc)
         type(mbs_model), intent(in) :: m
         real(wp), intent(in) :: q(m%ndof), cm
+        real(wp), intent(inout) :: vals(:)
         real(wp) :: sc, fint(m%ndof)
-        real(wp), allocatable :: vals(:)
         integer :: e, ne, a, cnt
-        allocate (vals(m%nnz))
         vals = 0
         call internal_forces(m, q, fint, vals, 1.0_wp)
         sc = 0
@@ -161,7 +173,7 @@ contains
         ! work arrays of the direct differentiation, (ndof or n, nv), allocated once
         real(wp), allocatable :: ap_(:, :), qhat(:, :), vhat(:, :), rhs(:, :)
         real(wp) :: alpha_m, alpha_f, gamma, beta, kdyn, pdyn, t, hs, fact_h, ks, ps
-        integer :: j, nsub, icut, isub, st, nv
+        integer :: j, nsub, icut, isub, st, nv, ierr
         logical :: fact_valid
 
         status = GA_OK
@@ -173,28 +185,47 @@ contains
         end if
         call ga_coefficients(s%rho_inf, alpha_m, alpha_f, gamma, beta)
 
-        allocate (vals(m%nnz), fgrav(m%ndof))
+        ! every allocation is checked: on failure GA_NO_MEMORY with the bytes asked
+        ! for and what they were for; the local arrays are released on return
+        nv = 0
+        if (present(dprop)) nv = size(dprop, 3)
         if (s%solver == SOLVER_KLU) then
             call ls_init_sparse(ls, m%n, ap, ai, st)
-            if (st /= LS_OK) then
+            if (st == LS_NO_MEMORY) then
+                call no_memory(-1.0_wp, MEM_SPARSE_LU)
+                return
+            else if (st /= LS_OK) then
                 status = GA_LINEAR_SOLVER
                 info(4) = st
                 return
             end if
         else
-            call ls_init_dense(ls, m%n)
+            call ls_init_dense(ls, m%n, st)
+            if (st /= LS_OK) then
+                call no_memory(dense_bytes(m%n), MEM_DENSE_LU)
+                return
+            end if
         end if
-        allocate (x%q(m%ndof), x%qd(m%ndof), x%qdd(m%ndof), x%a(m%ndof), x%mu(m%nc), &
-                  x%qdd_prev(m%ndof))
+        allocate (vals(m%nnz), fgrav(m%ndof), stat=ierr)
+        if (ierr /= 0) then
+            call no_memory(8.0_wp * (real(m%nnz, wp) + m%ndof), MEM_MATRIX)
+            goto 900
+        end if
+        call allocate_state(x, ierr)
+        if (ierr == 0) call allocate_state(xsave, ierr)
+        if (ierr /= 0) then
+            call no_memory(2 * 8.0_wp * ((5.0_wp + 5 * nv) * m%ndof + (1.0_wp + nv) * m%nc), MEM_STATE)
+            goto 900
+        end if
         x%qdd_prev = 0
         x%h_prev = 0
-        nv = 0
-        if (present(dprop)) nv = size(dprop, 3)
         if (nv > 0) then
-            allocate (x%dq(m%ndof, nv), x%dqd(m%ndof, nv), x%dqdd(m%ndof, nv), &
-                      x%da(m%ndof, nv), x%dmu(m%nc, nv))
             x%dq = 0; x%dqd = 0; x%dqdd = 0; x%da = 0; x%dmu = 0
-            allocate (ap_(m%ndof, nv), qhat(m%ndof, nv), vhat(m%ndof, nv), rhs(m%n, nv))
+            allocate (ap_(m%ndof, nv), qhat(m%ndof, nv), vhat(m%ndof, nv), rhs(m%n, nv), stat=ierr)
+            if (ierr /= 0) then
+                call no_memory(8.0_wp * nv * (3.0_wp * m%ndof + m%n), MEM_SENSITIVITY)
+                goto 900
+            end if
             dq_out = 0
         end if
         x%q = q0
@@ -209,6 +240,7 @@ contains
             if (status /= GA_OK) goto 900
             if (nv > 0) then
                 call sens_static(m, dprop, ls, vals, ks, ps, x, status)
+                if (status == GA_NO_MEMORY) call no_memory(8.0_wp * nv * (m%n + m%ndof), MEM_SENSITIVITY)
                 if (status /= GA_OK) goto 900
             end if
         else
@@ -219,6 +251,7 @@ contains
         if (status /= GA_OK) goto 900
         if (nv > 0) then
             call sens_initial(m, dprop, ls, qd0, x, status)
+            if (status == GA_NO_MEMORY) call no_memory(8.0_wp * nv * (m%n + 2.0_wp * m%ndof), MEM_SENSITIVITY)
             if (status /= GA_OK) goto 900
             x%da = x%dqdd
         end if
@@ -227,7 +260,7 @@ contains
 
         ! --- time loop ---------------------------------------------------------
         kdyn = s%kscale
-        if (.not. (kdyn > 0)) kdyn = diagonal_scale(m, x%q, (1 - alpha_m) / (beta * s%h**2 * (1 - alpha_f)))
+        if (.not. (kdyn > 0)) kdyn = diagonal_scale(m, x%q, (1 - alpha_m) / (beta * s%h**2 * (1 - alpha_f)), vals)
         pdyn = s%penalty
         if (.not. (pdyn > 0)) pdyn = kdyn
         fact_valid = .false.
@@ -242,7 +275,7 @@ contains
                     call ga_step(t + (isub - 1) * hs, hs, st)
                     if (st /= GA_OK) exit
                 end do
-                if (st == GA_OK) exit
+                if (st == GA_OK .or. st == GA_NO_MEMORY) exit
                 ! failure: restore the state at t_j and cut the step
                 call copy_state(xsave, x)
                 fact_valid = .false.
@@ -265,6 +298,26 @@ contains
         call ls_free(ls)
 
     contains
+
+        !> Report a failed allocation: info = [0, bytes (-1: unknown), 0, what].
+        subroutine no_memory(nbytes, what)
+            real(wp), intent(in) :: nbytes
+            integer, intent(in) :: what
+            status = GA_NO_MEMORY
+            info = [0.0_wp, nbytes, 0.0_wp, real(what, wp)]
+            call ls_free(ls)
+        end subroutine no_memory
+
+        !> Allocate the vectors of a state (and its derivatives when nv > 0).
+        subroutine allocate_state(y, ierr)
+            type(ga_state), intent(inout) :: y
+            integer, intent(out) :: ierr
+            allocate (y%q(m%ndof), y%qd(m%ndof), y%qdd(m%ndof), y%a(m%ndof), y%mu(m%nc), &
+                      y%qdd_prev(m%ndof), stat=ierr)
+            if (ierr /= 0 .or. nv == 0) return
+            allocate (y%dq(m%ndof, nv), y%dqd(m%ndof, nv), y%dqdd(m%ndof, nv), &
+                      y%da(m%ndof, nv), y%dmu(m%nc, nv), stat=ierr)
+        end subroutine allocate_state
 
         subroutine store(jj)
             integer, intent(in) :: jj
@@ -315,7 +368,12 @@ contains
                 if (refresh .or. .not. fact_valid .or. fact_h /= hh) then
                     call iteration_matrix(m, x%q, x%mu, tnew, betap, 1.0_wp, kdyn, pdyn, vals)
                     call ls_factor(ls, vals, lst)
-                    if (lst /= LS_OK) then
+                    if (lst == LS_NO_MEMORY) then
+                        fact_valid = .false.
+                        stat = GA_NO_MEMORY
+                        info = [tnew, -1.0_wp, real(it, wp), real(MEM_SPARSE_LU, wp)]
+                        return
+                    else if (lst /= LS_OK) then
                         fact_valid = .false.
                         stat = GA_SINGULAR
                         info = [tnew, maxval(abs(r)), real(it, wp), real(lst, wp)]
@@ -371,7 +429,11 @@ contains
             if (s%reuse) then
                 call iteration_matrix(m, x%q, x%mu, tnew, betap, 1.0_wp, kdyn, pdyn, vals)
                 call ls_factor(ls, vals, lst)
-                if (lst /= LS_OK) then
+                if (lst == LS_NO_MEMORY) then
+                    stat = GA_NO_MEMORY
+                    info = [tnew, -1.0_wp, 0.0_wp, real(MEM_SPARSE_LU, wp)]
+                    return
+                else if (lst /= LS_OK) then
                     stat = GA_SINGULAR
                     info = [tnew, 0.0_wp, 0.0_wp, real(lst, wp)]
                     return
@@ -399,14 +461,10 @@ contains
 
     end subroutine ga_simulate
 
-    !> dst = src for two states of the same shapes, in place (no reallocation per step).
+    !> dst = src for two allocated states of the same shapes, in place (no allocation).
     subroutine copy_state(src, dst)
         type(ga_state), intent(in) :: src
         type(ga_state), intent(inout) :: dst
-        if (.not. allocated(dst%q)) then
-            dst = src
-            return
-        end if
         dst%q = src%q
         dst%qd = src%qd
         dst%qdd = src%qdd
@@ -459,7 +517,7 @@ contains
         integer :: nincr, inc, it, lst, attempt
         logical :: ok
         ks = s%kscale
-        if (.not. (ks > 0)) ks = diagonal_scale(m, x%q, 0.0_wp)
+        if (.not. (ks > 0)) ks = diagonal_scale(m, x%q, 0.0_wp, vals)
         ps = s%penalty
         if (.not. (ps > 0)) ps = ks
         q_start = x%q
@@ -477,7 +535,11 @@ contains
                     if (.not. all(abs(r) <= huge(1.0_wp))) exit
                     call iteration_matrix(m, x%q, x%mu, 0.0_wp, 0.0_wp, 1.0_wp, ks, ps, vals)
                     call ls_factor(ls, vals, lst)
-                    if (lst /= LS_OK) then
+                    if (lst == LS_NO_MEMORY) then
+                        status = GA_NO_MEMORY
+                        info = [0.0_wp, -1.0_wp, real(it, wp), real(MEM_SPARSE_LU, wp)]
+                        return
+                    else if (lst /= LS_OK) then
                         status = GA_STATIC_FAILED
                         info = [0.0_wp, maxval(abs(r)), real(it, wp), real(10 + lst, wp)]
                         return
@@ -532,7 +594,11 @@ contains
         mu0 = 0
         call iteration_matrix(m, x%q, mu0, 0.0_wp, 1.0_wp, 0.0_wp, k0, 0.0_wp, vals)
         call ls_factor(ls, vals, lst)
-        if (lst /= LS_OK) then
+        if (lst == LS_NO_MEMORY) then
+            status = GA_NO_MEMORY
+            info = [0.0_wp, -1.0_wp, 0.0_wp, real(MEM_SPARSE_LU, wp)]
+            return
+        else if (lst /= LS_OK) then
             status = GA_INITIAL_SINGULAR
             info(4) = lst
             return
@@ -591,9 +657,13 @@ contains
         type(ga_state), intent(inout) :: x
         integer, intent(out) :: status
         real(wp), allocatable :: rhs(:, :), zero(:, :)
-        integer :: lst
+        integer :: lst, ierr
         status = GA_OK
-        allocate (rhs(m%n, size(dprop, 3)), zero(m%ndof, size(dprop, 3)))
+        allocate (rhs(m%n, size(dprop, 3)), zero(m%ndof, size(dprop, 3)), stat=ierr)
+        if (ierr /= 0) then
+            status = GA_NO_MEMORY
+            return
+        end if
         zero = 0
         call iteration_matrix(m, x%q, x%mu, 0.0_wp, 0.0_wp, 1.0_wp, ks, ps, vals)
         call ls_factor(ls, vals, lst)
@@ -627,12 +697,16 @@ contains
         real(wp), intent(in) :: qd0(m%ndof)
         type(ga_state), intent(inout) :: x
         integer, intent(out) :: status
-        integer :: nv, v, lst
+        integer :: nv, v, lst, ierr
         real(wp) :: k0, kq(m%ndof), c1(m%nc), c2(m%nc)
         real(wp), allocatable :: rhs(:, :), md(:, :), zero(:, :)
         status = GA_OK
         nv = size(dprop, 3)
-        allocate (rhs(m%n, nv), md(m%ndof, nv), zero(m%ndof, nv))
+        allocate (rhs(m%n, nv), md(m%ndof, nv), zero(m%ndof, nv), stat=ierr)
+        if (ierr /= 0) then
+            status = GA_NO_MEMORY
+            return
+        end if
         zero = 0
         k0 = mass_scale(m)
         ! velocities

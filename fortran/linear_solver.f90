@@ -7,10 +7,11 @@
 !! dense kind, CSC values of the pattern given at initialisation for KLU.
 module linear_solver
     use iso_c_binding, only: c_ptr, c_null_ptr, c_int, c_double, c_associated
+    use iso_fortran_env, only: int64
     use flexmbs_kinds, only: wp
     implicit none
     private
-    public :: linear_system, ls_init_dense, ls_init_sparse, ls_factor, ls_solve, ls_free
+    public :: linear_system, ls_init_dense, ls_init_sparse, ls_factor, ls_solve, ls_free, dense_bytes
     public :: SOLVER_DENSE, SOLVER_KLU
     public :: LS_OK, LS_SINGULAR, LS_NO_MEMORY, LS_INVALID, LS_NONFINITE
 
@@ -66,16 +67,36 @@ module linear_solver
 
 contains
 
-    !> Prepare a dense system of order n.
-    subroutine ls_init_dense(ls, n)
+    !> Prepare a dense system of order n. status = LS_NO_MEMORY when the factors
+    !! (dense_bytes(n)) cannot be allocated, or n*n exceeds the default-integer
+    !! index range of the value array; nothing stays allocated then.
+    subroutine ls_init_dense(ls, n, status)
         type(linear_system), intent(inout) :: ls  !! system to initialise
         integer, intent(in) :: n                  !! order
+        integer, intent(out) :: status            !! LS_* code
+        integer :: ierr
         call ls_free(ls)
+        status = LS_OK
+        if (int(n, int64)**2 > int(huge(n), int64)) then
+            status = LS_NO_MEMORY
+            return
+        end if
         ls%kind = SOLVER_DENSE
         ls%n = n
         ls%nnz = n * n
-        allocate (ls%lu(n, n), ls%ipiv(n))
+        allocate (ls%lu(n, n), ls%ipiv(n), stat=ierr)
+        if (ierr /= 0) then
+            call ls_free(ls)
+            status = LS_NO_MEMORY
+        end if
     end subroutine ls_init_dense
+
+    !> Bytes of the dense factors of order n (LU values and pivots).
+    pure function dense_bytes(n) result(b)
+        integer, intent(in) :: n
+        real(wp) :: b
+        b = 8.0_wp * real(n, wp)**2 + 4.0_wp * real(n, wp)
+    end function dense_bytes
 
     !> Prepare a sparse system: KLU symbolic analysis of the CSC pattern (0-based).
     subroutine ls_init_sparse(ls, n, ap, ai, status)
@@ -98,7 +119,7 @@ contains
         type(linear_system), intent(inout) :: ls  !! system
         real(wp), intent(in) :: vals(:)           !! values (dense column-major or CSC)
         integer, intent(out) :: status            !! LS_* code
-        integer :: info, i
+        integer :: info, i, j
         real(wp) :: umax, umin
         ls%factored = .false.
         select case (ls%kind)
@@ -107,7 +128,10 @@ contains
                 status = LS_NONFINITE
                 return
             end if
-            ls%lu = reshape(vals(1:ls%nnz), [ls%n, ls%n])
+            ! column by column: no n x n temporary
+            do j = 1, ls%n
+                ls%lu(:, j) = vals((j - 1) * ls%n + 1:j * ls%n)
+            end do
             call dgetrf(ls%n, ls%n, ls%lu, ls%n, ls%ipiv, info)
             ls%factorizations = ls%factorizations + 1
             if (info > 0) then
@@ -173,6 +197,8 @@ contains
         if (c_associated(ls%klu)) call fx_klu_free(ls%klu)
         ls%klu = c_null_ptr
         ls%kind = 0
+        ls%n = 0
+        ls%nnz = 0
         ls%factored = .false.
     end subroutine ls_free
 

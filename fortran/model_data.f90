@@ -50,17 +50,19 @@ module model_data
         real(wp) :: qscale = 1.0_wp              !! length scale of the convergence test
     end type mbs_model
 
-    public :: model_finish, model_from_arrays
+    public :: model_finish, model_from_arrays, model_free
 
 contains
 
     !> Copy the flat arrays of flexmbs.model into a model value (counts may be 0;
-    !! the arrays then have one unused padding entry).
+    !! the arrays then have one unused padding entry). status = 0, or 1 when an
+    !! allocation failed: nbytes is then the size asked for, and nothing of m stays
+    !! allocated.
     subroutine model_from_arrays(m, ndof, nc, nel, nload, nlaw, nnz, qref, lumped, gacc, &
                                  el_nen, el_dofs, el_len, el_prop, ld_dof, ld_law, ld_amp, &
                                  c_kind, c_dofs, c_coef, c_c0, c_law, c_lawcoef, &
                                  law_h, law_val, law_der, law_dd0, &
-                                 map_el, map_diag, map_cq, map_qc, map_qq)
+                                 map_el, map_diag, map_cq, map_qc, map_qq, status, nbytes)
         type(mbs_model), intent(out) :: m
         integer, intent(in) :: ndof, nc, nel, nload, nlaw, nnz
         real(wp), intent(in) :: qref(:), lumped(:), gacc(:)
@@ -72,56 +74,97 @@ contains
         real(wp), intent(in) :: c_coef(:, :), c_c0(:), c_lawcoef(:)
         real(wp), intent(in) :: law_h, law_val(:, :), law_der(:, :), law_dd0(:)
         integer, intent(in) :: map_el(:, :), map_diag(:), map_cq(:, :), map_qc(:, :), map_qq(:, :)
-        integer :: e, r
+        integer, intent(out) :: status           !! 0 ok, 1 out of memory
+        real(wp), intent(out) :: nbytes          !! bytes asked for when status = 1
+        integer :: e, r, ne, nca, nld, ierr
         m%ndof = ndof
         m%nc = nc
         m%nel = nel
         m%nload = nload
         m%nlaw = nlaw
         m%nnz = nnz
+        ne = max(nel, 1)
+        nca = max(nc, 1)
+        nld = max(nload, 1)
+        status = 0
+        nbytes = 0
+        allocate (m%qref(ndof), m%lumped(ndof), m%gacc(ndof), m%map_diag(ndof), &
+                  m%el_nen(ne), m%el_dofs(size(el_dofs, 1), ne), m%el_len(ne), &
+                  m%el_prop(size(el_prop, 1), ne), m%map_el(MAX_EDOF, MAX_EDOF, ne), &
+                  m%ld_dof(nld), m%ld_law(nld), m%ld_amp(nld), &
+                  m%c_kind(nca), m%c_dofs(size(c_dofs, 1), nca), m%c_coef(size(c_coef, 1), nca), &
+                  m%c_c0(nca), m%c_law(nca), m%c_lawcoef(nca), &
+                  m%map_cq(size(map_cq, 1), nca), m%map_qc(size(map_qc, 1), nca), &
+                  m%map_qq(MAX_CDOF, MAX_CDOF, nca), &
+                  m%law_val(size(law_val, 1), size(law_val, 2)), &
+                  m%law_der(size(law_der, 1), size(law_der, 2)), m%law_dd0(size(law_dd0)), stat=ierr)
+        if (ierr /= 0) then
+            nbytes = 8.0_wp * (4.0_wp * ndof + real(ne, wp) * (1 + size(el_dofs, 1) + 1 &
+                     + size(el_prop, 1) + MAX_EDOF**2) + 3.0_wp * nld &
+                     + real(nca, wp) * (4 + size(c_dofs, 1) + size(c_coef, 1) + 2 * size(map_cq, 1) &
+                     + MAX_CDOF**2) + 2.0_wp * size(law_val) + size(law_dd0))
+            call model_free(m)
+            status = 1
+            return
+        end if
         m%qref = qref(1:ndof)
         m%lumped = lumped(1:ndof)
         m%gacc = gacc(1:ndof)
-        m%el_nen = el_nen(1:max(nel, 1))
-        m%el_dofs = el_dofs(:, 1:max(nel, 1))
-        m%el_len = el_len(1:max(nel, 1))
-        m%el_prop = el_prop(:, 1:max(nel, 1))
-        allocate (m%map_el(MAX_EDOF, MAX_EDOF, max(nel, 1)))
-        do e = 1, max(nel, 1)
+        m%el_nen = el_nen(1:ne)
+        m%el_dofs = el_dofs(:, 1:ne)
+        m%el_len = el_len(1:ne)
+        m%el_prop = el_prop(:, 1:ne)
+        do e = 1, ne
             m%map_el(:, :, e) = reshape(map_el(:, e), [MAX_EDOF, MAX_EDOF])
         end do
-        m%ld_dof = ld_dof(1:max(nload, 1))
-        m%ld_law = ld_law(1:max(nload, 1))
-        m%ld_amp = ld_amp(1:max(nload, 1))
-        m%c_kind = c_kind(1:max(nc, 1))
-        m%c_dofs = c_dofs(:, 1:max(nc, 1))
-        m%c_coef = c_coef(:, 1:max(nc, 1))
-        m%c_c0 = c_c0(1:max(nc, 1))
-        m%c_law = c_law(1:max(nc, 1))
-        m%c_lawcoef = c_lawcoef(1:max(nc, 1))
+        m%ld_dof = ld_dof(1:nld)
+        m%ld_law = ld_law(1:nld)
+        m%ld_amp = ld_amp(1:nld)
+        m%c_kind = c_kind(1:nca)
+        m%c_dofs = c_dofs(:, 1:nca)
+        m%c_coef = c_coef(:, 1:nca)
+        m%c_c0 = c_c0(1:nca)
+        m%c_law = c_law(1:nca)
+        m%c_lawcoef = c_lawcoef(1:nca)
         m%map_diag = map_diag(1:ndof)
-        m%map_cq = map_cq(:, 1:max(nc, 1))
-        m%map_qc = map_qc(:, 1:max(nc, 1))
-        allocate (m%map_qq(MAX_CDOF, MAX_CDOF, max(nc, 1)))
-        do r = 1, max(nc, 1)
+        m%map_cq = map_cq(:, 1:nca)
+        m%map_qc = map_qc(:, 1:nca)
+        do r = 1, nca
             m%map_qq(:, :, r) = reshape(map_qq(:, r), [MAX_CDOF, MAX_CDOF])
         end do
         m%law_h = law_h
         m%law_val = law_val
         m%law_der = law_der
         m%law_dd0 = law_dd0
-        call model_finish(m)
+        call model_finish(m, status, nbytes)
+        if (status /= 0) call model_free(m)
     end subroutine model_from_arrays
 
     !> Derived data: element mass matrices, constraint linearity, scales.
-    subroutine model_finish(m)
+    !! status = 1 (nbytes: size asked for) when an allocation failed.
+    subroutine model_finish(m, status, nbytes)
         type(mbs_model), intent(inout) :: m
-        integer :: e, ne
+        integer, intent(out) :: status
+        real(wp), intent(out) :: nbytes
+        integer :: e, ne, ierr
+        status = 0
+        nbytes = 0
         m%n = m%ndof + m%nc
         if (allocated(m%el_mass)) deallocate (m%el_mass, m%el_mass_a, m%el_mass_i)
+        if (allocated(m%el_eref)) deallocate (m%el_eref)
         allocate (m%el_mass(MAX_EDOF, MAX_EDOF, max(m%nel, 1)), &
                   m%el_mass_a(MAX_EDOF, MAX_EDOF, max(m%nel, 1)), &
-                  m%el_mass_i(MAX_EDOF, MAX_EDOF, max(m%nel, 1)))
+                  m%el_mass_i(MAX_EDOF, MAX_EDOF, max(m%nel, 1)), &
+                  m%el_eref(3, MAX_GAUSS, max(m%nel, 1)), stat=ierr)
+        if (ierr /= 0) then
+            nbytes = 8.0_wp * real(max(m%nel, 1), wp) * (3 * MAX_EDOF**2 + 3 * MAX_GAUSS)
+            if (allocated(m%el_mass)) deallocate (m%el_mass)
+            if (allocated(m%el_mass_a)) deallocate (m%el_mass_a)
+            if (allocated(m%el_mass_i)) deallocate (m%el_mass_i)
+            if (allocated(m%el_eref)) deallocate (m%el_eref)
+            status = 1
+            return
+        end if
         m%el_mass_a = 0
         m%el_mass_i = 0
         do e = 1, m%nel
@@ -129,8 +172,6 @@ contains
             call beam_mass(m%el_nen(e), m%el_len(e), 1.0_wp, 0.0_wp, m%el_mass_a(1:ne, 1:ne, e))
             call beam_mass(m%el_nen(e), m%el_len(e), 0.0_wp, 1.0_wp, m%el_mass_i(1:ne, 1:ne, e))
         end do
-        if (allocated(m%el_eref)) deallocate (m%el_eref)
-        allocate (m%el_eref(3, MAX_GAUSS, max(m%nel, 1)))
         m%el_eref = 0
         do e = 1, m%nel
             ne = 3 * m%el_nen(e)
@@ -146,6 +187,13 @@ contains
         m%qscale = max(1.0_wp, maxval(abs(m%qref)))
         if (m%nel > 0) m%qscale = max(m%qscale, maxval(m%el_len(1:m%nel)))
     end subroutine model_finish
+
+    !> Release every array of a model (safe on a partly allocated one).
+    subroutine model_free(m)
+        type(mbs_model), intent(inout) :: m
+        type(mbs_model) :: empty
+        m = empty
+    end subroutine model_free
 
     !> Cubic Hermite interpolation of law il at time t (exact on the grid).
     pure function law_value(m, il, t) result(v)

@@ -8,10 +8,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from flexmbs import _core
-from flexmbs.errors import ModelError, SimulationError
+from flexmbs.errors import ModelError, ResourceError, SimulationError
 from flexmbs.model import Model
+from flexmbs.resources import (call_with_stack, check_memory, estimate_memory, format_bytes,
+                               memory_limit)
 
-__all__ = ["simulate", "Result", "DENSE_MAX_UNKNOWNS", "time_grid", "system_matrices",
+__all__ = ["simulate", "Result", "DENSE_MAX_UNKNOWNS", "time_grid", "time_steps", "system_matrices",
            "core_model_args"]
 
 # The core's BLAS works on small systems thousands of times per run: one thread
@@ -26,16 +28,50 @@ DENSE_MAX_UNKNOWNS = 0
 _SOLVERS = {"dense": 1, "klu": 2}
 
 
-def time_grid(t_end, h):
-    """Number of steps and time grid t_j = j h, j = 0..n; t_end must be a multiple of h."""
+#: Most time steps the core counts (32-bit integers).
+MAX_STEPS = 2**31 - 2
+
+
+def time_steps(t_end, h, memory_limit=None):
+    """Number of steps of the grid t_j = j h up to t_end, checked without building the grid.
+
+    Raises ModelError if t_end is not a whole number of steps, ResourceError if the grid is too
+    long for the core (MAX_STEPS) or cannot fit: a run on it holds at least 40 bytes per point
+    (the grid, its transient, and q, qd, qdd of one stored coordinate); `memory_limit` as in
+    `simulate`.
+    """
     for name, v in (("h", h), ("t_end", t_end)):
-        if not (isinstance(v, (int, float, np.floating, np.integer)) and math.isfinite(v) and v > 0):
+        if not (isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, bool)
+                and math.isfinite(v) and v > 0):
             raise ModelError(f"{name} must be a positive finite number, got {v!r}")
-    nsteps = int(round(t_end / h))
+    ratio = t_end / h
+    if not math.isfinite(ratio) or ratio > MAX_STEPS:
+        raise ResourceError(f"t_end = {t_end} s with h = {h} s is {ratio:.3g} time steps, more than "
+                            f"the core's {MAX_STEPS}: use a coarser step h or a shorter t_end",
+                            required=40.0 * ratio, available=None)
+    nsteps = int(round(ratio))
     if nsteps < 1 or abs(nsteps * h - t_end) > 1e-9 * max(1.0, t_end):
         raise ModelError(f"t_end = {t_end} s is not a whole number of steps h = {h} s "
                          f"(nearest: {nsteps * h:.10g} s)")
+    need = 40.0 * (nsteps + 1)
+    avail = _memory_limit(memory_limit)
+    if need > avail:
+        raise ResourceError(f"t_end = {t_end} s with h = {h} s is {nsteps + 1} time points: the grid "
+                            f"and one stored coordinate alone need {format_bytes(need)}, more than "
+                            f"the memory available ({format_bytes(avail)}): use a coarser step h or "
+                            "a shorter t_end", required=need, available=avail)
+    return nsteps
+
+
+def time_grid(t_end, h, memory_limit=None):
+    """Number of steps and time grid t_j = j h, j = 0..n; t_end must be a multiple of h.
+
+    The step count is checked before the grid is built (see `time_steps`)."""
+    nsteps = time_steps(t_end, h, memory_limit)
     return nsteps, h * np.arange(nsteps + 1)
+
+
+_memory_limit = memory_limit
 
 
 @dataclass
@@ -136,6 +172,31 @@ def _messages(model, status, info, max_cuts):
     return f"simulation failed with status {status}"
 
 
+_NO_MEMORY = 9     # GA_NO_MEMORY of generalized_alpha.f90: info = [t, bytes, 0, what]
+
+
+def _no_memory_error(cm, solver, info):
+    """ResourceError for status 9 of the core: what was being allocated and its size."""
+    t, nbytes, _, what = info
+    what = int(what)
+    n = cm.n
+    size = format_bytes(nbytes) if nbytes >= 0 else "size unknown"
+    subject = {
+        1: f"the iteration matrix values of {n} unknowns"
+           + (" (dense: n^2 values)" if solver == "dense" else ""),
+        2: f"dense LU of {n} unknowns",
+        3: f"the KLU factorization of {n} unknowns",
+        4: f"the integration state of {n} unknowns",
+        5: f"the design-derivative work arrays of {n} unknowns",
+        6: f"the model arrays ({cm.nel} elements, {n} unknowns)",
+    }.get(what, f"work arrays of {n} unknowns")
+    when = f" at t = {t:.6g} s" if t > 0 else ""
+    hint = ("use solver='klu' (memory grows like n, not n^2) or fewer elements"
+            if solver == "dense" else "use fewer elements, or free memory")
+    return ResourceError(f"out of memory in the core{when}: could not allocate {subject}: {size}; "
+                         f"{hint}", required=float(nbytes) if nbytes >= 0 else None)
+
+
 def core_model_args(model: Model, storage, t, props=None):
     """Keyword arguments describing `model` to the Fortran core (flexmbs_api.f90).
 
@@ -200,15 +261,19 @@ def system_matrices(model: Model, q, qdd=None, mu=None, t=0.0, *, cm=0.0, ck=1.0
     # the core tabulates laws on a grid from 0; t itself is a grid point
     grid = np.array([0.0, float(t)]) if t > 0 else np.array([0.0, 1e-6])
     margs = core_model_args(model, "dense", grid, props)
-    r, vals, _ = _core.system_matrices(**margs, q=q, qdd=qdd, mu=mu_arr, t=float(t), cm=float(cm),
-                                       ck=float(ck), kscale=float(kscale), pen=float(penalty))
+    r, vals, _, status = _core.system_matrices(**margs, q=q, qdd=qdd, mu=mu_arr, t=float(t),
+                                               cm=float(cm), ck=float(ck), kscale=float(kscale),
+                                               pen=float(penalty))
+    if status != 0:
+        raise ResourceError(f"out of memory in the core: could not allocate the model arrays "
+                            f"({c.nel} elements, {c.n} unknowns)")
     return r, vals.reshape(c.n, c.n, order="F")
 
 
 def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="all",
              solver="auto", reuse_jacobian=False, tol=1e-10, max_iter=20, max_cuts=6,
              kscale=None, penalty=None, q0=None, qd0=None, design_derivatives=None,
-             sensitivity_dofs=None):
+             sensitivity_dofs=None, memory_limit=None):
     """Simulate a model with generalized-alpha (eqs. 3-6) and Newton-Raphson (eq. 7).
 
     Parameters
@@ -246,6 +311,15 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         every converged step, and `Result.dq` holds dq/dp.
     sensitivity_dofs : array of int, optional
         Coordinates (0-based) whose derivatives are kept (default: the stored ones).
+    memory_limit : float (bytes), None or math.inf, default None
+        Before the run, the memory it needs is estimated (flexmbs.resources.estimate_memory:
+        stored outputs over the time grid, constraint forces, design derivatives, the dense
+        n x n matrix and LU factors or the KLU ones, the model's arrays) and compared with this
+        limit; a run that does not fit raises ResourceError with the estimate, the limit and
+        what to change. None: the environment variable FLEXMBS_MEMORY_LIMIT (bytes, e.g. "8G";
+        "none" disables the check) if set, else the memory available now (MemAvailable,
+        bounded by RLIMIT_AS). math.inf: no check (an allocation that then fails in the core
+        still raises ResourceError naming what was allocated and its size).
 
     Returns
     -------
@@ -253,12 +327,13 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
 
     Raises
     ------
-    ModelError for invalid input, SimulationError when no solution is found.
+    ModelError for invalid input, SimulationError when no solution is found, ResourceError
+    when the run does not fit in memory (before the run, or when an allocation fails).
     """
     t_start = time.perf_counter()
     if not isinstance(model, Model):
         raise ModelError(f"simulate expects a flexmbs Model, got {type(model).__name__}")
-    nsteps, t = time_grid(t_end, h)
+    nsteps = time_steps(t_end, h, memory_limit)
     if not (isinstance(rho_inf, (int, float, np.floating)) and 0.0 <= rho_inf <= 1.0):
         raise ModelError(f"rho_inf must lie in [0, 1], got {rho_inf!r}")
     if start not in ("rest", "static"):
@@ -268,18 +343,18 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     for name, v in (("kscale", kscale), ("penalty", penalty)):
         if v is not None and not (isinstance(v, (int, float, np.floating)) and math.isfinite(v) and v > 0):
             raise ModelError(f"{name} must be a positive finite number or None (automatic), got {v!r}")
-    cm = model.compile()
+    if not model._nodes:
+        raise ModelError("the model has no nodes")
+    n_unknowns = model.ndof + len(model._rows)
     if solver == "auto":
-        solver = "dense" if cm.n <= DENSE_MAX_UNKNOWNS else "klu"
+        solver = "dense" if n_unknowns <= DENSE_MAX_UNKNOWNS else "klu"
     if solver not in _SOLVERS:
         raise ModelError(f"solver must be 'auto', 'dense' or 'klu', got {solver!r}")
-    pat = model.pattern(solver)
-    props = model.element_properties()
 
     if isinstance(store, str):
         if store != "all":
             raise ModelError(f"store must be 'all' or a list of nodes/bodies, got {store!r}")
-        out = np.arange(cm.ndof)
+        out = np.arange(model.ndof)
     else:
         dofs = []
         for item in store:
@@ -295,6 +370,22 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         if out.size == 0:
             raise ModelError("store is empty")
 
+    # memory: estimated and checked before anything of the model's or the grid's size is built
+    nv_est = 0
+    if design_derivatives is not None:
+        shape = np.shape(design_derivatives)
+        nv_est = shape[2] if len(shape) == 3 else 0
+    nsens_est = out.size if sensitivity_dofs is None else np.size(sensitivity_dofs)
+    est = estimate_memory(n=n_unknowns, ndof=model.ndof, nc=len(model._rows),
+                          nel=len(model._elements), nt=nsteps + 1, nout=out.size, solver=solver,
+                          nlaw=len(model.laws()), nv=nv_est, nsens=nsens_est)
+    check_memory(est, memory_limit, what=f"simulate (solver={solver!r}, {n_unknowns} unknowns, "
+                                         f"{nsteps} steps)")
+
+    t = h * np.arange(nsteps + 1)
+    cm = model.compile()
+    pat = model.pattern(solver)
+    props = model.element_properties()
     margs = core_model_args(model, solver, t, props)
 
     q_init = cm.qref.copy() if q0 is None else np.asarray(q0, float).copy()
@@ -317,16 +408,27 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     else:
         nv, sdofs = 0, np.zeros(1, int)
         dprop_f = np.zeros((5, nel, 1), order="F")
-    q_out, qd_out, qdd_out, mu_out, stats, status, info, dq_out = _core.simulate(
-        **margs, nsteps=nsteps, q0=q_init, qd0=qd_init, ap=pat["ap"], ai=pat["ai"], h=float(h), rho_inf=float(rho_inf), tol=float(tol), max_iter=int(max_iter),
-        max_cuts=int(max_cuts), solver=_SOLVERS[solver], reuse=int(bool(reuse_jacobian)),
-        static_start=int(start == "static"), kscale=float(kscale or 0.0),
-        penalty=float(penalty or 0.0), out_dofs=(out + 1).astype(np.int32),
-        nv=nv, dprop=dprop_f, sens_dofs=(sdofs + 1).astype(np.int32))
+    try:
+        q_out, qd_out, qdd_out, mu_out, stats, status, info, dq_out = call_with_stack(
+            _core.simulate, est.stack, **margs, nsteps=nsteps, q0=q_init, qd0=qd_init, ap=pat["ap"], ai=pat["ai"], h=float(h),
+            rho_inf=float(rho_inf), tol=float(tol), max_iter=int(max_iter),
+            max_cuts=int(max_cuts), solver=_SOLVERS[solver], reuse=int(bool(reuse_jacobian)),
+            static_start=int(start == "static"), kscale=float(kscale or 0.0),
+            penalty=float(penalty or 0.0), out_dofs=(out + 1).astype(np.int32),
+            nv=nv, dprop=dprop_f, sens_dofs=(sdofs + 1).astype(np.int32))
+    except MemoryError as exc:    # the wrapper could not allocate the output arrays
+        if isinstance(exc, ResourceError):
+            raise
+        raise ResourceError(f"the outputs of {nsteps + 1} time points could not be allocated "
+                            f"(estimate of the run: {format_bytes(est.total)}; {est.largest()}): "
+                            "store fewer outputs (store=[...]), use a coarser step h or a shorter "
+                            "t_end", required=est.total) from exc
     st = dict(zip(("newton_iterations", "factorizations", "residual_evaluations", "step_cuts",
                    "static_iterations", "steps"), (int(v) for v in stats)))
     st["solver"] = solver
     st["unknowns"] = cm.n
+    if status == _NO_MEMORY:
+        raise _no_memory_error(cm, solver, info)
     if status != 0:
         raise SimulationError(_messages(model, int(status), info, max_cuts), time=float(info[0]),
                               residual=float(info[1]), iterations=int(info[2]), code=int(status))

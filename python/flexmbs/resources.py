@@ -1,0 +1,244 @@
+"""Memory a simulation needs, estimated before it runs, and the memory available.
+
+`estimate_memory` adds up what a run holds at its peak: the stored outputs (q, qd, qdd of the
+stored coordinates and the constraint forces mu at every time step, the design derivatives
+dq/dp), the time grid and the tabulated laws, the model's arrays in Python and in the core, the
+iteration matrix (n^2 values and the n x n LU factors with solver="dense"; the sparse values, the
+KLU factors and the pattern with solver="klu"), and the state vectors. `check_memory` compares
+it with `available_memory` (or an explicit limit) and raises ResourceError with the estimate and
+what to change. The estimate is meant to be within a factor 2 of the real peak: it decides
+whether a run can fit, not how much it costs to the byte.
+
+The limit: ``simulate(..., memory_limit=...)`` in bytes; None (default) reads the environment
+variable FLEXMBS_MEMORY_LIMIT (bytes, suffixes k, M, G, T allowed, e.g. "8G"; "none" or "inf"
+disables the check), and without it the memory available now (MemAvailable of /proc/meminfo,
+else sysconf, bounded by the process's address-space limit, RLIMIT_AS).
+"""
+from __future__ import annotations
+
+import math
+import os
+import resource
+import threading
+from dataclasses import dataclass, field
+
+from flexmbs.errors import ModelError, ResourceError
+
+__all__ = ["MemoryEstimate", "estimate_memory", "available_memory", "memory_limit",
+           "check_memory", "format_bytes", "grid_points", "call_with_stack", "stack_limit",
+           "DENSE_MAX_ORDER", "STACK_BYTES_PER_UNKNOWN"]
+
+#: Largest order of a dense system: the core indexes the n x n values with 32-bit integers.
+DENSE_MAX_ORDER = 46340
+
+#: Bytes of stack per unknown: the core's work vectors of one Newton iteration (residual,
+#: increment, accelerations, forces; about 12 vectors of n doubles) are automatic arrays on the
+#: stack (-fstack-arrays). Above the calling thread's stack (8 MB: about 87 000 unknowns) the
+#: core runs in a helper thread with a stack of this size (see `call_with_stack`).
+STACK_BYTES_PER_UNKNOWN = 12 * 8
+
+_SUFFIX = {"k": 1e3, "m": 1e6, "g": 1e9, "t": 1e12}
+
+
+def format_bytes(b):
+    """'12.8 GB', '640 MB', '3.2 kB' (decimal units)."""
+    b = float(b)
+    for unit, scale in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if abs(b) >= scale:
+            return f"{b / scale:.3g} {unit}"
+    return f"{b:.0f} B"
+
+
+def _proc_status_kb(key):
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(key + ":"):
+                    return float(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def available_memory():
+    """Bytes this process can still use: MemAvailable (or free pages from sysconf), bounded
+    by the address-space limit RLIMIT_AS minus the current virtual size. inf if unknown."""
+    avail = math.inf
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    avail = float(line.split()[1]) * 1024
+                    break
+    except OSError:
+        pass
+    if not math.isfinite(avail):
+        try:
+            avail = float(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+        except (ValueError, OSError, AttributeError):
+            pass
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft != resource.RLIM_INFINITY:
+        vm = _proc_status_kb("VmSize") or 0.0
+        avail = min(avail, max(float(soft) - vm, 0.0))
+    return avail
+
+
+def memory_limit(limit=None):
+    """The limit a run is checked against (bytes; inf: no check).
+
+    limit: a number of bytes, None (FLEXMBS_MEMORY_LIMIT, else `available_memory()`), or
+    math.inf / False to disable the check.
+    """
+    if limit is None:
+        env = os.environ.get("FLEXMBS_MEMORY_LIMIT", "").strip()
+        if not env:
+            return available_memory()
+        if env.lower() in ("none", "inf", "off"):
+            return math.inf
+        text, scale = env, 1.0
+        if text[-1].lower() in _SUFFIX:
+            text, scale = text[:-1], _SUFFIX[text[-1].lower()]
+        elif text[-1].lower() == "b" and len(text) > 1 and text[-2].lower() in _SUFFIX:
+            text, scale = text[:-2], _SUFFIX[text[-2].lower()]
+        try:
+            value = float(text) * scale
+        except ValueError:
+            value = -1.0
+        if not (value > 0):
+            raise ModelError(f"environment variable FLEXMBS_MEMORY_LIMIT must be a positive number "
+                             f"of bytes (suffix k, M, G or T allowed, e.g. 8G) or 'none', got {env!r}")
+        return value
+    if limit is False:
+        return math.inf
+    if isinstance(limit, bool) or not isinstance(limit, (int, float)) or math.isnan(limit) \
+            or not limit > 0:
+        raise ModelError(f"memory_limit must be a positive number of bytes, None (the memory "
+                         f"available) or math.inf (no check), got {limit!r}")
+    return float(limit)
+
+
+def grid_points(t_end, h):
+    """Number of points of the time grid (nsteps + 1), without building it."""
+    return int(round(t_end / h)) + 1
+
+
+@dataclass
+class MemoryEstimate:
+    """Bytes a run needs at its peak, by part (see `estimate_memory`)."""
+    parts: dict = field(default_factory=dict)
+    n: int = 0
+    nt: int = 0
+    solver: str = "klu"
+    stack: float = 0.0
+
+    @property
+    def total(self):
+        return float(sum(self.parts.values()))
+
+    def largest(self, k=3):
+        """The k largest parts as 'name size' strings."""
+        items = sorted(self.parts.items(), key=lambda kv: -kv[1])[:k]
+        return ", ".join(f"{name} {format_bytes(v)}" for name, v in items if v > 0)
+
+
+def estimate_memory(*, n, ndof, nc, nel, nt, nout, solver, nlaw=0, nv=0, nsens=0):
+    """Peak bytes of a simulation of n = ndof + nc unknowns, nel elements, on nt grid points,
+    storing nout coordinates (and nsens x nv design derivatives)."""
+    f8 = 8.0
+    nca = max(nc, 1)
+    nela = max(nel, 1)
+    p = {}
+    # outputs, allocated by the wrapper in Fortran order and returned as views (no copies)
+    p["stored q, qd, qdd"] = 3 * f8 * nout * nt
+    p["constraint forces mu"] = f8 * nca * nt
+    if nv:
+        p["design derivatives dq/dp"] = f8 * nsens * nv * nt + f8 * 5 * nela * nv * 2
+    # time grid (and its transient) and the tabulated laws (Python table + core copy)
+    p["time grid and laws"] = 2 * f8 * nt + 4 * f8 * nlaw * nt
+    # model arrays: compiled arrays in Python (~120 B/element), value maps (81 int32 per element
+    # in Python and in the core), element mass matrices and strains in the core (3 x 81 + 6 doubles)
+    p["model arrays"] = nela * (120 + 2 * 4 * 81 + f8 * (3 * 81 + 6)) + nca * (2 * 4 * 24 + 100) \
+        + ndof * 8 * 8
+    if solver == "dense":
+        # values n^2 (core) and LU factors n^2 (core)
+        p["dense matrix and LU factors"] = 2 * f8 * n * n + 4.0 * n
+    else:
+        nnz = 81 * nela + ndof + 24 * nca     # upper bound of the stored values
+        # pattern build in Python (int64 row/col/key arrays and sorts, transient), CSC pattern,
+        # values, and the KLU factors (fill of a banded beam matrix: a few times nnz)
+        p["sparse matrix, pattern and KLU factors"] = nnz * (6 * 8 + 4 + f8) + 4 * nnz * (f8 + 4)
+    # state vectors (two states, work vectors) and sensitivity work arrays
+    p["state and work vectors"] = f8 * n * (20 + 10 * nv) + STACK_BYTES_PER_UNKNOWN * n
+    return MemoryEstimate(parts=p, n=n, nt=nt, solver=solver, stack=STACK_BYTES_PER_UNKNOWN * n)
+
+
+def stack_limit():
+    """Bytes of stack of the calling thread (inf if unlimited)."""
+    soft, _ = resource.getrlimit(resource.RLIMIT_STACK)
+    main = threading.current_thread() is threading.main_thread()
+    if main:
+        return math.inf if soft == resource.RLIM_INFINITY else float(soft)
+    size = threading.stack_size()
+    if size:
+        return float(size)
+    # glibc: new threads get RLIMIT_STACK (2 MiB when unlimited)
+    return 2.0 * 2**20 if soft == resource.RLIM_INFINITY else float(soft)
+
+
+def call_with_stack(fn, stack_bytes, **kwargs):
+    """fn(**kwargs), in a helper thread with a stack of at least stack_bytes (+ 16 MB) when the
+    calling thread's stack is smaller; exceptions propagate."""
+    if stack_bytes <= 0.5 * stack_limit():
+        return fn(**kwargs)
+    out = {}
+
+    def run():
+        try:
+            out["value"] = fn(**kwargs)
+        except BaseException as exc:        # re-raised in the caller
+            out["error"] = exc
+
+    size = int(math.ceil((stack_bytes + 16 * 2**20) / 65536) * 65536)
+    old = threading.stack_size()
+    try:
+        threading.stack_size(size)
+        th = threading.Thread(target=run, name="flexmbs-core")
+        th.start()
+    finally:
+        threading.stack_size(old)
+    th.join()
+    if "error" in out:
+        raise out["error"]
+    return out["value"]
+
+
+def check_memory(est: MemoryEstimate, limit=None, what="this run"):
+    """Raise ResourceError if `est` does not fit in the limit (see `memory_limit`)."""
+    if est.solver == "dense" and est.n > DENSE_MAX_ORDER:
+        raise ResourceError(
+            f"{what}: dense LU of {est.n} unknowns needs {est.n}^2 matrix entries, beyond the "
+            f"core's 32-bit indexing (at most {DENSE_MAX_ORDER} unknowns) and "
+            f"{format_bytes(est.parts['dense matrix and LU factors'])}: use solver='klu'",
+            required=est.total, available=None)
+    avail = memory_limit(limit)
+    total = est.total
+    if total <= avail:
+        return
+    hints = []
+    parts = est.parts
+    if est.solver == "dense" and parts.get("dense matrix and LU factors", 0) > 0.25 * total:
+        hints.append("use solver='klu' (sparse: memory grows like n, not n^2)")
+    if parts.get("stored q, qd, qdd", 0) + parts.get("constraint forces mu", 0) \
+            + parts.get("time grid and laws", 0) + parts.get("design derivatives dq/dp", 0) > 0.25 * total:
+        hints.append("store fewer outputs (store=[nodes or bodies]), use a coarser step h or a "
+                     f"shorter t_end ({est.nt} time points)")
+    hints.append(f"use fewer elements ({est.n} unknowns)")
+    src = "the memory limit" if limit is not None or os.environ.get("FLEXMBS_MEMORY_LIMIT") \
+        else "the memory available"
+    raise ResourceError(
+        f"{what} needs about {format_bytes(total)} ({est.largest()}), more than {src} "
+        f"({format_bytes(avail)}): " + "; or ".join(hints)
+        + ". simulate(..., memory_limit=bytes) or FLEXMBS_MEMORY_LIMIT sets the limit "
+          "(math.inf / 'none': no check)",
+        required=total, available=avail)

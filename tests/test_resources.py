@@ -1,0 +1,151 @@
+"""Memory safety (issue 14): every allocation of the core returns a status that becomes a
+ResourceError naming what was allocated and its size (the interpreter survives), and a run
+that cannot fit is refused before it starts, quickly, with the estimate and what to change.
+
+Sources of the expected values: the sizes are exact counts (8 bytes per double, 4 per pivot:
+dense LU of n unknowns = 8 n^2 + 4 n bytes; outputs q, qd, qdd = 3 x 8 x stored coordinates x
+time points); the measured peak is Python's own allocation tracer (tracemalloc), independent of
+the estimate.
+"""
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+import textwrap
+import time
+import tracemalloc
+
+import numpy as np
+import pytest
+
+import flexmbs as fx
+from flexmbs.cli import main as cli_main
+from flexmbs.errors import ResourceError
+from flexmbs.resources import estimate_memory
+
+ALU = fx.Material(E=72e9, nu=0.3, rho=2700)
+SIM = sys.modules["flexmbs.simulate"]
+
+
+def clamped_beam(elements, order=2):
+    m = fx.Model()
+    b = m.add_beam("b", (0.0, 0.0), (1.0, 0.0), elements, material=ALU,
+                   section=fx.Tube.with_wall_ratio(0.05, 0.1), order=order)
+    m.clamp(b.first)
+    m.set_gravity(0.0, -9.81)
+    return m, b
+
+
+def test_dense_allocation_failure_in_core_is_a_resource_error():
+    """Dense LU of a 40 005-unknown model (12.8 GB) in a process whose address space is limited
+    (RLIMIT_AS: the allocation fails deterministically, whatever the machine's memory and
+    overcommit policy): the Fortran allocation fails, the core returns status 9 with the exact
+    size asked for, 8 n^2 + 4 n bytes, and Python raises ResourceError naming it and the KLU
+    alternative; the interpreter survives. With the default limit the same run is refused
+    before the core, by the estimate."""
+    script = textwrap.dedent("""
+        import math, resource
+        import flexmbs as fx
+        from flexmbs.errors import ResourceError
+        vm = 0
+        for line in open("/proc/self/status"):
+            if line.startswith("VmSize:"):
+                vm = int(line.split()[1]) * 1024
+        resource.setrlimit(resource.RLIMIT_AS, (vm + 3 * 2**30, resource.RLIM_INFINITY))
+        m = fx.Model()
+        b = m.add_beam("b", (0, 0), (1, 0), 13333, material=fx.Material(E=72e9, nu=0.3, rho=2700),
+                       section=fx.Tube.with_wall_ratio(0.05, 0.1), order=1)
+        m.clamp(b.first)                        # 3 x 13334 coordinates + 3 rows = 40005 unknowns
+        try:
+            fx.simulate(m, 1e-4, 1e-4, solver="dense", store=[b.last])
+        except ResourceError as e:
+            print("ESTIMATE", e.required, "|", e)
+        try:
+            fx.simulate(m, 1e-4, 1e-4, solver="dense", store=[b.last], memory_limit=math.inf)
+        except ResourceError as e:
+            print("CORE", e.required, "|", e)
+        print("ALIVE")
+    """)
+    p = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    lines = {ln.split(" ", 1)[0]: ln for ln in p.stdout.splitlines()}
+    assert "ALIVE" in lines
+    n = 40005
+    est = lines["ESTIMATE"]
+    assert "solver='klu'" in est and "needs about" in est
+    assert float(est.split()[1]) >= 2 * 8.0 * n * n          # values + LU factors
+    core = lines["CORE"]
+    assert float(core.split()[1]) == 8.0 * n * n + 4.0 * n   # exact: n^2 doubles + n pivots
+    assert "dense LU of 40005 unknowns: 12.8 GB" in core and "solver='klu'" in core
+
+
+def test_fine_step_refused_before_the_grid_is_built():
+    """h = 1e-9 over 0.65 s (6.5e8 time points): refused in well under a second (building the
+    grid alone would take seconds and 5 GB), with the estimate in the message. The stored
+    outputs alone are 3 x 8 x 30 x 6.5e8 = 468 GB, beyond any machine's memory."""
+    model = fx.load_case("robot_2dof").build_model()
+    t0 = time.perf_counter()
+    with pytest.raises(ResourceError, match=r"(time points|time steps).*(GB|TB)|(GB|TB).*time points") as ei:
+        fx.simulate(model, 0.65, 1e-9)
+    assert time.perf_counter() - t0 < 1.0
+    assert ei.value.required >= 40.0 * 6.5e8
+    with pytest.raises(ResourceError, match="more than the core's"):   # beyond 32-bit steps
+        fx.simulate(model, 100.0, 1e-9)
+
+
+def test_cli_fine_step_refused_quickly(monkeypatch, capsys):
+    """`flexmbs simulate robot_2dof --h 1e-9` exits with status 2 and a one-line ResourceError
+    within a second (the limit set through FLEXMBS_MEMORY_LIMIT, the documented setting)."""
+    monkeypatch.setenv("FLEXMBS_MEMORY_LIMIT", "16G")
+    t0 = time.perf_counter()
+    assert cli_main(["simulate", "robot_2dof", "--h", "1e-9"]) == 2
+    assert time.perf_counter() - t0 < 1.0
+    err = capsys.readouterr().err
+    assert "ResourceError" in err and "650000001 time points" in err and "coarser step h" in err
+
+
+def test_many_elements_refused_with_the_estimate():
+    """A case with 20 000 elements per arm (240 012 unknowns, 1301 time points) under a 2 GB
+    limit: refused before the core with the estimate, which is at least the stored outputs
+    3 x 8 x 240 006 x 1301 bytes (7.5 GB), and the advice to store fewer outputs."""
+    case = fx.load_case("robot_2dof", elements_per_arm=20000)
+    t0 = time.perf_counter()
+    with pytest.raises(ResourceError, match=r"240012 unknowns.*store fewer outputs") as ei:
+        case.simulate(memory_limit=2e9)
+    assert time.perf_counter() - t0 < 10.0   # the model's sections in Python, not the run
+    assert ei.value.required >= 3 * 8.0 * 240006 * 1301
+    assert ei.value.available == 2e9
+
+
+def test_memory_limit_is_validated():
+    """memory_limit must be a positive number of bytes; FLEXMBS_MEMORY_LIMIT likewise."""
+    model, _ = clamped_beam(2)
+    with pytest.raises(fx.ModelError, match="memory_limit must be a positive number.*-1"):
+        fx.simulate(model, 1e-3, 5e-4, memory_limit=-1)
+
+
+def test_estimate_within_factor_two_of_measured_peak(monkeypatch):
+    """The robot of the paper over 0.65 s, all coordinates stored: the estimate lies within a
+    factor 2 of the peak of Python's allocations during the run (tracemalloc; the outputs
+    dominate) and is at least the bytes of the Result arrays (numpy nbytes)."""
+    model = fx.load_case("robot_2dof").build_model()
+    model.compile()
+    seen = {}
+
+    def spy(**kw):
+        seen["est"] = estimate_memory(**kw)
+        return seen["est"]
+
+    monkeypatch.setattr(SIM, "estimate_memory", spy)
+    tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        r = fx.simulate(model, 0.65, 5e-4, start="static")
+        peak = tracemalloc.get_traced_memory()[1] - base
+    finally:
+        tracemalloc.stop()
+    total = seen["est"].total
+    nbytes = sum(a.nbytes for a in (r.t, r.q, r.qd, r.qdd, r.mu))
+    assert total >= nbytes
+    assert 0.5 <= total / peak <= 2.0, (total, peak)
