@@ -58,7 +58,8 @@ def time_steps(t_end, h, memory_limit=None):
     if need > avail:
         raise ResourceError(f"t_end = {t_end} s with h = {h} s is {nsteps + 1} time points: the grid "
                             f"and one stored coordinate alone need {format_bytes(need)}, more than "
-                            f"the memory available ({format_bytes(avail)}): use a coarser step h or "
+                            f"the {'memory available' if memory_limit is None else 'memory limit'} "
+                            f"({format_bytes(avail)}): use a coarser step h or "
                             "a shorter t_end", required=need, available=avail)
     return nsteps
 
