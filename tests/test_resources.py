@@ -9,14 +9,12 @@ the estimate.
 """
 from __future__ import annotations
 
-import math
 import subprocess
 import sys
 import textwrap
 import time
 import tracemalloc
 
-import numpy as np
 import pytest
 
 import flexmbs as fx
@@ -86,7 +84,8 @@ def test_fine_step_refused_before_the_grid_is_built():
     outputs alone are 3 x 8 x 30 x 6.5e8 = 468 GB, beyond any machine's memory."""
     model = fx.load_case("robot_2dof").build_model()
     t0 = time.perf_counter()
-    with pytest.raises(ResourceError, match=r"(time points|time steps).*(GB|TB)|(GB|TB).*time points") as ei:
+    pattern = r"(time points|time steps).*(GB|TB)|(GB|TB).*time points"
+    with pytest.raises(ResourceError, match=pattern) as ei:
         fx.simulate(model, 0.65, 1e-9)
     assert time.perf_counter() - t0 < 1.0
     assert ei.value.required >= 40.0 * 6.5e8
@@ -175,7 +174,8 @@ def test_large_model_beyond_the_stack_runs():
 
     def small_stack():
         import resource
-        resource.setrlimit(resource.RLIMIT_STACK, (2 * 2**20, resource.getrlimit(resource.RLIMIT_STACK)[1]))
+        hard = resource.getrlimit(resource.RLIMIT_STACK)[1]
+        resource.setrlimit(resource.RLIMIT_STACK, (2 * 2**20, hard))
 
     p = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300,
                        preexec_fn=small_stack)

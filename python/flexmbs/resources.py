@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from flexmbs.errors import ModelError, ResourceError
 
 __all__ = ["MemoryEstimate", "estimate_memory", "available_memory", "memory_limit",
-           "check_memory", "format_bytes", "format_seconds", "grid_points", "call_with_stack", "stack_limit",
+           "check_memory", "format_bytes", "format_seconds", "call_with_stack", "stack_limit",
            "DENSE_MAX_ORDER", "STACK_BYTES_PER_UNKNOWN"]
 
 #: Largest order of a dense system: the core indexes the n x n values with 32-bit integers.
@@ -107,7 +107,8 @@ def memory_limit(limit=None):
             value = -1.0
         if not (value > 0):
             raise ModelError(f"environment variable FLEXMBS_MEMORY_LIMIT must be a positive number "
-                             f"of bytes (suffix k, M, G or T allowed, e.g. 8G) or 'none', got {env!r}")
+                             f"of bytes (suffix k, M, G or T allowed, e.g. 8G) or 'none', "
+                             f"got {env!r}")
         return value
     if limit is False:
         return math.inf
@@ -116,11 +117,6 @@ def memory_limit(limit=None):
         raise ModelError(f"memory_limit must be a positive number of bytes, None (the memory "
                          f"available) or math.inf (no check), got {limit!r}")
     return float(limit)
-
-
-def grid_points(t_end, h):
-    """Number of points of the time grid (nsteps + 1), without building it."""
-    return int(round(t_end / h)) + 1
 
 
 @dataclass

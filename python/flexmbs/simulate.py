@@ -411,7 +411,8 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         dprop_f = np.zeros((5, nel, 1), order="F")
     try:
         q_out, qd_out, qdd_out, mu_out, stats, status, info, dq_out = call_with_stack(
-            _core.simulate, est.stack, **margs, nsteps=nsteps, q0=q_init, qd0=qd_init, ap=pat["ap"], ai=pat["ai"], h=float(h),
+            _core.simulate, est.stack, **margs, nsteps=nsteps, q0=q_init, qd0=qd_init,
+            ap=pat["ap"], ai=pat["ai"], h=float(h),
             rho_inf=float(rho_inf), tol=float(tol), max_iter=int(max_iter),
             max_cuts=int(max_cuts), solver=_SOLVERS[solver], reuse=int(bool(reuse_jacobian)),
             static_start=int(start == "static"), kscale=float(kscale or 0.0),
