@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from flexmbs.errors import ModelError, ResourceError
 
 __all__ = ["MemoryEstimate", "estimate_memory", "available_memory", "memory_limit",
-           "check_memory", "format_bytes", "format_seconds", "call_with_stack", "stack_limit",
+           "check_memory", "limit_source", "format_bytes", "format_seconds", "call_with_stack", "stack_limit",
            "DENSE_MAX_ORDER", "STACK_BYTES_PER_UNKNOWN"]
 
 #: Largest order of a dense system: the core indexes the n x n values with 32-bit integers.
@@ -228,6 +228,13 @@ _GRID_PARTS = ("stored q, qd, qdd", "constraint forces mu", "time grid and laws"
                "design derivatives dq/dp")
 
 
+def limit_source(limit=None):
+    """'the memory limit' (explicit or FLEXMBS_MEMORY_LIMIT) or 'the memory available'."""
+    if limit is not None or os.environ.get("FLEXMBS_MEMORY_LIMIT", "").strip():
+        return "the memory limit"
+    return "the memory available"
+
+
 def check_memory(est: MemoryEstimate, limit=None, what="this run"):
     """Raise ResourceError if `est` does not fit in the limit (see `memory_limit`)."""
     if est.solver == "dense" and est.n > DENSE_MAX_ORDER:
@@ -249,8 +256,7 @@ def check_memory(est: MemoryEstimate, limit=None, what="this run"):
                      f"shorter t_end ({est.nt} time points)")
     if total - sum(v for k, v in parts.items() if k in _GRID_PARTS) > 0.25 * total or not hints:
         hints.append(f"use fewer elements ({est.n} unknowns)")
-    src = "the memory limit" if limit is not None or os.environ.get("FLEXMBS_MEMORY_LIMIT") \
-        else "the memory available"
+    src = limit_source(limit)
     raise ResourceError(
         f"{what} needs about {format_bytes(total)} ({est.largest()}; and roughly "
         f"{format_seconds(est.seconds)} of computing), more than {src} "

@@ -11,7 +11,8 @@ from flexmbs import _core
 from flexmbs.errors import ModelError, ResourceError, SimulationError
 from flexmbs.model import Model
 from flexmbs.resources import (call_with_stack, check_memory, estimate_memory, format_bytes,
-                               memory_limit)
+                               limit_source)
+from flexmbs.resources import memory_limit as _memory_limit
 
 __all__ = ["simulate", "Result", "DENSE_MAX_UNKNOWNS", "time_grid", "time_steps", "system_matrices",
            "core_model_args"]
@@ -58,8 +59,8 @@ def time_steps(t_end, h, memory_limit=None):
     if need > avail:
         raise ResourceError(f"t_end = {t_end} s with h = {h} s is {nsteps + 1} time points: the grid "
                             f"and one stored coordinate alone need {format_bytes(need)}, more than "
-                            f"the {'memory available' if memory_limit is None else 'memory limit'} "
-                            f"({format_bytes(avail)}): use a coarser step h or "
+                            f"{limit_source(memory_limit)} ({format_bytes(avail)}): use a coarser "
+                            "step h or "
                             "a shorter t_end", required=need, available=avail)
     return nsteps
 
@@ -70,9 +71,6 @@ def time_grid(t_end, h, memory_limit=None):
     The step count is checked before the grid is built (see `time_steps`)."""
     nsteps = time_steps(t_end, h, memory_limit)
     return nsteps, h * np.arange(nsteps + 1)
-
-
-_memory_limit = memory_limit
 
 
 @dataclass
@@ -169,7 +167,7 @@ def _messages(model, status, info, max_cuts):
     if status == 7:
         return "invalid settings passed to the core"
     if status == 8:
-        return f"the sparse solver could not be set up (code {int(extra)}): out of memory?"
+        return f"the sparse solver could not be set up (code {int(extra)})"
     return f"simulation failed with status {status}"
 
 
@@ -254,6 +252,12 @@ def system_matrices(model: Model, q, qdd=None, mu=None, t=0.0, *, cm=0.0, ck=1.0
     The time laws are evaluated at t exactly.
     """
     c = model.compile()
+    need, avail = 16.0 * c.n * c.n, _memory_limit(None)
+    if need > avail or c.n > 46340:
+        raise ResourceError(f"system_matrices returns the dense {c.n} x {c.n} iteration matrix: "
+                            f"{format_bytes(need)}, more than {limit_source(None)} "
+                            f"({format_bytes(avail)}) or beyond the core's 32-bit indexing "
+                            "(46340 unknowns)", required=need, available=avail)
     q = np.asarray(q, float)
     qdd = np.zeros(c.ndof) if qdd is None else np.asarray(qdd, float)
     mu_arr = np.zeros(max(c.nc, 1))
