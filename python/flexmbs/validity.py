@@ -185,10 +185,10 @@ def _raw_strains(qe, n, dn, jac):
     n, dn (nen, npt); qe (..., nel, 3 nen) -> each (..., nel, npt)."""
     x, y, p = qe[..., 0::3], qe[..., 1::3], qe[..., 2::3]
     dns = dn[None, :, :] / jac[:, None, None]                # (nel, nen, npt)
-    dx = np.einsum("...ea,eak->...ek", x, dns)
-    dy = np.einsum("...ea,eak->...ek", y, dns)
-    kap = np.einsum("...ea,eak->...ek", p, dns)
-    phi = np.einsum("...ea,ak->...ek", p, n)
+    dx = sum(x[..., a, None] * dns[:, a, :] for a in range(n.shape[0]))
+    dy = sum(y[..., a, None] * dns[:, a, :] for a in range(n.shape[0]))
+    kap = sum(p[..., a, None] * dns[:, a, :] for a in range(n.shape[0]))
+    phi = sum(p[..., a, None] * n[a] for a in range(n.shape[0]))
     c, s = np.cos(phi), np.sin(phi)
     return c * dx + s * dy, -s * dx + c * dy, kap
 
