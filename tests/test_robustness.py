@@ -21,6 +21,7 @@ from hypothesis import example, given, settings, strategies as st
 import flexmbs as fx
 from flexmbs.laws import planar_2r_inverse, robot_joint_laws, robot_tip_path
 from flexmbs.simulate import system_matrices
+from flexmbs.validity import ValidityLimits
 
 CONSTRAINT_TOL = 1e-9
 ARM = 0.6
@@ -143,9 +144,14 @@ def test_1000x_stiffer_is_rigid_limit():
 def test_1000x_softer_large_deflection():
     """E / 1000 (72 MPa): the arms sag by hundreds of mm (far outside the linear range), yet the
     run must converge with the constraints held and the arms must not stretch: each chord is at
-    most the arm length times (1 + 1 %), far above the axial strain N/EA ~ 2e-3."""
+    most the arm length times (1 + 1 %), far above the axial strain N/EA ~ 2e-3. Sags of
+    hundreds of mm over 0.6 m bend the 50 mm tubes by kappa d / 2 ~ 3 delta / L^2 d / 2 of a
+    few %: the validity check must see that (above its 1 % warning limit), and its limits are
+    raised for this deliberately nonlinear run."""
     m, a1, a2, th1, th12 = robot(stiffness_factor=1e-3)
-    res = fx.simulate(m, 0.65, 5e-4, start="static")
+    res = fx.simulate(m, 0.65, 5e-4, start="static",
+                      validity=ValidityLimits(strain_warn=0.5, strain_fail=1.0))
+    assert res.validity["bending strain"].value > 0.01
     assert_robot_ok(res, a1, a2, th1, th12)
     o, a, tip = res.position(a1.first), res.position(a1.last), res.position(a2.last)
     assert np.linalg.norm(a - o, axis=1).max() <= ARM * 1.01

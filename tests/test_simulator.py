@@ -17,6 +17,7 @@ from flexmbs.checks import check_iteration_matrix, check_tangent, generalized_al
 from flexmbs.errors import ModelError, SimulationError
 from flexmbs.laws import planar_2r_inverse, robot_joint_laws, robot_tip_path
 from flexmbs.simulate import system_matrices
+from flexmbs.validity import ValidityLimits
 
 STEEL = fx.Material(E=210e9, nu=0.3, rho=7800)
 NEWTON_TOL = 1e-10          # simulate()'s default tolerance on max|dq| / qscale
@@ -234,13 +235,17 @@ def test_cantilever_rolls_into_full_circle_under_tip_moment():
     The issue asks tip within 1e-3 L; we also ask every node on the circle within 1e-3 L with
     8 quadratic elements (positions converge as h^4 here: 6.9e-4 L with 4 elements, 5.0e-5 L
     with 8) and the nodal rotations to 1e-9 (phi is linear in s, represented exactly).
+    The bending strain kappa h / 2 = pi h / L = 3.1 % is far beyond steel's elastic range (a
+    benchmark of the kinematics, not of the material): the validity check must report exactly
+    that value (phi' is exact, 1e-8), and the warning limit is raised above it for this test.
     """
     section = fx.Rectangle(0.05, 0.01)
     L = 1.0
     m, b = cantilever(section, 8, length=L)
     EI = section.properties(STEEL)[2]
     m.add_load(b.last, moment=2 * math.pi * EI / L)
-    r = static_solution(m)
+    r = fx.simulate(m, 1e-3, 1e-3, start="static", validity=ValidityLimits(strain_warn=0.05))
+    assert abs(r.validity["bending strain"].value / (math.pi * 0.01 / L) - 1) < 1e-8
     tip = r.position(b.last)[0]
     assert np.hypot(*tip) < 1e-3 * L
     s = np.linspace(0, L, len(b.nodes))

@@ -13,6 +13,7 @@ from flexmbs.model import Model
 from flexmbs.resources import (call_with_stack, check_memory, estimate_memory, format_bytes,
                                limit_source)
 from flexmbs.resources import memory_limit as _memory_limit
+from flexmbs.validity import ValidityLimits, apply_validity, check_result, diagnose_failure
 
 __all__ = ["simulate", "Result", "DENSE_MAX_UNKNOWNS", "time_grid", "time_steps", "system_matrices",
            "core_model_args"]
@@ -86,6 +87,8 @@ class Result:
     stats : newton_iterations, factorizations, residual_evaluations, step_cuts,
         static_iterations, steps, solver, unknowns.
     wall_time : seconds spent in the simulation (including the set-up in Python).
+    validity : flexmbs.validity.Validity, the checks run after the simulation (strains of the
+        beams, constraint drift, energy of a free system); see simulate(validity=...).
     """
     t: np.ndarray
     q: np.ndarray
@@ -98,6 +101,7 @@ class Result:
     settings: dict = field(default_factory=dict)
     sens_dofs: np.ndarray | None = None
     dq: np.ndarray | None = None
+    validity: object = None
 
     def position_derivative(self, node):
         """(nt, 2, nv) design derivatives of a node's position (needs design_derivatives)."""
@@ -139,8 +143,14 @@ class Result:
         return self.stats["newton_iterations"] / max(self.stats["steps"], 1)
 
 
-def _messages(model, status, info, max_cuts):
+def _messages(model, status, info, max_cuts, diagnosis=""):
     t, res, it, extra = info
+    if diagnosis and status in (1, 2, 3, 4, 6):
+        where = ("static equilibrium at t = 0" if status == 3 else
+                 "the initial system [M Phi_q^T; Phi_q 0]" if status == 4 else f"t = {t:.6g} s")
+        kind = {1: "Newton-Raphson did not converge", 2: "singular iteration matrix",
+                3: "no solution", 4: "singular", 6: "non-finite values (NaN/Inf)"}[status]
+        return f"{where}: {kind}: {diagnosis}"
     if status == 1:
         return (f"Newton-Raphson did not converge at t = {t:.6g} s even after cutting the "
                 f"step {max_cuts} times: scaled increment {res:.3g} after {int(it)} iterations")
@@ -278,7 +288,7 @@ def system_matrices(model: Model, q, qdd=None, mu=None, t=0.0, *, cm=0.0, ck=1.0
 def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="all",
              solver="auto", reuse_jacobian=False, tol=1e-10, max_iter=20, max_cuts=6,
              kscale=None, penalty=None, q0=None, qd0=None, design_derivatives=None,
-             sensitivity_dofs=None, memory_limit=None):
+             sensitivity_dofs=None, memory_limit=None, validity="warn"):
     """Simulate a model with generalized-alpha (eqs. 3-6) and Newton-Raphson (eq. 7).
 
     Parameters
@@ -325,6 +335,12 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         "none" disables the check) if set, else the memory available now (MemAvailable,
         bounded by RLIMIT_AS). math.inf: no check (an allocation that then fails in the core
         still raises ResourceError naming what was allocated and its size).
+    validity : {'warn', 'error', 'off'} or flexmbs.validity.ValidityLimits, default 'warn'
+        Checks of the converged result (Result.validity): largest axial and bending strain of
+        every beam element against the linear-elastic range (warning above 1 %, error above
+        10 %), constraint drift, energy growth of a free system. 'warn': ValidityWarning above
+        the warning limits, InvalidResultError above the failure limits; 'error': both raise;
+        'off': no checks. Only stored coordinates are checked.
 
     Returns
     -------
@@ -332,13 +348,16 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
 
     Raises
     ------
-    ModelError for invalid input, SimulationError when no solution is found, ResourceError
-    when the run does not fit in memory (before the run, or when an allocation fails).
+    ModelError for invalid input, SimulationError when no solution is found (the message
+    tells redundant constraints, a body not held and an overflowing input apart),
+    ResourceError when the run does not fit in memory (before the run, or when an allocation
+    fails), InvalidResultError when the result converged outside the model's validity.
     """
     t_start = time.perf_counter()
     if not isinstance(model, Model):
         raise ModelError(f"simulate expects a flexmbs Model, got {type(model).__name__}")
     nsteps = time_steps(t_end, h, memory_limit)
+    limits = ValidityLimits.coerce(validity)
     if not (isinstance(rho_inf, (int, float, np.floating)) and 0.0 <= rho_inf <= 1.0):
         raise ModelError(f"rho_inf must lie in [0, 1], got {rho_inf!r}")
     if start not in ("rest", "static"):
@@ -436,11 +455,21 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     if status == _NO_MEMORY:
         raise _no_memory_error(cm, solver, info)
     if status != 0:
-        raise SimulationError(_messages(model, int(status), info, max_cuts), time=float(info[0]),
-                              residual=float(info[1]), iterations=int(info[2]), code=int(status))
-    return Result(t=t, q=q_out.T, qd=qd_out.T, qdd=qdd_out.T, mu=mu_out[:cm.nc].T, dofs=out,
+        try:
+            diagnosis = diagnose_failure(model, int(status), q=q_init, law_val=margs["law_val"],
+                                         props=props)
+        except Exception as exc:     # the diagnosis must never hide the failure itself
+            diagnosis = f"(no diagnosis: {type(exc).__name__}: {exc})"
+        raise SimulationError(_messages(model, int(status), info, max_cuts, diagnosis),
+                              time=float(info[0]), residual=float(info[1]),
+                              iterations=int(info[2]), code=int(status))
+    res = Result(t=t, q=q_out.T, qd=qd_out.T, qdd=qdd_out.T, mu=mu_out[:cm.nc].T, dofs=out,
                   stats=st, wall_time=time.perf_counter() - t_start,
                   settings=dict(h=h, t_end=t_end, rho_inf=rho_inf, start=start, solver=solver,
                                 reuse_jacobian=reuse_jacobian),
                   sens_dofs=sdofs if nv else None,
                   dq=np.transpose(dq_out[:, :nv, :], (2, 0, 1)) if nv else None)
+    res.validity = check_result(model, res, limits, law_val=margs["law_val"], tol=float(tol),
+                                props=props)
+    apply_validity(res.validity, res)
+    return res
