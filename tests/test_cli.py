@@ -8,7 +8,6 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -68,6 +67,24 @@ def test_unwritable_output_folder_is_refused_before_the_run(tmp_path, monkeypatc
     line = _one_error_line(capsys)
     assert str(bad) in line and ("not a folder" in line or "Not a directory" in line)
     assert bad.read_text() == "a regular file\n"
+
+
+def test_full_disk_is_refused_before_the_run(tmp_path, monkeypatch, capsys):
+    """With 1 kB free (shutil.disk_usage patched), --out of a 1301-step run (q and qd of 30
+    unknowns: several hundred kB) is refused before the run with a ResourceError giving the
+    estimate and the free space; so is a reproduction's output folder."""
+    import shutil
+    from collections import namedtuple
+    _no_simulation(monkeypatch)
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10**9, 10**9 - 1000, 1000))
+    assert main(["simulate", "robot_2dof", "--out", str(tmp_path / "r.npz")]) == 2
+    line = _one_error_line(capsys)
+    assert "ResourceError" in line and "r.npz" in line and "0.0 MB are free" in line
+    assert main(["reproduce", "--table", "1", "--out", str(tmp_path / "rep")]) == 2
+    line = _one_error_line(capsys)
+    assert "ResourceError" in line and "rep" in line
+    assert os.listdir(tmp_path) == ["rep"] and os.listdir(tmp_path / "rep") == []
 
 
 @pytest.mark.parametrize("args,option", [
@@ -160,7 +177,7 @@ def _wait_for(proc, ready, timeout=60.0):
         if time.monotonic() - t0 > timeout:
             proc.kill()
             pytest.fail("never got ready")
-        time.sleep(0.05)
+        time.sleep(0.02)
 
 
 def _ctrl_c(proc):
@@ -178,8 +195,9 @@ def test_ctrl_c_during_optimize(tmp_path):
     on stderr naming the history file and the --start that resumes from its last design, no
     traceback, and the history holds every cycle that was done (each with its design)."""
     h = tmp_path / "h.jsonl"
-    proc = _start(["optimize", "robot_2dof", "--history", str(h), "--max-cycles", "30"],
-                  tmp_path)
+    # eps 1e-12: the ESL test (25) never stops it early, the run outlasts the poll below
+    proc = _start(["optimize", "robot_2dof", "--history", str(h), "--max-cycles", "30",
+                   "--eps", "1e-12"], tmp_path)
     _wait_for(proc, lambda: h.exists() and h.read_text().endswith("\n"))
     out, err = _ctrl_c(proc)
     assert proc.returncode == 130, err

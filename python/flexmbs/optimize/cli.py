@@ -120,6 +120,8 @@ def _interrupted(args, writer):
     if recs and recs[-1].get("design_mm") is not None:
         p = ",".join(f"{v:.6g}" for v in recs[-1]["design_mm"])
         how = f"to resume from the last design analysed, run the same command with --start={p}"
+        if writer.path:
+            how += " and a new --history name (an existing history file is started afresh)"
     else:
         how = "no design analysed yet: run the same command again"
     print(f"flexmbs optimize: interrupted; {where}; {how}", file=sys.stderr, flush=True)
