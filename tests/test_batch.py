@@ -1,18 +1,24 @@
-"""Batch runs (flexmbs.batch.run_batch): local processes and a Dask LocalCluster give the same
-results as a serial run; a store makes reruns skip finished jobs; an error in one job is
-raised after the other jobs are stored."""
+"""Batch runs (flexmbs.batch.run_batch): the jobs give the published Table 1 numbers; local
+processes and a Dask LocalCluster give the same results as a serial run; a store makes reruns
+skip finished jobs; an error in one job is raised after the other jobs are stored; and faults
+lose nothing: a worker process killed mid-batch (its jobs run again), a truncated stored result
+(named in a warning, recomputed), a full disk while storing (no half-written file is left under
+a result's name or read back)."""
+import errno
 import json
+import math
 import os
+import signal
 import time
 
 import numpy as np
 import pytest
 
-from flexmbs.batch import max_deviation_job, run_batch, sweep_jobs
-from flexmbs.errors import CaseError, ModelError
+from flexmbs.batch import max_deviation_job, run_batch, sweep_jobs, write_atomic
+from flexmbs.errors import CaseError, ModelError, SimulationError
 
-#: Three robot designs around the Table 1 optimum; deviation at steps 200 and 1301 (0-based 199,
-#: 1300) and the maximum. Each is one ~50 ms simulation.
+#: Three robot designs: the paper's Table 1 fully coupled optimum, a design between it and the
+#: start, and the start (50 mm). Each is one ~50 ms simulation.
 DESIGNS = [[39.35, 28.25, 35.14, 24.91], [45.0, 30.0, 35.0, 25.0], [50.0, 50.0, 50.0, 50.0]]
 
 
@@ -37,17 +43,20 @@ def _assert_same(a, b):
                                        err_msg=f"{name}: {key}")
 
 
-def test_serial_results_are_the_simulations(serial):
-    """The serial batch returns, per job, what Case.simulate gives for that design (the job is
-    a plain call), and the designs differ (the comparison below is not trivial)."""
-    from flexmbs.cases import load_case
-    c = load_case("robot_2dof")
-    r = c.simulate(DESIGNS[1])
-    out = serial["d0001"]
-    assert out["max_deviation_m"] == pytest.approx(r.max_deviation, rel=1e-12)
-    assert out["deviation_at_steps_m"] == pytest.approx(r.deviation[[199, 1300]], rel=1e-12)
-    maxima = [serial[n]["max_deviation_m"] for n in sorted(serial)]
-    assert len(set(np.round(maxima, 9))) == 3
+def test_serial_results_against_published_numbers(serial):
+    """The batch jobs give numbers known independently of the code: the beam mass of every
+    design is rho * A * L summed over the four 0.3 m tube elements (A = 0.36 pi/4 p^2, rho =
+    2700 kg/m^3, /work/shared/CASES.md: m = 229.02 sum p^2), and at the paper's Table 1 optimum
+    (d0000) the maximum deviation sits on the 1 mm limit (CASES.md: 0.99-1.00 mm at the Table 1
+    optima; tolerance 3 %, the spread the paper's stopping test allows between designs), while
+    the 50 mm start (stiffer everywhere) stays well inside it."""
+    for name, p in zip(sorted(serial), DESIGNS):
+        mass = sum(2700.0 * 0.36 * math.pi / 4 * (v * 1e-3) ** 2 * 0.3 for v in p)
+        assert serial[name]["mass_kg"] == pytest.approx(mass, rel=1e-9), name
+        assert serial[name]["design_mm"] == p
+    assert serial["d0000"]["max_deviation_m"] == pytest.approx(1.0e-3, rel=0.03)
+    assert serial["d0002"]["max_deviation_m"] < 0.5e-3
+    assert max(serial["d0000"]["deviation_at_steps_m"]) <= serial["d0000"]["max_deviation_m"]
 
 
 def test_local_processes_match_serial(serial, tmp_path):
@@ -117,3 +126,109 @@ def test_bad_job_names_and_workers(tmp_path):
         run_batch(count_calls, {"a/b": {}}, workers=1)
     with pytest.raises(ModelError, match="workers"):
         run_batch(count_calls, {"a": dict(log=os.devnull, value=1)}, workers=0)
+
+
+# ----------------------------------------------------------------------------- faults
+def count_or_die(log, value, marker=None, always=False):
+    """`count_calls`, except that with `marker` the job kills its own worker process (SIGKILL,
+    as the kernel's out-of-memory killer does) the first time it runs (while `marker` does not
+    exist), or every time when `always`."""
+    if marker is not None and (always or not os.path.exists(marker)):
+        with open(marker, "w") as fh:
+            fh.write("killed\n")
+        os.kill(os.getpid(), signal.SIGKILL)
+    return count_calls(log, value)
+
+
+def test_killed_worker_is_retried_and_nothing_is_lost(tmp_path):
+    """A worker killed in the middle of a batch (2 local processes): the batch finishes with
+    every result (2 * value), the killed job ran again, every result is stored (and nothing
+    else: no temporary file), and a rerun computes nothing."""
+    store = tmp_path / "store"
+    log = tmp_path / "calls.txt"
+    jobs = {f"j{k}": dict(log=str(log), value=k) for k in range(5)}
+    jobs["j2"]["marker"] = str(tmp_path / "marker")
+    with pytest.warns(UserWarning, match=r"worker process died.*j2"):
+        res = run_batch(count_or_die, jobs, workers=2, store=store, progress=False)
+    assert (tmp_path / "marker").exists()                     # the worker was killed once
+    assert res == {f"j{k}": {"value": 2 * k} for k in range(5)}
+    assert {p.stem: json.loads(p.read_text()) for p in store.glob("*.json")} == res
+    assert sorted(os.listdir(store)) == sorted(f"{n}.json" for n in res)
+    calls = log.read_text().split()
+    assert sorted(set(calls)) == ["0", "1", "2", "3", "4"]   # each job at least once
+    assert calls.count("2") == 1                              # j2 finished on its retry only
+    again = run_batch(count_or_die, jobs, workers=2, store=store, progress=False)
+    assert again == res and log.read_text().split() == calls
+
+
+def test_worker_that_always_dies_gives_up_after_the_retries(tmp_path):
+    """A job whose worker dies on every attempt: after `retries` new pools the batch raises
+    SimulationError naming the job; the other job's result is stored."""
+    log = tmp_path / "calls.txt"
+    jobs = {"bad": dict(log=str(log), value=0, marker=str(tmp_path / "m"), always=True),
+            "ok": dict(log=str(log), value=1)}
+    with pytest.raises(SimulationError, match=r"died 2 times.*bad"), \
+            pytest.warns(UserWarning, match="worker process died"):
+        run_batch(count_or_die, jobs, workers=2, store=tmp_path / "s", progress=False, retries=1)
+    assert json.loads((tmp_path / "s" / "ok.json").read_text()) == {"value": 2}
+    assert os.listdir(tmp_path / "s") == ["ok.json"]
+
+
+def test_truncated_stored_result_is_named_and_recomputed(tmp_path):
+    """A stored result cut short (e.g. by a crash of another tool or a copy) is not read back
+    as a result: the warning names the file, that job alone runs again, its file is whole."""
+    log = tmp_path / "calls.txt"
+    store = tmp_path / "store"
+    jobs = {f"j{k}": dict(log=str(log), value=k) for k in range(3)}
+    run_batch(count_calls, jobs, workers=1, store=store, progress=False)
+    (store / "j1.json").write_text('{"val')
+    with pytest.warns(UserWarning, match=r"j1\.json"):
+        res = run_batch(count_calls, jobs, workers=1, store=store, progress=False)
+    assert res == {f"j{k}": {"value": 2 * k} for k in range(3)}
+    assert log.read_text().split() == ["0", "1", "2", "1"]
+    assert json.loads((store / "j1.json").read_text()) == {"value": 2}
+
+
+def test_full_disk_leaves_no_half_written_result(tmp_path, monkeypatch):
+    """The disk fills up while results are stored (fsync reports ENOSPC after part of the file
+    was written): the batch raises the OSError, the result stored earlier is byte-identical,
+    no file of the failed jobs (complete or temporary) is left, and once there is room again the
+    rerun computes exactly the jobs that were not stored."""
+    log = tmp_path / "calls.txt"
+    store = tmp_path / "store"
+    jobs = {f"j{k}": dict(log=str(log), value=k) for k in range(3)}
+    run_batch(count_calls, {"j0": jobs["j0"]}, workers=1, store=store, progress=False)
+    before = (store / "j0.json").read_bytes()
+    written = []
+
+    def full_disk(fd):
+        written.append(os.fstat(fd).st_size)
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "fsync", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        run_batch(count_calls, jobs, workers=1, store=store, progress=False)
+    monkeypatch.undo()
+    assert written and all(n > 0 for n in written)      # partial data had reached the temp file
+    assert (store / "j0.json").read_bytes() == before
+    assert os.listdir(store) == ["j0.json"]
+    res = run_batch(count_calls, jobs, workers=1, store=store, progress=False)
+    assert res == {f"j{k}": {"value": 2 * k} for k in range(3)}
+    assert log.read_text().split() == ["0", "1", "2", "1", "2"]
+
+
+def test_write_atomic_keeps_the_previous_file_when_the_rename_fails(tmp_path, monkeypatch):
+    """write_atomic: a failure at the last moment (os.replace, e.g. ENOSPC on a network file
+    system) leaves the previous complete file untouched and no temporary file behind."""
+    f = tmp_path / "result.json"
+    write_atomic(f, '{"complete": true}')
+
+    def fail(src, dst):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "replace", fail)
+    with pytest.raises(OSError):
+        write_atomic(f, '{"complete": false, "long": "' + "x" * 10000 + '"}')
+    monkeypatch.undo()
+    assert json.loads(f.read_text()) == {"complete": True}
+    assert os.listdir(tmp_path) == ["result.json"]

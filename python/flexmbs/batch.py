@@ -4,7 +4,16 @@ A job is a call `func(**kwargs)` of a top-level (importable) function whose resu
 JSON-serializable. `run_batch` runs a dict of named jobs through an executor and, when a
 `store` folder is given, saves each result as `<store>/<name>.json` as soon as it is done,
 so that an interrupted batch loses nothing and rerunning the same command skips what is
-already there.
+already there. Every file is written to a temporary name in the same folder, flushed to disk
+and renamed (`atomic_open`), so a crash or a full disk never leaves a half-written result
+under a result's name; a stored file that cannot be read anyway (truncated by another tool)
+is named in a warning and its job is run again.
+
+A local worker process that dies in the middle of a batch (killed by the kernel for lack of
+memory, or by a user) breaks the process pool: the jobs that were running or waiting are run
+again on a new pool, up to `retries` times (default 2), and the results already finished are
+kept. Ctrl-C stops the workers (they ignore SIGINT; the main process ends them) and raises
+KeyboardInterrupt in the caller, with every finished job stored.
 
 Executors:
 - ``workers=1``: in this process (serial);
@@ -21,20 +30,27 @@ Example: the deviation over a grid of designs (each point one simulation)
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
+import shutil
+import signal
 import sys
+import tempfile
 import time
+import warnings
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
 
-from flexmbs.errors import ModelError
+from flexmbs.errors import ModelError, ResourceError, SimulationError
 
-__all__ = ["run_batch", "sweep_jobs", "max_deviation_job", "Progress"]
+__all__ = ["run_batch", "sweep_jobs", "max_deviation_job", "Progress", "atomic_open",
+           "write_atomic", "read_stored", "check_writable", "check_disk_space"]
 
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
@@ -65,11 +81,100 @@ class Progress:
         self.stream.flush()
 
 
+# ----------------------------------------------------------------------------- safe files
+@contextlib.contextmanager
+def atomic_open(path, mode="w", encoding="utf-8"):
+    """Open a temporary file beside `path` for writing; on success, flush it to disk (fsync)
+    and rename it to `path` (os.replace, atomic on POSIX); on any error, delete it and leave
+    whatever was at `path` untouched. So a reader never sees a half-written file under `path`.
+
+    mode is 'w' (text) or 'wb' (binary).
+    """
+    if mode not in ("w", "wb"):
+        raise ModelError(f"atomic_open mode must be 'w' or 'wb', got {mode!r}")
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, mode, **({} if "b" in mode else {"encoding": encoding})) as fh:
+            yield fh
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp, _file_mode(path))     # mkstemp makes 0600 files
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def _file_mode(path):
+    """The permissions of the file at `path`, else those a new file gets (0666 - umask)."""
+    try:
+        return path.stat().st_mode & 0o7777
+    except OSError:
+        mask = os.umask(0o022)
+        os.umask(mask)
+        return 0o666 & ~mask
+
+
+def write_atomic(path, data):
+    """Write text or bytes to `path` through `atomic_open`."""
+    with atomic_open(path, "wb" if isinstance(data, (bytes, bytearray)) else "w") as fh:
+        fh.write(data)
+    return path
+
+
+def read_stored(path):
+    """The JSON content of a stored result file, or None when it is missing or unreadable
+    (truncated, not JSON): such a file does not count as a result."""
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return None
+    except (ValueError, UnicodeDecodeError):     # JSONDecodeError is a ValueError
+        return None
+
+
+def check_writable(folder, what, create=False):
+    """Check, before a run, that files can be created in `folder` (creating it when `create`):
+    by creating and deleting a temporary file there, which also catches read-only file systems
+    (permission bits say nothing when running as root).
+
+    Raises ModelError naming `what` (e.g. "--out result.npz"), the folder and the reason.
+    """
+    folder = Path(folder) if str(folder) else Path(".")
+    try:
+        if create:
+            folder.mkdir(parents=True, exist_ok=True)
+        elif folder.exists() and not folder.is_dir():
+            raise ModelError(f"{what}: {str(folder)!r} is a file, not a folder")
+        elif not folder.is_dir():
+            raise ModelError(f"{what}: folder {str(folder)!r} does not exist "
+                             "(create it first)")
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=".flexmbs-write-test.")
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as exc:
+        raise ModelError(f"{what}: cannot write in folder {str(folder)!r}: "
+                         f"{exc.strerror or exc}") from None
+    return folder
+
+
+def check_disk_space(folder, required, what):
+    """Raise ResourceError when the file system of `folder` has less than `required` bytes
+    free (a rough estimate of what a run will write)."""
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return
+    if free < required:
+        raise ResourceError(f"{what}: about {required / 1e6:.1f} MB will be written in "
+                            f"{str(folder)!r} but only {free / 1e6:.1f} MB are free",
+                            required=required, available=free)
+
+
 def _save(store, name, value):
-    path = Path(store) / f"{name}.json"
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(value, default=_to_json))
-    os.replace(tmp, path)
+    write_atomic(Path(store) / f"{name}.json", json.dumps(value, default=_to_json))
 
 
 def _to_json(obj):
@@ -84,7 +189,48 @@ def _call(func, kwargs):
     return func(**kwargs)
 
 
-def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None, label="jobs"):
+def _ignore_sigint():
+    """Worker initializer: Ctrl-C (sent to the whole process group) is handled by the main
+    process, which ends the workers; they must not print tracebacks of their own."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _run_pool(func, todo, workers, finish):
+    """Run the jobs `todo` on one process pool; return the names whose worker died (the pool
+    broke) and so have no result."""
+    broken = []
+    # 'spawn': no fork of a process whose BLAS thread pools are running
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
+                               initializer=_ignore_sigint)
+    try:
+        futs = {pool.submit(_call, func, kw): name for name, kw in todo.items()}
+        for fut in as_completed(futs):
+            try:
+                value = fut.result()
+            except BrokenProcessPool:
+                broken.append(futs[fut])
+                continue
+            except Exception as exc:    # noqa: BLE001 - reported after the others finish
+                finish(futs[fut], error=exc)
+                continue
+            try:
+                finish(futs[fut], value)
+            except Exception as exc:    # noqa: BLE001 - e.g. the store's disk is full
+                finish(futs[fut], error=exc)
+    except BaseException:
+        # Ctrl-C or an error in finish (e.g. a full disk): end the workers now rather than
+        # waiting for every queued job
+        for proc in list((getattr(pool, "_processes", None) or {}).values()):
+            with contextlib.suppress(Exception):
+                proc.terminate()
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
+    return broken
+
+
+def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None, label="jobs",
+              retries=2):
     """Run `func(**jobs[name])` for every name; return {name: result}.
 
     Parameters
@@ -104,31 +250,47 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
         run again (their stored result is returned).
     progress : bool, optional
         Show a progress bar (default: when stderr is a terminal).
+    retries : int, default 2
+        Local worker processes: how many times the jobs left without a result by a worker
+        process that died (the pool broke) are run again on a new pool. Jobs that finished
+        are kept. (Dask reschedules the tasks of a lost worker itself.)
 
     Raises
     ------
-    The first exception raised by a job, after the others have finished and been stored.
+    The first exception raised by a job, after the others have finished and been stored;
+    SimulationError when worker processes still died after `retries` new pools.
     """
     if not isinstance(jobs, dict):
         raise ModelError("jobs must be a dict {name: kwargs}")
     for name in jobs:
         if not isinstance(name, str) or not _NAME.match(name):
             raise ModelError(f"job name {name!r} must use only letters, digits, '_', '-', '.'")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int)
+                                or workers < 1):
+        raise ModelError(f"workers must be a positive integer, got {workers!r}")
+    if isinstance(retries, bool) or not isinstance(retries, int) or retries < 0:
+        raise ModelError(f"retries must be an integer >= 0, got {retries!r}")
     results = {}
     todo = dict(jobs)
     if store is not None:
         Path(store).mkdir(parents=True, exist_ok=True)
+        unreadable = []
         for name in list(todo):
             path = Path(store) / f"{name}.json"
             if path.exists():
-                results[name] = json.loads(path.read_text())
+                value = read_stored(path)
+                if value is None:
+                    unreadable.append(str(path))
+                    continue
+                results[name] = value
                 del todo[name]
+        if unreadable:
+            warnings.warn(f"{len(unreadable)} stored result(s) unreadable (truncated or not "
+                          f"JSON), their jobs run again: {', '.join(unreadable)}", stacklevel=2)
     bar = Progress(len(jobs), label, enabled=progress)
     bar.update(len(results))
     if not todo:
         return {name: results[name] for name in jobs}
-    if workers is not None and (not isinstance(workers, int) or workers < 1):
-        raise ModelError(f"workers must be a positive integer, got {workers!r}")
     first_error = None
 
     def finish(name, value=None, error=None):
@@ -169,15 +331,20 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
             except Exception as exc:    # noqa: BLE001
                 finish(name, error=exc)
     else:
-        # 'spawn': no fork of a process whose BLAS thread pools are running
-        with ProcessPoolExecutor(max_workers=workers or os.cpu_count(),
-                                 mp_context=get_context("spawn")) as pool:
-            futs = {pool.submit(_call, func, kw): name for name, kw in todo.items()}
-            for fut in as_completed(futs):
-                try:
-                    finish(futs[fut], fut.result())
-                except Exception as exc:    # noqa: BLE001
-                    finish(futs[fut], error=exc)
+        left = dict(todo)
+        for attempt in range(retries + 1):
+            broken = _run_pool(func, left, workers or os.cpu_count(), finish)
+            left = {name: left[name] for name in broken}
+            if not left:
+                break
+            if attempt < retries:
+                warnings.warn(f"a worker process died; {len(left)} job(s) without a result "
+                              f"run again on new workers (retry {attempt + 1} of {retries}): "
+                              f"{', '.join(sorted(left))}", stacklevel=2)
+        if left:
+            first_error = first_error or SimulationError(
+                f"worker processes died {retries + 1} times (killed, e.g. for lack of "
+                f"memory?); no result for job(s) {', '.join(sorted(left))}")
     if first_error is not None:
         raise first_error
     return {name: results[name] for name in jobs}

@@ -8,8 +8,12 @@ Usage::
     flexmbs reproduce [--table N ...|--all] [--out DIR] [--workers N | --dask ADDRESS] [--quick]
 
 CASE is a case name (``robot_2dof``, ``robot_2dof_tracking``, ``fourbar``, ``fourbar_no_masses``)
-or a path to a TOML case file. Errors in the input or in the simulation print one line on stderr
-and exit with status 2.
+or a path to a TOML case file. Errors in the input or in the simulation, and files that cannot be
+written, print one line on stderr and exit with status 2 (``--debug`` before or after the
+subcommand, or the environment variable ``FLEXMBS_DEBUG=1``, also prints the traceback). Output
+paths (--out, --plot, --history) are checked before the run: the folder must be writable, a
+figure's extension must be a format matplotlib writes. Files are written to a temporary name and
+renamed when complete. Ctrl-C prints one line (what is kept, how to resume) and exits with 130.
 
 Adding a subcommand
 -------------------
@@ -24,15 +28,21 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import os
+import re
 import sys
 import tomllib
+import traceback
+import warnings
+from pathlib import Path
 
 import numpy as np
 
-from flexmbs.errors import CaseError, FlexmbsError
+from flexmbs.errors import CaseError, FlexmbsError, ModelError
 
 __all__ = ["main", "build_parser", "COMMANDS", "add_case_arguments", "case_from_args",
-           "parse_design", "parse_set", "register_simulate", "register_demo"]
+           "parse_design", "parse_set", "register_simulate", "register_demo", "positive_int",
+           "output_file", "figure_file"]
 
 #: Subcommand registration functions, "module:function", in the order of the help text.
 COMMANDS = [
@@ -103,6 +113,61 @@ def parse_design(text, case):
     return np.array(values)
 
 
+def positive_int(text):
+    """argparse type: an integer >= 1 (e.g. --workers)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {value}")
+    return value
+
+
+def output_file(path, option, suffix=None, required=0.0):
+    """Check, before the run, an output file given as `option`: its folder exists and is
+    writable, the path is not a folder, and (rough estimate) `required` bytes fit on the disk.
+    With `suffix` (e.g. '.npz'), the suffix is added when the name does not end with it.
+    Returns the path that will be written (report exactly this one)."""
+    from flexmbs.batch import check_disk_space, check_writable
+
+    path = str(path)
+    if suffix and not path.endswith(suffix):
+        path += suffix
+    if Path(path).is_dir():
+        raise ModelError(f"{option} {path!r} is a folder; give a file name")
+    folder = Path(path).parent
+    check_writable(folder, f"{option} {path!r}")
+    if required:
+        check_disk_space(folder, required, f"{option} {path!r}")
+    return path
+
+
+def figure_file(path, option):
+    """`output_file` for a figure: the extension must be a format matplotlib writes (a name
+    without one gets '.png'). Returns the path that will be written."""
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    path = str(path)
+    formats = FigureCanvasBase.get_supported_filetypes()
+    ext = os.path.splitext(path)[1]
+    if not ext:
+        path += ".png"
+    elif ext[1:].lower() not in formats:
+        raise ModelError(f"{option} {path!r}: unknown figure format {ext!r}; matplotlib "
+                         f"writes {', '.join('.' + k for k in sorted(formats))}")
+    return output_file(path, option)
+
+
+def save_figure(fig, path, **kw):
+    """Save a matplotlib figure through a temporary file (see flexmbs.batch.atomic_open)."""
+    from flexmbs.batch import atomic_open
+
+    with atomic_open(path, "wb") as fh:
+        fig.savefig(fh, format=os.path.splitext(path)[1][1:].lower(), **kw)
+    return path
+
+
 def _json_default(obj):
     if isinstance(obj, np.generic):
         return obj.item()
@@ -124,9 +189,12 @@ def register_simulate(subparsers):
     add_case_arguments(p)
     p.add_argument("--design", metavar="P1,P2,...",
                    help="design variables in mm (one value: all of them); default: the case's start")
-    p.add_argument("--out", metavar="FILE.npz", help="save time, deviation, coordinates, reference")
+    p.add_argument("--out", metavar="FILE.npz",
+                   help="save time, deviation, coordinates, reference (.npz is added to a "
+                        "name without it)")
     p.add_argument("--plot", metavar="FILE.png",
-                   help="save an overview figure: motion (deflection magnified) and deviation")
+                   help="save an overview figure: motion (deflection magnified) and deviation "
+                        "(format from the extension: png, pdf, svg, ...)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a summary")
     p.add_argument("--gradient", nargs="?", const="direct", choices=("direct", "fd"),
                    help="also compute design derivatives of the mass and of the deviation at its "
@@ -151,9 +219,24 @@ def _summary_lines(case, r):
     ]
 
 
+def _npz_estimate(case):
+    """Rough upper bound (bytes) of the --out file: q and qd at every step."""
+    try:
+        ndof = int(case.model.ndof)
+        nt = int(round(float(case.t_end) / float(case.h))) + 1
+    except (AttributeError, TypeError, ValueError, ZeroDivisionError):
+        return 0.0
+    return 8.0 * nt * (2 * ndof + 16)
+
+
 def run_simulate(args):
     case = case_from_args(args)
     design = parse_design(args.design, case)
+    # output paths are checked before the run, not after it
+    if args.out:
+        args.out = output_file(args.out, "--out", suffix=".npz", required=_npz_estimate(case))
+    if args.plot:
+        args.plot = figure_file(args.plot, "--plot")
     r = case.simulate(design)
     grad = None
     if args.gradient:
@@ -163,7 +246,7 @@ def run_simulate(args):
         _save_npz(args.out, case, r)
     if args.plot:
         from flexmbs.plots import plot_case
-        plot_case(r, args.plot)
+        save_figure(plot_case(r), args.plot, dpi=150, bbox_inches="tight")
     if args.json:
         out = r.summary()
         out["case_file"] = case.source
@@ -192,11 +275,14 @@ def run_simulate(args):
 
 
 def _save_npz(path, case, r):
+    from flexmbs.batch import atomic_open
+
     ref = {f"reference_{k}": v for k, v in r.reference.items() if k != "t"}
-    np.savez_compressed(
-        path, t=r.t, deviation=r.deviation, design_mm=r.design_mm, mass=r.mass,
-        q=r.result.q, qd=r.result.qd, dofs=r.result.dofs, sensor_dofs=case.sensor_dofs,
-        summary=json.dumps(r.summary()), case_config=json.dumps(case.config), **ref)
+    with atomic_open(path, "wb") as fh:       # a file object: numpy adds no suffix
+        np.savez_compressed(
+            fh, t=r.t, deviation=r.deviation, design_mm=r.design_mm, mass=r.mass,
+            q=r.result.q, qd=r.result.qd, dofs=r.result.dofs, sensor_dofs=case.sensor_dofs,
+            summary=json.dumps(r.summary()), case_config=json.dumps(case.config), **ref)
 
 
 # ----------------------------------------------------------------------------- demo
@@ -209,7 +295,7 @@ def register_demo(subparsers):
                     "report (DIR/README.md). `flexmbs reproduce` does the same for every table.")
     p.add_argument("--out", default="reproduction/demo", metavar="DIR",
                    help="output folder (default: reproduction/demo)")
-    p.add_argument("--workers", type=int, default=2, metavar="N",
+    p.add_argument("--workers", type=positive_int, default=2, metavar="N",
                    help="local worker processes (default 2: one per method; 1: serial)")
     p.set_defaults(func=run_demo)
 
@@ -219,8 +305,14 @@ def run_demo(args):
 
     print("flexmbs demo: the paper's Table 1 (2-dof robot, deviation (28), 0.65 s), weakly and "
           "fully coupled optimizations from p = [50, 50, 50, 50] mm", flush=True)
-    report = reproduce([1], args.out, workers=args.workers, force=True,
-                       log=lambda s: print(s, flush=True))
+    try:
+        report = reproduce([1], args.out, workers=args.workers, force=True,
+                           log=lambda s: print(s, flush=True))
+    except KeyboardInterrupt:
+        from flexmbs.reproduce import interrupted
+        interrupted(args.command, args.out, "the demo starts again from the beginning "
+                    "(`flexmbs reproduce --table 1` keeps finished jobs)")
+        return 130
     print_report(report)
     print()
     for r in report.rows.get(1, []):
@@ -232,12 +324,48 @@ def run_demo(args):
 
 
 # ----------------------------------------------------------------------------- main
+class _UsageError(Exception):
+    """A command-line usage error, raised by _Parser.error instead of exiting at once (so
+    that `main` can add a hint that needs the command line)."""
+
+    def __init__(self, parser, message):
+        super().__init__(message)
+        self.parser = parser
+        self.message = message
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):
+        raise _UsageError(self, message)
+
+
+#: A value that argparse takes for an option: "-40,30" or "-4e1" (a plain "-40" is a number).
+_DASH_VALUE = re.compile(r"^-[\d.]")
+
+
+def _usage_hint(message, argv):
+    """For "argument --design: expected one argument" when the next word is a negative value,
+    the form that works: --design=-40,30,..."""
+    m = re.match(r"argument ([-\w/]+)(?:/[-\w]+)*: expected one argument", message)
+    if not m:
+        return ""
+    names = m.group(1).split("/")
+    for k, word in enumerate(argv[:-1]):
+        if word in names and _DASH_VALUE.match(argv[k + 1]):
+            return (f"; a value that starts with '-' must be attached with '=': write "
+                    f"{word}={argv[k + 1]}")
+    return ""
+
+
 def build_parser():
     """The argument parser with every registered subcommand."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="flexmbs",
         description="Planar flexible multibody simulation and structural optimization of "
                     "mechanism components (the paper's cases live in cases/*.toml).")
+    parser.add_argument("--debug", action="store_true",
+                        help="print the traceback of an error (also: FLEXMBS_DEBUG=1); "
+                             "accepted after the subcommand too")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for spec in COMMANDS:
         module, _, func = spec.partition(":")
@@ -245,16 +373,50 @@ def build_parser():
     return parser
 
 
+def _one_line(exc):
+    text = str(exc)
+    if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
+        text = f"{exc.strerror}: {exc.filename!r}"
+    return " ".join(text.split())
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    """Warnings on the command line: one line each, without the source line."""
+    print(f"flexmbs: {category.__name__}: {' '.join(str(message).split())}",
+          file=file or sys.stderr)
+
+
 def main(argv=None):
     """Entry point of the ``flexmbs`` command; returns the exit status."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = os.environ.get("FLEXMBS_DEBUG", "").strip() not in ("", "0")
+    if "--debug" in argv:           # anywhere: before or after the subcommand
+        debug = True
+        argv = [a for a in argv if a != "--debug"]
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except _UsageError as exc:
+        exc.parser.print_usage(sys.stderr)
+        print(f"{exc.parser.prog}: error: {exc.message}{_usage_hint(exc.message, argv)}",
+              file=sys.stderr)
+        return 2
     if getattr(args, "func", None) is None:
         parser.print_help(sys.stderr)
         return 2
-    try:
-        return int(args.func(args) or 0)
-    except (FlexmbsError, OSError) as exc:
-        kind = type(exc).__name__
-        print(f"flexmbs {args.command}: {kind}: {exc}".replace("\n", " "), file=sys.stderr)
-        return 2
+    with warnings.catch_warnings():
+        if not debug:
+            warnings.showwarning = _show_warning
+        try:
+            return int(args.func(args) or 0)
+        except (FlexmbsError, OSError, MemoryError) as exc:
+            if debug:
+                traceback.print_exc()
+            kind = type(exc).__name__
+            print(f"flexmbs {args.command}: {kind}: {_one_line(exc)}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            if debug:
+                traceback.print_exc()
+            print(f"flexmbs {args.command}: interrupted", file=sys.stderr)
+            return 130

@@ -94,8 +94,10 @@ def _deviation_axes(ax, rows, labels, colors, styles, limit_m=1e-3):
 
 
 def _save(fig, folder, key):
+    from flexmbs.batch import atomic_open
     path = Path(folder) / f"{key}.png"
-    fig.savefig(path, dpi=130, bbox_inches="tight")
+    with atomic_open(path, "wb") as fh:
+        fig.savefig(fh, dpi=130, bbox_inches="tight", format="png")
     return path
 
 
@@ -520,7 +522,8 @@ def write_report(report):
     """Write ``README.md`` and ``comparison.json`` into report.out; return the README path."""
     from flexmbs.optimize.result import jsonable
     out = Path(report.out)
-    (out / "README.md").write_text(markdown(report), encoding="utf-8")
+    from flexmbs.batch import write_atomic
+    write_atomic(out / "README.md", markdown(report))
     data = dict(
         tables=report.tables, settings=report.settings, elapsed_s=report.elapsed,
         timings=report.timings, extra=report.extra,
@@ -533,5 +536,5 @@ def write_report(report):
                       **{region: dict(p2_mm=g[0], p4_mm=g[1], deviation_at_step_m=g[2],
                                       max_deviation_m=g[3]) for region, g in m.grids.items()})
               for k, m in report.maps.items()})
-    (out / "comparison.json").write_text(json.dumps(jsonable(data), indent=1), encoding="utf-8")
+    write_atomic(out / "comparison.json", json.dumps(jsonable(data), indent=1))
     return out / "README.md"

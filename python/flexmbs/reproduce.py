@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import time
 from dataclasses import dataclass, field
 from importlib import resources
@@ -824,18 +825,27 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
         raise ModelError(f"tables must be among {sorted(TABLES)}, got {bad}")
     if not (isinstance(grid, int) and grid >= 2):
         raise ModelError(f"grid must be an integer >= 2, got {grid!r}")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int)
+                                or workers < 1):
+        raise ModelError(f"workers must be an integer >= 1, got {workers!r}")
+    from flexmbs.batch import check_disk_space, check_writable, read_stored, write_atomic
     say = log or (lambda s: None)
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    store = out / "jobs" / "optimizations"
     runs = table_runs(tables)
+    # before any run: the folder can be written and has room for the results (a rough upper
+    # bound: 0.5 MB per optimization, 2 KB per map point, 1 MB per figure)
+    check_writable(out, f"output folder {str(out)!r}", create=True)
+    n_map = sum(2 * grid * grid for spec in MAPS.values() if maps and spec.table in tables)
+    check_disk_space(out, 500e3 * len(runs) + 2e3 * n_map + (20e6 if figures else 0),
+                     f"output folder {str(out)!r}")
+    store = out / "jobs" / "optimizations"
     if force:
         for r in runs:
             (store / f"{r.name}.json").unlink(missing_ok=True)
     data = paper_tables()
     report = Report(out=out, tables=tables)
     tfile = out / "jobs" / "timings.json"
-    report.timings = json.loads(tfile.read_text()) if tfile.exists() else {}
+    report.timings = read_stored(tfile) or {}
     address, cluster = _resolve_dask(dask, workers)
     executor = (f"Dask scheduler {address}" + (" (LocalCluster)" if cluster else "")
                 if address else ("serial" if workers == 1 else
@@ -846,13 +856,14 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
             f"({executor}); results in {store}")
         t0 = time.perf_counter()
         jobs = {r.name: r.job() for r in runs}
-        report.settings["stored_runs"] = [n for n in jobs if (store / f"{n}.json").exists()]
+        report.settings["stored_runs"] = [n for n in jobs
+                                          if read_stored(store / f"{n}.json") is not None]
         try:
             results = run_batch(optimization_job, jobs, workers=workers, dask=address,
                                 store=store, progress=progress, label="optimizations")
         except Exception as exc:    # noqa: BLE001 - report what finished, name what did not
-            results = {n: json.loads((store / f"{n}.json").read_text())
-                       for n in jobs if (store / f"{n}.json").exists()}
+            results = {n: v for n in jobs
+                       if (v := read_stored(store / f"{n}.json")) is not None}
             for n in jobs:
                 if n not in results:
                     report.failures[n] = f"{type(exc).__name__}: {exc} (first error of the batch)"
@@ -885,7 +896,7 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
                 for region in REGIONS:
                     mj.update(map_jobs(spec, grid, region))
                 mstore = out / "jobs" / key
-                map_stored = sum((mstore / f"{n}.json").exists() for n in mj)
+                map_stored = sum(read_stored(mstore / f"{n}.json") is not None for n in mj)
                 say(f"Fig. {spec.figure}: {len(mj)} simulations (two {grid} x {grid} grids of "
                     f"p2, p4: the bounds' box and a zoom), results in {out / 'jobs' / key}")
                 res = run_batch(max_deviation_job, mj, workers=workers, dask=address,
@@ -908,7 +919,7 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
         report.elapsed["figures"] = time.perf_counter() - t0
     report.elapsed["total"] = time.perf_counter() - t_start
     (out / "jobs").mkdir(parents=True, exist_ok=True)
-    (out / "jobs" / "timings.json").write_text(json.dumps(report.timings, indent=1))
+    write_atomic(out / "jobs" / "timings.json", json.dumps(report.timings, indent=1))
     from flexmbs.report import write_report
     write_report(report)
     return report
@@ -917,6 +928,7 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
 # ============================================================================ command line
 def register(subparsers):
     """Add the ``reproduce`` subcommand (listed in flexmbs.cli.COMMANDS)."""
+    from flexmbs.cli import positive_int
     p = subparsers.add_parser(
         "reproduce", help="reproduce the paper's Tables 1-8 and Figures 5-15, with a report",
         description="Run the optimizations behind the paper's tables (each starting point x "
@@ -929,7 +941,7 @@ def register(subparsers):
     p.add_argument("--out", default="reproduction", metavar="DIR",
                    help="output folder (default: reproduction)")
     ex = p.add_mutually_exclusive_group()
-    ex.add_argument("--workers", type=int, metavar="N",
+    ex.add_argument("--workers", type=positive_int, metavar="N",
                     help="local worker processes (default: one per core; 1: serial)")
     ex.add_argument("--dask", metavar="ADDRESS",
                     help="run the jobs on a Dask cluster: a scheduler address (tcp://host:8786, "
@@ -947,13 +959,27 @@ def register(subparsers):
 def run_reproduce(args):
     tables = None if (args.all or not args.table) else args.table
     grid = args.grid if args.grid is not None else (11 if args.quick else 41)
-    if args.workers is not None and args.workers < 1:
-        raise ModelError(f"--workers must be >= 1, got {args.workers}")
-    report = reproduce(tables, args.out, workers=args.workers, dask=args.dask, grid=grid,
-                       figures=not args.no_figures, force=args.force,
-                       log=lambda s: print(s, flush=True))
+    if grid < 2:
+        raise ModelError(f"--grid must be an integer >= 2, got {grid}")
+    try:
+        report = reproduce(tables, args.out, workers=args.workers, dask=args.dask, grid=grid,
+                           figures=not args.no_figures, force=args.force,
+                           log=lambda s: print(s, flush=True))
+    except KeyboardInterrupt:
+        interrupted(args.command, args.out, "run the same command again to resume "
+                    "(finished jobs are not run again)")
+        return 130
     print_report(report)
     return 1 if report.failures else 0
+
+
+def interrupted(command, out, how):
+    """The one-line message of a reproduction stopped by Ctrl-C: where the finished jobs are
+    and how to resume (stderr)."""
+    store = Path(out) / "jobs"
+    n = sum(f.name != "timings.json" for f in store.rglob("*.json")) if store.is_dir() else 0
+    print(f"flexmbs {command}: interrupted; {n} finished job result(s) kept in {store}; "
+          f"{how}", file=sys.stderr, flush=True)
 
 
 def print_report(report):

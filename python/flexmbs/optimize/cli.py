@@ -12,15 +12,19 @@ by the functions listed in `METHOD_OPTIONS` ("module:function", called with the 
 fully coupled method registers itself by adding its entries to both.
 
 Exit status: 0 when the method converged, 1 when it stopped without converging (maximum
-number of cycles, oscillation), 2 on bad input or a failed simulation.
+number of cycles, oscillation), 2 on bad input or a failed simulation, 130 when stopped by
+Ctrl-C (one line on stderr names the history file and the --start that resumes from the last
+design analysed).
 """
 from __future__ import annotations
 
 import importlib
 import sys
 
-from flexmbs.cli import add_case_arguments, case_from_args, parse_design, print_json
+from flexmbs.cli import (add_case_arguments, case_from_args, figure_file, output_file,
+                         parse_design, print_json)
 from flexmbs.errors import CaseError
+from flexmbs.optimize.result import HistoryWriter
 
 __all__ = ["register", "run_optimize", "run_weakly", "add_weakly_options", "start_from_args",
            "METHODS", "METHOD_OPTIONS"]
@@ -108,10 +112,41 @@ def _print_cycle(rec):
           + ("" if inner is None else f"  inner {inner}"), flush=True)
 
 
+def _interrupted(args, writer):
+    """The one line printed on Ctrl-C: what is kept and how to resume."""
+    recs = writer.records
+    where = (f"history of {len(recs)} record(s) in {writer.path}" if writer.path
+             else "no history file (--history FILE keeps one)")
+    if recs and recs[-1].get("design_mm") is not None:
+        p = ",".join(f"{v:.6g}" for v in recs[-1]["design_mm"])
+        how = f"to resume from the last design analysed, run the same command with --start={p}"
+        if writer.path:
+            how += " and a new --history name (an existing history file is started afresh)"
+    else:
+        how = "no design analysed yet: run the same command again"
+    print(f"flexmbs optimize: interrupted; {where}; {how}", file=sys.stderr, flush=True)
+
+
 def run_optimize(args):
     case = case_from_args(args)
     run = _load(METHODS[args.method])
-    result = run(args, case)
+    # output paths are checked before the run, not after it
+    history_path = args.history
+    if history_path:
+        history_path = output_file(history_path, "--history")
+    if args.plot:
+        args.plot = figure_file(args.plot, "--plot")
+    writer = HistoryWriter(history_path)
+    args.history = writer           # the methods accept a HistoryWriter for `history`
+    try:
+        result = run(args, case)
+    except KeyboardInterrupt:
+        writer.close()
+        _interrupted(args, writer)
+        return 130
+    finally:
+        writer.close()
+        args.history = history_path
     if args.plot:
         result.plot(args.plot, limit_m=case.limit_m)
     if args.json:

@@ -2,7 +2,10 @@
 
 `OptimizationResult` is what `optimize_weakly` / the fully coupled optimizer return;
 `HistoryWriter` appends one JSON line per cycle (weakly) or iteration (fully) to a file as
-the run goes, so that an interrupted run loses nothing already computed.
+the run goes, so that an interrupted run loses nothing already computed: each record is one
+write of a whole line, flushed to disk (fsync) before the run goes on. A line cut short by a
+crash or a full disk is the file's last one and has no newline; `read_history` skips it with
+a warning instead of reading it back as a record.
 
 History records are plain dicts. Keys used by both methods (others may be added):
     iteration        1-based cycle / iteration number (the paper's "Iter.")
@@ -21,9 +24,12 @@ from __future__ import annotations
 import json
 import math
 import os
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from flexmbs.errors import ModelError
 
 __all__ = ["OptimizationResult", "HistoryWriter", "read_history", "jsonable"]
 
@@ -71,6 +77,7 @@ class HistoryWriter:
         if self._fh is not None:
             self._fh.write(json.dumps(rec) + "\n")
             self._fh.flush()
+            os.fsync(self._fh.fileno())
         return rec
 
     def close(self):
@@ -86,9 +93,28 @@ class HistoryWriter:
 
 
 def read_history(path):
-    """The records of a history file written by HistoryWriter (list of dicts)."""
+    """The records of a history file written by HistoryWriter (list of dicts).
+
+    A last line without its newline that is not valid JSON (a record cut short by a crash or a
+    full disk) is skipped with a warning; an invalid line elsewhere raises ModelError naming
+    the file and the line.
+    """
     with open(path, encoding="utf-8") as fh:
-        return [json.loads(line) for line in fh if line.strip()]
+        lines = fh.readlines()
+    out = []
+    for k, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        try:
+            out.append(json.loads(line))
+        except ValueError:
+            if k == len(lines) and not line.endswith("\n"):
+                warnings.warn(f"history {os.fspath(path)!r}: last line {k} is cut short "
+                              "(interrupted write), skipped", stacklevel=2)
+                break
+            raise ModelError(f"history {os.fspath(path)!r}: line {k} is not a JSON record: "
+                             f"{line[:60]!r}") from None
+    return out
 
 
 @dataclass
@@ -185,6 +211,11 @@ class OptimizationResult:
         ax2.set_title("final design: deviation in the full simulation")
         ax2.grid(True, alpha=0.3)
         fig.tight_layout()
-        fig.savefig(path, dpi=120)
-        plt.close(fig)
+        from flexmbs.batch import atomic_open
+        fmt = os.path.splitext(os.fspath(path))[1][1:].lower() or None
+        try:
+            with atomic_open(path, "wb") as fh:
+                fig.savefig(fh, dpi=120, format=fmt)
+        finally:
+            plt.close(fig)
         return path

@@ -1,0 +1,230 @@
+"""The command line (flexmbs.cli): every bad argument or unwritable output path is one line on
+stderr with exit status 2 and no traceback, found before the run; the names reported are the
+files written; Ctrl-C during `optimize` and `reproduce` prints one line naming where the results
+are and how to resume, exits with 130, and loses nothing already written (issue 14)."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from flexmbs.cli import main
+from flexmbs.optimize.result import HistoryWriter, read_history
+
+
+def _no_simulation(monkeypatch):
+    """Make any simulation fail the test: the error must come before the run."""
+    from flexmbs.cases import Case
+
+    def forbidden(self, *a, **k):
+        raise AssertionError("simulation started although an argument was bad")
+    monkeypatch.setattr(Case, "simulate", forbidden)
+
+
+def _one_error_line(capsys):
+    """The single line on stderr (and no traceback, no result on stdout)."""
+    out, err = capsys.readouterr()
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert "Traceback" not in err and "max deviation" not in out and "report:" not in out
+    return lines[0]
+
+
+# ----------------------------------------------------------------------------- bad arguments
+def test_unknown_figure_format_is_refused_before_the_run(tmp_path, monkeypatch, capsys):
+    """--plot r.xyz: matplotlib has no .xyz writer; the error names the file and the formats
+    it writes (png among them), before any simulation, and writes nothing."""
+    _no_simulation(monkeypatch)
+    f = tmp_path / "r.xyz"
+    assert main(["simulate", "robot_2dof", "--plot", str(f)]) == 2
+    line = _one_error_line(capsys)
+    assert "r.xyz" in line and "'.xyz'" in line and ".png" in line and ".pdf" in line
+    assert not f.exists()
+    assert main(["optimize", "robot_2dof", "--plot", str(f)]) == 2
+    assert "'.xyz'" in _one_error_line(capsys)
+
+
+@pytest.mark.parametrize("args", [
+    ["simulate", "robot_2dof", "--out", "{bad}/r.npz"],
+    ["simulate", "robot_2dof", "--plot", "{bad}/r.png"],
+    ["optimize", "robot_2dof", "--history", "{bad}/h.jsonl"],
+    ["optimize", "robot_2dof", "--plot", "{bad}/r.png"],
+    ["reproduce", "--table", "1", "--out", "{bad}/out"],
+    ["demo", "--out", "{bad}/out"],
+])
+def test_unwritable_output_folder_is_refused_before_the_run(tmp_path, monkeypatch, capsys, args):
+    """An output path whose folder cannot be created or written (here: under a regular file,
+    which even root cannot write into) is one line naming the path, before any simulation."""
+    _no_simulation(monkeypatch)
+    bad = tmp_path / "file"
+    bad.write_text("a regular file\n")
+    args = [a.format(bad=bad) for a in args]
+    assert main(args) == 2
+    line = _one_error_line(capsys)
+    assert str(bad) in line and ("not a folder" in line or "Not a directory" in line)
+    assert bad.read_text() == "a regular file\n"
+
+
+def test_full_disk_is_refused_before_the_run(tmp_path, monkeypatch, capsys):
+    """With 1 kB free (shutil.disk_usage patched), --out of a 1301-step run (q and qd of 30
+    unknowns: several hundred kB) is refused before the run with a ResourceError giving the
+    estimate and the free space; so is a reproduction's output folder."""
+    import shutil
+    from collections import namedtuple
+    _no_simulation(monkeypatch)
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10**9, 10**9 - 1000, 1000))
+    assert main(["simulate", "robot_2dof", "--out", str(tmp_path / "r.npz")]) == 2
+    line = _one_error_line(capsys)
+    assert "ResourceError" in line and "r.npz" in line and "0.0 MB are free" in line
+    assert main(["reproduce", "--table", "1", "--out", str(tmp_path / "rep")]) == 2
+    line = _one_error_line(capsys)
+    assert "ResourceError" in line and "rep" in line
+    assert os.listdir(tmp_path) == ["rep"] and os.listdir(tmp_path / "rep") == []
+
+
+@pytest.mark.parametrize("args,option", [
+    (["simulate", "robot_2dof", "--design", "-40,30,35,25"], "--design=-40,30,35,25"),
+    (["optimize", "robot_2dof", "--start", "-4e1,30,35,25"], "--start=-4e1,30,35,25"),
+])
+def test_negative_design_tells_to_attach_the_value(capsys, args, option):
+    """argparse reads '-40,30,...' as an option; the error says to write --design=-40,..."""
+    assert main(args) == 2
+    out, err = capsys.readouterr()
+    assert "Traceback" not in err and f"write {option}" in err
+
+
+@pytest.mark.parametrize("args", [["demo", "--workers=-3"], ["reproduce", "--workers", "0"],
+                                  ["demo", "--workers", "two"]])
+def test_workers_below_one_is_a_clear_error(capsys, args):
+    """--workers must be an integer >= 1: the message names the option and the value."""
+    assert main(args) == 2
+    _, err = capsys.readouterr()
+    value = args[-1].split("=")[-1]
+    assert "--workers" in err and "integer >= 1" in err and value in err
+    assert "Traceback" not in err
+
+
+def test_debug_shows_the_traceback(monkeypatch, capsys):
+    """--debug (anywhere) or FLEXMBS_DEBUG=1 adds the traceback before the one-line error."""
+    _no_simulation(monkeypatch)
+    assert main(["simulate", "robot_2dof", "--design", "1,2", "--debug"]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" in err and err.strip().splitlines()[-1].startswith("flexmbs simulate:")
+    monkeypatch.setenv("FLEXMBS_DEBUG", "1")
+    assert main(["simulate", "robot_2dof", "--design", "1,2"]) == 2
+    assert "Traceback" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- names written
+def test_reported_names_are_the_files_written(tmp_path, capsys, monkeypatch):
+    """--out result and --plot fig (no extensions): numpy's .npz and matplotlib's .png are
+    added, and the JSON reports exactly the files that exist; the .npz holds the run (its
+    deviation maximum is the reported one) and the figure is a PNG."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["simulate", "robot_2dof", "--t-end", "0.05", "--out", "result", "--plot", "fig",
+                 "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["out"] == "result.npz" and out["plot"] == "fig.png"
+    assert sorted(os.listdir(tmp_path)) == ["fig.png", "result.npz"]
+    with np.load(tmp_path / out["out"]) as d:
+        assert d["deviation"].max() == out["max_deviation_m"] and d["t"].size == 101
+    assert (tmp_path / out["plot"]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+# ----------------------------------------------------------------------------- history files
+def test_history_with_a_cut_short_last_line(tmp_path):
+    """A history whose last record was cut short (crash or full disk during the write) reads
+    back as the complete records with a warning; a bad line elsewhere is a ModelError naming
+    the file and the line."""
+    from flexmbs.errors import ModelError
+    h = tmp_path / "h.jsonl"
+    with HistoryWriter(h) as w:
+        for k in (1, 2):
+            w.write({"iteration": k, "design_mm": np.array([50.0, 40.0 + k])})
+    whole = h.read_text()
+    h.write_text(whole + '{"iteration": 3, "design_')
+    with pytest.warns(UserWarning, match="line 3 is cut short"):
+        recs = read_history(h)
+    assert recs == [{"iteration": 1, "design_mm": [50.0, 41.0]},
+                    {"iteration": 2, "design_mm": [50.0, 42.0]}]
+    h.write_text('{"iteration": 1}\n{"itera\n' + whole)
+    with pytest.raises(ModelError, match=r"h\.jsonl.*line 2"):
+        read_history(h)
+
+
+# ----------------------------------------------------------------------------- Ctrl-C
+def _start(args, cwd):
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    env.pop("FLEXMBS_DEBUG", None)
+    # own process group (Ctrl-C goes to the group); SIGINT handled even when this process
+    # was started with it ignored (a background job of a non-interactive shell)
+    return subprocess.Popen([sys.executable, "-m", "flexmbs", *args], cwd=cwd, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+
+def _wait_for(proc, ready, timeout=60.0):
+    t0 = time.monotonic()
+    while not ready():
+        if proc.poll() is not None:
+            pytest.fail(f"finished before Ctrl-C: {proc.communicate()}")
+        if time.monotonic() - t0 > timeout:
+            proc.kill()
+            pytest.fail("never got ready")
+        time.sleep(0.02)
+
+
+def _ctrl_c(proc):
+    """SIGINT to the whole process group, as Ctrl-C in a terminal."""
+    os.killpg(proc.pid, signal.SIGINT)
+    try:
+        return proc.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        raise
+
+
+def test_ctrl_c_during_optimize(tmp_path):
+    """Ctrl-C after the first cycle of `flexmbs optimize --history`: exit status 130, one line
+    on stderr naming the history file and the --start that resumes from its last design, no
+    traceback, and the history holds every cycle that was done (each with its design)."""
+    h = tmp_path / "h.jsonl"
+    # eps 1e-12: the ESL test (25) never stops it early, the run outlasts the poll below
+    proc = _start(["optimize", "robot_2dof", "--history", str(h), "--max-cycles", "30",
+                   "--eps", "1e-12"], tmp_path)
+    _wait_for(proc, lambda: h.exists() and h.read_text().endswith("\n"))
+    out, err = _ctrl_c(proc)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and str(h) in lines[0], err
+    recs = read_history(h)
+    assert recs and all(len(r["design_mm"]) == 4 for r in recs)
+    last = ",".join(f"{v:.6g}" for v in recs[-1]["design_mm"])
+    assert f"--start={last}" in lines[0]
+    assert out.count("cycle ") >= len(recs)          # every printed cycle is in the history
+
+
+def test_ctrl_c_during_reproduce(tmp_path):
+    """Ctrl-C while `flexmbs reproduce --table 1` runs its jobs: exit status 130, one line
+    naming the job folder and how to resume, no traceback."""
+    out_dir = tmp_path / "rep"
+    proc = _start(["reproduce", "--table", "1", "--out", str(out_dir), "--workers", "1",
+                   "--no-figures"], tmp_path)
+    _wait_for(proc, lambda: (out_dir / "jobs" / "optimizations").is_dir())
+    time.sleep(0.5)
+    out, err = _ctrl_c(proc)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert str(out_dir / "jobs") in lines[0] and "run the same command again" in lines[0]
+    # nothing half-written is left where a result belongs
+    for f in (out_dir / "jobs" / "optimizations").glob("*.json"):
+        json.loads(f.read_text())
