@@ -336,7 +336,7 @@ def _taylor_one(values, r0, jd, steps, min_order, noise, direction):
             else float("nan")
     orders = np.where(np.isfinite(orders), orders, -np.inf)
     # rounding of the response itself: a remainder must stay well above eps * |r|
-    floor = max(100.0 * float(noise), 1e3 * np.finfo(float).eps * float(np.max(np.abs(r0), initial=0.0)))
+    floor = max(float(noise), 1e3 * np.finfo(float).eps * float(np.max(np.abs(r0), initial=0.0)))
     return TaylorCheck(steps=np.asarray(steps, float), remainders=rem, increments=inc,
                        orders=orders, order=float(np.median(orders)), slope=slope,
                        min_order=float(min_order), floor=floor, direction=direction)
@@ -380,10 +380,12 @@ def taylor_test(fun, x, jacobian, direction=None, *, step, halvings=6, value=Non
         r(x), if already known (saves one evaluation).
     min_order : float, default 1.8
         Required observed order (2 expected, 1 for a wrong derivative).
-    noise : float, default 0
-        Absolute noise level of the response (e.g. the effect of the solver tolerance);
-        the check fails if a remainder comes within 100x of it (the order would then
-        measure the noise). A floor of 1e3 eps max|r(x)| (rounding) is always applied.
+    noise : float or dict name -> float, default 0
+        Absolute noise level of the response (e.g. the effect of the solver tolerance;
+        give a conservative estimate, a few times the level where the remainders of a
+        step study stop falling): the check fails if a remainder is not above it (the
+        order would then measure the noise). A floor of 1e3 eps max|r(x)| (rounding) is
+        always applied.
 
     Returns
     -------
@@ -426,5 +428,9 @@ def taylor_test(fun, x, jacobian, direction=None, *, step, halvings=6, value=Non
         r = r if as_dict else {None: r}
         for k in r0d:
             values[k].append(r[k])
-    out = {k: _taylor_one(values[k], r0d[k], jd[k], steps, min_order, noise, d) for k in r0d}
+    noise = dict(noise) if isinstance(noise, dict) else {k: noise for k in r0d}
+    if set(noise) != set(r0d):
+        raise ModelError(f"taylor_test: noise keys {sorted(map(str, noise))} differ from the "
+                         f"response keys {sorted(map(str, r0d))}")
+    out = {k: _taylor_one(values[k], r0d[k], jd[k], steps, min_order, noise[k], d) for k in r0d}
     return out if as_dict else out[None]
