@@ -4,7 +4,11 @@
 (``beam2d.f90``) with central finite differences of its internal forces at
 random deformed states; ``check_iteration_matrix`` compares the whole
 iteration matrix of eq. (7) of a model with central finite differences of the
-residual of eq. (1). Both return a :class:`DerivativeCheck`.
+residual of eq. (1). Both return a :class:`DerivativeCheck`. ``taylor_test``
+checks any claimed derivative of any response (design sensitivities of a
+simulation, static responses, aggregated constraints) by the order of its
+Taylor remainder, without a finite-difference tolerance; it returns a
+:class:`TaylorCheck`.
 
 Relative errors are measured row by row: the largest entry of the difference
 in a row divided by the largest entry of the analytic row (rows whose analytic
