@@ -10,6 +10,7 @@ from flexmbs.cases import load_case
 from flexmbs.esl import (BodyStiffness, ChordFrame, TangentFrame, equivalent_static_loads,
                          esl_change, local_displacements, solve_static,
                          static_response)
+from flexmbs.checks import taylor_test
 from flexmbs.errors import ModelError
 from flexmbs.optimize.weakly import StaticProblem, component_constraints
 from flexmbs.simulate import system_matrices
@@ -159,21 +160,40 @@ def test_esl_change_is_relative_load_change(robot):
     assert esl_change(loads, loads) == {"arm1": 0.0, "arm2": 0.0}
 
 
-def test_static_displacement_gradient_against_finite_differences(robot):
-    """du/dp = -K^-1 (dK/dp) u of the static problem (23) against central differences of
-    K(p)^-1 g_eq (step 1e-4 mm: truncation ~1e-9 relative, round-off ~1e-11)."""
+def _perturbed(J, i):
+    """J with a 1e-3 relative error in component i (1e-3 of the gradient's norm)."""
+    Jw = J.copy()
+    Jw[..., i] += 1e-3 * np.linalg.norm(J, axis=-1)
+    return Jw
+
+
+def test_static_displacement_gradient_passes_the_taylor_test(robot):
+    """du/dp = -K^-1 (dK/dp) u of the static problem (23), Taylor test (flexmbs.checks) along
+    p1, p2 and a random direction: the remainder |u(p + s d) - u(p) - s du.d| is second order
+    (> 1.8) for steps 2^-9 .. 2^-14 mm, and order < 1.3 with a 1e-3 error in one component.
+    Measured: order 2.00; remainders 1e-10 .. 5e-14 m, 50x above the rounding floor
+    (1e3 eps max|u| = 1.2e-15 m; the remainder levels off at 3e-16 m, cond(K) ~ 1e8); the
+    1e-3 error dominates the remainder below s ~ 2e-3 mm."""
     case, _, _, loads = robot
     p = np.array([41.0, 30.0, 36.0, 27.0])
     body = loads["arm1"]
     props = case.build_model(p).element_properties()
     sol = solve_static(body.stiffness, body.g_eq, props, case.element_property_derivatives(p))
-    for v in range(4):
-        e = np.zeros(4)
-        e[v] = 1e-4
-        up = solve_static(body.stiffness, body.g_eq, case.build_model(p + e).element_properties()).u
-        um = solve_static(body.stiffness, body.g_eq, case.build_model(p - e).element_properties()).u
-        fd = (up - um) / 2e-4
-        np.testing.assert_allclose(sol.du[v], fd, rtol=0, atol=1e-6 * np.abs(sol.u).max())
+    J = np.transpose(sol.du, (1, 2, 0))                        # (nt, nf, nv)
+
+    def u_of(q):
+        u = solve_static(body.stiffness, body.g_eq, case.build_model(q).element_properties()).u
+        return {"u": u, "u perturbed": u}
+
+    rng = np.random.default_rng(5)
+    for d in (np.eye(4)[0], np.eye(4)[1], rng.normal(size=4)):   # arm 1 depends on p1, p2
+        d = d / np.linalg.norm(d)
+        jac = {"u": J, "u perturbed": _perturbed(J, int(np.argmax(np.abs(d))))}
+        chk = taylor_test(u_of, p, jac, d, step=2.0 ** -9, halvings=5,
+                          value={"u": sol.u, "u perturbed": sol.u})
+        assert chk["u"].ok, chk["u"].table()
+        assert not chk["u perturbed"].ok and chk["u perturbed"].order < 1.3, \
+            chk["u perturbed"].table()
     assert np.all(sol.du[2:] == 0.0)            # arm 1 does not depend on p3, p4
     # the adjoint form used by the optimizer gives the same selected coordinates
     cols = [body.stiffness.nfree - 3, body.stiffness.nfree - 2]
@@ -183,12 +203,17 @@ def test_static_displacement_gradient_against_finite_differences(robot):
     np.testing.assert_allclose(du, sol.du[:, :, cols], rtol=0, atol=1e-9 * np.abs(sol.du).max())
 
 
-@pytest.mark.parametrize("name,t_end", [("robot_2dof", 0.65), ("robot_2dof_tracking", 0.65),
-                                        ("fourbar", 0.1)])
-def test_static_constraint_gradients_against_finite_differences(name, t_end):
-    """Gradients of the squared component deviations (29), (31), (34)-(35) of problem (23)
-    against central differences along each design variable and a random direction
-    (relative step 1e-5: truncation ~1e-10 of the value)."""
+@pytest.mark.parametrize("name,t_end,step", [("robot_2dof", 0.65, 2.0 ** -6),
+                                             ("robot_2dof_tracking", 0.65, 2.0 ** -6),
+                                             ("fourbar", 0.1, 2.0 ** -4)])
+def test_static_constraint_gradients_pass_the_taylor_test(name, t_end, step):
+    """Gradients of the squared component deviations (29), (31), (34)-(35) of problem (23),
+    Taylor test along each design variable and a random direction: the remainder (max over
+    constraints and time steps) is second order (> 1.8) over 5 halvings from `step` mm, and
+    order < 1.3 with a 1e-3 error in one component. Measured: order 2.00 down to s ~ 2^-12 mm
+    (robots) / 2^-12 (four-bar), where the remainders level off at the noise of the static
+    solves (~1e-19 m^2 robots, ~1e-21 m^2 four-bar; the smallest remainders used are >= 80x
+    above it); the 1e-3 error dominates below s ~ 2^-8 mm (robots), 2^-4 (four-bar)."""
     case = load_case(name, t_end=t_end)
     p0 = np.asarray(case.start_mm, float) * 0.85
     cr = case.simulate(p0)
@@ -202,13 +227,22 @@ def test_static_constraint_gradients_against_finite_differences(name, t_end):
     prob = StaticProblem(case, loads, component_constraints(case.formulation, [f for f, _ in frames]),
                          ends, case.limit_m)
     p = p0 * np.linspace(0.9, 1.1, p0.size)
-    val, grad = prob.squared_deviations(p, gradient=True)
+    val, grad = prob.squared_deviations(p, gradient=True)       # (ncon, nt), (ncon, nt, nv)
+
+    def fun(q):
+        v = prob.squared_deviations(q)[0]
+        return {"dl2": v, "dl2 perturbed": v}
+
     rng = np.random.default_rng(3)
     dirs = list(np.eye(p.size)) + [rng.normal(size=p.size)]
     for d in dirs:
-        h = 1e-5 * np.linalg.norm(p) * d / np.linalg.norm(d)
-        fd = (prob.squared_deviations(p + h)[0] - prob.squared_deviations(p - h)[0]) / 2
-        np.testing.assert_allclose(grad @ h, fd, rtol=0, atol=1e-6 * np.abs(fd).max())
+        d = d / np.linalg.norm(d)
+        jac = {"dl2": grad, "dl2 perturbed": _perturbed(grad, int(np.argmax(np.abs(d))))}
+        chk = taylor_test(fun, p, jac, d, step=step, halvings=5,
+                          value={"dl2": val, "dl2 perturbed": val})
+        assert chk["dl2"].ok, chk["dl2"].table()
+        assert not chk["dl2 perturbed"].ok and chk["dl2 perturbed"].order < 1.3, \
+            chk["dl2 perturbed"].table()
     # at the design of the loads the static model returns the simulated deviation (eq. 19);
     # the first component constraint equals the case's deviation: (29) = (28), (31) = (30),
     # (34) = (33) (the crank's frame angle is the motor's, its origin the fixed pivot O)

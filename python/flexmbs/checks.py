@@ -4,7 +4,11 @@
 (``beam2d.f90``) with central finite differences of its internal forces at
 random deformed states; ``check_iteration_matrix`` compares the whole
 iteration matrix of eq. (7) of a model with central finite differences of the
-residual of eq. (1). Both return a :class:`DerivativeCheck`.
+residual of eq. (1). Both return a :class:`DerivativeCheck`. ``taylor_test``
+checks any claimed derivative of any response (design sensitivities of a
+simulation, static responses, aggregated constraints) by the order of its
+Taylor remainder, without a finite-difference tolerance; it returns a
+:class:`TaylorCheck`.
 
 Relative errors are measured row by row: the largest entry of the difference
 in a row divided by the largest entry of the analytic row (rows whose analytic
@@ -29,8 +33,8 @@ import numpy as np
 from flexmbs import _core
 from flexmbs.errors import ModelError
 
-__all__ = ["DerivativeCheck", "check_tangent", "check_iteration_matrix",
-           "generalized_alpha_beta_prime"]
+__all__ = ["DerivativeCheck", "check_tangent", "check_iteration_matrix", "TaylorCheck",
+           "taylor_test", "generalized_alpha_beta_prime"]
 
 
 @dataclass
@@ -258,3 +262,179 @@ def check_iteration_matrix(model, q, qdd=None, mu=None, t=0.0, *, beta_prime=Non
             sfd[:, j] = (res(q, qdd, mu + e) - res(q, qdd, mu - e)) / 2.0
     err, ij = _rowwise_error(s, sfd)
     return DerivativeCheck(err, np.array([err]), ij, s, sfd, h)
+
+
+# ============================================================================ Taylor test
+@dataclass
+class TaylorCheck:
+    """The outcome of a Taylor test of a gradient (see :func:`taylor_test`).
+
+    Attributes
+    ----------
+    steps : (k,) array
+        The steps s (each half the previous one).
+    remainders : (k,) array
+        e(s) = max over the response's components of |r(x + s d) - r(x) - s J d|.
+    increments : (k,) array
+        max |r(x + s d) - r(x)| (first order in s whatever the gradient).
+    orders : (k - 1,) array
+        Observed order of each halving, log(e(s) / e(s/2)) / log 2.
+    order : float
+        The median of `orders` (2 for a right gradient, 1 for a wrong one).
+    slope : float
+        Least-squares slope of log e against log s (a second estimate of the order).
+    min_order : float
+        The order the check asks for.
+    floor : float
+        The smallest remainder the check accepts (noise and rounding of the response).
+    direction : (nv,) array
+        The direction d.
+    """
+    steps: np.ndarray
+    remainders: np.ndarray
+    increments: np.ndarray
+    orders: np.ndarray
+    order: float
+    slope: float
+    min_order: float
+    floor: float
+    direction: np.ndarray
+
+    @property
+    def above_floor(self):
+        """True if every remainder lies above the noise/rounding floor."""
+        return bool(np.all(self.remainders > self.floor))
+
+    @property
+    def ok(self):
+        """The gradient passes: observed order > min_order, remainders above the floor."""
+        return bool(self.order > self.min_order and self.above_floor)
+
+    def __bool__(self):
+        return self.ok
+
+    def table(self):
+        """The step study as text."""
+        lines = ["        step s    |r(x+sd)-r(x)|    remainder e(s)    order"]
+        for k, (s, inc, e) in enumerate(zip(self.steps, self.increments, self.remainders)):
+            o = f"{self.orders[k - 1]:8.3f}" if k else "        "
+            lines.append(f"  {s:12.4e}    {inc:14.4e}    {e:14.4e}  {o}")
+        lines.append(f"  order (median) {self.order:.3f}, least-squares slope {self.slope:.3f}, "
+                     f"required > {self.min_order:g}; floor {self.floor:.2e}"
+                     + ("" if self.above_floor else " (REACHED)"))
+        return "\n".join(lines)
+
+    def __repr__(self):
+        return (f"TaylorCheck(order={self.order:.3f}, slope={self.slope:.3f}, ok={self.ok}, "
+                f"remainders={self.remainders[0]:.2e}..{self.remainders[-1]:.2e})")
+
+
+def _taylor_one(values, r0, jd, steps, min_order, noise, direction):
+    r0 = np.asarray(r0, float)
+    rem = np.array([np.max(np.abs(np.asarray(v, float) - r0 - s * jd)) for s, v in zip(steps, values)])
+    inc = np.array([np.max(np.abs(np.asarray(v, float) - r0)) for v in values])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        logs = np.log2(np.where(rem > 0, rem, np.nan))
+        orders = (logs[:-1] - logs[1:]) / np.log2(steps[:-1] / steps[1:])
+        slope = float(np.polyfit(np.log2(steps), logs, 1)[0]) if np.all(np.isfinite(logs)) \
+            else float("nan")
+    orders = np.where(np.isfinite(orders), orders, -np.inf)
+    # rounding of the response itself: a remainder must stay well above eps * |r|
+    floor = max(float(noise), 1e3 * np.finfo(float).eps * float(np.max(np.abs(r0), initial=0.0)))
+    return TaylorCheck(steps=np.asarray(steps, float), remainders=rem, increments=inc,
+                       orders=orders, order=float(np.median(orders)), slope=slope,
+                       min_order=float(min_order), floor=floor, direction=direction)
+
+
+def taylor_test(fun, x, jacobian, direction=None, *, step, halvings=6, value=None,
+                min_order=1.8, noise=0.0, seed=0):
+    """Taylor test of the derivative ``jacobian`` of a response ``fun`` at ``x``.
+
+    Along a direction d the remainder
+
+        e(s) = max_k | r_k(x + s d) - r_k(x) - s (J d)_k |
+
+    is O(s^2) if J is the derivative of r, but only O(s) if J is wrong, whatever the
+    size of the error: halving s divides e by 4 for a right derivative, by 2 for a wrong
+    one (once s is small enough that the error's first-order term dominates). The test
+    evaluates r at s = step, step/2, ..., step/2**halvings and asks for an observed order
+    (median over the halvings) above ``min_order``. Unlike a finite-difference comparison
+    at one step and one tolerance, nothing here depends on the size of the truncation or
+    of the rounding error, as long as the remainders stay well above the response's noise
+    (for a simulation, the Newton tolerance): choose ``step`` so that the remainder at the
+    smallest step is several decades above it, and give that noise as ``noise``.
+
+    Parameters
+    ----------
+    fun : callable
+        x -> response: an array of any shape (a history: the max norm over its entries
+        is used), or a dict name -> array to test several responses with one evaluation.
+    x : (nv,) array
+        The point.
+    jacobian : array of shape r.shape + (nv,), or a dict of them (same keys as fun's)
+        The claimed derivative of the response.
+    direction : (nv,) array, optional
+        Direction d (used as given: its length sets the scale of s). Default: a random
+        unit vector from ``seed``.
+    step : float
+        The largest step s (in units of d).
+    halvings : int, default 6
+        Number of halvings of s (halvings + 1 evaluations of fun besides r(x)).
+    value : array or dict, optional
+        r(x), if already known (saves one evaluation).
+    min_order : float, default 1.8
+        Required observed order (2 expected, 1 for a wrong derivative).
+    noise : float or dict name -> float, default 0
+        Absolute noise level of the response (e.g. the effect of the solver tolerance;
+        give a conservative estimate, a few times the level where the remainders of a
+        step study stop falling): the check fails if a remainder is not above it (the
+        order would then measure the noise). A floor of 1e3 eps max|r(x)| (rounding) is
+        always applied.
+
+    Returns
+    -------
+    TaylorCheck, or a dict name -> TaylorCheck if fun returns a dict.
+    """
+    x = np.asarray(x, float)
+    if x.ndim != 1 or not np.all(np.isfinite(x)):
+        raise ModelError(f"taylor_test: x must be a finite 1-d array, got {x!r}")
+    if not (isinstance(halvings, (int, np.integer)) and halvings >= 2):
+        raise ModelError(f"taylor_test: halvings must be an integer >= 2, got {halvings!r}")
+    if not (np.isfinite(step) and step > 0):
+        raise ModelError(f"taylor_test: step must be a positive finite number, got {step!r}")
+    if direction is None:
+        d = np.random.default_rng(seed).standard_normal(x.size)
+        d /= np.linalg.norm(d)
+    else:
+        d = np.asarray(direction, float)
+        if d.shape != x.shape or not np.any(d):
+            raise ModelError(f"taylor_test: direction must be a nonzero array of shape "
+                             f"{x.shape}, got {direction!r}")
+    r0 = fun(x) if value is None else value
+    as_dict = isinstance(r0, dict)
+    r0d = dict(r0) if as_dict else {None: r0}
+    jac = dict(jacobian) if as_dict else {None: jacobian}
+    if set(jac) != set(r0d):
+        raise ModelError(f"taylor_test: jacobian keys {sorted(map(str, jac))} differ from the "
+                         f"response keys {sorted(map(str, r0d))}")
+    jd = {}
+    for k, v in r0d.items():
+        J = np.asarray(jac[k], float)
+        v = np.asarray(v, float)
+        if J.shape != v.shape + (x.size,):
+            raise ModelError(f"taylor_test: jacobian{'' if k is None else f'[{k!r}]'} must have "
+                             f"shape {v.shape + (x.size,)}, got {J.shape}")
+        jd[k] = J @ d
+    steps = step * 0.5 ** np.arange(halvings + 1)
+    values = {k: [] for k in r0d}
+    for s in steps:
+        r = fun(x + s * d)
+        r = r if as_dict else {None: r}
+        for k in r0d:
+            values[k].append(r[k])
+    noise = dict(noise) if isinstance(noise, dict) else {k: noise for k in r0d}
+    if set(noise) != set(r0d):
+        raise ModelError(f"taylor_test: noise keys {sorted(map(str, noise))} differ from the "
+                         f"response keys {sorted(map(str, r0d))}")
+    out = {k: _taylor_one(values[k], r0d[k], jd[k], steps, min_order, noise[k], d) for k in r0d}
+    return out if as_dict else out[None]

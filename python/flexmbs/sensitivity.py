@@ -13,7 +13,9 @@ Both methods share one interface, `case_gradients(case, design, method=...)`:
 - 'forward' : forward differences with a relative step (the paper's method);
 - 'central' : central differences (a check, twice the cost).
 `check_sensitivity` compares 'direct' with central differences along a random
-direction, over a range of steps, as users of a derivative code expect.
+direction, over a range of steps, as users of a derivative code expect. A check that
+does not depend on the accuracy of finite differences is the Taylor test,
+`flexmbs.checks.taylor_test` (tests/test_sensitivity.py applies it to every response).
 """
 from __future__ import annotations
 
