@@ -143,12 +143,18 @@ def test_step_beyond_newton_range_is_cut_or_reported():
 
 # --------------------------------------------------------------------------- stiffness
 def test_1000x_stiffer_is_rigid_limit():
-    """E x 1000: elastic deflections scale as 1/E, so the 0.7 mm peak deviation of the paper's
-    robot at p = 50 mm becomes ~1 um; the tip follows the ideal path within 1e-3 mm."""
-    m, a1, a2, th1, th12 = robot(stiffness_factor=1e3)
-    res = fx.simulate(m, 0.65, 5e-4, start="static")
-    assert_robot_ok(res, a1, a2, th1, th12)
-    assert deviation30(res, a2).max() < 1e-6
+    """E x 1000: the constraints hold, and the robot is in its rigid limit, where the elastic
+    deviation is quasi-static and scales exactly as 1/E (its first-order term in 1/E): the peak
+    deviation (30) times the stiffness factor is the same at E x 1000 and E x 10000 within
+    0.1 % (measured 7e-5; 0.7638 mm, against 0.7001 mm at the nominal E, where the dynamic
+    amplification of the slower structure still acts)."""
+    scaled = []
+    for factor in (1e3, 1e4):
+        m, a1, a2, th1, th12 = robot(stiffness_factor=factor)
+        res = fx.simulate(m, 0.65, 5e-4, start="static")
+        assert_robot_ok(res, a1, a2, th1, th12)
+        scaled.append(deviation30(res, a2).max() * factor)
+    assert scaled[0] == pytest.approx(scaled[1], rel=1e-3)
 
 
 def test_1000x_softer_large_deflection():
