@@ -489,9 +489,9 @@ def test_cli_demo(tmp_path):
     0.962 kg (weakly and fully coupled, paper Table 1 / tests/data/paper_tables.json).
 
     Tolerances (CASES.md, "compare masses tightly, designs loosely"): mass 1 %, as
-    test_paper_tables (measured -0.35 % and -0.37 %: the independent prototypes of CASES.md got
-    0.958 kg too; run-to-run changes are ~1e-6 relative, far inside the remaining 0.65 %);
-    design 3 % (moving 1 % along the constraint costs ~0.015 % of mass); both optima on their
+    test_paper_tables (measured -0.35 % and -0.37 %, as the independent prototypes of CASES.md:
+    0.958 kg; a model difference, not rounding: the paper's own design is at 0.997 mm in
+    flexmbs's model, docs/reproduction); design 3 % (moving 1 % along the constraint costs ~0.015 % of mass); both optima on their
     1 mm limit within 1 %. The printed flexmbs masses must be the ones in comparison.json."""
     out_dir = tmp_path / "demo"
     p = _cli("demo", "--out", str(out_dir), cwd=tmp_path)
