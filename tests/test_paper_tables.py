@@ -183,7 +183,7 @@ _T3_XFAIL = {
         "15.00, 15.07] mm, the paper's p1 is 56.15 mm. The paper's design is infeasible in "
         "flexmbs's model (1.031 mm, +3.1 %), and near it the maximum deviation of the slender "
         "links jumps between 0.9 and 4.5 mm with p1 (docs/reproduction, Table 3): the optimizer "
-        "stops at the first feasible p1 of this non-monotonic landscape")),
+        "stops in another local optimum of this non-monotonic landscape")),
 }
 
 
