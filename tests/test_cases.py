@@ -448,12 +448,22 @@ def test_cli_simulate_design_out_and_plot(tmp_path):
 
 
 def test_cli_overrides_and_summary():
-    """--t-end and --set reach the case; the text summary names the maximum and the limit."""
-    p = _cli("simulate", "robot_2dof", "--t-end", "0.66", "--set", "drive=relative",
-             "--design", "43.54,32.56,34.20,25.90", "--json")
+    """--t-end and --set reach the case and change the model: --t-end 0.66 gives Table 5's
+    1320 steps (1321 grid points, CASES.md); --set drive=relative at the Table 1 weakly optimum
+    gives a maximum deviation of 2.2 mm (CASES.md, independent code; 5 %, as
+    test_calibrated_alternatives_of_cases_md) where the default absolute drive gives 1.0 mm
+    (test_cli_simulate_design_out_and_plot). The text summary names the maximum and the limit."""
+    p = _cli("simulate", "robot_2dof", "--t-end", "0.66", "--design", "43.54,32.56,34.20,25.90",
+             "--json")
     assert p.returncode == 0, p.stderr
     out = json.loads(p.stdout)
     assert out["steps"] == 1320 and out["t_end_s"] == pytest.approx(0.66)
+    p = _cli("simulate", "robot_2dof", "--set", "drive=relative", "--design",
+             ",".join(map(str, T1_WEAKLY)), "--json")
+    assert p.returncode == 0, p.stderr
+    out = json.loads(p.stdout)
+    assert out["steps"] == 1300
+    assert out["max_deviation_m"] == pytest.approx(2.2e-3, rel=0.05)
     p = _cli("simulate", "robot_2dof", "--design", "50")
     assert p.returncode == 0, p.stderr
     assert "max deviation" in p.stdout and "limit 1 mm" in p.stdout
@@ -474,7 +484,27 @@ def test_cli_errors_are_one_line_with_status_2(args, needle):
 
 
 def test_cli_demo(tmp_path):
-    """flexmbs demo prints the published Table 1 masses beside flexmbs's (run in a scratch folder)."""
-    p = _cli("demo", cwd=tmp_path)
+    """`flexmbs demo` (make demo) reproduces Table 1 with both methods: flexmbs's own optimum
+    masses, read from the run's comparison.json and from the printed lines, against the paper's
+    0.962 kg (weakly and fully coupled, paper Table 1 / tests/data/paper_tables.json).
+
+    Tolerances (CASES.md, "compare masses tightly, designs loosely"): mass 1 %, as
+    test_paper_tables (measured -0.35 % and -0.37 %, as the independent prototypes of CASES.md:
+    0.958 kg; a model difference, not rounding: the paper's own design is at 0.997 mm in
+    flexmbs's model, docs/reproduction); design 3 % (moving 1 % along the constraint costs ~0.015 % of mass); both optima on their
+    1 mm limit within 1 %. The printed flexmbs masses must be the ones in comparison.json."""
+    out_dir = tmp_path / "demo"
+    p = _cli("demo", "--out", str(out_dir), cwd=tmp_path)
     assert p.returncode == 0, p.stderr
-    assert "Table 1, weakly coupled optimum" in p.stdout and "0.962" in p.stdout
+    rows = {r["method"]: r for r in json.loads((out_dir / "comparison.json").read_text())["rows"]["1"]}
+    assert set(rows) == {"weakly", "fully"}
+    table1 = ROBOT["table1_formulation28_tend0.65"]
+    for method, row in rows.items():
+        fx_row, paper = row["flexmbs"], table1[method]
+        assert fx_row["converged"], fx_row["reason"]
+        assert fx_row["mass_kg"] == pytest.approx(paper["mass"], rel=0.01), method
+        np.testing.assert_allclose(fx_row["design_mm"], paper["p"], rtol=0.03, err_msg=method)
+        assert fx_row["max_deviation_m"] == pytest.approx(1e-3, rel=0.01), method
+        # the printed line carries flexmbs's number, not only the paper's
+        assert (f"Table 1, {method} coupled optimum: flexmbs {fx_row['mass_kg']:.4f} kg"
+                in p.stdout), p.stdout[-2000:]

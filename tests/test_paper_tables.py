@@ -8,7 +8,8 @@ options), so the report and these tests check the same numbers.
 
 Tolerances (issue 8): masses within 1 % of the paper, every design variable within 3 % (Table 5:
 5 %; its single active constraint leaves the design flat); Table 7's fully coupled masses within
-3 %. CASES.md explains why designs are compared more loosely than masses: moving 1 % along the
+3 %; the four-bar's (Tables 3, 4) within 5 % (FOURBAR_MASS_TOL, justified there). CASES.md
+explains why designs are compared more loosely than masses: moving 1 % along the
 constraint costs about 0.015 % of mass, so the paper's stopping test accepts designs 2-3 %
 apart. Iteration counts depend on the optimizer and the variable scaling: they are printed
 beside the paper's (run pytest with -s to see them), never asserted.
@@ -160,30 +161,106 @@ def test_table7_finding(optimized):
 
 
 # ---------------------------------------------------------------------------- four-bar
+# Tolerance of the four-bar masses: 5 %. The paper's own Table 3 designs, simulated by flexmbs,
+# sit 2.2 % below (weakly) and 3.1 % above (fully) the 1 mm limit (docs/reproduction), and the
+# maximum deviation is a vibration peak that moves by several per cent with h and rho_inf
+# (CASES.md); the deviation grows like p^-3 to p^-4 and the mass like p^2, so a few per cent of
+# deviation are 1.5-2 % of mass. 5 % leaves room for that, not for a different local optimum.
+FOURBAR_MASS_TOL = 0.05
+_F250 = (250.0, 250.0, 250.0)
+
+_T3_XFAIL = {
+    "weakly": pytest.mark.xfail(strict=True, reason=(
+        "measured 30.35 kg vs paper 20.703 kg (+46.6 %), and not converged: test (25) is not met "
+        "within the 30-cycle cap (the paper needed 73 cycles; ESL change still 0.03-0.22 in the "
+        "last 10 cycles); the cycles wander between 29.5 and 32.9 kg from cycle 6 on, around "
+        "p = [72.0, 92.2, 78.2] mm vs the paper's [69.85, 87.61, 37.22] (p3 +110 %), and 100 "
+        "cycles change the mass by under 1 % (reproduce.WEAKLY_OPTIONS). The paper's design is "
+        "feasible in flexmbs's model (0.978 mm): flexmbs's ESL cycles stay near another, heavier "
+        "design")),
+    "fully": pytest.mark.xfail(strict=True, reason=(
+        "measured 4.628 kg vs paper 2.967 kg (+56.0 %): flexmbs converges (KKT) to p = [75.96, "
+        "15.00, 15.07] mm, the paper's p1 is 56.15 mm. The paper's design is infeasible in "
+        "flexmbs's model (1.031 mm, +3.1 %), and near it the maximum deviation of the slender "
+        "links jumps between 0.9 and 4.5 mm with p1 (docs/reproduction, Table 3): the optimizer "
+        "stops in another local optimum of this non-monotonic landscape")),
+}
+
+
 @pytest.mark.slow
-def test_table3_fully_much_lighter(optimized):
-    """Table 3 (four-bar with 5 kg at A and B): both methods stop in local optima (paper 7.2);
-    the fully coupled design (2.967 kg) is 7 times lighter than the weakly coupled one
-    (20.703 kg). Asserted: at least 4 times lighter."""
+@pytest.mark.parametrize("method", [pytest.param(m, marks=_T3_XFAIL[m]) for m in ("weakly", "fully")])
+def test_table3_mass(optimized, method):
+    """Table 3 (four-bar with 5 kg at A and B, start 250 mm): weakly coupled 20.703 kg after 73
+    converged cycles, fully coupled 2.967 kg (paper 7.2). Converged, mass within 5 %
+    (FOURBAR_MASS_TOL); designs not compared (both are local optima, CASES.md)."""
+    res = optimized(_run(3, method))
+    _report(3, method, _F250, res, paper_row(3, method, _F250, _PAPER))
+    assert res["converged"], res["reason"]
+    assert res["mass_kg"] == pytest.approx(paper_row(3, method, _F250, _PAPER)["mass"],
+                                           rel=FOURBAR_MASS_TOL)
+
+
+@pytest.mark.slow
+def test_table3_fully_seven_times_lighter(optimized):
+    """Paper 7.2: "the objective function optimal value is 7 times larger with the weakly
+    coupled method" (20.703 / 2.967 = 6.98). Asserted: flexmbs's ratio within 15 % of 6.98:
+    5 % on each mass (FOURBAR_MASS_TOL), plus the wander of the unconverged weakly coupled
+    cycles, whose mass moves between 29.5 and 32.9 kg (+-5.5 %) from cycle 6 to 30, so that a
+    different rounding can stop them anywhere in that band (ratio 6.38-7.10). Measured 6.56
+    (both masses ~50 % above the paper's, test_table3_mass); the report of 2026-11-22 (older
+    code) had 6.79."""
     w = optimized(_run(3, "weakly"))
     f = optimized(_run(3, "fully"))
-    for m, res in (("weakly", w), ("fully", f)):
-        _report(3, m, (250.0,) * 3, res, paper_row(3, m, (250.0,) * 3, _PAPER))
-    assert w["mass_kg"] >= 4 * f["mass_kg"]
+    ratio = w["mass_kg"] / f["mass_kg"]
+    print(f"\nTable 3: weakly / fully coupled mass = {ratio:.2f} (paper 6.98)")
+    assert ratio == pytest.approx(20.703 / 2.967, rel=0.15)
+
+
+@pytest.mark.slow
+def test_table3_fully_optimum_on_its_constraint(optimized):
+    """Paper 7.2 and Fig. 8: at convergence at least one constraint is active. The fully coupled
+    method's constraint is the deviation (33) itself: its maximum over the 1001 steps is the
+    1 mm limit within 1 % (the optimizer's own feasibility test is 1e-6 relative)."""
+    f = optimized(_run(3, "fully"))
+    assert f["converged"], f["reason"]
+    assert f["max_deviation_m"] == pytest.approx(1e-3, rel=0.01)
 
 
 @pytest.mark.slow
 def test_table4_fully_removes_links_2_and_3(optimized):
-    """Table 4 (four-bar without lumped masses), paper 7.3: the fully coupled method drives p2
-    and p3 to their 15 mm lower bound (links 2 and 3 "removed"), the weakly coupled method keeps
-    them well above it, held by constraint (35). Asserted: fully p2, p3 <= 15.15 mm (within 1 %
-    of the bound, as the paper's Table 3 p2 = 15.10 mm); weakly p2, p3 >= 16.5 mm (10 % above)."""
+    """Table 4 (four-bar without lumped masses), paper 7.3: the fully coupled method converges
+    with p2 and p3 at their 15 mm lower bound (links 2 and 3 "removed"; within 1 %, as the paper's
+    Table 3 p2 = 15.10 mm) and the deviation constraint active (1 mm within 1 %). The paper's
+    Table 4 lost its masses in the text: no mass is compared."""
     f = optimized(_run(4, "fully"))
-    w = optimized(_run(4, "weakly"))
-    for m, res in (("weakly", w), ("fully", f)):
-        _report(4, m, (250.0,) * 3, res, paper_row(4, m, (250.0,) * 3, _PAPER))
+    _report(4, "fully", _F250, f, paper_row(4, "fully", _F250, _PAPER))
+    assert f["converged"], f["reason"]
     assert np.all(np.asarray(f["design_mm"][1:]) <= 15.0 * 1.01)
+    assert f["max_deviation_m"] == pytest.approx(1e-3, rel=0.01)
+
+
+@pytest.mark.slow
+def test_table4_weakly_keeps_links_2_and_3(optimized):
+    """Table 4, paper 7.3: with the weakly coupled method "links 2 and 3 can not be removed,
+    they are optimized in order to satisfy (35)"; "the optimum design is quite different".
+    Asserted: p2, p3 at least 10 % above the 15 mm bound, and a mass above the fully coupled
+    one (whose p2, p3 are at the bound)."""
+    w = optimized(_run(4, "weakly"))
+    f = optimized(_run(4, "fully"))
+    _report(4, "weakly", _F250, w, paper_row(4, "weakly", _F250, _PAPER))
     assert np.all(np.asarray(w["design_mm"][1:]) >= 15.0 * 1.1)
+    assert w["mass_kg"] > f["mass_kg"]
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason=(
+    "not converged: flexmbs's weakly coupled cycles on the four-bar without lumped masses stop "
+    "at the 30-cycle cap with the ESL change (25) above eps = 1e-2, at 31.87 kg, p = [67.7, "
+    "96.5, 79.4] mm; the paper says the method 'also converges'"))
+def test_table4_weakly_converges(optimized):
+    """Table 4, paper 7.3: "the weakly coupled method also converges" (test (25), eps = 1e-2)."""
+    w = optimized(_run(4, "weakly"))
+    assert w["converged"], w["reason"]
 
 
 # ---------------------------------------------------------------------------- Table 8

@@ -69,11 +69,25 @@ def assert_robot_ok(res, a1, a2, th1, th12):
 
 
 # --------------------------------------------------------------------------- rho_inf
+# Peak of deviation (30) (m) over 0.64 s at h = 6.25e-5 s, p = 50 mm, by an independent code:
+# Exudyn 1.13.6 on the identical model (benchmarks/common.py, ExudynRobot: same nodes, element,
+# sections, drives, static start and generalized-alpha), printed by
+# benchmarks/reference_values.py (run 2026-11-23; 9 significant digits in mm).
+EXUDYN_PEAK_DEV30 = {0.0: 0.617292909e-3, 0.3: 0.617289777e-3, 0.5: 0.617288923e-3,
+                     0.8: 0.617288543e-3, 1.0: 0.617288496e-3}
+
+
 @pytest.mark.parametrize("rho_inf", [0.0, 0.3, 0.5, 0.8, 1.0])
 def test_rho_inf_second_order(rho_inf):
     """Generalized-alpha is second-order accurate for every rho_inf in [0, 1] (Chung &
     Hulbert 1993; Arnold & Bruls 2007 for the index-3 form used here): the change of the
-    deviation history between h and h/2 must fall by ~4 from h = 2.5e-4 s to 1.25e-4 s."""
+    deviation history between h and h/2 must fall by ~4 from h = 2.5e-4 s to 1.25e-4 s.
+
+    At h = 6.25e-5 s the peak deviation equals Exudyn's at the same h and rho_inf
+    (EXUDYN_PEAK_DEV30, benchmarks/reference_values.py): both codes solve the same discrete
+    equations, so they agree up to their Newton tolerances; tolerance 1e-10 m, flexmbs's
+    Newton tolerance on a 1 m scale (measured difference 2.6e-13 m; the values of
+    rho_inf 0, 0.3, 0.5 and 0.8 differ by 3.8e-10 m or more)."""
     m, a1, a2, th1, th12 = robot()
     devs = []
     for h in (2.5e-4, 1.25e-4, 6.25e-5):
@@ -84,10 +98,7 @@ def test_rho_inf_second_order(rho_inf):
     e2 = np.abs(devs[1] - devs[2][::2]).max()
     order = math.log2(e1 / e2)
     assert 1.8 <= order <= 2.2, (e1, e2, order)
-    # independent code: Exudyn 1.13.6 on the identical model (benchmarks/common.py) at
-    # h = 6.25e-5 s, rho_inf = 0.5 gives a peak deviation of 0.617289 mm over 0.64 s; the
-    # time-discretisation error of the history at this h is ~6e-5 mm (benchmarks/work_precision)
-    assert abs(devs[2].max() - 0.617289e-3) < 1e-7
+    assert abs(devs[2].max() - EXUDYN_PEAK_DEV30[rho_inf]) < 1e-10
 
 
 # --------------------------------------------------------------------------- time step
@@ -133,12 +144,18 @@ def test_step_beyond_newton_range_is_cut_or_reported():
 
 # --------------------------------------------------------------------------- stiffness
 def test_1000x_stiffer_is_rigid_limit():
-    """E x 1000: elastic deflections scale as 1/E, so the 0.7 mm peak deviation of the paper's
-    robot at p = 50 mm becomes ~1 um; the tip follows the ideal path within 1e-3 mm."""
-    m, a1, a2, th1, th12 = robot(stiffness_factor=1e3)
-    res = fx.simulate(m, 0.65, 5e-4, start="static")
-    assert_robot_ok(res, a1, a2, th1, th12)
-    assert deviation30(res, a2).max() < 1e-6
+    """E x 1000: the constraints hold, and the robot is in its rigid limit, where the elastic
+    deviation is quasi-static and scales exactly as 1/E (its first-order term in 1/E): the peak
+    deviation (30) times the stiffness factor is the same at E x 1000 and E x 10000 within
+    0.1 % (measured 7e-5; 0.7638 mm, against 0.7001 mm at the nominal E, where the dynamic
+    amplification of the slower structure still acts)."""
+    scaled = []
+    for factor in (1e3, 1e4):
+        m, a1, a2, th1, th12 = robot(stiffness_factor=factor)
+        res = fx.simulate(m, 0.65, 5e-4, start="static")
+        assert_robot_ok(res, a1, a2, th1, th12)
+        scaled.append(deviation30(res, a2).max() * factor)
+    assert scaled[0] == pytest.approx(scaled[1], rel=1e-3)
 
 
 def test_1000x_softer_large_deflection():

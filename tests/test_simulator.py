@@ -593,11 +593,43 @@ def test_iteration_matrix_checker_detects_a_missing_penalty_term(monkeypatch):
 
 
 def test_system_matrices_at_t0_of_the_robot():
-    """The tangent stiffness of the robot at its initial state (t = 0), as the weakly
-    coupled method needs it, must be available: evaluating the laws at t = 0 only."""
+    """The tangent stiffness and residual of the robot at its initial state (t = 0, laws
+    evaluated at t = 0 only), as the weakly coupled method needs them, against exact
+    properties of the undeformed, unstressed state:
+    - K_t is symmetric (hyperelastic beams, no stress: no load-stiffness term) and annihilates
+      the three rigid motions of the plane (translations along x, y and the infinitesimal
+      rotation about O: dx = -y, dy = x, dphi = 1 at every node), to round-off of K;
+    - f_int = 0, so r = -f_ext: the residual sums to (0, +W) with W = (beam mass + 2 kg + 1 kg)
+      g, the beam mass 229.02 sum p^2 = 2.2902 kg (CASES.md), its moment about O to that of
+      the point masses and of each arm's weight at its midpoint (uniform tubes at p = 50 mm);
+    - the constraint rows vanish: the reference posture is the drives' position at t = 0."""
     m, _, _ = robot((50, 50, 50, 50))
-    r, s = system_matrices(m, m.reference_coordinates(), t=0.0)
-    assert np.all(np.isfinite(s))
+    q = m.reference_coordinates()
+    n = m.ndof
+    r, s = system_matrices(m, q, t=0.0, kscale=1.0)
+    k = s[:n, :n]
+    scale = np.abs(k).max()
+    np.testing.assert_allclose(k, k.T, rtol=0, atol=1e-12 * scale)
+    xyz = q.reshape(-1, 3)
+    modes = np.zeros((3, n))
+    modes[0, 0::3] = 1.0
+    modes[1, 1::3] = 1.0
+    modes[2, 0::3], modes[2, 1::3], modes[2, 2::3] = -xyz[:, 1], xyz[:, 0], 1.0
+    for v in modes:
+        assert np.abs(k @ v).max() <= 1e-12 * scale * np.abs(v).max()
+    g = 9.81
+    beam_mass = 2700.0 * 0.36 * np.pi / 4 * 0.05 ** 2 * 1.2          # 2 arms of 0.6 m
+    assert beam_mass == pytest.approx(229.02 * 4 * 0.05 ** 2, rel=1e-5)
+    f = r[:n].reshape(-1, 3)
+    assert f[:, 0].sum() == pytest.approx(0.0, abs=1e-12)
+    assert f[:, 1].sum() == pytest.approx((beam_mass + 3.0) * g, rel=1e-12)
+    # moment about O of -f_ext (r = +m g in y): sum x_i r_y,i - y_i r_x,i + r_phi,i
+    a = np.array([0.6 * math.cos(math.radians(120)), 0.6 * math.sin(math.radians(120))])
+    tip = a + 0.6 * np.array([math.cos(math.radians(-30)), math.sin(math.radians(-30))])
+    moment = g * (beam_mass / 2 * (a[0] / 2 + (a[0] + tip[0]) / 2) + 2.0 * a[0] + 1.0 * tip[0])
+    got = np.sum(xyz[:, 0] * f[:, 1] - xyz[:, 1] * f[:, 0] + f[:, 2])
+    assert got == pytest.approx(moment, rel=1e-12, abs=1e-12 * (beam_mass + 3) * g)
+    assert np.abs(r[n:]).max() <= 1e-12
 
 
 # ---------------------------------------------------------------------------- 7. statistics

@@ -47,13 +47,21 @@ def test_table1_active_steps(table1):
 
 
 def test_result_json_fields(table1):
-    """The --json object of both methods carries these fields (issues 6 and 7)."""
+    """The --json object of both methods carries these fields (issues 6 and 7), and its masses
+    are the analytic beam masses of its designs."""
     d = json.loads(table1.to_json())
     for key in ("method", "design_mm", "mass_kg", "iterations", "inner_iterations",
                 "simulations", "converged", "max_deviation_m", "wall_time_s", "history"):
         assert key in d
     assert d["method"] == "weakly" and len(d["history"]) == table1.iterations
     assert d["history"][0]["esl_change"] is None          # no previous ESL in the first cycle
+    # the masses written are the beam masses of the designs written (CASES.md: 229.02 sum p^2,
+    # p in m; spelled out here, not case.mass)
+    def beam_mass(p_mm):
+        return 2700.0 * 0.36 * np.pi / 4 * 0.3 * np.sum((np.asarray(p_mm) * 1e-3) ** 2)
+    assert d["mass_kg"] == pytest.approx(beam_mass(d["design_mm"]), rel=1e-12)
+    for rec in d["history"]:
+        assert rec["mass_kg"] == pytest.approx(beam_mass(rec["design_mm"]), rel=1e-12)
 
 
 def test_history_is_written_as_the_run_goes(tmp_path):
