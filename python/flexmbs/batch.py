@@ -38,9 +38,10 @@ import shutil
 import signal
 import sys
 import tempfile
+import threading
 import time
 import warnings
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from multiprocessing import get_context
 from pathlib import Path
@@ -229,6 +230,21 @@ def _run_pool(func, todo, workers, finish):
     return broken
 
 
+def _run_isolated(func, todo, workers, finish):
+    """Each job on a pool of its own (one worker process), `workers` pools at a time, so that a
+    job whose worker dies takes no other job down with it; return the names without a result."""
+    lock = threading.Lock()
+
+    def locked_finish(*args, **kwargs):
+        with lock:
+            finish(*args, **kwargs)
+
+    with ThreadPoolExecutor(max_workers=workers) as threads:
+        parts = list(threads.map(lambda item: _run_pool(func, dict([item]), 1, locked_finish),
+                                 todo.items()))
+    return [name for part in parts for name in part]
+
+
 def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None, label="jobs",
               retries=2):
     """Run `func(**jobs[name])` for every name; return {name: result}.
@@ -252,7 +268,8 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
         Show a progress bar (default: when stderr is a terminal).
     retries : int, default 2
         Local worker processes: how many times the jobs left without a result by a worker
-        process that died (the pool broke) are run again on a new pool. Jobs that finished
+        process that died (the pool broke) are run again, each on a new pool of its own (so
+        that one job that kills its worker cannot take the others down). Jobs that finished
         are kept. (Dask reschedules the tasks of a lost worker itself.)
 
     Raises
@@ -333,7 +350,10 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
     else:
         left = dict(todo)
         for attempt in range(retries + 1):
-            broken = _run_pool(func, left, workers or os.cpu_count(), finish)
+            # after a worker died, each job left runs on a pool of its own: the job that
+            # kills its worker is then the only one without a result
+            run = _run_pool if attempt == 0 else _run_isolated
+            broken = run(func, left, workers or os.cpu_count(), finish)
             left = {name: left[name] for name in broken}
             if not left:
                 break

@@ -23,6 +23,7 @@ import threading
 from dataclasses import dataclass, field
 
 from flexmbs.errors import ModelError, ResourceError
+from flexmbs.validity import CHECK_WORK_BYTES
 
 __all__ = ["MemoryEstimate", "estimate_memory", "available_memory", "memory_limit",
            "check_memory", "limit_source", "format_bytes", "format_seconds", "call_with_stack", "stack_limit",
@@ -165,6 +166,8 @@ def estimate_memory(*, n, ndof, nc, nel, nt, nout, solver, nlaw=0, nv=0, nsens=0
         # pattern build in Python (int64 row/col/key arrays and sorts, transient), CSC pattern,
         # values, and the KLU factors (fill of a banded beam matrix: a few times nnz)
         p["sparse matrix, pattern and KLU factors"] = nnz * (6 * 8 + 4 + f8) + 4 * nnz * (f8 + 4)
+    # the validity checks of the result (flexmbs.validity), chunked over the time points
+    p["validity checks"] = min(float(CHECK_WORK_BYTES), 6 * f8 * nt * max(ndof, nout, nca))
     # state vectors (two states, work vectors) and sensitivity work arrays
     p["state and work vectors"] = f8 * n * (20 + 10 * nv) + STACK_BYTES_PER_UNKNOWN * n
     # rough time: 2 Newton iterations per step; KLU about 0.8 us per unknown and iteration

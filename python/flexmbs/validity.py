@@ -203,8 +203,17 @@ def _element_groups(model, cm):
             for nen, ids in groups.items()}
 
 
+#: Values of one temporary array of the checks: they run over the stored history in chunks of
+#: time points so that their work memory stays bounded whatever the run's length
+#: (flexmbs.resources.estimate_memory counts CHECK_WORK_BYTES).
+CHUNK_VALUES = 250_000
+#: Bytes of work memory of the checks at most (a few temporaries of CHUNK_VALUES doubles).
+CHECK_WORK_BYTES = 6 * 8 * CHUNK_VALUES
+
+
 def _chunks(nt, width):
-    step = max(1, int(2_000_000 // max(width, 1)))
+    """Slices of the time points such that a (chunk, width) array holds <= CHUNK_VALUES values."""
+    step = max(1, int(CHUNK_VALUES // max(width, 1)))
     for j0 in range(0, nt, step):
         yield slice(j0, min(nt, j0 + step))
 
@@ -326,17 +335,21 @@ def _drift_check(model, cm, result, lim, law_val, tol):
     if rows.size == 0:
         return Check("constraint drift", "skipped",
                      note="no constraint has all its coordinates stored (store=)")
-    qfull = np.zeros((len(result.t), cm.ndof))
-    qfull[:, result.dofs] = result.q
     lv = np.asarray(law_val)[:, :len(result.t)] if law_val is not None else None
-    phi = np.abs(constraint_values(cm, qfull, lv))[:, rows]
-    phi = np.where(np.isfinite(phi), phi, np.inf)
-    j, k = np.unravel_index(np.argmax(phi), phi.shape)
+    worst, j, k = -1.0, 0, 0
+    for sl in _chunks(len(result.t), cm.ndof + cm.nc):
+        qfull = np.zeros((sl.stop - sl.start, cm.ndof))
+        qfull[:, result.dofs] = result.q[sl]
+        phi = np.abs(constraint_values(cm, qfull, None if lv is None else lv[:, sl]))[:, rows]
+        phi = np.where(np.isfinite(phi), phi, np.inf)
+        jj, kk = np.unravel_index(np.argmax(phi), phi.shape)
+        if phi[jj, kk] > worst:
+            worst, j, k = float(phi[jj, kk]), sl.start + int(jj), int(kk)
     qs = _qscale(cm)
     warn = max(lim.drift_warn, 1e3 * tol) * qs
     fail = max(lim.drift_fail * qs, warn)
     note = "" if rows.size == cm.nc else f"{cm.nc - rows.size} row(s) not stored, not checked"
-    return Check("constraint drift", _grade(float(phi[j, k]), warn, fail), float(phi[j, k]), warn,
+    return Check("constraint drift", _grade(worst, warn, fail), worst, warn,
                  fail, f"constraint '{model.row_label(int(rows[k]))}' at t = {result.t[j]:.6g} s",
                  note)
 
@@ -359,7 +372,9 @@ def _energy_check(model, cm, result, lim, props):
         return Check(name, "skipped", note="not all coordinates stored (store=)")
     q, qd = result.q, result.qd
     nt = q.shape[0]
-    kin = 0.5 * (cm.lumped[None, :] * qd * qd).sum(axis=1)
+    kin = np.zeros(nt)
+    for sl in _chunks(nt, cm.ndof):
+        kin[sl] = 0.5 * (qd[sl] * qd[sl]) @ cm.lumped
     strain = np.zeros(nt)
     fg = cm.lumped * cm.gacc
     for nen, (ids, edofs) in _element_groups(model, cm).items():
@@ -389,7 +404,9 @@ def _energy_check(model, cm, result, lim, props):
             strain[sl] += 0.5 * np.einsum("tek,k,e->t", dens, wg, jac)
     fext = fg.copy()
     np.add.at(fext, cm.ld_dof[:cm.nload] - 1, cm.ld_amp[:cm.nload])
-    pot = -(q - q[0]) @ fext
+    pot = np.zeros(nt)
+    for sl in _chunks(nt, cm.ndof):
+        pot[sl] = -((q[sl] - q[0]) @ fext)
     energy = kin + strain + pot
     scale = float(np.max(kin + strain))
     if not np.all(np.isfinite(energy)):
