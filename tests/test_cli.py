@@ -208,7 +208,9 @@ def test_ctrl_c_during_optimize(tmp_path):
     assert recs and all(len(r["design_mm"]) == 4 for r in recs)
     last = ",".join(f"{v:.6g}" for v in recs[-1]["design_mm"])
     assert f"--start={last}" in lines[0]
-    assert out.count("cycle ") >= len(recs)          # every printed cycle is in the history
+    # every cycle reported on the terminal is in the history (a Ctrl-C may fall between a
+    # record's write and its printed line, so the history may hold one more)
+    assert out.count("cycle ") <= len(recs)
 
 
 def test_ctrl_c_during_reproduce(tmp_path):
