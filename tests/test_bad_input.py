@@ -102,8 +102,8 @@ def test_rho_inf_outside_unit_interval(rho_inf):
 
 
 @pytest.mark.parametrize("kw, text", [(dict(solver="lu"), "solver must be"), (dict(start="still"), "start must be"),
-                                      (dict(tol=0.0), "tol must be > 0"), (dict(max_iter=0), "max_iter >= 1"),
-                                      (dict(max_cuts=-1), "max_cuts >= 0"), (dict(store="tip"), "store must be"),
+                                      (dict(tol=0.0), "tol must be > 0"), (dict(max_iter=0), "max_iter must be an integer >= 1, got 0"),
+                                      (dict(max_cuts=-1), "max_cuts must be an integer >= 0, got -1"), (dict(store="tip"), "store must be"),
                                       (dict(q0=np.zeros(3)), "q0 must be a finite array of 15"),
                                       (dict(qd0=np.full(15, NAN)), "qd0 must be a finite array")])
 def test_bad_settings(kw, text):
