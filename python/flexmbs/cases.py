@@ -427,7 +427,7 @@ def case_path(name):
     raise CaseError(f"case {str(name)!r} not found: give a path to a .toml file or one of: {known}")
 
 
-def load_case(case, **overrides):
+def load_case(case, /, **overrides):
     """Read, validate and return a case.
 
     Parameters
