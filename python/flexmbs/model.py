@@ -330,15 +330,13 @@ class Model:
         `law` is a TimeLaw (analytic rate and acceleration), a callable or a number.
         """
         node = self._check_node(node, "drive_rotation")
-        if relative_to is not None:
-            self._check_node(relative_to, "drive_rotation relative_to")
+        if relative_to is not None and self._check_node(relative_to, "drive_rotation relative_to") == node:
+            raise ModelError(f"drive_rotation: relative_to is the driven node {node} itself")
         li = self._law(law, f"motor at node {node}")
         if relative_to is None:
             self._row(CON_LINEAR, [3 * node + 2], [1.0], 0.0, li, 1.0, label=f"motor node {node}")
         else:
             other = self._check_node(relative_to, "drive_rotation relative_to")
-            if other == node:
-                raise ModelError(f"drive_rotation: relative_to is the driven node {node} itself")
             self._row(CON_LINEAR, [3 * node + 2, 3 * other + 2], [1.0, -1.0], 0.0, li, 1.0,
                       label=f"motor node {node} relative to node {other}")
 
@@ -348,9 +346,9 @@ class Model:
         if x is None and y is None:
             raise ModelError(f"prescribe_position at node {node}: give x, y or both (laws, "
                              "callables or numbers)")
-        for k, law, lab in ((0, x, "x"), (1, y, "y")):
-            if law is None:
-                continue
+        laws = [(k, as_law(law, f"position {lab} of node {node}"), lab)
+                for k, law, lab in ((0, x, "x"), (1, y, "y")) if law is not None]
+        for k, law, lab in laws:
             li = self._law(law, f"position {lab} of node {node}")
             self._row(CON_LINEAR, [3 * node + k], [1.0], 0.0, li, 1.0, label=f"position node {node} {lab}")
 
