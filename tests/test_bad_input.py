@@ -553,3 +553,30 @@ def test_sensitivity_and_case_helpers(robot, call, text):
     with pytest.raises(fx.ModelError) as err:
         call(robot)
     assert text in str(err.value)
+
+
+def test_result_and_model_accessors():
+    """Result accessors, Model.pattern/row_label and Case.simulate(store=...) refuse non-ids with
+    a ModelError naming the argument (they raised TypeError/ValueError before issue 14)."""
+    m, b = driven_arm()
+    r = fx.simulate(m, 0.003, 1e-3)
+    for call in (r.position, r.rotation, r.velocity):
+        for bad in (None, "2", 1.5, np.zeros(3)):
+            with pytest.raises(fx.ModelError, match="expected a node id"):
+                call(bad)
+    with pytest.raises(fx.ModelError, match=r"coordinates: expected a list of coordinate indices \(int\), got 3"):
+        r.coordinates(3)
+    assert r.coordinates([]).shape == (r.t.size, 0)
+    with pytest.raises(fx.ModelError, match=r"unknown matrix storage \['klu'\]: use 'dense' or 'klu'"):
+        m.pattern(["klu"])
+    with pytest.raises(fx.ModelError, match=r"row_label: expected a constraint row index \(int\), got None"):
+        m.row_label(None)
+    with pytest.raises(fx.ModelError, match=r"sensitivity_dofs must be an array of numbers, got \[1\.5\]"):
+        fx.simulate(m, 0.003, 1e-3, design_derivatives=np.zeros((5, 2, 1)), sensitivity_dofs=[1.5])
+    case = fx.load_case("robot_2dof")
+    with pytest.raises(fx.ModelError, match=r"store must be 'all' or a list of nodes/bodies, got None"):
+        case.simulate(store=None, t_end=0.002)
+    with pytest.raises(fx.ModelError, match=r"reference must be a dict from rigid_reference"):
+        case.rigid_frames(None)
+    with pytest.raises(fx.ModelError, match=r"unknown body 'mass'; bodies are \['arm1', 'arm2'\]"):
+        case.rigid_node_positions(case.rigid_reference_at([0.0, 0.1]), "mass")

@@ -468,6 +468,16 @@ def load_case(case, /, **overrides):
     return Case(data, source, overrides)
 
 
+def _float_array(value):
+    """np.asarray(value, float), or None if it is not an array of numbers."""
+    if isinstance(value, (str, bytes, dict)):
+        return None
+    try:
+        return np.asarray(value, float)
+    except (TypeError, ValueError):
+        return None
+
+
 def as_case(case, what="case"):
     """A Case from a Case, a case name, a path to a case file or a case dictionary.
 
@@ -930,10 +940,10 @@ class Case:
 
     def rigid_reference_at(self, t):
         """Rigid reference histories on any time grid `t` (cached per grid)."""
-        t = np.asarray(t, float)
-        if t.ndim != 1 or t.size < 1 or not np.all(np.isfinite(t)):
+        t = _float_array(t)
+        if t is None or t.ndim != 1 or t.size < 1 or not np.all(np.isfinite(t)):
             raise ModelError(f"case {self.name!r}: t must be a non-empty 1-D array of finite times, "
-                             f"got shape {t.shape}")
+                             f"got {t!r:.80}")
         key = (t.size, float(t[0]), float(t[-1]))
         if key in self._ref_cache:
             return self._ref_cache[key]
@@ -966,9 +976,16 @@ class Case:
         self._ref_cache[key] = ref
         return ref
 
+    def _check_reference(self, reference):
+        keys = ("theta1", "x_A") if self.mechanism == "robot_2dof" else ("theta", "phi_coupler")
+        if not isinstance(reference, dict) or not all(k in reference for k in ("t",) + keys):
+            raise ModelError(f"case {self.name!r}: reference must be a dict from "
+                             f"rigid_reference / rigid_reference_at, got {reference!r:.80}")
+        return reference
+
     def rigid_frames(self, reference):
         """Root position (nt, 2) and angle (nt,) of every beam of the rigid reference."""
-        r = reference
+        r = self._check_reference(reference)
         if self.mechanism == "robot_2dof":
             zero = np.zeros_like(r["t"])
             return {"arm1": (np.stack([zero, zero], -1), r["theta1"]),
@@ -981,7 +998,11 @@ class Case:
 
     def rigid_node_positions(self, reference, body):
         """Positions (nt, nnodes, 2) of a beam's nodes in the rigid reference mechanism."""
+        self._check_reference(reference)
         b = self._model.body(body)
+        if b.name not in self.beams:
+            raise ModelError(f"case {self.name!r}: body must be one of its beams {self.beams}, "
+                             f"got {body!r}")
         q = self._model.reference_coordinates().reshape(-1, 3)
         s = np.hypot(*(q[b.nodes, :2] - q[b.first, :2]).T)          # distance from the root
         root, ang = self.rigid_frames(reference)[body]
@@ -1004,11 +1025,11 @@ class Case:
         dev : (nt,) deviation (m) of the case's formulation.
         jac : (nt, nsens) d dev_n / d qs_n (exact; zero where dev_n = 0).
         """
-        tt = self.t if t is None else np.asarray(t, float)
-        qs = np.asarray(qs, float)
-        if qs.shape != (tt.size, self.sensor_dofs.size):
-            raise ModelError(f"case {self.name!r}: sensor history must have shape "
-                             f"({tt.size}, {self.sensor_dofs.size}), got {qs.shape}")
+        tt = self.t if t is None else _float_array(t)
+        qs = _float_array(qs)
+        if tt is None or qs is None or tt.ndim != 1 or qs.shape != (tt.size, self.sensor_dofs.size):
+            raise ModelError(f"case {self.name!r}: sensor history qs must be a number array of shape "
+                             f"(nt, {self.sensor_dofs.size}) on a 1-D time grid t")
         ref = self.rigid_reference_at(tt)
         jac = np.zeros_like(qs)
         if self.formulation == "28":
@@ -1050,7 +1071,7 @@ class Case:
         t_end = kw.pop("t_end", self.t_end)
         h = kw.pop("h", self.h)
         store = kw.get("store", "all")
-        if not isinstance(store, str):
+        if isinstance(store, (list, tuple, np.ndarray)):
             kw["store"] = list(store) + sorted({int(d) // 3 for d in self.sensor_dofs})
         res = _simulate(model, t_end, h, **kw)
         qs = res.coordinates(self.sensor_dofs)

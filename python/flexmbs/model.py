@@ -451,6 +451,8 @@ class Model:
 
     def pattern(self, kind):
         """Value positions of the iteration matrix: kind 'dense' or 'klu' (cached)."""
+        if not isinstance(kind, str) or kind not in ("dense", "klu"):
+            raise ModelError(f"unknown matrix storage {kind!r}: use 'dense' or 'klu'")
         cm = self.compile()
         if kind in cm.patterns:
             return cm.patterns[kind]
@@ -520,4 +522,6 @@ class Model:
 
     def row_label(self, r):
         """Description of constraint row r (0-based), for messages."""
+        if isinstance(r, (bool, np.bool_)) or not isinstance(r, (int, np.integer)):
+            raise ModelError(f"row_label: expected a constraint row index (int), got {r!r}")
         return self._rows[r].label if 0 <= r < len(self._rows) else f"row {r}"

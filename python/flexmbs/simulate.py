@@ -69,6 +69,7 @@ class Result:
         """(nt, 2, nv) design derivatives of a node's position (needs design_derivatives)."""
         if self.dq is None:
             raise ModelError("no design derivatives: simulate with design_derivatives=...")
+        node = self._node(node)
         cols = []
         for d in (3 * node, 3 * node + 1):
             k = np.searchsorted(self.sens_dofs, d)
@@ -76,6 +77,12 @@ class Result:
                 raise ModelError(f"node {node} is not among the sensitivity coordinates")
             cols.append(k)
         return self.dq[:, cols, :]
+
+    @staticmethod
+    def _node(node):
+        if isinstance(node, (bool, np.bool_)) or not isinstance(node, (int, np.integer)):
+            raise ModelError(f"expected a node id (int), got {node!r}")
+        return int(node)
 
     def _col(self, dof):
         idx = np.searchsorted(self.dofs, dof)
@@ -85,19 +92,24 @@ class Result:
 
     def position(self, node):
         """(nt, 2) positions of a node."""
+        node = self._node(node)
         return np.column_stack([self.q[:, self._col(3 * node)], self.q[:, self._col(3 * node + 1)]])
 
     def rotation(self, node):
         """(nt,) rotation of a node (rad)."""
-        return self.q[:, self._col(3 * node + 2)]
+        return self.q[:, self._col(3 * self._node(node) + 2)]
 
     def velocity(self, node):
         """(nt, 3) velocities (x, y, phi) of a node."""
+        node = self._node(node)
         return np.column_stack([self.qd[:, self._col(3 * node + k)] for k in range(3)])
 
     def coordinates(self, dofs):
         """(nt, len(dofs)) history of the given coordinates."""
-        return self.q[:, [self._col(d) for d in dofs]]
+        d = np.asarray(dofs) if not isinstance(dofs, (str, bytes)) else np.asarray([])
+        if d.ndim != 1 or (d.size and d.dtype.kind not in "iu"):
+            raise ModelError(f"coordinates: expected a list of coordinate indices (int), got {dofs!r}")
+        return self.q[:, [self._col(int(k)) for k in d]]
 
     @property
     def mean_newton_iterations(self):
@@ -211,8 +223,10 @@ def _numeric_array(name, value, kind=float):
     if isinstance(value, (str, bytes)) or np.asarray(value, dtype=object).dtype.kind not in "biufO":
         raise ModelError(f"{name} must be an array of numbers, got {value!r}")
     try:
+        if kind is int and np.asarray(value).dtype.kind not in "iu":
+            raise TypeError
         return np.asarray(value, kind)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise ModelError(f"{name} must be an array of numbers, got {value!r}") from None
 
 
@@ -298,7 +312,7 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
                                   and math.isfinite(v) and v > 0):
             raise ModelError(f"{name} must be a positive finite number or None (automatic), got {v!r}")
     cm = model.compile()
-    if solver == "auto":
+    if isinstance(solver, str) and solver == "auto":
         solver = "dense" if cm.n <= DENSE_MAX_UNKNOWNS else "klu"
     if not isinstance(solver, str) or solver not in _SOLVERS:
         raise ModelError(f"solver must be 'auto', 'dense' or 'klu', got {solver!r}")
