@@ -580,3 +580,20 @@ def test_result_and_model_accessors():
         case.rigid_frames(None)
     with pytest.raises(fx.ModelError, match=r"unknown body 'mass'; bodies are \['arm1', 'arm2'\]"):
         case.rigid_node_positions(case.rigid_reference_at([0.0, 0.1]), "mass")
+
+
+@pytest.mark.parametrize("overrides, text", [
+    (dict(elements_per_link=100_000), "key 'mechanism.elements_per_link' must be at most 10000, got 100000"),
+    (dict(elements_per_link=2.0), "key 'mechanism.elements_per_link' must be an integer, got 2.0"),
+    (dict(start=[10.0, 10.0, 10.0]), "key 'design.start' must lie within the bounds [design.lower, design.upper]"),
+    (dict(lower=[30.0, 30.0, 30.0], upper=[20.0, 60.0, 60.0]), "got lower = [30.0, 30.0, 30.0], upper = [20.0, 60.0, 60.0]"),
+    ({"optimizer.fully.max_iterations": 2.5}, "key 'optimizer.fully.max_iterations' must be an integer, got 2.5"),
+    ({"optimizer.fully": 3}, "unknown override key 'optimizer.fully': no table [optimizer]"),
+    ({"case.mechanism": ["fourbar"]}, "key 'case.mechanism' must be one of 'robot_2dof', 'fourbar', got ['fourbar']"),
+], ids=repr)
+def test_case_key_messages_name_file_key_and_value(overrides, text):
+    """Case-file errors name the file, the key, the value and what is allowed (issue 14)."""
+    with pytest.raises(fx.CaseError) as err:
+        fx.load_case("fourbar", **overrides)
+    msg = str(err.value)
+    assert text in msg and "fourbar.toml" in msg

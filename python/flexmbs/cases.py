@@ -79,7 +79,7 @@ _F, _FP, _F0 = _Key("float"), _Key("float", positive=True), _Key("float", nonneg
 
 #: Largest number of beam elements per arm or link a case file may ask for (a guard against a
 #: typo building a model of billions of nodes; 2 quadratic elements are converged already).
-_MAX_ELEMENTS = 100_000
+_MAX_ELEMENTS = 10_000
 
 _COMMON = {
     "case": {
@@ -228,6 +228,9 @@ def _validate(data, source):
     if not isinstance(data, dict):
         raise CaseError(f"{where}: a case must be a table of tables")
     mech = _table(data, "case.mechanism")
+    if not isinstance(data.get("case"), dict):
+        raise CaseError(f"{where}: missing table [case] (with name and mechanism), got "
+                        f"case = {data.get('case')!r}")
     if mech is None:
         raise CaseError(f"{where}: missing key 'case.mechanism' (one of {', '.join(_MECHANISM)})")
     if not isinstance(mech, str) or mech not in _MECHANISM:
@@ -240,14 +243,15 @@ def _validate(data, source):
         if top not in tables:
             raise CaseError(f"{where}: unknown table [{top}] (expected {', '.join(sorted(tables))})")
         if not isinstance(val, dict):
-            raise CaseError(f"{where}: [{top}] must be a table")
+            raise CaseError(f"{where}: [{top}] must be a table of keys, got {top} = {val!r}")
     if "optimizer" in data:
         for sub, val in data["optimizer"].items():
             if f"optimizer.{sub}" not in schema:
                 raise CaseError(f"{where}: unknown table [optimizer.{sub}] "
                                 "(expected [optimizer.fully] and [optimizer.weakly])")
             if not isinstance(val, dict):
-                raise CaseError(f"{where}: [optimizer.{sub}] must be a table")
+                raise CaseError(f"{where}: [optimizer.{sub}] must be a table of keys, got "
+                                f"optimizer.{sub} = {val!r}")
     out = {}
     for path, keys in schema.items():
         tab = _table(data, path)
@@ -288,9 +292,11 @@ def _check_consistency(d, where):
         raise CaseError(f"{where}: key 'design.names' has duplicates: {des['names']}")
     lo, up, st = (np.array(des[k]) for k in ("lower", "upper", "start"))
     if np.any(lo >= up):
-        raise CaseError(f"{where}: key 'design.lower' must be below 'design.upper'")
+        raise CaseError(f"{where}: key 'design.lower' must be below 'design.upper' for every "
+                        f"variable, got lower = {des['lower']}, upper = {des['upper']}")
     if np.any(st < lo) or np.any(st > up):
-        raise CaseError(f"{where}: key 'design.start' must lie within the bounds")
+        raise CaseError(f"{where}: key 'design.start' must lie within the bounds [design.lower, "
+                        f"design.upper] = [{des['lower']}, {des['upper']}], got {des['start']}")
     sec = d["section"]
     if sec["type"] == "tube":
         if "wall_ratio" not in sec:
