@@ -583,7 +583,7 @@ def test_result_and_model_accessors():
 
 
 @pytest.mark.parametrize("overrides, text", [
-    (dict(elements_per_link=100_000), "key 'mechanism.elements_per_link' must be at most 10000, got 100000"),
+    (dict(elements_per_link=100_000), "key 'mechanism.elements_per_link' must be at most 1000, got 100000"),
     (dict(elements_per_link=2.0), "key 'mechanism.elements_per_link' must be an integer, got 2.0"),
     (dict(start=[10.0, 10.0, 10.0]), "key 'design.start' must lie within the bounds [design.lower, design.upper]"),
     (dict(lower=[30.0, 30.0, 30.0], upper=[20.0, 60.0, 60.0]), "got lower = [30.0, 30.0, 30.0], upper = [20.0, 60.0, 60.0]"),

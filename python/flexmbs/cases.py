@@ -77,9 +77,10 @@ class _Key:
 
 _F, _FP, _F0 = _Key("float"), _Key("float", positive=True), _Key("float", nonnegative=True)
 
-#: Largest number of beam elements per arm or link a case file may ask for (a guard against a
-#: typo building a model of billions of nodes; 2 quadratic elements are converged already).
-_MAX_ELEMENTS = 10_000
+#: Largest number of beam elements per arm or link a case file may ask for: a guard against a
+#: typo building a model of millions of nodes (2 quadratic elements are converged already, and
+#: at 8000 elements per four-bar link, 144k coordinates, the core overflowed an 8 MB stack).
+_MAX_ELEMENTS = 1_000
 
 _COMMON = {
     "case": {
