@@ -16,6 +16,7 @@ FLEXMBS_FUZZ_EXAMPLES to run more (random) examples locally.
 """
 from __future__ import annotations
 
+import copy
 import datetime
 import math
 import os
@@ -119,6 +120,7 @@ def mutate(data, mutations):
     unknown key in the table.
     """
     for kind, index, value in mutations:
+        value = copy.deepcopy(value)      # sampled values (lists, dicts) are shared objects
         paths = leaf_paths(data)
         if not paths:
             return data
@@ -135,8 +137,10 @@ def mutate(data, mutations):
             old = parent[path[-1]]
             f = value if isinstance(value, (int, float)) and not isinstance(value, bool) else -1.0
             if isinstance(old, (int, float)) and not isinstance(old, bool):
-                parent[path[-1]] = type(old)(old * f) if isinstance(old, float) or \
-                    float(f).is_integer() and math.isfinite(f) else old * f
+                new = old * f
+                if isinstance(old, int) and isinstance(new, float) and new.is_integer():
+                    new = int(new)            # an integer key stays an integer where it can
+                parent[path[-1]] = new
             elif isinstance(old, list) and old and all(isinstance(x, float) for x in old):
                 parent[path[-1]] = [x * f for x in old]
         else:
@@ -159,7 +163,6 @@ def test_damaged_case_file_gives_only_documented_errors(case_file, tmp_path_fact
               suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
     @given(st.lists(MUTATION, min_size=1, max_size=3))
     def check(mutations):
-        import copy
         data = mutate(copy.deepcopy(original), mutations)
         counter["n"] += 1
         path = folder / f"fuzz_{counter['n']}.toml"
