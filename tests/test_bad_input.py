@@ -102,8 +102,8 @@ def test_rho_inf_outside_unit_interval(rho_inf):
 
 
 @pytest.mark.parametrize("kw, text", [(dict(solver="lu"), "solver must be"), (dict(start="still"), "start must be"),
-                                      (dict(tol=0.0), "tol must be > 0"), (dict(max_iter=0), "max_iter >= 1"),
-                                      (dict(max_cuts=-1), "max_cuts >= 0"), (dict(store="tip"), "store must be"),
+                                      (dict(tol=0.0), "tol must be > 0"), (dict(max_iter=0), "max_iter must be an integer >= 1, got 0"),
+                                      (dict(max_cuts=-1), "max_cuts must be an integer >= 0, got -1"), (dict(store="tip"), "store must be"),
                                       (dict(q0=np.zeros(3)), "q0 must be a finite array of 15"),
                                       (dict(qd0=np.full(15, NAN)), "qd0 must be a finite array")])
 def test_bad_settings(kw, text):
@@ -288,3 +288,312 @@ def test_core_failures_do_not_crash_the_interpreter():
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "STOP" not in proc.stdout + proc.stderr
     assert "simulation errors 12 of 12" in proc.stdout
+
+
+# --------------------------------------------------------------------------- issue 14: API types
+# Each bad argument gives a flexmbs error naming the argument, the value given and what is
+# allowed (strings where numbers belong, bools, None, NaN, nested or wrong-length designs).
+STR, NONE = "2", None
+
+
+@pytest.mark.parametrize("call, text", [
+    (lambda: fx.Material(E="72e9", nu=0.3, rho=2700), "Material.E must be a positive finite number, got '72e9'"),
+    (lambda: fx.Material(E=72e9, nu="0.3", rho=2700), "Material.nu must be a finite number, got '0.3'"),
+    (lambda: fx.Material(E=72e9, nu=None, rho=2700), "Material.nu must be a finite number, got None"),
+    (lambda: fx.Material(E=True, nu=0.3, rho=2700), "Material.E must be a positive finite number, got True"),
+    (lambda: fx.Material(E=72e9, nu=0.3, rho=INF), "Material.rho must be positive and finite, got inf"),
+    (lambda: fx.Circle("0.02"), "Circle diameter d must be a positive finite number, got '0.02'"),
+    (lambda: fx.Tube(0.05, None), "Tube wall thickness t must be a positive finite number, got None"),
+    (lambda: fx.Tube.with_wall_ratio(0.05, "0.1"), "Tube wall ratio must lie in (0, 0.5], got '0.1'"),
+    (lambda: fx.Rectangle(0.01, False), "Rectangle height h must be a positive finite number, got False"),
+    (lambda: fx.GivenSection(1.0, 1.0, 1.0, 1.0, rhoI="x"), "GivenSection.rhoI must be a finite number >= 0, got 'x'"),
+    (lambda: fx.GivenSection(1.0, 1.0, 1.0, 1.0, rhoI=-1.0), "GivenSection.rhoI must be a finite number >= 0, got -1.0"),
+    (lambda: fx.TimeLaw(3.0), "value must be a callable of t, got 3.0"),
+    (lambda: fx.TimeLaw(np.sin, rate="cos"), "rate must be a callable of t or None, got 'cos'"),
+    (lambda: fx.TimeLaw.constant("1.0"), "c must be a finite number, got '1.0'"),
+    (lambda: fx.TimeLaw.samples([0.0, 1.0, 2.0], [0.0, 1.0]), "t and values must have the same length, got 3 and 2"),
+    (lambda: fx.TimeLaw.samples([0.0, 2.0, 1.0], [0.0, 1.0, 2.0]), "t must be strictly increasing"),
+    (lambda: fx.Model(None), "Model name must be a string, got None"),
+], ids=lambda v: v if isinstance(v, str) else "")
+def test_numbers_of_sections_materials_laws(call, text):
+    """Sections, materials and laws refuse strings, bools, None and non-finite values, by name."""
+    with pytest.raises(fx.ModelError) as err:
+        call()
+    assert text in str(err.value)
+
+
+@pytest.mark.parametrize("call, text", [
+    (lambda m, b: m.drive_rotation(b.first, "1.0"), "motor at node 0: law must be a TimeLaw, a finite number or a callable of t, got '1.0'"),
+    (lambda m, b: m.drive_rotation(b.first, True), "law must be a TimeLaw, a finite number or a callable of t, got True"),
+    (lambda m, b: m.drive_rotation(b.first, NAN), "motor at node 0: law must be a finite number, got nan"),
+    (lambda m, b: m.drive_rotation(b.first, [0.0, 1.0]), "got [0.0, 1.0] (list)"),
+    (lambda m, b: m.drive_rotation(1.0, 0.0), "drive_rotation: expected a node id (int), got 1.0"),
+    (lambda m, b: m.drive_rotation(b.last, 0.0, relative_to=b.last), "relative_to is the driven node 4 itself"),
+    (lambda m, b: m.drive_rotation(b.last, 0.0, relative_to="arm"), "drive_rotation relative_to: expected a node id (int), got 'arm'"),
+    (lambda m, b: m.prescribe_position(b.last, x="0.5"), "position x of node 4: law must be"),
+    (lambda m, b: m.prescribe_position(b.last), "give x, y or both"),
+    (lambda m, b: m.add_point_mass(b.last, mass=STR), "mass must be a finite number >= 0, got '2'"),
+    (lambda m, b: m.add_point_mass(b.last, mass=NONE), "mass must be a finite number >= 0, got None"),
+    (lambda m, b: m.add_point_mass(b.last, mass=True), "mass must be a finite number >= 0, got True"),
+    (lambda m, b: m.add_point_mass(b.last, mass=-1.0), "mass must be a finite number >= 0, got -1.0"),
+    (lambda m, b: m.add_point_mass(b.last, 1.0, inertia=NAN), "inertia must be a finite number >= 0, got nan"),
+    (lambda m, b: m.add_node("1", 0.0), "add_node: x must be a finite number, got '1'"),
+    (lambda m, b: m.add_node(0.0, 0.0, phi=INF), "add_node: phi must be a finite number, got inf"),
+    (lambda m, b: m.set_gravity("0", -9.81), "set_gravity: gx must be a finite number, got '0'"),
+    (lambda m, b: m.set_gravity(0.0, None), "set_gravity: gy must be a finite number, got None"),
+    (lambda m, b: m.add_load(b.last, fy="-10"), "load at node 4: fy must be a finite number, got '-10'"),
+    (lambda m, b: m.add_load(b.last, moment=NAN), "load at node 4: moment must be a finite number, got nan"),
+    (lambda m, b: m.add_load(b.last, fx=1.0, law="ramp"), "load at node 4: law must be a TimeLaw"),
+    (lambda m, b: m.add_beam("b", ("0", "0"), (1, 1), material=ALU, section=fx.Circle(0.01)), "beam 'b': start x must be a finite number, got '0'"),
+    (lambda m, b: m.add_beam("b", "ab", (1, 1), material=ALU, section=fx.Circle(0.01)), "beam 'b': start must be an (x, y) pair"),
+    (lambda m, b: m.add_beam("b", (0, 0), (1, 1, 0), material=ALU, section=fx.Circle(0.01)), "beam 'b': end must be an (x, y) pair"),
+    (lambda m, b: m.add_beam("b", (0, 0), (1, 1), True, material=ALU, section=fx.Circle(0.01)), "elements must be a positive integer, got True"),
+    (lambda m, b: m.add_beam("b", (0, 0), (1, 1), 2.0, material=ALU, section=fx.Circle(0.01)), "elements must be a positive integer, got 2.0"),
+    (lambda m, b: m.add_beam("b", (0, 0), (1, 1), 2, order=True, material=ALU, section=fx.Circle(0.01)), "order must be 1 or 2, got True"),
+    (lambda m, b: m.add_beam("b", (0, 0), (1, 1), material="alu", section=fx.Circle(0.01)), "material must be a flexmbs Material, got 'alu'"),
+    (lambda m, b: m.set_section("arm", 0.01), "section must be a flexmbs Section (Circle, Tube, Rectangle, GivenSection), got 0.01"),
+    (lambda m, b: m.set_section(None, fx.Circle(0.01)), "expected a body name (str), got None"),
+    (lambda m, b: m.set_element_sections("arm", None), "sections must be a list of 2 Sections"),
+    (lambda m, b: m.add_rigid_body("r", [b.last], "1", 0.0), "rigid body 'r': mass must be a finite number >= 0, got '1'"),
+    (lambda m, b: m.add_rigid_body("r", 3, 1.0, 0.0), "rigid body 'r': nodes must be a list of node ids, got 3"),
+    (lambda m, b: m.add_rigid_body("arm", [b.last], 1.0, 0.0), "a body called 'arm' already exists"),
+], ids=lambda v: v if isinstance(v, str) else "")
+def test_builder_arguments(call, text):
+    """Every numeric argument of the Model builders is checked: strings, bools, None, NaN/inf
+    and negative masses give a ModelError naming the argument and the value."""
+    m, b = driven_arm()
+    nodes = m.nnodes
+    with pytest.raises(fx.ModelError) as err:
+        call(m, b)
+    assert text in str(err.value)
+    assert m.nnodes == nodes, "a refused call must not leave half a body behind"
+
+
+def test_numpy_scalars_are_numbers():
+    """numpy scalars are accepted where numbers belong (and stored as floats)."""
+    mat = fx.Material(E=np.float32(72e9), nu=np.float64(0.3), rho=np.int64(2700))
+    assert type(mat.E) is float and mat.rho == 2700.0
+    m, b = driven_arm()
+    m.add_point_mass(b.last, mass=np.float32(2.0), inertia=np.int32(0))
+    assert m.compile().lumped[3 * b.last] == 2.0
+
+
+@pytest.mark.parametrize("kw, text", [
+    (dict(max_iter="5"), "max_iter must be an integer >= 1, got '5'"),
+    (dict(max_iter=2.5), "max_iter must be an integer >= 1, got 2.5"),
+    (dict(max_iter=True), "max_iter must be an integer >= 1, got True"),
+    (dict(max_cuts=None), "max_cuts must be an integer >= 0, got None"),
+    (dict(tol="1e-8"), "tol must be > 0 and finite, got '1e-8'"),
+    (dict(tol=NAN), "tol must be > 0 and finite, got nan"),
+    (dict(rho_inf=True), "rho_inf must lie in [0, 1], got True"),
+    (dict(h=True), "h must be a positive finite number, got True"),
+    (dict(solver=["klu"]), "solver must be 'auto', 'dense' or 'klu', got ['klu']"),
+    (dict(store=None), "store must be 'all' or a list of nodes/bodies, got None"),
+    (dict(start=None), "start must be 'rest' or 'static', got None"),
+    (dict(q0="a"), "q0 must be an array of numbers, got 'a'"),
+    (dict(reuse_jacobian="no"), "reuse_jacobian must be True or False, got 'no'"),
+    (dict(design_derivatives="a"), "design_derivatives must be an array of numbers, got 'a'"),
+], ids=lambda v: v if isinstance(v, str) else "")
+def test_simulate_setting_types(kw, text):
+    """simulate's own settings: integers are integers, numbers are numbers, by name."""
+    m, _ = driven_arm()
+    kw = dict(kw)
+    h = kw.pop("h", 1e-3)
+    with pytest.raises(fx.ModelError) as err:
+        fx.simulate(m, 0.01, h, **kw)
+    assert text in str(err.value)
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return fx.load_case("robot_2dof")
+
+
+@pytest.mark.parametrize("arg", [None, 3, True, ["robot_2dof"]], ids=repr)
+def test_load_case_of_a_non_name(arg):
+    """load_case(None) and other non-names: CaseError naming the value and the allowed cases."""
+    with pytest.raises(fx.CaseError) as err:
+        fx.load_case(arg)
+    msg = str(err.value)
+    assert f"got {arg!r}" in msg and "robot_2dof" in msg and "a path to a .toml file" in msg
+
+
+@pytest.mark.parametrize("design, text", [
+    ("40,30,35,25", "design must be a flat sequence of 4 positive numbers (mm) (p1, p2, p3, p4), got '40,30,35,25'"),
+    ([[40, 30], [35, 25]], "got a nested sequence of shape (2, 2)"),
+    ([[40, 30, 35, 25]], "got a nested sequence of shape (1, 4)"),
+    ([40, [30], 35, 25], "(entry [30])"),
+    ([True, 30, 35, 25], "(entry True)"),
+    ([40, "30", 35, 25], "(entry '30')"),
+    (40.0, "design must be a flat sequence of 4 positive numbers (mm) (p1, p2, p3, p4), got 40.0"),
+    ([40, 30, 35], "design must have 4 values (p1, p2, p3, p4), got 3"),
+    ([40, 30, NAN, 25], "design values must be positive and finite (mm), got [40.0, 30.0, nan, 25.0]"),
+], ids=repr)
+def test_case_design_must_be_flat(robot, design, text):
+    """Case.simulate / build_model / mass: a design is a flat sequence of nv numbers; a string
+    or a nested list is refused (it used to be parsed or silently flattened)."""
+    for call in (robot.simulate, robot.build_model, robot.mass):
+        with pytest.raises(fx.CaseError) as err:
+            call(design)
+        assert text in str(err.value)
+
+
+def test_case_simulate_max_iter(robot):
+    """Case.simulate passes simulate's settings through, with simulate's checks."""
+    with pytest.raises(fx.ModelError, match=r"max_iter must be an integer >= 1, got '5'"):
+        robot.simulate(max_iter="5", t_end=0.005)
+    with pytest.raises(fx.ModelError, match=r"max_iter must be an integer >= 1, got 2\.5"):
+        robot.simulate(max_iter=2.5, t_end=0.005)
+
+
+@pytest.mark.parametrize("value", [30, "30"], ids=repr)
+def test_override_formulation_without_section(value):
+    """`--set formulation=30` (TOML reads 30 as an integer) and load_case(..., formulation="30")
+    find [deviation] formulation and switch the robot to the tip tracking measure (30), whose
+    sensors are the tip's x and y (cases.py docstring)."""
+    from flexmbs.cli import parse_set
+    for overrides in ({"formulation": value}, parse_set([f"formulation={value}"])):
+        case = fx.load_case("robot_2dof", **overrides)
+        tip = case.points["tip"]
+        assert case.formulation == "30"
+        assert case.sensor_dofs.tolist() == [3 * tip, 3 * tip + 1]
+
+
+@pytest.mark.parametrize("key, text", [
+    ("formulatio", "unknown override key 'formulatio'; allowed keys: "),
+    ("deviation.formulatio", "unknown override key 'deviation.formulatio' (keys of [deviation]: formulation, limit_m)"),
+    ("deviaton.formulation", "no table [deviaton] (tables: case, material, section, design, time, deviation"),
+    ("case", "unknown override key 'case'; allowed keys: "),
+])
+def test_unknown_override_key_lists_allowed_keys(key, text):
+    """An unknown override key names itself and lists the keys allowed instead."""
+    with pytest.raises(fx.CaseError) as err:
+        fx.load_case("robot_2dof", **{key: 1})
+    msg = str(err.value)
+    assert text in msg
+    if "allowed keys" in text:
+        assert "formulation" in msg and "t_end" in msg and "mass_tip_kg" in msg
+
+
+def _tube_mass(design_mm):
+    """Beam mass of the robot (2 arms of 0.6 m, 2 elements each, 0.3 m per design variable):
+    rho pi/4 (p^2 - (0.8 p)^2) * 0.3 m summed, aluminium rho = 2700 kg/m^3 (case file)."""
+    p = np.asarray(design_mm) * 1e-3
+    return float(np.sum(2700.0 * math.pi / 4 * 0.36 * p ** 2 * 0.3))
+
+
+def test_optimizers_accept_a_case_name_and_progress_false():
+    """optimize_fully("robot_2dof") and optimize_weakly("robot_2dof", progress=False) load the
+    case by name and run; progress=False used to fail after the first cycle (False was called).
+    The first history record is the robot's start design [50]*4 mm with its analytic mass."""
+    from flexmbs.optimize.fully import optimize_fully
+    from flexmbs.optimize.weakly import optimize_weakly
+
+    w = optimize_weakly("robot_2dof", progress=False, max_cycles=2, simulate_kw=dict(t_end=0.05))
+    assert w.case == "robot_2dof" and w.iterations == 2
+    assert w.history[0]["design_mm"] == [50.0] * 4
+    assert w.history[0]["mass_kg"] == pytest.approx(_tube_mass([50.0] * 4), rel=1e-12)
+    f = optimize_fully("robot_2dof", progress=False, max_iterations=1, simulate_kw=dict(t_end=0.05))
+    assert f.case == "robot_2dof" and f.iterations == 1
+    assert f.history[0]["mass_kg"] == pytest.approx(_tube_mass([50.0] * 4), rel=1e-12)
+
+
+@pytest.mark.parametrize("kw, text", [
+    (dict(max_iterations="5"), "max_iterations must be an integer >= 1, got '5'"),
+    (dict(max_iterations=2.5), "max_iterations must be an integer >= 1, got 2.5"),
+    (dict(max_simulations=0), "max_simulations must be an integer >= 1, got 0"),
+    (dict(kkt_tol="small"), "kkt_tol must be a positive finite number, got 'small'"),
+    (dict(progress=3), "progress must be a callable taking one history record, or None/False, got 3"),
+    (dict(start_mm="40,30,35,25"), "start design must have 4 finite values (mm)"),
+    (dict(start_mm=[[40, 30], [35, 25]]), "nested sequence of shape (2, 2)"),
+    (dict(case=None), "optimize_fully: case must be a Case (see load_case), a case name"),
+    (dict(windows=True), "windows must be an integer >= 1, got True"),
+    (dict(mma_options=3), "mma_options must be a dict or None, got 3"),
+], ids=lambda v: v if isinstance(v, str) else "")
+def test_optimize_fully_arguments(robot, kw, text):
+    """optimize_fully's arguments: integers are integers (max_iterations="5" or 2.5 refused)."""
+    from flexmbs.optimize.fully import optimize_fully
+    kw = dict(kw)
+    case = kw.pop("case", robot)
+    with pytest.raises(fx.ModelError) as err:
+        optimize_fully(case, **kw)
+    assert text in str(err.value)
+
+
+@pytest.mark.parametrize("kw, text", [
+    (dict(max_cycles="5"), "max_cycles must be an integer >= 1, got '5'"),
+    (dict(max_cycles=2.5), "max_cycles must be an integer >= 1, got 2.5"),
+    (dict(confirm_cycles=-1), "confirm_cycles must be an integer >= 0, got -1"),
+    (dict(eps="0.01"), "eps must be a positive finite number, got '0.01'"),
+    (dict(screen=None), "screen must be a finite number, got None"),
+    (dict(progress="yes"), "progress must be a callable taking one history record, or None/False, got 'yes'"),
+    (dict(start_mm=[-40, 30, 35, 25]), "design values must be positive and finite (mm)"),
+    (dict(case=42), "optimize_weakly: case must be a Case (see load_case), a case name"),
+], ids=lambda v: v if isinstance(v, str) else "")
+def test_optimize_weakly_arguments(robot, kw, text):
+    """optimize_weakly's arguments: typed errors before the first simulation."""
+    from flexmbs.optimize.weakly import optimize_weakly
+    kw = dict(kw)
+    case = kw.pop("case", robot)
+    with pytest.raises(fx.ModelError) as err:
+        optimize_weakly(case, **kw)
+    assert text in str(err.value)
+
+
+@pytest.mark.parametrize("call, text", [
+    (lambda c: __import__("flexmbs.sensitivity").sensitivity.case_gradients(c, "40,30,35,25"), "case_gradients: design must have 4 finite values"),
+    (lambda c: __import__("flexmbs.sensitivity").sensitivity.case_gradients(None, [40, 30, 35, 25]), "case_gradients: case must be a Case"),
+    (lambda c: __import__("flexmbs.sensitivity").sensitivity.case_gradients(c, [40, 30, 35, 25], method="forward", fd_step="a"), "fd_step must be a finite number, got 'a'"),
+    (lambda c: __import__("flexmbs.sensitivity").sensitivity.check_sensitivity(c, [40, 30, 35, 25], direction=[0, 0, 0, 0]), "direction must be 4 finite numbers, not all zero"),
+    (lambda c: __import__("flexmbs.sensitivity").sensitivity.check_sensitivity(c, [40, 30, 35, 25], steps="a"), "steps must be a list of positive numbers"),
+    (lambda c: c.rigid_reference_at([]), "t must be a non-empty 1-D array of finite times"),
+], ids=lambda v: v if isinstance(v, str) else "")
+def test_sensitivity_and_case_helpers(robot, call, text):
+    """Sensitivity entry points and case helpers: typed errors naming the argument."""
+    with pytest.raises(fx.ModelError) as err:
+        call(robot)
+    assert text in str(err.value)
+
+
+def test_result_and_model_accessors():
+    """Result accessors, Model.pattern/row_label and Case.simulate(store=...) refuse non-ids with
+    a ModelError naming the argument (they raised TypeError/ValueError before issue 14)."""
+    m, b = driven_arm()
+    r = fx.simulate(m, 0.003, 1e-3)
+    for call in (r.position, r.rotation, r.velocity):
+        for bad in (None, "2", 1.5, np.zeros(3)):
+            with pytest.raises(fx.ModelError, match="expected a node id"):
+                call(bad)
+    with pytest.raises(fx.ModelError, match=r"coordinates: expected a list of coordinate indices \(int\), got 3"):
+        r.coordinates(3)
+    assert r.coordinates([]).shape == (r.t.size, 0)
+    with pytest.raises(fx.ModelError, match=r"unknown matrix storage \['klu'\]: use 'dense' or 'klu'"):
+        m.pattern(["klu"])
+    with pytest.raises(fx.ModelError, match=r"row_label: expected a constraint row index \(int\), got None"):
+        m.row_label(None)
+    with pytest.raises(fx.ModelError, match=r"sensitivity_dofs must be an array of numbers, got \[1\.5\]"):
+        fx.simulate(m, 0.003, 1e-3, design_derivatives=np.zeros((5, 2, 1)), sensitivity_dofs=[1.5])
+    case = fx.load_case("robot_2dof")
+    with pytest.raises(fx.ModelError, match=r"store must be 'all' or a list of nodes/bodies, got None"):
+        case.simulate(store=None, t_end=0.002)
+    with pytest.raises(fx.ModelError, match=r"reference must be a dict from rigid_reference"):
+        case.rigid_frames(None)
+    with pytest.raises(fx.ModelError, match=r"unknown body 'mass'; bodies are \['arm1', 'arm2'\]"):
+        case.rigid_node_positions(case.rigid_reference_at([0.0, 0.1]), "mass")
+
+
+@pytest.mark.parametrize("overrides, text", [
+    (dict(elements_per_link=100_000), "key 'mechanism.elements_per_link' must be at most 20000, got 100000"),
+    (dict(elements_per_link=2.0), "key 'mechanism.elements_per_link' must be an integer, got 2.0"),
+    (dict(start=[10.0, 10.0, 10.0]), "key 'design.start' must lie within the bounds [design.lower, design.upper]"),
+    (dict(lower=[30.0, 30.0, 30.0], upper=[20.0, 60.0, 60.0]), "got lower = [30.0, 30.0, 30.0], upper = [20.0, 60.0, 60.0]"),
+    ({"optimizer.fully.max_iterations": 2.5}, "key 'optimizer.fully.max_iterations' must be an integer, got 2.5"),
+    ({"optimizer.fully": 3}, "unknown override key 'optimizer.fully': no table [optimizer]"),
+    ({"case.mechanism": ["fourbar"]}, "key 'case.mechanism' must be one of 'robot_2dof', 'fourbar', got ['fourbar']"),
+], ids=repr)
+def test_case_key_messages_name_file_key_and_value(overrides, text):
+    """Case-file errors name the file, the key, the value and what is allowed (issue 14)."""
+    with pytest.raises(fx.CaseError) as err:
+        fx.load_case("fourbar", **overrides)
+    msg = str(err.value)
+    assert text in msg and "fourbar.toml" in msg

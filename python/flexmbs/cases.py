@@ -39,6 +39,8 @@ from __future__ import annotations
 
 import copy
 import math
+import numbers
+import os
 import tomllib
 from dataclasses import dataclass, field
 from importlib import resources
@@ -53,7 +55,7 @@ from flexmbs.sections import Circle, Material, Tube
 from flexmbs.simulate import Result, time_grid
 from flexmbs.simulate import simulate as _simulate
 
-__all__ = ["load_case", "Case", "CaseResult", "available_cases", "case_path",
+__all__ = ["load_case", "as_case", "Case", "CaseResult", "available_cases", "case_path",
            "fourbar_positions"]
 
 #: Folder of the case files installed with the package (flexmbs/cases_data).
@@ -70,9 +72,16 @@ class _Key:
     positive: bool = False    # > 0 (numbers, and every element of a list)
     nonnegative: bool = False
     length: int | None = None
+    maximum: float | None = None   # inclusive upper bound (numbers)
 
 
 _F, _FP, _F0 = _Key("float"), _Key("float", positive=True), _Key("float", nonnegative=True)
+
+#: Largest number of beam elements per arm or link a case file may ask for: a guard against a
+#: typo building a model of millions of nodes in Python before simulate() can estimate the
+#: run's memory (2 quadratic elements are converged already; 20 000 per arm, 240 012 unknowns,
+#: take a few seconds to build and are then refused or run by the memory estimate).
+_MAX_ELEMENTS = 20_000
 
 _COMMON = {
     "case": {
@@ -124,7 +133,7 @@ _MECHANISM = {
         "path_period_s": _FP,
         "path_stroke_m": _F,
         "drive": _Key("str", choices=("absolute", "relative")),
-        "elements_per_arm": _Key("int", positive=True),
+        "elements_per_arm": _Key("int", positive=True, maximum=_MAX_ELEMENTS),
         "element_order": _Key("int", choices=(1, 2)),
         "mass_A_kg": _F0,
         "mass_tip_kg": _F0,
@@ -137,7 +146,7 @@ _MECHANISM = {
         "theta0_deg": _F,
         "ramp_time_s": _FP,
         "crank_speed_rpm": _F,
-        "elements_per_link": _Key("int", positive=True),
+        "elements_per_link": _Key("int", positive=True, maximum=_MAX_ELEMENTS),
         "element_order": _Key("int", choices=(1, 2)),
         "mass_A_kg": _F0,
         "mass_B_kg": _F0,
@@ -181,6 +190,8 @@ def _check_value(where, key, spec, value):
             raise bad(f"must be positive, got {v!r}")
         if spec.nonnegative and v < 0:
             raise bad(f"must be >= 0, got {v!r}")
+        if spec.maximum is not None and v > spec.maximum:
+            raise bad(f"must be at most {spec.maximum:g}, got {v!r}")
         return int(v) if integer else float(v)
 
     if spec.kind == "float":
@@ -189,7 +200,8 @@ def _check_value(where, key, spec, value):
         out = number(value, integer=True)
     elif spec.kind == "str":
         # a deviation formulation may be written as a number (28) or a string ("28")
-        if key == "formulation" and isinstance(value, int) and not isinstance(value, bool):
+        if key.rsplit(".", 1)[-1] == "formulation" and isinstance(value, int) \
+                and not isinstance(value, bool):
             value = str(value)
         if not isinstance(value, str):
             raise bad(f"must be a string, got {value!r}")
@@ -218,9 +230,12 @@ def _validate(data, source):
     if not isinstance(data, dict):
         raise CaseError(f"{where}: a case must be a table of tables")
     mech = _table(data, "case.mechanism")
+    if not isinstance(data.get("case"), dict):
+        raise CaseError(f"{where}: missing table [case] (with name and mechanism), got "
+                        f"case = {data.get('case')!r}")
     if mech is None:
         raise CaseError(f"{where}: missing key 'case.mechanism' (one of {', '.join(_MECHANISM)})")
-    if mech not in _MECHANISM:
+    if not isinstance(mech, str) or mech not in _MECHANISM:
         raise CaseError(f"{where}: key 'case.mechanism' must be one of "
                         f"{', '.join(repr(m) for m in _MECHANISM)}, got {mech!r}")
     schema = _schema(mech)
@@ -230,14 +245,15 @@ def _validate(data, source):
         if top not in tables:
             raise CaseError(f"{where}: unknown table [{top}] (expected {', '.join(sorted(tables))})")
         if not isinstance(val, dict):
-            raise CaseError(f"{where}: [{top}] must be a table")
+            raise CaseError(f"{where}: [{top}] must be a table of keys, got {top} = {val!r}")
     if "optimizer" in data:
         for sub, val in data["optimizer"].items():
             if f"optimizer.{sub}" not in schema:
                 raise CaseError(f"{where}: unknown table [optimizer.{sub}] "
                                 "(expected [optimizer.fully] and [optimizer.weakly])")
             if not isinstance(val, dict):
-                raise CaseError(f"{where}: [optimizer.{sub}] must be a table")
+                raise CaseError(f"{where}: [optimizer.{sub}] must be a table of keys, got "
+                                f"optimizer.{sub} = {val!r}")
     out = {}
     for path, keys in schema.items():
         tab = _table(data, path)
@@ -278,9 +294,11 @@ def _check_consistency(d, where):
         raise CaseError(f"{where}: key 'design.names' has duplicates: {des['names']}")
     lo, up, st = (np.array(des[k]) for k in ("lower", "upper", "start"))
     if np.any(lo >= up):
-        raise CaseError(f"{where}: key 'design.lower' must be below 'design.upper'")
+        raise CaseError(f"{where}: key 'design.lower' must be below 'design.upper' for every "
+                        f"variable, got lower = {des['lower']}, upper = {des['upper']}")
     if np.any(st < lo) or np.any(st > up):
-        raise CaseError(f"{where}: key 'design.start' must lie within the bounds")
+        raise CaseError(f"{where}: key 'design.start' must lie within the bounds [design.lower, "
+                        f"design.upper] = [{des['lower']}, {des['upper']}], got {des['start']}")
     sec = d["section"]
     if sec["type"] == "tube":
         if "wall_ratio" not in sec:
@@ -292,10 +310,12 @@ def _check_consistency(d, where):
         raise CaseError(f"{where}: key 'section.wall_ratio' only applies to type = 'tube'")
     if not 0.0 <= d["time"]["rho_inf"] <= 1.0:
         raise CaseError(f"{where}: key 'time.rho_inf' must lie in [0, 1], got {d['time']['rho_inf']}")
-    try:
-        time_grid(d["time"]["t_end"], d["time"]["h"])
-    except ModelError as exc:
-        raise CaseError(f"{where}: keys 'time.t_end' and 'time.h': {exc}") from None
+    t_end, h = d["time"]["t_end"], d["time"]["h"]
+    ratio = t_end / h            # checked without building the grid (it may be huge)
+    nsteps = round(ratio) if math.isfinite(ratio) else 0
+    if nsteps < 1 or abs(nsteps * h - t_end) > 1e-9 * max(1.0, t_end):
+        raise CaseError(f"{where}: keys 'time.t_end' and 'time.h': t_end = {t_end} s must be a "
+                        f"whole number (>= 1) of steps h = {h} s")
     form = d["deviation"]["formulation"]
     if form not in _FORMULATIONS[mech]:
         raise CaseError(f"{where}: key 'deviation.formulation' must be one of "
@@ -331,17 +351,24 @@ def _check_consistency(d, where):
 def _set_override(data, key, value, where):
     """Set one override (a leaf key name or a dotted path) in the raw case dictionary."""
     mech = _table(data, "case.mechanism")
-    schema = _schema(mech if mech in _MECHANISM else "robot_2dof")
+    schema = _schema(mech if isinstance(mech, str) and mech in _MECHANISM else "robot_2dof")
+    if not isinstance(key, str) or not key:
+        raise CaseError(f"{where}: override keys must be non-empty strings, got {key!r}")
+    leaves = sorted({k for keys in schema.values() for k in keys})
     if "." in key:
         path, leaf = key.rsplit(".", 1)
-        if path not in schema or leaf not in schema[path]:
-            raise CaseError(f"{where}: unknown override key '{key}'")
+        if path not in schema:
+            raise CaseError(f"{where}: unknown override key '{key}': no table [{path}] (tables: "
+                            f"{', '.join(schema)})")
+        if leaf not in schema[path]:
+            raise CaseError(f"{where}: unknown override key '{key}' (keys of [{path}]: "
+                            f"{', '.join(schema[path])})")
     else:
         hits = [p for p, keys in schema.items() if key in keys]
         if not hits:
-            raise CaseError(f"{where}: unknown override key '{key}' (a key of the case file, e.g. "
-                            "t_end, h, rho_inf, start_mode, drive, theta0_deg, formulation, limit_m, "
-                            "or a dotted path such as 'mechanism.mass_tip_kg')")
+            raise CaseError(f"{where}: unknown override key '{key}'; allowed keys: "
+                            f"{', '.join(leaves)} (or a dotted path such as "
+                            "'mechanism.mass_tip_kg')")
         if len(hits) > 1:
             raise CaseError(f"{where}: override key '{key}' is ambiguous: use one of "
                             f"{', '.join(p + '.' + key for p in hits)}")
@@ -349,6 +376,8 @@ def _set_override(data, key, value, where):
     node = data
     for p in path.split("."):
         node = node.setdefault(p, {})
+        if not isinstance(node, dict):
+            raise CaseError(f"{where}: [{path}] must be a table, got {node!r}")
     if isinstance(value, np.ndarray):
         value = value.tolist()
     elif isinstance(value, np.generic):
@@ -406,7 +435,7 @@ def case_path(name):
     raise CaseError(f"case {str(name)!r} not found: give a path to a .toml file or one of: {known}")
 
 
-def load_case(case, **overrides):
+def load_case(case, /, **overrides):
     """Read, validate and return a case.
 
     Parameters
@@ -429,6 +458,10 @@ def load_case(case, **overrides):
     """
     if isinstance(case, dict):
         data, source = copy.deepcopy(case), "<dict>"
+    elif not isinstance(case, (str, os.PathLike)):
+        raise CaseError(f"load_case: case must be a case name (one of "
+                        f"{', '.join(available_cases())}), a path to a .toml file or a dict, "
+                        f"got {case!r} ({type(case).__name__})")
     else:
         f = case_path(case)
         source = str(f)
@@ -436,9 +469,35 @@ def load_case(case, **overrides):
             data = tomllib.loads(f.read_text(encoding="utf-8"))
         except tomllib.TOMLDecodeError as exc:
             raise CaseError(f"{source}: not valid TOML: {exc}") from None
+        except UnicodeDecodeError as exc:
+            raise CaseError(f"{source}: not a UTF-8 text file: {exc}") from None
         except OSError as exc:
             raise CaseError(f"{source}: cannot be read: {exc}") from None
     return Case(data, source, overrides)
+
+
+def _float_array(value):
+    """np.asarray(value, float), or None if it is not an array of numbers."""
+    if isinstance(value, (str, bytes, dict)):
+        return None
+    try:
+        return np.asarray(value, float)
+    except (TypeError, ValueError):
+        return None
+
+
+def as_case(case, what="case"):
+    """A Case from a Case, a case name, a path to a case file or a case dictionary.
+
+    The optimizers' entry points take any of them (``optimize_fully("robot_2dof")``).
+    """
+    if isinstance(case, Case):
+        return case
+    if isinstance(case, (str, os.PathLike, dict)):
+        return load_case(case)
+    raise CaseError(f"{what} must be a Case (see load_case), a case name (one of "
+                    f"{', '.join(available_cases())}), a path to a .toml file or a dict, "
+                    f"got {case!r} ({type(case).__name__})")
 
 
 # ----------------------------------------------------------------------------- four-bar kinematics
@@ -669,7 +728,13 @@ class Case:
         self._wall_ratio = cfg["section"].get("wall_ratio")
         self._model = None
         self._ref_cache = {}
-        self._build_structure()
+        try:
+            self._build_structure()
+        except CaseError:
+            raise
+        except ModelError as exc:
+            raise CaseError(f"{self.source}: the case's parameters do not make a valid model: "
+                            f"{exc}") from None
 
     # ------------------------------------------------------------------ basics
     def __repr__(self):
@@ -683,7 +748,7 @@ class Case:
     @property
     def nsteps(self):
         """Number of time steps of the case grid (the paper counts nsteps + 1 time steps)."""
-        return time_grid(self.t_end, self.h)[0]
+        return int(round(self.t_end / self.h))
 
     @property
     def t(self):
@@ -697,19 +762,55 @@ class Case:
 
     def section(self, p_mm):
         """The cross section of a design variable value p (mm)."""
+        if isinstance(p_mm, (bool, np.bool_)) or not isinstance(p_mm, (numbers.Real, np.number)):
+            raise CaseError(f"case {self.name!r}: a design value must be a positive number (mm), "
+                            f"got {p_mm!r}")
         d = float(p_mm) * 1e-3
         if self._section_type == "tube":
             return Tube.with_wall_ratio(d, self._wall_ratio)
         return Circle(d)
 
     def _design(self, design_mm):
-        p = np.asarray(design_mm if design_mm is not None else self.start_mm, float).ravel()
-        if p.shape != (len(self.design_names),):
-            raise CaseError(f"case {self.name!r}: design must have {len(self.design_names)} values "
+        """A design as a float array of shape (nv,): a flat sequence of nv positive numbers."""
+        nv = len(self.design_names)
+        want = (f"design must be a flat sequence of {nv} positive numbers (mm) "
+                f"({', '.join(self.design_names)})")
+        if design_mm is None:
+            return np.array(self.start_mm, float)
+        if isinstance(design_mm, (str, bytes, dict)) or np.isscalar(design_mm):
+            raise CaseError(f"case {self.name!r}: {want}, got {design_mm!r}")
+        raw = np.asarray(design_mm, dtype=object) if not isinstance(design_mm, np.ndarray) \
+            else design_mm
+        if raw.ndim != 1:
+            raise CaseError(f"case {self.name!r}: {want}, got a nested sequence of shape "
+                            f"{np.shape(raw)}: {design_mm!r}")
+        if raw.dtype == object or raw.dtype.kind not in "iuf":
+            for v in raw:
+                if isinstance(v, (bool, np.bool_)) or not isinstance(v, (numbers.Real, np.number)):
+                    raise CaseError(f"case {self.name!r}: {want}, got {design_mm!r} (entry {v!r})")
+        p = np.asarray(raw, float)
+        if p.shape != (nv,):
+            raise CaseError(f"case {self.name!r}: design must have {nv} values "
                             f"({', '.join(self.design_names)}), got {p.size}")
         if not np.all(np.isfinite(p)) or np.any(p <= 0):
             raise CaseError(f"case {self.name!r}: design values must be positive and finite (mm), "
                             f"got {p.tolist()}")
+        return p
+
+    def start_design(self, start_mm=None, what="start design"):
+        """A start design (mm; default the case's) checked: nv positive numbers within the bounds."""
+        nv = len(self.design_names)
+        if start_mm is None:
+            p = np.array(self.start_mm, float)
+        else:
+            try:
+                p = self._design(start_mm)
+            except CaseError as exc:
+                raise CaseError(f"{what} must have {nv} finite values (mm) within the bounds "
+                                f"[{self.lower_mm.tolist()}, {self.upper_mm.tolist()}]: {exc}") from None
+        if np.any(p < self.lower_mm) or np.any(p > self.upper_mm):
+            raise CaseError(f"{what} {p.tolist()} is outside the bounds "
+                            f"[{self.lower_mm.tolist()}, {self.upper_mm.tolist()}] mm")
         return p
 
     # ------------------------------------------------------------------ structure
@@ -847,7 +948,10 @@ class Case:
 
     def rigid_reference_at(self, t):
         """Rigid reference histories on any time grid `t` (cached per grid)."""
-        t = np.asarray(t, float)
+        t = _float_array(t)
+        if t is None or t.ndim != 1 or t.size < 1 or not np.all(np.isfinite(t)):
+            raise ModelError(f"case {self.name!r}: t must be a non-empty 1-D array of finite times, "
+                             f"got {t!r:.80}")
         key = (t.size, float(t[0]), float(t[-1]))
         if key in self._ref_cache:
             return self._ref_cache[key]
@@ -880,9 +984,16 @@ class Case:
         self._ref_cache[key] = ref
         return ref
 
+    def _check_reference(self, reference):
+        keys = ("theta1", "x_A") if self.mechanism == "robot_2dof" else ("theta", "phi_coupler")
+        if not isinstance(reference, dict) or not all(k in reference for k in ("t",) + keys):
+            raise ModelError(f"case {self.name!r}: reference must be a dict from "
+                             f"rigid_reference / rigid_reference_at, got {reference!r:.80}")
+        return reference
+
     def rigid_frames(self, reference):
         """Root position (nt, 2) and angle (nt,) of every beam of the rigid reference."""
-        r = reference
+        r = self._check_reference(reference)
         if self.mechanism == "robot_2dof":
             zero = np.zeros_like(r["t"])
             return {"arm1": (np.stack([zero, zero], -1), r["theta1"]),
@@ -895,7 +1006,11 @@ class Case:
 
     def rigid_node_positions(self, reference, body):
         """Positions (nt, nnodes, 2) of a beam's nodes in the rigid reference mechanism."""
+        self._check_reference(reference)
         b = self._model.body(body)
+        if b.name not in self.beams:
+            raise ModelError(f"case {self.name!r}: body must be one of its beams {self.beams}, "
+                             f"got {body!r}")
         q = self._model.reference_coordinates().reshape(-1, 3)
         s = np.hypot(*(q[b.nodes, :2] - q[b.first, :2]).T)          # distance from the root
         root, ang = self.rigid_frames(reference)[body]
@@ -918,11 +1033,11 @@ class Case:
         dev : (nt,) deviation (m) of the case's formulation.
         jac : (nt, nsens) d dev_n / d qs_n (exact; zero where dev_n = 0).
         """
-        tt = self.t if t is None else np.asarray(t, float)
-        qs = np.asarray(qs, float)
-        if qs.shape != (tt.size, self.sensor_dofs.size):
-            raise ModelError(f"case {self.name!r}: sensor history must have shape "
-                             f"({tt.size}, {self.sensor_dofs.size}), got {qs.shape}")
+        tt = self.t if t is None else _float_array(t)
+        qs = _float_array(qs)
+        if tt is None or qs is None or tt.ndim != 1 or qs.shape != (tt.size, self.sensor_dofs.size):
+            raise ModelError(f"case {self.name!r}: sensor history qs must be a number array of shape "
+                             f"(nt, {self.sensor_dofs.size}) on a 1-D time grid t")
         ref = self.rigid_reference_at(tt)
         jac = np.zeros_like(qs)
         if self.formulation == "28":
@@ -964,7 +1079,7 @@ class Case:
         t_end = kw.pop("t_end", self.t_end)
         h = kw.pop("h", self.h)
         store = kw.get("store", "all")
-        if not isinstance(store, str):
+        if isinstance(store, (list, tuple, np.ndarray)):
             kw["store"] = list(store) + sorted({int(d) // 3 for d in self.sensor_dofs})
         res = _simulate(model, t_end, h, **kw)
         qs = res.coordinates(self.sensor_dofs)

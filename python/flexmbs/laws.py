@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from flexmbs.errors import ModelError
+from flexmbs.sections import real_number
 
 __all__ = ["TimeLaw", "as_law"]
 
@@ -23,8 +24,14 @@ class TimeLaw:
     """
 
     def __init__(self, value, rate=None, accel=None, name="law"):
+        if not isinstance(name, str):
+            raise ModelError(f"TimeLaw name must be a string, got {name!r}")
         if not callable(value):
-            raise ModelError(f"time law {name!r}: value must be callable")
+            raise ModelError(f"time law {name!r}: value must be a callable of t, got {value!r}")
+        for what, f in (("rate", rate), ("accel", accel)):
+            if f is not None and not callable(f):
+                raise ModelError(f"time law {name!r}: {what} must be a callable of t or None, "
+                                 f"got {f!r}")
         self.value = value
         self.rate = rate
         self.accel = accel
@@ -33,7 +40,7 @@ class TimeLaw:
     @classmethod
     def constant(cls, c, name="constant"):
         """theta(t) = c."""
-        c = float(c)
+        c = real_number(f"TimeLaw.constant {name!r}: c", c)
         return cls(lambda t: np.full(np.shape(t), c), lambda t: np.zeros(np.shape(t)),
                    lambda t: np.zeros(np.shape(t)), name=name)
 
@@ -41,7 +48,23 @@ class TimeLaw:
     def samples(cls, t, values, name="samples"):
         """A law through sampled values (cubic spline, not-a-knot)."""
         from scipy.interpolate import CubicSpline
-        spline = CubicSpline(np.asarray(t, float), np.asarray(values, float))
+        arrays = []
+        for what, v in (("t", t), ("values", values)):
+            try:
+                a = np.asarray(v, dtype=float)
+            except (TypeError, ValueError):
+                a = None
+            if a is None or a.ndim != 1 or a.size < 2 or np.asarray(v).dtype.kind not in "iuf" \
+                    or not np.all(np.isfinite(a)):
+                raise ModelError(f"TimeLaw.samples {name!r}: {what} must be a 1-D array of at least "
+                                 f"2 finite numbers, got {v!r}")
+            arrays.append(a)
+        if arrays[0].size != arrays[1].size:
+            raise ModelError(f"TimeLaw.samples {name!r}: t and values must have the same length, "
+                             f"got {arrays[0].size} and {arrays[1].size}")
+        if np.any(np.diff(arrays[0]) <= 0):
+            raise ModelError(f"TimeLaw.samples {name!r}: t must be strictly increasing")
+        spline = CubicSpline(arrays[0], arrays[1])
         return cls(spline, spline.derivative(1), spline.derivative(2), name=name)
 
     def _eval(self, f, t, what):
@@ -80,11 +103,13 @@ def as_law(obj, name="law"):
         return obj
     if obj is None:
         return None
-    if np.isscalar(obj):
-        return TimeLaw.constant(obj, name=name)
     if callable(obj):
         return TimeLaw(obj, name=name)
-    raise ModelError(f"{name}: expected a TimeLaw, a number or a callable, got {type(obj).__name__}")
+    if isinstance(obj, (bool, np.bool_, str, bytes)) or not np.isscalar(obj):
+        raise ModelError(f"{name}: law must be a TimeLaw, a finite number or a callable of t, "
+                         f"got {obj!r} ({type(obj).__name__})")
+    real_number(f"{name}: law", obj)
+    return TimeLaw.constant(obj, name=name)
 
 
 def planar_2r_inverse(x, y, xd, yd, xdd, ydd, l1, l2, elbow=-1.0):

@@ -28,7 +28,7 @@ import numpy as np
 
 from flexmbs.errors import ModelError
 from flexmbs.laws import as_law
-from flexmbs.sections import Material, Section, section_properties
+from flexmbs.sections import Material, Section, real_number, section_properties
 
 __all__ = ["Model", "Body", "CompiledModel"]
 
@@ -104,6 +104,8 @@ class Model:
     """A planar flexible mechanism. See the module docstring for an example."""
 
     def __init__(self, name="model"):
+        if not isinstance(name, str):
+            raise ModelError(f"Model name must be a string, got {name!r}")
         self.name = name
         self._nodes = []            # reference (x, y, phi)
         self.bodies = {}
@@ -129,9 +131,7 @@ class Model:
 
     def add_node(self, x, y, phi=0.0):
         """A new node at (x, y) with cross-section rotation phi (rad); returns its id."""
-        vals = [float(x), float(y), float(phi)]
-        if not all(math.isfinite(v) for v in vals):
-            raise ModelError(f"node coordinates must be finite, got ({x}, {y}, {phi})")
+        vals = [real_number(f"add_node: {k}", v) for k, v in (("x", x), ("y", y), ("phi", phi))]
         self._nodes.append(vals)
         self._changed()
         return len(self._nodes) - 1
@@ -145,6 +145,8 @@ class Model:
 
     def body(self, name):
         """The body called `name`."""
+        if not isinstance(name, str):
+            raise ModelError(f"body: expected a body name (str), got {name!r}")
         try:
             return self.bodies[name]
         except KeyError:
@@ -155,11 +157,33 @@ class Model:
         node = self._check_node(node)
         return np.array(self._nodes[node][:2])
 
-    def _new_body(self, name, kind, nodes):
+    def _check_new_name(self, name):
         if not isinstance(name, str) or not name:
             raise ModelError(f"body name must be a non-empty string, got {name!r}")
         if name in self.bodies:
             raise ModelError(f"a body called {name!r} already exists")
+
+    def _beam_of(self, body, what):
+        """A beam of this model given by its name or its Body."""
+        if isinstance(body, Body):
+            if self.bodies.get(body.name) is not body:
+                raise ModelError(f"{what}: body {body.name!r} is not a body of this model")
+            b = body
+        else:
+            b = self.body(body)
+        if b.kind != "beam":
+            raise ModelError(f"{what}: body {b.name!r} is not a beam")
+        return b
+
+    @staticmethod
+    def _point(what, p):
+        """A finite (x, y) pair of real numbers."""
+        if isinstance(p, (str, bytes)) or not hasattr(p, "__len__") or len(p) != 2:
+            raise ModelError(f"{what} must be an (x, y) pair of finite numbers, got {p!r}")
+        return np.array([real_number(f"{what} {k}", v) for k, v in zip("xy", p)])
+
+    def _new_body(self, name, kind, nodes):
+        self._check_new_name(name)
         b = Body(name, kind, nodes)
         self.bodies[name] = b
         return b
@@ -171,19 +195,19 @@ class Model:
         order=2: 3-node quadratic elements (accurate with 2 per arm, the default);
         order=1: 2-node linear elements. Returns the Body (its nodes run from start to end).
         """
+        self._check_new_name(name)
         if not isinstance(section, Section):
             raise ModelError(f"beam {name!r}: section must be a flexmbs Section, got {section!r}")
         if material is not None and not isinstance(material, Material):
-            raise ModelError(f"beam {name!r}: material must be a flexmbs Material")
+            raise ModelError(f"beam {name!r}: material must be a flexmbs Material, got {material!r}")
         section_properties(section, material)   # validates the pair
-        if order not in (1, 2):
+        if isinstance(order, (bool, np.bool_)) or order not in (1, 2):
             raise ModelError(f"beam {name!r}: order must be 1 or 2, got {order!r}")
-        if not isinstance(elements, (int, np.integer)) or elements < 1:
+        if isinstance(elements, (bool, np.bool_)) or not isinstance(elements, (int, np.integer)) \
+                or elements < 1:
             raise ModelError(f"beam {name!r}: elements must be a positive integer, got {elements!r}")
-        p0 = np.asarray(start, float)
-        p1 = np.asarray(end, float)
-        if p0.shape != (2,) or p1.shape != (2,) or not np.all(np.isfinite(np.r_[p0, p1])):
-            raise ModelError(f"beam {name!r}: start and end must be finite (x, y) pairs")
+        p0 = self._point(f"beam {name!r}: start", start)
+        p1 = self._point(f"beam {name!r}: end", end)
         length = float(np.hypot(*(p1 - p0)))
         if length <= 0:
             raise ModelError(f"beam {name!r}: start and end coincide")
@@ -204,15 +228,16 @@ class Model:
 
     def set_section(self, body, section):
         """Change the section of a beam (all its elements): a new design, same structure."""
-        b = self.body(body) if isinstance(body, str) else body
-        if b.kind != "beam":
-            raise ModelError(f"body {b.name!r} is not a beam")
+        b = self._beam_of(body, "set_section")
         section_properties(section, b.material)
         b.section = section
 
     def set_element_sections(self, body, sections):
         """Give each element of a beam its own section (list, root element first)."""
-        b = self.body(body) if isinstance(body, str) else body
+        b = self._beam_of(body, "set_element_sections")
+        if isinstance(sections, (Section, str)) or not hasattr(sections, "__len__"):
+            raise ModelError(f"set_element_sections: sections must be a list of {len(b.elements)} "
+                             f"Sections (one per element of beam {b.name!r}), got {sections!r}")
         if len(sections) != len(b.elements):
             raise ModelError(f"beam {b.name!r} has {len(b.elements)} elements, got {len(sections)} sections")
         for s in sections:
@@ -221,17 +246,16 @@ class Model:
 
     def element_sections(self, body):
         """The section of each element of a beam."""
-        b = self.body(body) if isinstance(body, str) else body
+        b = self._beam_of(body, "element_sections")
         if isinstance(b.section, list):
             return list(b.section)
         return [b.section] * len(b.elements)
 
     def add_point_mass(self, node, mass, inertia=0.0):
         """A point mass (kg) with optional rotary inertia (kg m^2) at a node."""
-        node = self._check_node(node)
-        for what, v in (("mass", mass), ("inertia", inertia)):
-            if not (math.isfinite(float(v)) and float(v) >= 0):
-                raise ModelError(f"point mass at node {node}: {what} must be >= 0, got {v!r}")
+        node = self._check_node(node, "add_point_mass")
+        mass = real_number(f"point mass at node {node}: mass", mass, nonnegative=True)
+        inertia = real_number(f"point mass at node {node}: inertia", inertia, nonnegative=True)
         self._lumped[3 * node] = self._lumped.get(3 * node, 0.0) + float(mass)
         self._lumped[3 * node + 1] = self._lumped.get(3 * node + 1, 0.0) + float(mass)
         self._lumped[3 * node + 2] = self._lumped.get(3 * node + 2, 0.0) + float(inertia)
@@ -244,11 +268,16 @@ class Model:
         and the inertia about it (kg m^2); each listed node is tied to it by a rigid
         link. Returns the Body (its first node is the centre).
         """
+        self._check_new_name(name)
+        if isinstance(nodes, (str, bytes)) or not hasattr(nodes, "__iter__"):
+            raise ModelError(f"rigid body {name!r}: nodes must be a list of node ids, got {nodes!r}")
         ids = [self._check_node(n, f"rigid body {name!r}") for n in nodes]
         if not ids:
             raise ModelError(f"rigid body {name!r}: needs at least one node")
+        real_number(f"rigid body {name!r}: mass", mass, nonnegative=True)
+        real_number(f"rigid body {name!r}: inertia", inertia, nonnegative=True)
         pts = np.array([self._nodes[i][:2] for i in ids])
-        c = pts.mean(axis=0) if center is None else np.asarray(center, float)
+        c = pts.mean(axis=0) if center is None else self._point(f"rigid body {name!r}: center", center)
         cid = self.add_node(c[0], c[1], 0.0)
         self.add_point_mass(cid, mass, inertia)
         body = self._new_body(name, "rigid", [cid] + ids)
@@ -301,6 +330,8 @@ class Model:
         `law` is a TimeLaw (analytic rate and acceleration), a callable or a number.
         """
         node = self._check_node(node, "drive_rotation")
+        if relative_to is not None and self._check_node(relative_to, "drive_rotation relative_to") == node:
+            raise ModelError(f"drive_rotation: relative_to is the driven node {node} itself")
         li = self._law(law, f"motor at node {node}")
         if relative_to is None:
             self._row(CON_LINEAR, [3 * node + 2], [1.0], 0.0, li, 1.0, label=f"motor node {node}")
@@ -312,9 +343,12 @@ class Model:
     def prescribe_position(self, node, x=None, y=None):
         """Prescribe x(t) and/or y(t) of a node (laws, callables or numbers)."""
         node = self._check_node(node, "prescribe_position")
-        for k, law, lab in ((0, x, "x"), (1, y, "y")):
-            if law is None:
-                continue
+        if x is None and y is None:
+            raise ModelError(f"prescribe_position at node {node}: give x, y or both (laws, "
+                             "callables or numbers)")
+        laws = [(k, as_law(law, f"position {lab} of node {node}"), lab)
+                for k, law, lab in ((0, x, "x"), (1, y, "y")) if law is not None]
+        for k, law, lab in laws:
             li = self._law(law, f"position {lab} of node {node}")
             self._row(CON_LINEAR, [3 * node + k], [1.0], 0.0, li, 1.0, label=f"position node {node} {lab}")
 
@@ -334,19 +368,15 @@ class Model:
     # ------------------------------------------------------------------ loads
     def set_gravity(self, gx, gy):
         """Uniform gravity acceleration (m/s^2), any direction; acts on beams and masses."""
-        g = (float(gx), float(gy))
-        if not all(math.isfinite(v) for v in g):
-            raise ModelError(f"gravity must be finite, got {g}")
-        self._gravity = g
+        self._gravity = (real_number("set_gravity: gx", gx), real_number("set_gravity: gy", gy))
 
     def add_load(self, node, fx=0.0, fy=0.0, moment=0.0, law=None):
         """Nodal force (N) and moment (N m), multiplied by law(t) if given (constant otherwise)."""
         node = self._check_node(node, "add_load")
+        comps = [real_number(f"load at node {node}: {lab}", v)
+                 for lab, v in (("fx", fx), ("fy", fy), ("moment", moment))]
         li = self._law(law, f"load at node {node}") if law is not None else 0
-        for k, v in ((0, fx), (1, fy), (2, moment)):
-            v = float(v)
-            if not math.isfinite(v):
-                raise ModelError(f"load at node {node}: components must be finite")
+        for k, v in enumerate(comps):
             if v != 0.0:
                 self._loads.append((3 * node + k, v, li))
         self._changed()
@@ -421,6 +451,8 @@ class Model:
 
     def pattern(self, kind):
         """Value positions of the iteration matrix: kind 'dense' or 'klu' (cached)."""
+        if not isinstance(kind, str) or kind not in ("dense", "klu"):
+            raise ModelError(f"unknown matrix storage {kind!r}: use 'dense' or 'klu'")
         cm = self.compile()
         if kind in cm.patterns:
             return cm.patterns[kind]
@@ -490,4 +522,6 @@ class Model:
 
     def row_label(self, r):
         """Description of constraint row r (0-based), for messages."""
+        if isinstance(r, (bool, np.bool_)) or not isinstance(r, (int, np.integer)):
+            raise ModelError(f"row_label: expected a constraint row index (int), got {r!r}")
         return self._rows[r].label if 0 <= r < len(self._rows) else f"row {r}"

@@ -14,17 +14,48 @@ import numpy as np
 from flexmbs.errors import ModelError
 
 __all__ = ["Material", "Section", "Circle", "Tube", "Rectangle", "GivenSection",
-           "section_properties"]
+           "section_properties", "real_number", "whole_number"]
+
+
+def _is_real(value):
+    """True for an int, a float or a numpy real scalar (0-d array too); False for a bool."""
+    if isinstance(value, (bool, np.bool_)):
+        return False
+    if isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "iuf":
+        return True
+    return isinstance(value, (int, float, np.integer, np.floating))
+
+
+def real_number(name, value, *, positive=False, nonnegative=False):
+    """`value` as a finite float, or a ModelError naming `name`, the value and what is allowed.
+
+    Accepts int, float and numpy real scalars; refuses bools, strings, None, arrays, NaN and
+    infinities (and values <= 0 with positive=True, < 0 with nonnegative=True).
+    """
+    want = ("a positive finite number" if positive else
+            "a finite number >= 0" if nonnegative else "a finite number")
+    if not _is_real(value):
+        raise ModelError(f"{name} must be {want}, got {value!r} ({type(value).__name__})")
+    v = float(value)
+    if not math.isfinite(v) or (positive and v <= 0) or (nonnegative and v < 0):
+        raise ModelError(f"{name} must be {want}, got {value!r}")
+    return v
+
+
+def whole_number(name, value, minimum=None):
+    """`value` as an int (int or numpy integer, not a bool, not 2.5 or "5"), >= minimum."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise ModelError(f"{name} must be an integer{'' if minimum is None else f' >= {minimum}'}, "
+                         f"got {value!r} ({type(value).__name__})")
+    if minimum is not None and value < minimum:
+        raise ModelError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
 
 
 def _positive(name, value):
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ModelError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(v) or v <= 0:
+    if _is_real(value) and not (math.isfinite(float(value)) and float(value) > 0):
         raise ModelError(f"{name} must be positive and finite, got {value!r}")
-    return v
+    return real_number(name, value, positive=True)
 
 
 @dataclass(frozen=True)
@@ -40,10 +71,12 @@ class Material:
     rho: float
 
     def __post_init__(self):
-        _positive("Material.E", self.E)
-        _positive("Material.rho", self.rho)
-        if not (-1.0 < float(self.nu) < 0.5):
+        object.__setattr__(self, "E", _positive("Material.E", self.E))
+        object.__setattr__(self, "rho", _positive("Material.rho", self.rho))
+        nu = real_number("Material.nu", self.nu)
+        if not (-1.0 < nu < 0.5):
             raise ModelError(f"Material.nu must lie in (-1, 0.5), got {self.nu!r}")
+        object.__setattr__(self, "nu", nu)
 
     @property
     def G(self):
@@ -81,7 +114,7 @@ class Circle(Section):
     parameters = ("d",)
 
     def __post_init__(self):
-        _positive("Circle diameter d", self.d)
+        object.__setattr__(self, "d", _positive("Circle diameter d", self.d))
 
     def area_inertia_shear(self, nu):
         d = self.d
@@ -103,8 +136,10 @@ class Tube(Section):
     wall_ratio: float | None = None
 
     def __post_init__(self):
-        _positive("Tube outer diameter d", self.d)
-        _positive("Tube wall thickness t", self.t)
+        object.__setattr__(self, "d", _positive("Tube outer diameter d", self.d))
+        object.__setattr__(self, "t", _positive("Tube wall thickness t", self.t))
+        if self.wall_ratio is not None:
+            object.__setattr__(self, "wall_ratio", real_number("Tube wall ratio", self.wall_ratio))
         if self.t > 0.5 * self.d:
             raise ModelError(f"Tube wall thickness t = {self.t} is larger than the radius {0.5 * self.d}")
 
@@ -115,9 +150,10 @@ class Tube(Section):
     @classmethod
     def with_wall_ratio(cls, d, ratio):
         """Tube whose wall is `ratio` times the outer diameter."""
-        _positive("Tube outer diameter d", d)
-        if not (0 < ratio <= 0.5):
+        d = _positive("Tube outer diameter d", d)
+        if not (_is_real(ratio) and 0 < ratio <= 0.5):
             raise ModelError(f"Tube wall ratio must lie in (0, 0.5], got {ratio!r}")
+        ratio = float(ratio)
         return cls(d=d, t=ratio * d, wall_ratio=ratio)
 
     def area_inertia_shear(self, nu):
@@ -155,8 +191,8 @@ class Rectangle(Section):
     parameters = ("b", "h")
 
     def __post_init__(self):
-        _positive("Rectangle width b", self.b)
-        _positive("Rectangle height h", self.h)
+        object.__setattr__(self, "b", _positive("Rectangle width b", self.b))
+        object.__setattr__(self, "h", _positive("Rectangle height h", self.h))
 
     def area_inertia_shear(self, nu):
         b, h = self.b, self.h
@@ -177,9 +213,8 @@ class GivenSection(Section):
 
     def __post_init__(self):
         for name in ("EA", "kGA", "EI", "rhoA"):
-            _positive(f"GivenSection.{name}", getattr(self, name))
-        if not (math.isfinite(self.rhoI) and self.rhoI >= 0):
-            raise ModelError(f"GivenSection.rhoI must be >= 0, got {self.rhoI!r}")
+            object.__setattr__(self, name, _positive(f"GivenSection.{name}", getattr(self, name)))
+        object.__setattr__(self, "rhoI", real_number("GivenSection.rhoI", self.rhoI, nonnegative=True))
 
     def properties(self, material=None):
         return np.array([self.EA, self.kGA, self.EI, self.rhoA, self.rhoI], dtype=float)
@@ -190,8 +225,13 @@ class GivenSection(Section):
 
 def section_properties(section: Section, material: Material | None):
     """[EA, kGA, EI, rhoA, rhoI] of a section made of a material."""
+    if not isinstance(section, Section):
+        raise ModelError(f"section must be a flexmbs Section (Circle, Tube, Rectangle, "
+                         f"GivenSection), got {section!r}")
     if isinstance(section, GivenSection):
         return section.properties()
     if material is None:
         raise ModelError(f"section {section!r} needs a material")
+    if not isinstance(material, Material):
+        raise ModelError(f"material must be a flexmbs Material, got {material!r}")
     return section.properties(material)

@@ -24,7 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from flexmbs.errors import ModelError
+from flexmbs.errors import CaseError, ModelError
+from flexmbs.sections import real_number
 from flexmbs.simulate import simulate
 
 __all__ = ["CaseGradients", "case_gradients", "check_sensitivity", "SensitivityCheck", "METHODS"]
@@ -77,6 +78,20 @@ class CaseGradients:
         return self.d_deviation[self.step_at_max].copy()
 
 
+def _case_and_design(case, design_mm, what):
+    """(Case, design array): a case name/path/dict is loaded; the design is a flat sequence of
+    nv positive finite numbers (mm)."""
+    from flexmbs.cases import as_case
+
+    case = as_case(case, f"{what}: case")
+    try:
+        p = case._design(design_mm)
+    except CaseError as exc:
+        raise ModelError(f"{what}: design must have {len(case.design_names)} finite values "
+                         f"({', '.join(case.design_names)}), got {design_mm!r}: {exc}") from None
+    return case, p
+
+
 def _case_settings(case, overrides):
     kw = dict(h=case.h, rho_inf=case.rho_inf, start=case.start_mode)
     kw.update(overrides)
@@ -125,13 +140,12 @@ def case_gradients(case, design_mm, method="direct", fd_step=1e-6, **simulate_kw
     -------
     CaseGradients
     """
-    if method not in METHODS:
+    if not isinstance(method, str) or method not in METHODS:
         raise ModelError(f"method must be one of {METHODS}, got {method!r}")
     t0 = time.perf_counter()
-    p = np.asarray(design_mm, float)
-    if p.shape != (len(case.design_names),) or not np.all(np.isfinite(p)):
-        raise ModelError(f"design must have {len(case.design_names)} finite values "
-                         f"({', '.join(case.design_names)}), got {design_mm!r}")
+    case, p = _case_and_design(case, design_mm, "case_gradients")
+    if method != "direct" and not (0 < real_number("fd_step", fd_step) < 1):
+        raise ModelError(f"fd_step must lie in (0, 1), got {fd_step!r}")
     t_end = simulate_kw.pop("t_end", case.t_end)
     sim_kw = _case_settings(case, simulate_kw)
     nv = p.size
@@ -198,15 +212,35 @@ def check_sensitivity(case, design_mm, direction=None, steps=(1e-2, 1e-3, 1e-4, 
     rising like eps/s (round-off and solver tolerance), with the smallest error
     near 1e-6 or below.
     """
-    p = np.asarray(design_mm, float)
+    case, p = _case_and_design(case, design_mm, "check_sensitivity")
     rng = np.random.default_rng(seed)
-    d = rng.standard_normal(p.size) if direction is None else np.asarray(direction, float)
+    if direction is None:
+        d = rng.standard_normal(p.size)
+    else:
+        try:
+            d = np.asarray(direction, float)
+        except (TypeError, ValueError):
+            d = None
+        if d is None or d.shape != p.shape or not np.all(np.isfinite(d)) or not np.any(d):
+            raise ModelError(f"check_sensitivity: direction must be {p.size} finite numbers, not "
+                             f"all zero, got {direction!r}")
     d = d / np.linalg.norm(d)
+    if isinstance(steps, (str, bytes)) or np.ndim(steps) != 1 or len(steps) == 0:
+        raise ModelError(f"check_sensitivity: steps must be a list of positive numbers (mm), "
+                         f"got {steps!r}")
+    steps = [real_number("check_sensitivity: steps", s, positive=True) for s in steps]
     t_end = simulate_kw.pop("t_end", case.t_end)
     sim_kw = _case_settings(case, simulate_kw)
     _, _, ddev = _sensor_deviation(case, p, t_end, True, sim_kw)
     direct = ddev @ d
-    idx = np.arange(direct.size) if time_steps is None else np.asarray(time_steps, int)
+    if time_steps is None:
+        idx = np.arange(direct.size)
+    else:
+        idx = np.asarray(time_steps)
+        if idx.ndim != 1 or idx.size == 0 or idx.dtype.kind not in "iu" \
+                or idx.min() < -direct.size or idx.max() >= direct.size:
+            raise ModelError(f"check_sensitivity: time_steps must be step indices in "
+                             f"[0, {direct.size}), got {time_steps!r}")
     rows = []
     for s in steps:
         _, dp, _ = _sensor_deviation(case, p + s * d, t_end, False, sim_kw)

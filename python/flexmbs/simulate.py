@@ -107,6 +107,7 @@ class Result:
         """(nt, 2, nv) design derivatives of a node's position (needs design_derivatives)."""
         if self.dq is None:
             raise ModelError("no design derivatives: simulate with design_derivatives=...")
+        node = self._node(node)
         cols = []
         for d in (3 * node, 3 * node + 1):
             k = np.searchsorted(self.sens_dofs, d)
@@ -114,6 +115,12 @@ class Result:
                 raise ModelError(f"node {node} is not among the sensitivity coordinates")
             cols.append(k)
         return self.dq[:, cols, :]
+
+    @staticmethod
+    def _node(node):
+        if isinstance(node, (bool, np.bool_)) or not isinstance(node, (int, np.integer)):
+            raise ModelError(f"expected a node id (int), got {node!r}")
+        return int(node)
 
     def _col(self, dof):
         idx = np.searchsorted(self.dofs, dof)
@@ -123,19 +130,24 @@ class Result:
 
     def position(self, node):
         """(nt, 2) positions of a node."""
+        node = self._node(node)
         return np.column_stack([self.q[:, self._col(3 * node)], self.q[:, self._col(3 * node + 1)]])
 
     def rotation(self, node):
         """(nt,) rotation of a node (rad)."""
-        return self.q[:, self._col(3 * node + 2)]
+        return self.q[:, self._col(3 * self._node(node) + 2)]
 
     def velocity(self, node):
         """(nt, 3) velocities (x, y, phi) of a node."""
+        node = self._node(node)
         return np.column_stack([self.qd[:, self._col(3 * node + k)] for k in range(3)])
 
     def coordinates(self, dofs):
         """(nt, len(dofs)) history of the given coordinates."""
-        return self.q[:, [self._col(d) for d in dofs]]
+        d = np.asarray(dofs) if not isinstance(dofs, (str, bytes)) else np.asarray([])
+        if d.ndim != 1 or (d.size and d.dtype.kind not in "iu"):
+            raise ModelError(f"coordinates: expected a list of coordinate indices (int), got {dofs!r}")
+        return self.q[:, [self._col(int(k)) for k in d]]
 
     @property
     def mean_newton_iterations(self):
@@ -285,6 +297,37 @@ def system_matrices(model: Model, q, qdd=None, mu=None, t=0.0, *, cm=0.0, ck=1.0
     return r, vals.reshape(c.n, c.n, order="F")
 
 
+def _numeric_array(name, value, kind=float):
+    """np.asarray(value, kind), or a ModelError naming the argument (strings, ragged lists)."""
+    if isinstance(value, (str, bytes)) or np.asarray(value, dtype=object).dtype.kind not in "biufO":
+        raise ModelError(f"{name} must be an array of numbers, got {value!r}")
+    try:
+        if kind is int and np.asarray(value).dtype.kind not in "iu":
+            raise TypeError
+        return np.asarray(value, kind)
+    except (TypeError, ValueError, OverflowError):
+        raise ModelError(f"{name} must be an array of numbers, got {value!r}") from None
+
+
+def _check_newton_settings(rho_inf, tol, max_iter, max_cuts):
+    """simulate's numeric settings: typed ModelErrors naming the argument, value and range."""
+    def real(v):
+        return isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, (bool, np.bool_))
+
+    if not (real(rho_inf) and 0.0 <= rho_inf <= 1.0):
+        raise ModelError(f"rho_inf must lie in [0, 1], got {rho_inf!r}")
+    if not (real(tol) and math.isfinite(tol) and tol > 0):
+        raise ModelError(f"tol must be > 0 and finite, got {tol!r}")
+    for name, v, least in (("max_iter", max_iter, 1), ("max_cuts", max_cuts, 0)):
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < least:
+            raise ModelError(f"{name} must be an integer >= {least}, got {v!r}")
+
+
+def _check_flag(name, value):
+    if not isinstance(value, (bool, np.bool_)):
+        raise ModelError(f"{name} must be True or False, got {value!r}")
+
+
 def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="all",
              solver="auto", reuse_jacobian=False, tol=1e-10, max_iter=20, max_cuts=6,
              kscale=None, penalty=None, q0=None, qd0=None, design_derivatives=None,
@@ -358,21 +401,20 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         raise ModelError(f"simulate expects a flexmbs Model, got {type(model).__name__}")
     nsteps = time_steps(t_end, h, memory_limit)
     limits = ValidityLimits.coerce(validity)
-    if not (isinstance(rho_inf, (int, float, np.floating)) and 0.0 <= rho_inf <= 1.0):
-        raise ModelError(f"rho_inf must lie in [0, 1], got {rho_inf!r}")
-    if start not in ("rest", "static"):
+    _check_newton_settings(rho_inf, tol, max_iter, max_cuts)
+    _check_flag("reuse_jacobian", reuse_jacobian)
+    if not isinstance(start, str) or start not in ("rest", "static"):
         raise ModelError(f"start must be 'rest' or 'static', got {start!r}")
-    if not (tol > 0 and max_iter >= 1 and max_cuts >= 0):
-        raise ModelError("tol must be > 0, max_iter >= 1, max_cuts >= 0")
     for name, v in (("kscale", kscale), ("penalty", penalty)):
-        if v is not None and not (isinstance(v, (int, float, np.floating)) and math.isfinite(v) and v > 0):
+        if v is not None and not (isinstance(v, (int, float, np.floating)) and not isinstance(v, bool)
+                                  and math.isfinite(v) and v > 0):
             raise ModelError(f"{name} must be a positive finite number or None (automatic), got {v!r}")
     if not model._nodes:
         raise ModelError("the model has no nodes")
     n_unknowns = model.ndof + len(model._rows)
-    if solver == "auto":
+    if isinstance(solver, str) and solver == "auto":
         solver = "dense" if n_unknowns <= DENSE_MAX_UNKNOWNS else "klu"
-    if solver not in _SOLVERS:
+    if not isinstance(solver, str) or solver not in _SOLVERS:
         raise ModelError(f"solver must be 'auto', 'dense' or 'klu', got {solver!r}")
 
     if isinstance(store, str):
@@ -380,6 +422,8 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
             raise ModelError(f"store must be 'all' or a list of nodes/bodies, got {store!r}")
         out = np.arange(model.ndof)
     else:
+        if not isinstance(store, (list, tuple, np.ndarray)):
+            raise ModelError(f"store must be 'all' or a list of nodes/bodies, got {store!r}")
         dofs = []
         for item in store:
             if hasattr(item, "dofs"):
@@ -412,19 +456,20 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     props = model.element_properties()
     margs = core_model_args(model, solver, t, props)
 
-    q_init = cm.qref.copy() if q0 is None else np.asarray(q0, float).copy()
-    qd_init = np.zeros(cm.ndof) if qd0 is None else np.asarray(qd0, float).copy()
+    q_init = cm.qref.copy() if q0 is None else _numeric_array("q0", q0).copy()
+    qd_init = np.zeros(cm.ndof) if qd0 is None else _numeric_array("qd0", qd0).copy()
     for name, v in (("q0", q_init), ("qd0", qd_init)):
         if v.shape != (cm.ndof,) or not np.all(np.isfinite(v)):
             raise ModelError(f"{name} must be a finite array of {cm.ndof} coordinates")
 
     nel = cm.el_dofs.shape[1]
     if design_derivatives is not None:
-        dprop = np.asarray(design_derivatives, float)
+        dprop = _numeric_array("design_derivatives", design_derivatives)
         if dprop.ndim != 3 or dprop.shape[:2] != (5, cm.nel) or not np.all(np.isfinite(dprop)):
             raise ModelError(f"design_derivatives must be a finite array of shape (5, {cm.nel}, nv)")
         nv = dprop.shape[2]
-        sdofs = out if sensitivity_dofs is None else np.unique(np.asarray(sensitivity_dofs, int))
+        sdofs = out if sensitivity_dofs is None else np.unique(
+            _numeric_array("sensitivity_dofs", sensitivity_dofs, int))
         if sdofs.size == 0 or sdofs.min() < 0 or sdofs.max() >= cm.ndof:
             raise ModelError(f"sensitivity_dofs must be coordinates in [0, {cm.ndof})")
         dprop_f = np.zeros((5, nel, max(nv, 1)), order="F")

@@ -66,7 +66,10 @@ import numpy as np
 from scipy.linalg import cho_solve, solve_triangular
 from scipy.optimize import linprog, minimize, nnls
 
+from flexmbs.cases import as_case
 from flexmbs.errors import CaseError, ModelError, SimulationError
+from flexmbs.optimize.weakly import _progress_callback
+from flexmbs.sections import real_number, whole_number
 from flexmbs.optimize.mma import MMA
 from flexmbs.optimize.result import HistoryWriter, OptimizationResult
 from flexmbs.sensitivity import case_gradients
@@ -166,15 +169,18 @@ class FullyCoupledProblem:
         aggregation = "none" if aggregation is None else str(aggregation).lower()
         if aggregation not in AGGREGATIONS:
             raise ModelError(f"aggregation must be one of {AGGREGATIONS}, got {aggregation!r}")
-        if not (isinstance(windows, (int, np.integer)) and windows >= 1):
+        if isinstance(windows, (bool, np.bool_)) or not (isinstance(windows, (int, np.integer))
+                                                         and windows >= 1):
             raise ModelError(f"windows must be an integer >= 1, got {windows!r}")
-        if not (0 < fd_step < 1):
+        if not (0 < real_number("fd_step", fd_step) < 1):
             raise ModelError(f"fd_step must lie in (0, 1), got {fd_step!r}")
+        case = as_case(case, "FullyCoupledProblem: case")
         self.case = case
         self.nv = len(case.design_names)
-        scale = np.asarray(case.start_mm if scale_mm is None else scale_mm, float)
-        if scale.shape != (self.nv,) or np.any(~np.isfinite(scale)) or np.any(scale <= 0):
-            raise ModelError(f"scale_mm must be {self.nv} positive values, got {scale_mm!r}")
+        try:
+            scale = case._design(scale_mm)
+        except CaseError:
+            raise ModelError(f"scale_mm must be {self.nv} positive values, got {scale_mm!r}") from None
         self.scale = scale
         self.lower = np.asarray(case.lower_mm, float) / scale
         self.upper = np.asarray(case.upper_mm, float) / scale
@@ -185,7 +191,7 @@ class FullyCoupledProblem:
         self.aggregation = aggregation
         if aggregation != "none":
             par = (_DEFAULT_AGGREGATION_PARAMETER[aggregation] if aggregation_parameter is None
-                   else float(aggregation_parameter))
+                   else real_number("aggregation_parameter", aggregation_parameter))
             least = 1.0 if aggregation == "pnorm" else 0.0
             if not par > least:
                 raise ModelError(f"aggregation_parameter must be > {least:g} for "
@@ -782,7 +788,7 @@ def optimize_fully(case, start_mm=None, *, sensitivity="direct", optimizer="mma"
 
     Parameters
     ----------
-    case : flexmbs.cases.Case
+    case : flexmbs.cases.Case, or a case name, path or dict (then loaded with load_case)
     start_mm : array, optional
         Starting design (mm); default `case.start_mm`.
     sensitivity : {'direct', 'fd'}, default 'direct'
@@ -848,17 +854,11 @@ def optimize_fully(case, start_mm=None, *, sensitivity="direct", optimizer="mma"
         If the simulation of the start design fails.
     """
     t0 = time.perf_counter()
-    if optimizer not in OPTIMIZERS:
+    if not isinstance(optimizer, str) or optimizer not in OPTIMIZERS:
         raise ModelError(f"optimizer must be one of {OPTIMIZERS}, got {optimizer!r}")
-    lower = np.asarray(case.lower_mm, float)
-    upper = np.asarray(case.upper_mm, float)
-    p0 = np.asarray(case.start_mm if start_mm is None else start_mm, float).ravel()
-    if p0.shape != lower.shape or not np.all(np.isfinite(p0)):
-        raise CaseError(f"start design must have {lower.size} finite values (mm), got "
-                        f"{np.asarray(start_mm).tolist()!r}")
-    if np.any(p0 < lower) or np.any(p0 > upper):
-        raise CaseError(f"start design {p0.tolist()} is outside the bounds "
-                        f"[{lower.tolist()}, {upper.tolist()}] mm")
+    case = as_case(case, "optimize_fully: case")
+    p0 = case.start_design(start_mm)
+    progress = _progress_callback(progress)
     settings = dict(getattr(case, "optimizer", {}).get("fully", {}))
     obj_tol = (settings.get("objective_rel_change", 1e-3) if objective_rel_change is None
                else objective_rel_change)
@@ -868,19 +868,25 @@ def optimize_fully(case, start_mm=None, *, sensitivity="direct", optimizer="mma"
     max_it = settings.get("max_iterations", 100) if max_iterations is None else max_iterations
     for name, val in (("objective_rel_change", obj_tol), ("constraint_violation", viol_tol),
                       ("kkt_tol", kkt_tol), ("active_tol", active_tol)):
-        if not (val > 0):
-            raise ModelError(f"{name} must be > 0, got {val!r}")
-    if des_tol is not None and not des_tol > 0:
-        raise ModelError(f"design_rel_change must be > 0 or None, got {des_tol!r}")
-    if not (int(max_it) >= 1 and int(max_simulations) >= 1):
-        raise ModelError("max_iterations and max_simulations must be >= 1")
-    if not (0 < trust_radius <= max_trust_radius):
+        real_number(name, val, positive=True)
+    if des_tol is not None:
+        real_number("design_rel_change (or None)", des_tol, positive=True)
+    max_it = whole_number("max_iterations", max_it, 1)
+    max_simulations = whole_number("max_simulations", max_simulations, 1)
+    real_number("trust_radius", trust_radius, positive=True)
+    real_number("max_trust_radius", max_trust_radius, positive=True)
+    if not (trust_radius <= max_trust_radius):
         raise ModelError(f"need 0 < trust_radius <= max_trust_radius, got {trust_radius!r}, "
                          f"{max_trust_radius!r}")
-    if model_fidelity is not None and not model_fidelity > 0:
-        raise ModelError(f"model_fidelity must be > 0 or None, got {model_fidelity!r}")
+    if model_fidelity is not None:
+        real_number("model_fidelity (or None)", model_fidelity, positive=True)
+    if mma_options is not None and not isinstance(mma_options, dict):
+        raise ModelError(f"mma_options must be a dict or None, got {mma_options!r}")
+    if simulate_kw is not None and not isinstance(simulate_kw, dict):
+        raise ModelError(f"simulate_kw must be a dict of simulate's keyword arguments or None, "
+                         f"got {simulate_kw!r}")
     mma_kw = dict(mma_options or {})
-    max_inner = int(mma_kw.pop("max_inner", 20))
+    max_inner = whole_number("mma_options max_inner", mma_kw.pop("max_inner", 20), 1)
 
     problem = FullyCoupledProblem(
         case, p0 if scale_mm is None else scale_mm, sensitivity=sensitivity, fd_step=fd_step,

@@ -30,7 +30,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize
 
+from flexmbs.cases import as_case
 from flexmbs.errors import CaseError, ModelError
+from flexmbs.sections import real_number, whole_number
 from flexmbs.esl import (BodyStiffness, ChordFrame, TangentFrame, equivalent_static_loads,
                          esl_change, static_response)
 from flexmbs.optimize.result import HistoryWriter, OptimizationResult
@@ -269,6 +271,16 @@ def _oscillation(designs, changes, period_max=6, ratio=0.2):
     return None
 
 
+def _progress_callback(progress):
+    """None or False: no progress reports; else a callable taking one history record."""
+    if progress is None or progress is False:
+        return None
+    if not callable(progress):
+        raise ModelError(f"progress must be a callable taking one history record, or None/False, "
+                         f"got {progress!r}")
+    return progress
+
+
 def optimize_weakly(case, start_mm=None, *, eps=1e-2, max_cycles=30, confirm_cycles=1,
                     move_limit=None, frame="tangent", screen=0.3, ftol=1e-8, max_inner=200,
                     active_tol=1e-3, stop_on_oscillation=True, history=None, progress=None,
@@ -277,7 +289,7 @@ def optimize_weakly(case, start_mm=None, *, eps=1e-2, max_cycles=30, confirm_cyc
 
     Parameters
     ----------
-    case : flexmbs.cases.Case
+    case : flexmbs.cases.Case, or a case name, path or dict (then loaded with load_case)
     start_mm : array, optional
         Starting design (mm); default `case.start_mm`.
     eps : float, default 1e-2
@@ -320,22 +332,26 @@ def optimize_weakly(case, start_mm=None, *, eps=1e-2, max_cycles=30, confirm_cyc
         held), static_optimizations, oscillation_period, esl_change.
     """
     t_start = time.perf_counter()
+    case = as_case(case, "optimize_weakly: case")
     lower = np.asarray(case.lower_mm, float)
     upper = np.asarray(case.upper_mm, float)
-    p = np.asarray(case.start_mm if start_mm is None else start_mm, float).copy()
-    if p.shape != lower.shape or not np.all(np.isfinite(p)):
-        raise CaseError(f"start design must have {lower.size} finite values (mm), got {p!r}")
-    if np.any(p < lower) or np.any(p > upper):
-        raise CaseError(f"start design {p.tolist()} is outside the bounds "
-                        f"[{lower.tolist()}, {upper.tolist()}] mm")
-    if not (eps > 0 and max_cycles >= 1 and confirm_cycles >= 0):
-        raise ModelError("eps must be > 0, max_cycles >= 1, confirm_cycles >= 0")
-    if move_limit is not None and not (move_limit > 0):
-        raise ModelError(f"move_limit must be > 0 or None, got {move_limit!r}")
-    if not 0.0 <= screen <= 1.0:
+    p = case.start_design(start_mm).copy()
+    eps = real_number("eps", eps, positive=True)
+    max_cycles = whole_number("max_cycles", max_cycles, 1)
+    confirm_cycles = whole_number("confirm_cycles", confirm_cycles, 0)
+    max_inner = whole_number("max_inner", max_inner, 1)
+    ftol = real_number("ftol", ftol, positive=True)
+    active_tol = real_number("active_tol", active_tol, positive=True)
+    if move_limit is not None:
+        move_limit = real_number("move_limit (or None)", move_limit, positive=True)
+    if not (real_number("screen", screen) >= 0.0 and screen <= 1.0):
         raise ModelError(f"screen must lie in [0, 1], got {screen!r}")
-    if frame not in ("tangent", "chord"):
+    if not isinstance(frame, str) or frame not in ("tangent", "chord"):
         raise ModelError(f"frame must be 'tangent' or 'chord', got {frame!r}")
+    progress = _progress_callback(progress)
+    if simulate_kw is not None and not isinstance(simulate_kw, dict):
+        raise ModelError(f"simulate_kw must be a dict of simulate's keyword arguments or None, "
+                         f"got {simulate_kw!r}")
     sim_kw = dict(simulate_kw or {})
     sim_kw.setdefault("store", "all")
 
