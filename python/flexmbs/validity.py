@@ -47,7 +47,6 @@ from flexmbs.errors import InvalidResultError, ModelError, ValidityWarning
 from flexmbs.responses.strain import columns as _columns
 from flexmbs.responses.strain import (element_groups, gauss_points, half_depth, raw_strains,
                                       shape)
-from flexmbs.sections import section_properties
 
 __all__ = ["ValidityLimits", "Check", "Validity", "check_result", "apply_validity",
            "redundant_constraints", "free_directions", "overflowing_inputs", "diagnose_failure",
