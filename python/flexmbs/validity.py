@@ -44,7 +44,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from flexmbs.errors import InvalidResultError, ModelError, ValidityWarning
-from flexmbs.sections import Circle, Rectangle, Tube, section_properties
+from flexmbs.responses.strain import columns as _columns
+from flexmbs.responses.strain import (element_groups, gauss_points, half_depth, raw_strains,
+                                      shape)
 
 __all__ = ["ValidityLimits", "Check", "Validity", "check_result", "apply_validity",
            "redundant_constraints", "free_directions", "overflowing_inputs", "diagnose_failure",
@@ -154,55 +156,6 @@ def _grade(value, warn, fail):
     return "warn" if value > warn else "ok"
 
 
-def _columns(dofs, wanted):
-    """Columns of `wanted` coordinates among the sorted stored `dofs` (-1 where not stored)."""
-    dofs = np.asarray(dofs)
-    wanted = np.asarray(wanted)
-    if dofs.size == 0:
-        return np.full(wanted.shape, -1)
-    idx = np.clip(np.searchsorted(dofs, wanted), 0, dofs.size - 1)
-    return np.where(dofs[idx] == wanted, idx, -1)
-
-
-def _half_depth(section):
-    if isinstance(section, (Circle, Tube)):
-        return 0.5 * section.d
-    if isinstance(section, Rectangle):
-        return 0.5 * section.h
-    return None
-
-
-def _shape(nen, xi):
-    xi = np.asarray(xi, float)
-    if nen == 2:
-        return np.stack([0.5 * (1 - xi), 0.5 * (1 + xi)]), np.stack([-0.5 + 0 * xi, 0.5 + 0 * xi])
-    return (np.stack([0.5 * xi * (xi - 1), 1 - xi * xi, 0.5 * xi * (xi + 1)]),
-            np.stack([xi - 0.5, -2 * xi, xi + 0.5]))
-
-
-def _raw_strains(qe, n, dn, jac):
-    """Raw strain measures (e1, e2, kappa) as in beam2d.f90, at points with shape values
-    n, dn (nen, npt); qe (..., nel, 3 nen) -> each (..., nel, npt)."""
-    x, y, p = qe[..., 0::3], qe[..., 1::3], qe[..., 2::3]
-    dns = dn[None, :, :] / jac[:, None, None]                # (nel, nen, npt)
-    dx = sum(x[..., a, None] * dns[:, a, :] for a in range(n.shape[0]))
-    dy = sum(y[..., a, None] * dns[:, a, :] for a in range(n.shape[0]))
-    kap = sum(p[..., a, None] * dns[:, a, :] for a in range(n.shape[0]))
-    phi = sum(p[..., a, None] * n[a] for a in range(n.shape[0]))
-    c, s = np.cos(phi), np.sin(phi)
-    return c * dx + s * dy, -s * dx + c * dy, kap
-
-
-def _element_groups(model, cm):
-    """Elements grouped by node count: {nen: (element ids, dof array (nel, 3 nen))}."""
-    groups = {}
-    for e in range(cm.nel):
-        nen = int(cm.el_nen[e])
-        groups.setdefault(nen, []).append(e)
-    return {nen: (np.array(ids), (cm.el_dofs[:3 * nen, ids] - 1).T.astype(np.int64))
-            for nen, ids in groups.items()}
-
-
 #: Values of one temporary array of the checks: they run over the stored history in chunks of
 #: time points so that their work memory stays bounded whatever the run's length
 #: (flexmbs.resources.estimate_memory counts CHECK_WORK_BYTES).
@@ -225,7 +178,7 @@ def _element_info(model):
         if b.kind != "beam":
             continue
         for k, (e, sec) in enumerate(zip(b.elements, model.element_sections(b))):
-            info[e] = (b.name, k, _half_depth(sec) if b.material is not None else None)
+            info[e] = (b.name, k, half_depth(sec) if b.material is not None else None)
     return info
 
 
@@ -234,7 +187,7 @@ def _strain_checks(model, cm, result, lim):
     axial = (0.0, None)      # value, (element, time index)
     bend = (0.0, None)
     skipped_store, skipped_given = [], []
-    for nen, (ids, edofs) in _element_groups(model, cm).items():
+    for nen, (ids, edofs) in element_groups(cm).items():
         cols = _columns(result.dofs, edofs)
         stored = np.all(cols >= 0, axis=1)
         depth = np.array([np.nan if einfo.get(e, (None, None, None))[2] is None
@@ -248,16 +201,16 @@ def _strain_checks(model, cm, result, lim):
         jac = 0.5 * cm.el_len[ids]
         # axial strain where the element computes N (its reduced-integration Gauss points);
         # curvature, linear along a 3-node element, at the element's ends (its extremes)
-        xg = np.array([0.0]) if nen == 2 else np.array([-1.0, 1.0]) / math.sqrt(3.0)
-        ng, dng = _shape(nen, xg)
-        nn, dnn = _shape(nen, np.array([-1.0, 1.0]))
+        xg = gauss_points(nen)
+        ng, dng = shape(nen, xg)
+        nn, dnn = shape(nen, np.array([-1.0, 1.0]))
         qref = cm.qref[edofs[checked]]
-        r1 = _raw_strains(qref, ng, dng, jac)[0]
-        rk = _raw_strains(qref, nn, dnn, jac)[2]
+        r1 = raw_strains(qref, ng, dng, jac)[0]
+        rk = raw_strains(qref, nn, dnn, jac)[2]
         for sl in _chunks(len(result.t), cols.size * 2):
             qe = result.q[sl][:, cols]                         # (nt, nel, 3 nen)
-            e1 = _raw_strains(qe, ng, dng, jac)[0]
-            kap = _raw_strains(qe, nn, dnn, jac)[2]
+            e1 = raw_strains(qe, ng, dng, jac)[0]
+            kap = raw_strains(qe, nn, dnn, jac)[2]
             a = np.abs(e1 - r1).max(axis=2)                    # (nt, nel)
             b = np.abs(kap - rk).max(axis=2) * depth[None, :]
             for arr, which in ((a, "axial"), (b, "bend")):
@@ -358,7 +311,7 @@ def _mass_blocks(nen, elen):
     """Consistent element mass pattern int N_a N_b ds (nel, nen, nen), exact (3-point Gauss)."""
     xg = np.array([-math.sqrt(0.6), 0.0, math.sqrt(0.6)])
     wg = np.array([5 / 9, 8 / 9, 5 / 9])
-    n, _ = _shape(nen, xg)
+    n, _ = shape(nen, xg)
     base = np.einsum("ak,bk,k->ab", n, n, wg)
     return 0.5 * elen[:, None, None] * base[None]
 
@@ -377,7 +330,7 @@ def _energy_check(model, cm, result, lim, props):
         kin[sl] = 0.5 * (qd[sl] * qd[sl]) @ cm.lumped
     strain = np.zeros(nt)
     fg = cm.lumped * cm.gacc
-    for nen, (ids, edofs) in _element_groups(model, cm).items():
+    for nen, (ids, edofs) in element_groups(cm).items():
         elen = cm.el_len[ids]
         mb = _mass_blocks(nen, elen)                            # (nel, nen, nen)
         rho_a, rho_i = props[3, ids], props[4, ids]
@@ -389,16 +342,14 @@ def _energy_check(model, cm, result, lim, props):
                 v = qd[sl][:, dd]
                 kin[sl] += 0.5 * np.einsum("tea,eab,teb->t", v, mw, v)
         # strain energy with the core's reduced integration (U whose gradient is f_int)
-        if nen == 2:
-            xg, wg = np.array([0.0]), np.array([2.0])
-        else:
-            xg, wg = np.array([-1, 1]) / math.sqrt(3.0), np.array([1.0, 1.0])
-        n, dn = _shape(nen, xg)
+        xg = gauss_points(nen)
+        wg = np.full(xg.size, 2.0 / xg.size)
+        n, dn = shape(nen, xg)
         jac = 0.5 * elen
-        r1, r2, rk = _raw_strains(cm.qref[edofs], n, dn, jac)
+        r1, r2, rk = raw_strains(cm.qref[edofs], n, dn, jac)
         stiff = props[:3, ids]
         for sl in _chunks(nt, edofs.size * len(xg)):
-            e1, e2, kap = _raw_strains(q[sl][:, edofs], n, dn, jac)
+            e1, e2, kap = raw_strains(q[sl][:, edofs], n, dn, jac)
             dens = (stiff[0][None, :, None] * (e1 - r1) ** 2 + stiff[1][None, :, None] * (e2 - r2) ** 2
                     + stiff[2][None, :, None] * (kap - rk) ** 2)
             strain[sl] += 0.5 * np.einsum("tek,k,e->t", dens, wg, jac)

@@ -72,6 +72,7 @@ from flexmbs.optimize.weakly import _progress_callback
 from flexmbs.sections import real_number, whole_number
 from flexmbs.optimize.mma import MMA
 from flexmbs.optimize.result import HistoryWriter, OptimizationResult
+from flexmbs.responses.aggregate import DEFAULT_PARAMETER, aggregate_constraints
 from flexmbs.sensitivity import case_gradients
 
 __all__ = ["optimize_fully", "FullyCoupledProblem", "Evaluation", "kkt_residual", "solve_qp",
@@ -82,7 +83,7 @@ OPTIMIZERS = ("mma", "sqp", "slsqp")
 SENSITIVITIES = ("direct", "fd")
 AGGREGATIONS = ("none", "ks", "pnorm")
 CONSTRAINT_FORMS = ("linear", "squared")
-_DEFAULT_AGGREGATION_PARAMETER = {"ks": 100.0, "pnorm": 50.0}
+_DEFAULT_AGGREGATION_PARAMETER = DEFAULT_PARAMETER
 
 
 # ============================================================================ the problem
@@ -321,54 +322,6 @@ class FullyCoupledProblem:
             return r - 1.0, dr
         return aggregate_constraints(r, dr, self.aggregation, self.aggregation_parameter,
                                      self._window_index(r.size))
-
-
-def aggregate_constraints(ratio, d_ratio, kind, parameter, windows):
-    """Aggregate relative responses r_n >= 0 (constraint r_n - 1 <= 0) over time windows.
-
-    Parameters
-    ----------
-    ratio : (nt,) r_n (the deviation over its limit, or its square).
-    d_ratio : (nt, nv) or None, derivatives of r_n.
-    kind : {'ks', 'pnorm'}
-        'ks': Kreisselmeier-Steinhauser, G = max g + ln(sum exp(rho (g_n - max g))) / rho with
-        g_n = r_n - 1; max g <= G <= max g + ln(N) / rho.
-        'pnorm': G = (sum r_n^P)^(1/P) - 1; max r <= G + 1 <= N^(1/P) max r.
-    parameter : float
-        rho (ks) or P (pnorm).
-    windows : list of index arrays (the time steps of each window).
-
-    Returns
-    -------
-    G : (nw,) aggregated constraints; dG : (nw, nv) or None, their derivatives.
-    """
-    r = np.asarray(ratio, float)
-    nw = len(windows)
-    G = np.empty(nw)
-    dG = None if d_ratio is None else np.empty((nw, d_ratio.shape[1]))
-    for k, idx in enumerate(windows):
-        rw = r[idx]
-        if kind == "ks":
-            gw = rw - 1.0
-            gmax = gw.max()
-            e = np.exp(parameter * (gw - gmax))
-            G[k] = gmax + np.log(e.sum()) / parameter
-            w = e / e.sum()
-        elif kind == "pnorm":
-            rmax = rw.max()
-            if rmax <= 0:
-                G[k] = -1.0
-                w = np.zeros_like(rw)
-            else:
-                sc = rw / rmax
-                norm = np.sum(sc ** parameter) ** (1.0 / parameter)
-                G[k] = rmax * norm - 1.0
-                w = (sc / norm) ** (parameter - 1.0)
-        else:
-            raise ModelError(f"aggregation kind must be 'ks' or 'pnorm', got {kind!r}")
-        if dG is not None:
-            dG[k] = w @ d_ratio[idx]
-    return G, dG
 
 
 # ============================================================================ QP and KKT
