@@ -404,6 +404,12 @@ def _installed_cases():
         return None
 
 
+def case_folders():
+    """The folders that hold shipped case files: the repository's cases/ (source tree) and
+    the copy installed with the package (flexmbs/cases_data)."""
+    return [f for f in (_repository_cases(), _installed_cases()) if f is not None]
+
+
 def available_cases():
     """Names of the case files shipped with flexmbs (repository cases/ or installed copy)."""
     names = set()

@@ -48,6 +48,7 @@ __all__ = ["main", "build_parser", "COMMANDS", "add_case_arguments", "case_from_
 COMMANDS = [
     "flexmbs.cli:register_simulate",
     "flexmbs.cli:register_demo",
+    "flexmbs.cli_evaluate:register",
     "flexmbs.optimize.cli:register",
     "flexmbs.reproduce:register",
 ]

@@ -8,14 +8,17 @@
                                      (aggregate.py)
     strain                           the beam elements' strain kinematics (strain.py), shared
                                      with flexmbs.validity
+    deviation, deviation_terms       deviation from the rigid reference (deviation.py)
 
 Each works on a flexmbs.Model and the Result of simulate(); gradients come from Result.dq
 (coordinates) and, for constraint forces, from the derivatives of Result.mu passed as dmu.
 """
 from flexmbs.responses.aggregate import AGGREGATES, aggregate, ks, pnorm
+from flexmbs.responses.deviation import deviation, deviation_terms
 from flexmbs.responses.forces import (Reaction, constraint_force, find_rows, joint_reaction,
                                       motor_torque)
 from flexmbs.responses.stress import BeamStress, beam_stress
 
 __all__ = ["beam_stress", "BeamStress", "motor_torque", "joint_reaction", "constraint_force",
-           "find_rows", "Reaction", "aggregate", "ks", "pnorm", "AGGREGATES"]
+           "find_rows", "Reaction", "aggregate", "ks", "pnorm", "AGGREGATES", "deviation",
+           "deviation_terms"]

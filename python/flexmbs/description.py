@@ -1,0 +1,542 @@
+"""The general description of a planar mechanism and its sizing problem (the case format).
+
+One description, two ways in: a TOML case file (`flexmbs.casefile.load_problem`) or Python
+(``Description(**dict)`` or `Description.model_validate`). Every key is documented in
+``docs/case-format.md``; the validation is pydantic's (types, ranges, unknown keys), completed
+by the cross-references checked in `Description.check_references` (a body named by a joint
+exists, a point named by a body exists, a section parameter names a design variable, ...).
+
+Units are SI, except where a design variable says otherwise (``unit = "mm"``: its bounds and
+start are in mm, and so are the values a user passes for it).
+
+Example (a pendulum: a beam pinned at O, driven by a ramp to 60 rpm)::
+
+    >>> from flexmbs.description import Description
+    >>> d = Description.model_validate({
+    ...     "points": {"O": [0, 0], "A": [0.5, 0]},
+    ...     "materials": {"steel": {"E": 210e9, "nu": 0.3, "rho": 7850}},
+    ...     "bodies": [{"name": "arm", "type": "beam", "from": "O", "to": "A",
+    ...                 "material": "steel", "section": {"shape": "circle", "diameter": 0.02}}],
+    ...     "joints": [{"type": "pin", "body": "arm", "at": "O"}],
+    ...     "drives": [{"type": "rotation", "body": "arm", "at": "O",
+    ...                 "law": {"type": "ramp_to_speed", "speed_rpm": 60, "ramp_s": 0.2}}],
+    ...     "time": {"t_end": 0.4, "h": 1e-3}})
+    >>> d.bodies[0].elements
+    2
+"""
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal, Union
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+__all__ = ["Description", "Law", "Beam", "Rigid", "PointMass", "Joint", "Drive", "Load",
+           "SpringDamper", "DesignVariable", "Deviation", "Mass", "Stress", "Constraint",
+           "TimeSettings", "Section", "MaterialSpec", "Term", "PointRef"]
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+Name = Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z_][A-Za-z0-9_.\-]*$")]
+Pair = Annotated[list[Finite], Field(min_length=2, max_length=2)]
+#: a section dimension: a number (m), a design variable's name, or one of them per element
+Dimension = Union[Positive, Name, list[Union[Positive, Name]]]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", populate_by_name=True, frozen=False)
+
+
+# ----------------------------------------------------------------------------- laws
+class Law(_Strict):
+    """A time law with analytic rate and acceleration (motors, loads, paths).
+
+    type:
+      constant       value
+      ramp_to_speed  start + speed*t^2/(2 ramp_s) for t <= ramp_s, then at constant speed
+                     (speed in rad/s or m/s, or speed_rpm); the paper's crank law
+      smooth_step    from `start` to `end` over [t0, t1] by a quintic with zero rate and
+                     acceleration at both ends
+      harmonic       offset + amplitude sin(2 pi frequency_hz t + phase)
+      cycloid        start + stroke (t/period - sin(2 pi t/period)/(2 pi)) (used as is
+                     beyond the period, like the paper's eq. 26)
+      polynomial     sum coefficients[k] t^k
+      samples        cubic spline through (times, values)
+      reference      (drives only) the motion the rigid reference gives this drive when the
+                     mechanism's ideal motion is prescribed by `paths`
+    A rotation drive's law is added to the driven node's initial angle unless
+    `absolute = true` (then the law is the angle itself, rad).
+    """
+    type: Literal["constant", "ramp_to_speed", "smooth_step", "harmonic", "cycloid",
+                  "polynomial", "samples", "reference"]
+    value: Finite | None = None
+    start: Finite = 0.0
+    end: Finite | None = None
+    speed: Finite | None = None
+    speed_rpm: Finite | None = None
+    ramp_s: Positive | None = None
+    t0: NonNegative = 0.0
+    t1: Positive | None = None
+    amplitude: Finite | None = None
+    frequency_hz: Positive | None = None
+    phase: Finite = 0.0
+    offset: Finite = 0.0
+    stroke: Finite | None = None
+    period: Positive | None = None
+    coefficients: list[Finite] | None = None
+    times: list[Finite] | None = None
+    values: list[Finite] | None = None
+    absolute: bool = False
+
+    @model_validator(mode="after")
+    def _needs(self):
+        need = {"constant": ["value"], "ramp_to_speed": ["ramp_s"],
+                "smooth_step": ["end", "t1"], "harmonic": ["amplitude", "frequency_hz"],
+                "cycloid": ["stroke", "period"], "polynomial": ["coefficients"],
+                "samples": ["times", "values"], "reference": []}[self.type]
+        missing = [k for k in need if getattr(self, k) is None]
+        if missing:
+            raise ValueError(f"law type {self.type!r} needs {', '.join(missing)}")
+        if self.type == "ramp_to_speed" and (self.speed is None) == (self.speed_rpm is None):
+            raise ValueError("law type 'ramp_to_speed' needs exactly one of speed, speed_rpm")
+        if self.type == "smooth_step" and not self.t1 > self.t0:
+            raise ValueError(f"smooth_step: t1 = {self.t1} must be after t0 = {self.t0}")
+        if self.type == "samples":
+            if len(self.times) != len(self.values) or len(self.times) < 2:
+                raise ValueError("samples: times and values need the same length, at least 2")
+            if any(b <= a for a, b in zip(self.times, self.times[1:])):
+                raise ValueError("samples: times must increase strictly")
+        return self
+
+
+# ----------------------------------------------------------------------------- parts
+class MaterialSpec(_Strict):
+    """Linear elastic isotropic material: E (Pa), nu, rho (kg/m^3)."""
+    E: Positive
+    nu: Annotated[float, Field(gt=-1.0, lt=0.5)]
+    rho: Positive
+
+
+class Section(_Strict):
+    """A beam cross section. Dimensions (m) are numbers, design variable names, or a list of
+    either with one entry per element (root element first) or per group of elements (the
+    elements are split into len(list) equal consecutive groups).
+
+    shape:
+      circle     diameter
+      tube       diameter and thickness, or diameter and wall_ratio (thickness = ratio * d)
+      rectangle  width (out of plane) and height (in the plane of bending)
+      given      EA, EI, rhoA (and optionally GA: the shear stiffness kGA, rhoI); without
+                 GA the beam is shear-rigid in practice (kGA = 1e4 EA / ... see docs)
+    """
+    shape: Literal["circle", "tube", "rectangle", "given"]
+    diameter: Dimension | None = None
+    thickness: Dimension | None = None
+    wall_ratio: Annotated[float, Field(gt=0, le=0.5)] | None = None
+    width: Dimension | None = None
+    height: Dimension | None = None
+    EA: Positive | None = None
+    EI: Positive | None = None
+    GA: Positive | None = None
+    rhoA: Positive | None = None
+    rhoI: NonNegative | None = None
+
+    @model_validator(mode="after")
+    def _dims(self):
+        need = {"circle": ["diameter"], "tube": ["diameter"],
+                "rectangle": ["width", "height"], "given": ["EA", "EI", "rhoA"]}[self.shape]
+        missing = [k for k in need if getattr(self, k) is None]
+        if missing:
+            raise ValueError(f"section shape {self.shape!r} needs {', '.join(missing)}")
+        if self.shape == "tube" and (self.thickness is None) == (self.wall_ratio is None):
+            raise ValueError("section shape 'tube' needs exactly one of thickness, wall_ratio")
+        allowed = {"circle": {"diameter"}, "tube": {"diameter", "thickness", "wall_ratio"},
+                   "rectangle": {"width", "height"},
+                   "given": {"EA", "EI", "GA", "rhoA", "rhoI"}}[self.shape]
+        extra = [k for k in ("diameter", "thickness", "wall_ratio", "width", "height", "EA", "EI",
+                             "GA", "rhoA", "rhoI") if getattr(self, k) is not None and k not in allowed]
+        if extra:
+            raise ValueError(f"section shape {self.shape!r} does not take {', '.join(extra)}")
+        return self
+
+    def dimensions(self):
+        """{dimension: value} of the dimensions that may carry design variables."""
+        return {k: getattr(self, k) for k in ("diameter", "thickness", "width", "height")
+                if getattr(self, k) is not None}
+
+
+class Beam(_Strict):
+    """A flexible beam: a chain of `elements` elements of `order` (1: 2-node, 2: 3-node)
+    from point `from` to point `to` (named in [points]); its nodes at the two ends are the
+    body's points `from` and `to` (joints, loads and responses name them)."""
+    name: Name
+    type: Literal["beam"]
+    start: Name = Field(alias="from")
+    end: Name = Field(alias="to")
+    elements: Annotated[int, Field(ge=1, le=20_000)] = 2
+    order: Literal[1, 2] = 2
+    material: Name
+    section: Section
+
+
+class Rigid(_Strict):
+    """A rigid body through named points, with its mass (kg) and inertia about its centre
+    (kg m^2); the centre is a named point or the points' centroid."""
+    name: Name
+    type: Literal["rigid"]
+    points: Annotated[list[Name], Field(min_length=1)]
+    mass: NonNegative = 0.0
+    inertia: NonNegative = 0.0
+    center: Name | None = None
+
+
+class PointMass(_Strict):
+    """A lumped mass (kg, optional rotary inertia kg m^2) at a point: a body of its own
+    (give it joints) or, with `on`, added to the node of body `on` at that point."""
+    name: Name
+    type: Literal["mass"]
+    at: Name
+    mass: NonNegative
+    inertia: NonNegative = 0.0
+    on: Name | None = None
+
+
+Body = Annotated[Union[Beam, Rigid, PointMass], Field(discriminator="type")]
+
+
+class Joint(_Strict):
+    """A joint at a point.
+
+    type:
+      pin     body to the ground (position fixed, rotation free)
+      clamp   body to the ground (position and rotation fixed)
+      hinge   two bodies share the point (rotation free)
+      weld    two bodies share the point and keep their relative rotation
+      slider  body's point moves on the ground line through the point along `axis`; the
+              body does not rotate (a prismatic joint on the ground)
+    """
+    type: Literal["pin", "clamp", "hinge", "weld", "slider"]
+    at: Name
+    body: Name | None = None
+    bodies: Annotated[list[Name], Field(min_length=2, max_length=2)] | None = None
+    axis: Pair | None = None
+    name: Name | None = None
+
+    @model_validator(mode="after")
+    def _who(self):
+        two = self.type in ("hinge", "weld")
+        if two and self.bodies is None:
+            raise ValueError(f"joint type {self.type!r} needs bodies = [a, b]")
+        if not two and self.body is None:
+            raise ValueError(f"joint type {self.type!r} needs body")
+        if two and self.body is not None or not two and self.bodies is not None:
+            raise ValueError(f"joint type {self.type!r} takes "
+                             f"{'bodies' if two else 'body'}, not {'body' if two else 'bodies'}")
+        if self.type == "slider":
+            if self.axis is None or math.hypot(*self.axis) == 0.0:
+                raise ValueError("joint type 'slider' needs a non-zero axis = [ax, ay]")
+        elif self.axis is not None:
+            raise ValueError(f"joint type {self.type!r} takes no axis")
+        return self
+
+
+class Drive(_Strict):
+    """A motor: the rotation of `body` at point `at` (absolute, or relative to body
+    `relative_to` at the same point), or its translation along `axis` (from the point's
+    initial position)."""
+    type: Literal["rotation", "translation"]
+    body: Name
+    at: Name
+    law: Law
+    relative_to: Name | None = None
+    axis: Pair | None = None
+    name: Name | None = None
+
+    @model_validator(mode="after")
+    def _kind(self):
+        if self.type == "translation":
+            if self.axis is None or math.hypot(*self.axis) == 0.0:
+                raise ValueError("drive type 'translation' needs a non-zero axis = [ax, ay]")
+            if self.relative_to is not None:
+                raise ValueError("drive type 'translation' takes no relative_to")
+        elif self.axis is not None:
+            raise ValueError("drive type 'rotation' takes no axis")
+        return self
+
+
+class Path(_Strict):
+    """The ideal motion of a point, for the rigid reference only: the point `at` of `body`
+    follows x(t), y(t); drives whose law is 'reference' take their motion from it."""
+    body: Name
+    at: Name
+    x: Law
+    y: Law
+
+
+class Load(_Strict):
+    """A force (N) and moment (N m) at a point of a body, times a law of time if given."""
+    body: Name
+    at: Name
+    fx: Finite = 0.0
+    fy: Finite = 0.0
+    moment: Finite = 0.0
+    law: Law | None = None
+
+
+class SpringDamper(_Strict):
+    """A point-to-point spring-damper between two bodies' points: stiffness (N/m), damping
+    (N s/m), free length (m; default: the initial distance)."""
+    bodies: Annotated[list[Name], Field(min_length=2, max_length=2)]
+    at: Annotated[list[Name], Field(min_length=2, max_length=2)]
+    stiffness: NonNegative
+    damping: NonNegative = 0.0
+    free_length: Positive | None = None
+
+
+class DesignVariable(_Strict):
+    """A sizing variable: bounds, start, and the unit of the values given for it."""
+    name: Name
+    lower: Positive
+    upper: Positive
+    start: Positive
+    unit: Literal["m", "mm"] = "m"
+    description: str | None = None
+
+    @model_validator(mode="after")
+    def _bounds(self):
+        if not self.lower < self.upper:
+            raise ValueError(f"design variable {self.name!r}: lower = {self.lower} must be "
+                             f"below upper = {self.upper}")
+        if not self.lower <= self.start <= self.upper:
+            raise ValueError(f"design variable {self.name!r}: start = {self.start} must lie "
+                             f"within [{self.lower}, {self.upper}]")
+        return self
+
+    @property
+    def scale(self):
+        """Metres per unit of the variable."""
+        return 1e-3 if self.unit == "mm" else 1.0
+
+
+# ----------------------------------------------------------------------------- responses
+class PointRef(_Strict):
+    """A point of a body."""
+    body: Name
+    at: Name
+
+
+class Term(_Strict):
+    """One scalar deviation term: component `component` of (the point's flexible position
+    minus its position in the rigid reference), or of the same difference for the vector from
+    `relative_to` to the point; measured in the ground frame or in the rigid reference's frame
+    of body `frame` (axes: x along the body's initial direction, y normal to it).
+    component 'angle': the rotation of the point's node minus its rigid rotation (rad)."""
+    body: Name
+    at: Name
+    component: Literal["x", "y", "norm", "angle"] = "norm"
+    relative_to: PointRef | None = None
+    frame: Name = "ground"
+
+
+class Deviation(_Strict):
+    """Deviation from the rigid reference: sqrt(sum of the terms' squares) (a term of
+    component 'norm' counts its x and y)."""
+    name: Name
+    type: Literal["deviation"]
+    terms: Annotated[list[Term], Field(min_length=1)]
+
+
+class Mass(_Strict):
+    """Mass (kg) of the beams named in `bodies` (all beams if omitted)."""
+    name: Name
+    type: Literal["mass"]
+    bodies: list[Name] | None = None
+
+
+class Stress(_Strict):
+    """Largest normal stress (Pa) at the extreme fibres of the elements of the beams named."""
+    name: Name
+    type: Literal["stress"]
+    bodies: Annotated[list[Name], Field(min_length=1)]
+
+
+Response = Annotated[Union[Deviation, Mass, Stress], Field(discriminator="type")]
+
+
+class Constraint(_Strict):
+    """response <= upper (and/or >= lower) over time: at every step (the paper's local
+    constraints), its maximum, a KS or p-norm aggregate (eq. 22), optionally in a window."""
+    response: Name
+    upper: Finite | None = None
+    lower: Finite | None = None
+    over: Literal["every_step", "max", "ks", "pnorm"] = "every_step"
+    parameter: Positive | None = None       # KS rho (default 100) or p-norm P (default 50)
+    window: Pair | None = None
+
+    @model_validator(mode="after")
+    def _bound(self):
+        if self.upper is None and self.lower is None:
+            raise ValueError(f"constraint on {self.response!r} needs upper or lower")
+        return self
+
+
+class Objective(_Strict):
+    """The response to minimize (a scalar one: mass, or an aggregate)."""
+    response: Name
+    over: Literal["max", "ks", "pnorm", "final"] = "max"
+
+
+class TimeSettings(_Strict):
+    """Generalized-alpha settings: step h (s), horizon t_end (s; rounded to a whole number of
+    steps, the change reported), spectral radius rho_inf, start 'rest' (the rigid velocity
+    field the drives impose) or 'static' (static equilibrium at t = 0, at rest)."""
+    t_end: Positive
+    h: Positive = 5e-4
+    rho_inf: Annotated[float, Field(ge=0.0, le=1.0)] = 0.5
+    start: Literal["rest", "static"] = "rest"
+    reuse_jacobian: bool = False
+
+
+class CaseInfo(_Strict):
+    name: Name = "mechanism"
+    description: str | None = None
+    source: str | None = None
+
+
+# ----------------------------------------------------------------------------- the whole
+class Description(_Strict):
+    """A mechanism and its sizing problem; see the module docstring and docs/case-format.md."""
+    case: CaseInfo = CaseInfo()
+    points: dict[Name, Pair]
+    materials: dict[Name, MaterialSpec] = {}
+    design: list[DesignVariable] = []
+    bodies: Annotated[list[Body], Field(min_length=1)]
+    joints: list[Joint] = []
+    drives: list[Drive] = []
+    paths: list[Path] = []
+    loads: list[Load] = []
+    springs: list[SpringDamper] = []
+    gravity: Pair = [0.0, 0.0]
+    responses: list[Response] = []
+    objective: Objective | None = None
+    constraints: list[Constraint] = []
+    time: TimeSettings
+
+    @field_validator("points")
+    @classmethod
+    def _some_points(cls, v):
+        if not v:
+            raise ValueError("at least one point is needed")
+        return v
+
+    @model_validator(mode="after")
+    def check_references(self):
+        """Every name used is defined, once."""
+        def unique(kind, names):
+            seen = set()
+            for n in names:
+                if n in seen:
+                    raise ValueError(f"two {kind} are called {n!r}")
+                seen.add(n)
+            return seen
+        bodies = {b.name: b for b in self.bodies}
+        unique("bodies", [b.name for b in self.bodies])
+        dvars = unique("design variables", [v.name for v in self.design])
+        responses = unique("responses", [r.name for r in self.responses])
+        pts = set(self.points)
+
+        def point(where, p):
+            if p not in pts:
+                raise ValueError(f"{where}: unknown point {p!r} (points: {', '.join(sorted(pts))})")
+
+        def body_point(where, b, p, beam_only=False):
+            if b not in bodies:
+                raise ValueError(f"{where}: unknown body {b!r} (bodies: {', '.join(bodies)})")
+            point(where, p)
+            if p not in body_points(bodies[b]):
+                raise ValueError(f"{where}: body {b!r} has no point {p!r} (its points: "
+                                 f"{', '.join(body_points(bodies[b]))})")
+            if beam_only and not isinstance(bodies[b], Beam):
+                raise ValueError(f"{where}: body {b!r} is not a beam")
+
+        for b in self.bodies:
+            where = f"body {b.name!r}"
+            if isinstance(b, Beam):
+                point(where, b.start)
+                point(where, b.end)
+                if b.start == b.end:
+                    raise ValueError(f"{where}: from and to are the same point {b.start!r}")
+                if b.material not in self.materials:
+                    raise ValueError(f"{where}: unknown material {b.material!r} (materials: "
+                                     f"{', '.join(self.materials) or 'none defined'})")
+                for dim, v in b.section.dimensions().items():
+                    for item in (v if isinstance(v, list) else [v]):
+                        if isinstance(item, str) and item not in dvars:
+                            raise ValueError(f"{where}: section {dim} = {item!r} is not a design "
+                                             f"variable (design variables: "
+                                             f"{', '.join(sorted(dvars)) or 'none'})")
+                    if isinstance(v, list) and not 1 <= len(v) <= b.elements \
+                            or isinstance(v, list) and b.elements % len(v):
+                        raise ValueError(f"{where}: section {dim} has {len(v)} entries; give one "
+                                         f"per element or per equal group ({b.elements} elements)")
+            elif isinstance(b, Rigid):
+                for p in b.points:
+                    point(where, p)
+                if b.center is not None:
+                    point(where, b.center)
+            else:
+                point(where, b.at)
+                if b.on is not None:
+                    body_point(where, b.on, b.at)
+        for k, j in enumerate(self.joints):
+            where = f"joint {j.name or k + 1} ({j.type})"
+            for b in (j.bodies or [j.body]):
+                body_point(where, b, j.at)
+        for k, d in enumerate(self.drives):
+            where = f"drive {d.name or k + 1}"
+            body_point(where, d.body, d.at)
+            if d.relative_to is not None:
+                body_point(where, d.relative_to, d.at)
+            if d.law.type == "reference" and not self.paths:
+                raise ValueError(f"{where}: law 'reference' needs [[paths]] for the rigid reference")
+        for k, p in enumerate(self.paths):
+            body_point(f"path {k + 1}", p.body, p.at)
+        for k, ld in enumerate(self.loads):
+            body_point(f"load {k + 1}", ld.body, ld.at)
+        for k, s in enumerate(self.springs):
+            for b, p in zip(s.bodies, s.at):
+                body_point(f"spring {k + 1}", b, p)
+        for r in self.responses:
+            where = f"response {r.name!r}"
+            if isinstance(r, Deviation):
+                for t in r.terms:
+                    body_point(where, t.body, t.at)
+                    if t.relative_to is not None:
+                        body_point(where, t.relative_to.body, t.relative_to.at)
+                    if t.frame != "ground" and t.frame not in bodies:
+                        raise ValueError(f"{where}: frame {t.frame!r} is neither 'ground' nor a body")
+            else:
+                for b in (r.bodies or []):
+                    if b not in bodies or not isinstance(bodies[b], Beam):
+                        raise ValueError(f"{where}: {b!r} is not a beam")
+        if self.objective is not None and self.objective.response not in responses:
+            raise ValueError(f"objective: unknown response {self.objective.response!r} "
+                             f"(responses: {', '.join(sorted(responses)) or 'none'})")
+        for c in self.constraints:
+            if c.response not in responses:
+                raise ValueError(f"constraint: unknown response {c.response!r} "
+                                 f"(responses: {', '.join(sorted(responses)) or 'none'})")
+        return self
+
+
+def body_points(body):
+    """The named points a body has a node at."""
+    if isinstance(body, Beam):
+        return [body.start, body.end]
+    if isinstance(body, Rigid):
+        pts = list(body.points)
+        if body.center is not None and body.center not in pts:
+            pts.insert(0, body.center)
+        return pts
+    return [body.at]

@@ -1,0 +1,365 @@
+"""A described mechanism built once onto a flexmbs Model: named points, designs, time laws.
+
+`Mechanism(description)` builds the structure once (nodes, elements, joints, drives, loads,
+springs): a new design only changes section properties (`set_design`), never the structure,
+its sparsity pattern or its KLU analysis. It also builds the rigid reference of the same
+description (every beam rigid; drives whose law is 'reference' replaced by the `paths` they
+follow) on the same nodes, so that node ids, and so coordinates, agree between the two.
+
+Every body has its own nodes (paper 3.3): a beam's end nodes are its points `from` and `to`; a
+rigid body has a node at its centre and one at each of its points, tied by rigid links; a point
+mass is a node (or adds to the node of the body it sits `on`). Joints tie the nodes two bodies
+have at the same point.
+"""
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+
+from flexmbs.description import (Beam, Description, PointMass, Rigid, Section, body_points)
+from flexmbs.errors import ModelError
+from flexmbs.laws import TimeLaw
+from flexmbs.model import Model
+from flexmbs.sections import Circle, GivenSection, Material, Rectangle, Tube
+from flexmbs.simulate import time_steps
+
+__all__ = ["Mechanism", "make_law", "section_at"]
+
+#: section dimension -> (section class parameter)
+_PARAM = {"diameter": "d", "thickness": "t", "width": "b", "height": "h"}
+
+
+# ----------------------------------------------------------------------------- laws
+def make_law(spec, name="law", shift=0.0):
+    """A TimeLaw (analytic value, rate, acceleration) from a description Law, plus `shift`."""
+    k = spec.type
+    z = np.zeros_like
+    if k == "constant":
+        c = spec.value + shift
+        return TimeLaw(lambda t: c + z(t), lambda t: z(t), lambda t: z(t), name=name)
+    if k == "ramp_to_speed":
+        w = spec.speed if spec.speed is not None else spec.speed_rpm * 2 * math.pi / 60
+        tr, s0 = spec.ramp_s, spec.start + shift
+        return TimeLaw(lambda t: s0 + np.where(t <= tr, 0.5 * w / tr * t * t, w * (t - 0.5 * tr)),
+                       lambda t: np.where(t <= tr, w / tr * t, w + z(t)),
+                       lambda t: np.where(t <= tr, w / tr + z(t), z(t)), name=name)
+    if k == "smooth_step":
+        a, b, t0, t1 = spec.start + shift, spec.end + shift, spec.t0, spec.t1
+        d = t1 - t0
+
+        def s(t):
+            return np.clip((t - t0) / d, 0.0, 1.0)
+        return TimeLaw(lambda t: a + (b - a) * s(t) ** 3 * (10 - 15 * s(t) + 6 * s(t) ** 2),
+                       lambda t: (b - a) / d * 30 * s(t) ** 2 * (1 - s(t)) ** 2,
+                       lambda t: (b - a) / d ** 2 * 60 * s(t) * (1 - s(t)) * (1 - 2 * s(t)),
+                       name=name)
+    if k == "harmonic":
+        amp, om, ph, off = spec.amplitude, 2 * math.pi * spec.frequency_hz, spec.phase, spec.offset
+        return TimeLaw(lambda t: off + shift + amp * np.sin(om * t + ph),
+                       lambda t: amp * om * np.cos(om * t + ph),
+                       lambda t: -amp * om * om * np.sin(om * t + ph), name=name)
+    if k == "cycloid":
+        h, T, s0 = spec.stroke, spec.period, spec.start + shift
+        om = 2 * math.pi / T
+        return TimeLaw(lambda t: s0 + h * (t / T - np.sin(om * t) / (2 * math.pi)),
+                       lambda t: h / T * (1 - np.cos(om * t)),
+                       lambda t: h / T * om * np.sin(om * t), name=name)
+    if k == "polynomial":
+        c = np.array(spec.coefficients, float)
+        c[0] = c[0] + shift if c.size else shift
+        p = np.polynomial.Polynomial(c)
+        return TimeLaw(p, p.deriv(1), p.deriv(2), name=name)
+    if k == "samples":
+        law = TimeLaw.samples(spec.times, np.array(spec.values) + shift, name=name)
+        return law
+    raise ModelError(f"{name}: a law of type {k!r} has no formula (it is computed from the "
+                     "rigid reference)")
+
+
+def _law_start(spec):
+    """The law's value at t = 0 (for drives measured from the initial angle)."""
+    return float(make_law(spec).tabulate(np.zeros(1))[0][0])
+
+
+# ----------------------------------------------------------------------------- sections
+def _groups(value, nel):
+    """A dimension's entry for every element (a scalar, or one per element / equal group)."""
+    if not isinstance(value, list):
+        return [value] * nel
+    per = nel // len(value)
+    return [value[e // per] for e in range(nel)]
+
+
+def section_at(spec: Section, values):
+    """The flexmbs Section of one element from its dimensions' values {dimension: metres}."""
+    if spec.shape == "circle":
+        return Circle(values["diameter"])
+    if spec.shape == "tube":
+        if spec.wall_ratio is not None:
+            return Tube.with_wall_ratio(values["diameter"], spec.wall_ratio)
+        return Tube(values["diameter"], values["thickness"])
+    if spec.shape == "rectangle":
+        return Rectangle(values["width"], values["height"])
+    # given: without GA, kGA = EA (shear deflection 12 EI/(EA L^2) of the bending one: under
+    # 1 % for a slenderness L/r above 35, the Euler-Bernoulli limit in practice)
+    return GivenSection(EA=spec.EA, kGA=spec.GA if spec.GA is not None else spec.EA, EI=spec.EI,
+                        rhoA=spec.rhoA, rhoI=spec.rhoI if spec.rhoI is not None else 0.0)
+
+
+# ----------------------------------------------------------------------------- mechanism
+class Mechanism:
+    """The description built onto a Model (see the module docstring).
+
+    Attributes
+    ----------
+    description : Description
+    model : Model                 the flexible mechanism
+    reference_model : Model       the same nodes with the rigid reference's constraints
+    node : dict (body, point) -> node id
+    nsteps, t : the time grid (t_end rounded to a whole number of steps h)
+    variables : list of design variable names; x is in their own units
+    """
+
+    def __init__(self, description: Description):
+        if not isinstance(description, Description):
+            raise ModelError(f"Mechanism expects a flexmbs Description, got "
+                             f"{type(description).__name__}")
+        self.description = d = description
+        ts = d.time
+        nsteps = max(1, int(round(ts.t_end / ts.h)))
+        self.t_end_requested = ts.t_end
+        self.h = ts.h
+        self.nsteps = time_steps(nsteps * ts.h, ts.h)
+        self.t = ts.h * np.arange(self.nsteps + 1)
+        self.t_end = float(self.t[-1])
+        if abs(self.t_end - ts.t_end) > 1e-9 * max(1.0, ts.t_end):
+            warnings.warn(f"time.t_end = {ts.t_end} s is not a whole number of steps "
+                          f"h = {ts.h} s: simulating to {self.t_end:.10g} s ({self.nsteps} steps)",
+                          stacklevel=2)
+        self.variables = [v.name for v in d.design]
+        self._var = {v.name: i for i, v in enumerate(d.design)}
+        self._scale = np.array([v.scale for v in d.design])
+        self.lower = np.array([v.lower for v in d.design])
+        self.upper = np.array([v.upper for v in d.design])
+        self.start = np.array([v.start for v in d.design])
+        self.materials = {k: Material(m.E, m.nu, m.rho) for k, m in d.materials.items()}
+        self._bodies = {b.name: b for b in d.bodies}
+        self.model, self.node = self._structure(d.case.name)
+        self._reference = None
+        self._add_constraints(self.model, reference=False)
+        self.set_design(self.start)
+
+    # ------------------------------------------------------------------ structure
+    def _structure(self, name):
+        d = self.description
+        m = Model(name)
+        node = {}
+        pts = {k: np.array(v, float) for k, v in d.points.items()}
+        self.beams = []
+        for b in d.bodies:
+            if isinstance(b, Beam):
+                mat = self.materials[b.material]
+                body = m.add_beam(b.name, pts[b.start], pts[b.end], b.elements, material=mat,
+                                  section=Circle(1.0), order=b.order)
+                node[(b.name, b.start)] = body.first
+                node[(b.name, b.end)] = body.last
+                self.beams.append(b.name)
+            elif isinstance(b, Rigid):
+                names = [p for p in body_points(b) if p != b.center]
+                ids = [m.add_node(*pts[p]) for p in names]
+                center = pts[b.center] if b.center is not None else None
+                body = m.add_rigid_body(b.name, ids, b.mass, b.inertia, center=center)
+                node.update({(b.name, p): i for p, i in zip(names, ids)})
+                if b.center is not None:
+                    node[(b.name, b.center)] = body.first
+            elif isinstance(b, PointMass) and b.on is None:
+                i = m.add_node(*pts[b.at])
+                m.add_point_mass(i, b.mass, b.inertia)
+                m._new_body(b.name, "mass", [i])
+                node[(b.name, b.at)] = i
+        for b in d.bodies:       # masses on other bodies, once those have their nodes
+            if isinstance(b, PointMass) and b.on is not None:
+                i = node[(b.on, b.at)]
+                m.add_point_mass(i, b.mass, b.inertia)
+                node[(b.name, b.at)] = i
+        m.set_gravity(*d.gravity)
+        for k, ld in enumerate(d.loads):
+            law = make_law(ld.law, f"load {k + 1}") if ld.law is not None else None
+            m.add_load(node[(ld.body, ld.at)], ld.fx, ld.fy, ld.moment, law=law)
+        for s in d.springs:
+            a, b = (node[(bb, p)] for bb, p in zip(s.bodies, s.at))
+            if not hasattr(m, "add_spring_damper"):
+                raise ModelError("spring-dampers need a core with force elements")
+            m.add_spring_damper(a, b, s.stiffness, damping=s.damping,
+                                free_length=s.free_length)
+        return m, node
+
+    def _add_constraints(self, m, reference, motion=None):
+        """Joints and drives (reference=False: the flexible mechanism, drives with law
+        'reference' take their motion from `motion`; True: the rigid reference's constraints,
+        paths instead of those drives)."""
+        d, node = self.description, self.node
+        for k, j in enumerate(d.joints):
+            if j.type in ("pin", "clamp", "slider"):
+                n = node[(j.body, j.at)]
+                if j.type == "pin":
+                    m.pin(n)
+                elif j.type == "clamp":
+                    m.clamp(n)
+                else:
+                    m.slider(n, j.axis)
+            else:
+                a, b = (node[(bb, j.at)] for bb in j.bodies)
+                if a == b:
+                    raise ModelError(f"joint {j.name or k + 1}: bodies {j.bodies} share one node")
+                (m.hinge if j.type == "hinge" else m.weld)(a, b)
+        q0 = m.reference_coordinates()
+        for k, dr in enumerate(d.drives):
+            name = f"drive {dr.name or k + 1}"
+            n = node[(dr.body, dr.at)]
+            other = node[(dr.relative_to, dr.at)] if dr.relative_to is not None else None
+            if dr.law.type == "reference":
+                if reference:
+                    continue
+                law = self._reference_law(dr, n, other, motion, name)
+            elif dr.type == "rotation":
+                base = 0.0 if dr.law.absolute else q0[3 * n + 2] - _law_start(dr.law) - (
+                    q0[3 * other + 2] if other is not None else 0.0)
+                law = make_law(dr.law, name, shift=base)
+            else:
+                law = make_law(dr.law, name, shift=-_law_start(dr.law))
+            if dr.type == "rotation":
+                m.drive_rotation(n, law, relative_to=other)
+            else:
+                m.drive_translation(n, law, dr.axis)
+        if reference:
+            for k, p in enumerate(d.paths):
+                n = node[(p.body, p.at)]
+                # path laws are displacements from the point's initial position
+                m.prescribe_position(
+                    n, x=make_law(p.x, f"path {k + 1} x", shift=q0[3 * n] - _law_start(p.x)),
+                    y=make_law(p.y, f"path {k + 1} y", shift=q0[3 * n + 1] - _law_start(p.y)))
+
+    def _reference_law(self, dr, n, other, motion, name):
+        """The drive's motion in the rigid reference, as a law exact on the time grid."""
+        from scipy.interpolate import CubicHermiteSpline
+        c = 3 * n + (2 if dr.type == "rotation" else 0)
+        if dr.type == "rotation":
+            v, r, a = (arr[:, c] for arr in (motion.q, motion.qd, motion.qdd))
+            if other is not None:
+                v = v - motion.q[:, 3 * other + 2]
+                r = r - motion.qd[:, 3 * other + 2]
+                a = a - motion.qdd[:, 3 * other + 2]
+        else:
+            ax = np.asarray(dr.axis, float) / math.hypot(*dr.axis)
+            sl = slice(3 * n, 3 * n + 2)
+            v = (motion.q[:, sl] - motion.q[0, sl]) @ ax
+            r, a = motion.qd[:, sl] @ ax, motion.qdd[:, sl] @ ax
+        t = motion.t
+        spline = CubicHermiteSpline(t, v, r)
+        return TimeLaw(spline, spline.derivative(1), lambda s: np.interp(s, t, a), name=name)
+
+    # ------------------------------------------------------------------ rigid reference
+    @property
+    def reference(self):
+        """The rigid reference motion on the time grid (flexmbs.kinematics.RigidMotion)."""
+        if self._reference is None:
+            from flexmbs.kinematics import assemble, rigid_reference
+            ref, _ = self._structure(self.description.case.name + " (rigid reference)")
+            self._add_constraints(ref, reference=True)
+            q0 = assemble(ref, 0.0).q
+            self._reference = rigid_reference(ref, self.t, q0=q0)
+            self.reference_model = ref
+            if any(dr.law.type == "reference" for dr in self.description.drives):
+                self._rebuild_with_reference_laws()
+        return self._reference
+
+    def _rebuild_with_reference_laws(self):
+        design = self._x
+        self.model, _ = self._structure(self.description.case.name)
+        self._add_constraints(self.model, reference=False, motion=self._reference)
+        self.set_design(design)
+
+    def initial_state(self):
+        """(q0, qd0): the assembled initial configuration (loops closed by position analysis,
+        every beam straight) and the rigid velocity field the drives impose at t = 0."""
+        from flexmbs.kinematics import assemble, drive_velocities
+        self.reference            # drives with reference laws need it
+        a = assemble(self.model, 0.0)
+        return a.q, drive_velocities(self.model, a.q, 0.0)
+
+    # ------------------------------------------------------------------ design
+    def design_values(self, x):
+        """x (user units) as a checked float array."""
+        try:
+            arr = np.asarray(x, dtype=float)
+        except (TypeError, ValueError):
+            raise ModelError(f"design must be {len(self.variables)} numbers "
+                             f"({', '.join(self.variables)}), got {x!r}") from None
+        if arr.shape != (len(self.variables),) or not np.all(np.isfinite(arr)):
+            raise ModelError(f"design must be {len(self.variables)} finite numbers "
+                             f"({', '.join(self.variables)}), got {x!r}")
+        if np.any(arr <= 0):
+            raise ModelError(f"design values must be positive (section sizes), got {x!r}")
+        return arr
+
+    def _element_values(self, b: Beam, x_m):
+        """Per element of beam b: {dimension: (value m, variable index or -1)}."""
+        out = [dict() for _ in range(b.elements)]
+        for dim, spec in b.section.dimensions().items():
+            for e, item in enumerate(_groups(spec, b.elements)):
+                if isinstance(item, str):
+                    i = self._var[item]
+                    out[e][dim] = (x_m[i], i)
+                else:
+                    out[e][dim] = (float(item), -1)
+        return out
+
+    def set_design(self, x):
+        """Set the sections of every beam for design x (user units)."""
+        x = self.design_values(x)
+        self._x = x
+        x_m = x * self._scale
+        for name in self.beams:
+            b = self._bodies[name]
+            secs = [section_at(b.section, {k: v for k, (v, _) in vals.items()})
+                    for vals in self._element_values(b, x_m)]
+            self.model.set_element_sections(self.model.body(name), secs)
+        return self.model
+
+    def element_property_derivatives(self, x):
+        """d[EA, kGA, EI, rhoA, rhoI]/dx of every element, (5, nel, nv), x in user units."""
+        x = self.design_values(x)
+        x_m = x * self._scale
+        out = np.zeros((5, len(self.model._elements), len(self.variables)))
+        for name in self.beams:
+            b = self._bodies[name]
+            mat = self.materials[b.material]
+            body = self.model.body(name)
+            for e, vals in zip(body.elements, self._element_values(b, x_m)):
+                sec = section_at(b.section, {k: v for k, (v, _) in vals.items()})
+                dsec = sec.property_derivatives(mat)          # (5, nparam)
+                for dim, (_, i) in vals.items():
+                    if i < 0 or (dim == "thickness" and b.section.wall_ratio is not None):
+                        continue
+                    k = list(sec.parameters).index(_PARAM[dim])
+                    out[:, e, i] += dsec[:, k] * self._scale[i]
+        return out
+
+    def half_depths(self, x, body):
+        """Half-depth c (m) of every element of a beam and dc/dx (nel_body, nv)."""
+        x = self.design_values(x)
+        b = self._bodies[body]
+        vals = self._element_values(b, x * self._scale)
+        c = np.zeros(b.elements)
+        dc = np.zeros((b.elements, len(self.variables)))
+        key = "height" if b.section.shape == "rectangle" else "diameter"
+        if b.section.shape == "given":
+            raise ModelError(f"beam {body!r}: a 'given' section has no depth for stresses")
+        for e, v in enumerate(vals):
+            c[e] = 0.5 * v[key][0]
+            if v[key][1] >= 0:
+                dc[e, v[key][1]] = 0.5 * self._scale[v[key][1]]
+        return c, dc

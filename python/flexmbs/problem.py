@@ -1,0 +1,255 @@
+"""A sizing problem: design variables, responses, objective and constraints of a described
+mechanism; `Problem.evaluate(x)` gives every value and its gradient for a design.
+
+>>> from flexmbs.problem import Problem
+>>> prob = Problem("cases/general/fourbar.toml")             # or a Description, or a dict
+>>> ev = prob.evaluate([69.85, 87.61, 37.22])                 # Table 3, weakly coupled design
+>>> round(ev.values["mass"], 2), round(ev.values["deviation_A"].max() * 1e3, 2)   # kg, mm
+(20.7, 0.98)
+
+Gradients are exact (direct differentiation of the discrete generalized-alpha equations in the
+Fortran core, one extra multi-right-hand-side solve per step); only the coordinates the
+responses need are stored and differentiated, and nothing is differentiated when
+``gradient=False``.
+"""
+from __future__ import annotations
+
+import time as _time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from flexmbs.casefile import description_from_dict, read_description
+from flexmbs.description import Deviation, Description, Mass, Stress
+from flexmbs.errors import CaseError, ModelError
+from flexmbs.mechanism import Mechanism
+from flexmbs.responses.aggregate import aggregate
+from flexmbs.responses.deviation import deviation, deviation_terms
+from flexmbs.simulate import simulate
+
+__all__ = ["Problem", "Evaluation", "load_problem"]
+
+
+def load_problem(case):
+    """A Problem from a general-format case: a path, a name in cases/general, a dict or a
+    Description."""
+    return case if isinstance(case, Problem) else Problem(case)
+
+
+def _description(case):
+    if isinstance(case, Description):
+        return case
+    if isinstance(case, dict):
+        return description_from_dict(case)
+    if isinstance(case, (str, Path)):
+        p = Path(case)
+        if p.is_file():
+            return read_description(p)
+        from flexmbs.cases import case_folders
+        stem = p.name.removesuffix(".toml")
+        known = set()
+        for folder in case_folders():
+            sub = folder / "general"
+            if sub.is_dir():
+                f = sub / f"{stem}.toml"
+                if len(p.parts) == 1 and f.is_file():
+                    return read_description(f)
+                known.update(x.name[:-5] for x in sub.iterdir() if x.name.endswith(".toml"))
+        raise CaseError(f"case {str(case)!r} not found: give a path to a general-format .toml "
+                        f"file or one of cases/general: {', '.join(sorted(known)) or 'none'}")
+    raise CaseError(f"a problem needs a case file path, a case name, a dict or a Description, "
+                    f"got {type(case).__name__}")
+
+
+@dataclass
+class Evaluation:
+    """Every response of one design, with gradients w.r.t. the design (user units).
+
+    values[name]: (nt,) history or a float; gradients[name]: (nt, nv) or (nv,) (None without
+    gradients). objective, d_objective: the objective's value and gradient. constraints: the
+    normalised constraint values g <= 0 (one per time step for 'every_step'), jacobian
+    (ng, nv), constraint_names (the response of each row).
+    """
+    x: np.ndarray
+    t: np.ndarray
+    values: dict
+    gradients: dict
+    objective: float | None
+    d_objective: np.ndarray | None
+    constraints: np.ndarray
+    jacobian: np.ndarray | None
+    constraint_names: list
+    stats: dict = field(default_factory=dict)
+    wall_time: float = 0.0
+
+    @property
+    def feasible(self):
+        """All constraints hold (g <= 1e-9)."""
+        return bool(np.all(self.constraints <= 1e-9))
+
+    @property
+    def max_violation(self):
+        """Largest constraint value (<= 0 when feasible)."""
+        return float(self.constraints.max()) if self.constraints.size else -np.inf
+
+    def to_json(self):
+        """A JSON-serialisable dict (histories as their maximum and time of maximum)."""
+        out = {"design": self.x.tolist(), "objective": self.objective,
+               "feasible": self.feasible, "max_violation": self.max_violation, "responses": {}}
+        for k, v in self.values.items():
+            g = self.gradients.get(k)
+            if np.ndim(v) == 0:
+                out["responses"][k] = {"value": float(v),
+                                       "gradient": None if g is None else np.asarray(g).tolist()}
+            else:
+                j = int(np.argmax(v))
+                out["responses"][k] = {"max": float(v[j]), "t_at_max": float(self.t[j]),
+                                       "gradient_of_max": None if g is None else g[j].tolist()}
+        if self.d_objective is not None:
+            out["d_objective"] = self.d_objective.tolist()
+        return out
+
+
+class Problem:
+    """Design variables + responses + objective + constraints of a Description."""
+
+    def __init__(self, case):
+        self.description = _description(case)
+        self.mechanism = Mechanism(self.description)
+        self._resp = {r.name: r for r in self.description.responses}
+
+    # ------------------------------------------------------------------ design space
+    @property
+    def variables(self):
+        return list(self.mechanism.variables)
+
+    @property
+    def lower(self):
+        return self.mechanism.lower.copy()
+
+    @property
+    def upper(self):
+        return self.mechanism.upper.copy()
+
+    @property
+    def start(self):
+        return self.mechanism.start.copy()
+
+    # ------------------------------------------------------------------ simulation
+    def _nodes_needed(self, names):
+        mech = self.mechanism
+        nodes = set()
+        for n in names:
+            r = self._resp[n]
+            if isinstance(r, Deviation):
+                for t in r.terms:
+                    nodes.add(mech.node[(t.body, t.at)])
+                    if t.relative_to is not None:
+                        nodes.add(mech.node[(t.relative_to.body, t.relative_to.at)])
+            elif isinstance(r, Stress):
+                for b in r.bodies:
+                    nodes.update(mech.model.body(b).nodes)
+        return sorted(nodes)
+
+    def simulate(self, x=None, *, gradient=False, responses=None, store=None):
+        """Simulate design x (default: start); with gradient=True the design derivatives of
+        the coordinates the responses need (all responses, or `responses`)."""
+        mech = self.mechanism
+        x = mech.start if x is None else mech.design_values(x)
+        mech.reference                        # drives with 'reference' laws need it
+        model = mech.set_design(x)
+        names = list(self._resp) if responses is None else list(responses)
+        nodes = self._nodes_needed(names)
+        ts = self.description.time
+        q0, qd0 = mech.initial_state()
+        kw = dict(rho_inf=ts.rho_inf, start=ts.start, reuse_jacobian=ts.reuse_jacobian, q0=q0,
+                  qd0=None if ts.start == "static" else qd0)
+        if store is None:
+            store = nodes if nodes else "all"
+        if gradient and nodes and mech.variables:
+            dofs = np.array([3 * n + k for n in nodes for k in range(3)])
+            kw.update(design_derivatives=mech.element_property_derivatives(x),
+                      sensitivity_dofs=dofs)
+        return simulate(model, mech.t_end, ts.h, store=store, **kw)
+
+    # ------------------------------------------------------------------ responses
+    def _response(self, r, x, result, gradient):
+        mech = self.mechanism
+        if isinstance(r, Mass):
+            bodies = r.bodies if r.bodies is not None else mech.beams
+            m = mech.model
+            dprop = mech.element_property_derivatives(x) if gradient else None
+            props = m.element_properties()
+            value, grad = 0.0, np.zeros(len(mech.variables))
+            for b in bodies:
+                for e in m.body(b).elements:
+                    length = m._elements[e][1]
+                    value += length * props[3, e]
+                    if gradient:
+                        grad += length * dprop[3, e]
+            return value, (grad if gradient else None)
+        if isinstance(r, Deviation):
+            ref = mech.reference.q
+            parts = []
+            for t in r.terms:
+                node = mech.node[(t.body, t.at)]
+                rel = mech.node[(t.relative_to.body, t.relative_to.at)] \
+                    if t.relative_to is not None else None
+                frame = mech.model.body(t.frame).first if t.frame != "ground" else None
+                parts.append(deviation_terms(node, ref, result, t, frame, rel, gradient))
+            return deviation(parts, gradient)
+        raise ModelError(f"response {r.name!r}: type {r.type!r} is not evaluated yet")
+
+    def evaluate(self, x=None, gradient=True):
+        """Every response, the objective and the constraints at design x (user units)."""
+        t0 = _time.perf_counter()
+        mech = self.mechanism
+        x = mech.start if x is None else mech.design_values(x)
+        gradient = bool(gradient) and bool(mech.variables)
+        timed = [n for n, r in self._resp.items() if not isinstance(r, Mass)]
+        result = self.simulate(x, gradient=gradient, responses=timed) if timed else None
+        values, grads = {}, {}
+        for name, r in self._resp.items():
+            values[name], grads[name] = self._response(r, x, result, gradient)
+        t = mech.t
+        f = df = None
+        obj = self.description.objective
+        if obj is not None:
+            f, df = _scalar(values[obj.response], grads[obj.response], obj.over, None, t)
+        g_rows, j_rows, names = [], [], []
+        for c in self.description.constraints:
+            v, dv = values[c.response], grads[c.response]
+            for bound, sign in ((c.upper, 1.0), (c.lower, -1.0)):
+                if bound is None:
+                    continue
+                s = abs(bound) if bound != 0 else 1.0
+                # g = sign (r - bound) / |bound| <= 0, aggregated over time as asked
+                r = sign * np.asarray(v, float) / s
+                dr = None if dv is None else sign * np.asarray(dv, float) / s
+                if np.ndim(r):
+                    r, dr = aggregate(r, dr, c.over, parameter=c.parameter, t=t,
+                                      window=c.window)
+                g = np.atleast_1d(r) - sign * bound / s
+                g_rows.append(g)
+                names += [c.response] * g.size
+                if dr is not None:
+                    j_rows.append(np.atleast_2d(dr))
+        cons = np.concatenate(g_rows) if g_rows else np.zeros(0)
+        jac = (np.vstack(j_rows) if j_rows else np.zeros((0, len(mech.variables)))) \
+            if gradient else None
+        return Evaluation(x=x, t=t, values=values, gradients=grads if gradient else {},
+                          objective=f, d_objective=df if gradient else None, constraints=cons,
+                          jacobian=jac, constraint_names=names,
+                          stats=result.stats if result is not None else {},
+                          wall_time=_time.perf_counter() - t0)
+
+
+def _scalar(v, dv, how, parameter, t):
+    """A scalar of a response: itself (scalar responses), or max / ks / pnorm / final of a
+    history, with its gradient."""
+    if np.ndim(v) == 0:
+        return float(v), dv
+    if how == "final":
+        return float(v[-1]), (None if dv is None else dv[-1])
+    return aggregate(v, dv, how, parameter=parameter, t=t)

@@ -1,0 +1,87 @@
+"""Deviation of a flexible mechanism from its rigid reference, with design gradients.
+
+A deviation response (`flexmbs.description.Deviation`) is sqrt(sum c_k^2) over scalar terms
+c_k. A term is a component of the difference between a point's flexible position and its
+position in the rigid reference (or of that difference for the vector from another point to
+it), expressed in the ground frame or in the rigid reference's frame of a body, whose x axis
+turns with the rotation of the body's first node (a beam's axis; a rigid body's centre, at
+angle 0 at t = 0). Component 'angle' is the node's rotation minus its rigid rotation.
+
+The paper's measures are three settings of this (Tromme et al., eqs. 28, 30, 33):
+(28) terms = [A y, (tip relative to A) y]; (30) [tip norm]; (33) [A norm].
+
+The rigid reference does not depend on the sizing design, so the gradient comes from the
+flexible positions alone: d c_k/dx = e_k . R(theta_r)^T d(position)/dx.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["deviation_terms", "deviation"]
+
+
+def _cols(dofs, wanted):
+    idx = np.searchsorted(dofs, wanted)
+    if np.any(idx >= len(dofs)) or np.any(dofs[np.minimum(idx, len(dofs) - 1)] != wanted):
+        return None
+    return idx
+
+
+def _history(result, dofs, derivatives):
+    """q[:, dofs] and dq[:, dofs, :] (None when not asked)."""
+    c = _cols(result.dofs, np.asarray(dofs))
+    if c is None:
+        raise ValueError(f"coordinates {list(dofs)} were not stored")
+    q = result.q[:, c]
+    if not derivatives:
+        return q, None
+    s = _cols(result.sens_dofs, np.asarray(dofs))
+    if s is None:
+        raise ValueError(f"coordinates {list(dofs)} have no design derivatives")
+    return q, result.dq[:, s, :]
+
+
+def deviation_terms(node, reference_q, result, term, frame_node=None, relative_node=None,
+                    derivatives=False):
+    """Scalar terms (ncomp, nt) of one Term and their gradients (ncomp, nt, nv) or None.
+
+    node, relative_node, frame_node: node ids of the point, of the point it is measured from
+    (or None) and of the frame body's first node (None: ground); reference_q: (nt, ndof)."""
+    sl = [3 * node + 2] if term.component == "angle" else [3 * node, 3 * node + 1]
+    q, dq = _history(result, sl, derivatives)
+    d = q - reference_q[:, sl]
+    if relative_node is not None:
+        rl = [3 * relative_node + 2] if term.component == "angle" else \
+            [3 * relative_node, 3 * relative_node + 1]
+        qr, dqr = _history(result, rl, derivatives)
+        d = d - (qr - reference_q[:, rl])
+        if derivatives:
+            dq = dq - dqr
+    if term.component == "angle":
+        return d.T, (np.moveaxis(dq, 1, 0) if derivatives else None)
+    if frame_node is not None:
+        th = reference_q[:, 3 * frame_node + 2]
+        c, s = np.cos(th), np.sin(th)
+        d = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
+        if derivatives:
+            dq = np.stack([c[:, None] * dq[:, 0] + s[:, None] * dq[:, 1],
+                           -s[:, None] * dq[:, 0] + c[:, None] * dq[:, 1]], axis=1)
+    pick = {"x": [0], "y": [1], "norm": [0, 1]}[term.component]
+    return d[:, pick].T, (np.moveaxis(dq[:, pick, :], 1, 0) if derivatives else None)
+
+
+def deviation(parts, derivatives=False):
+    """sqrt(sum c^2) over the terms' components and its gradient ((nt,), (nt, nv) or None).
+
+    parts: list of (values (ncomp, nt), gradients (ncomp, nt, nv) or None) from
+    deviation_terms. Where the deviation is exactly 0 (t = 0 of a rest start) its gradient,
+    which does not exist there, is given as 0."""
+    c = np.concatenate([p[0] for p in parts])
+    value = np.sqrt(np.sum(c * c, axis=0))
+    if not derivatives:
+        return value, None
+    dc = np.concatenate([p[1] for p in parts])
+    num = np.einsum("kt,ktv->tv", c, dc)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        grad = np.where(value[:, None] > 0, num / np.where(value > 0, value, 1.0)[:, None], 0.0)
+    return value, grad
