@@ -357,8 +357,9 @@ class Model:
         off = float(nrm @ (x - pt))
         scale = max(1.0, max(abs(v) for n in self._nodes for v in n[:2]))
         if abs(off) > 1e-9 * scale:
-            raise ModelError(f"slider: node {node} at {tuple(x)} is {abs(off):.3g} m off the line "
-                             f"through point={tuple(pt)} along axis={tuple(ax)}")
+            raise ModelError(f"slider: node {node} at ({x[0]:.6g}, {x[1]:.6g}) is {abs(off):.3g} m "
+                             f"off the line through point=({pt[0]:.6g}, {pt[1]:.6g}) along "
+                             f"axis=({ax[0]:.6g}, {ax[1]:.6g}); the node must lie on the line")
         self._row(CON_LINEAR, [3 * node, 3 * node + 1], [nrm[0], nrm[1]], float(nrm @ pt),
                   label=f"slider node {node} normal")
         self._row(CON_LINEAR, [3 * node + 2], [1.0], self._nodes[node][2],
