@@ -371,7 +371,8 @@ contains
                     return
                 end if
                 if (refresh .or. .not. fact_valid .or. fact_h /= hh) then
-                    call iteration_matrix(m, x%q, x%qd, x%mu, tnew, betap, 1.0_wp, gammap, kdyn, pdyn, vals)
+                    call iteration_matrix(m, x%q, x%qd, x%mu, tnew, betap, 1.0_wp, gammap, kdyn, &
+                                          pdyn, vals)
                     call ls_factor(ls, vals, lst)
                     if (lst == LS_NO_MEMORY) then
                         fact_valid = .false.
@@ -546,10 +547,12 @@ contains
                 lf = real(inc, wp) / nincr
                 ok = .false.
                 do it = 1, 4 * s%max_iter
-                    call residual(m, x%q, qzero, x%qdd, x%mu, 0.0_wp, fgrav, 0.0_wp, ks, ps, r, phimax, lf)
+                    call residual(m, x%q, qzero, x%qdd, x%mu, 0.0_wp, fgrav, 0.0_wp, ks, ps, r, &
+                                  phimax, lf)
                     stats%residual_evaluations = stats%residual_evaluations + 1
                     if (.not. all(abs(r) <= huge(1.0_wp))) exit
-                    call iteration_matrix(m, x%q, qzero, x%mu, 0.0_wp, 0.0_wp, 1.0_wp, 0.0_wp, ks, ps, vals)
+                    call iteration_matrix(m, x%q, qzero, x%mu, 0.0_wp, 0.0_wp, 1.0_wp, 0.0_wp, ks, &
+                                          ps, vals)
                     call ls_factor(ls, vals, lst)
                     if (lst == LS_NO_MEMORY) then
                         status = GA_NO_MEMORY
@@ -589,7 +592,8 @@ contains
 
     !> Consistent initial velocities and accelerations (and multipliers) at t = 0:
     !!   [M  k Phi_q^T; k Phi_q  0] [qd; .]   = [M qd0; -k Phi_t]
-    !!   [M  k Phi_q^T; k Phi_q  0] [qdd; lam] = [f_ext - f_int - f_sd(q, qd); -k (Phi_tt + qd^T Phi_qq qd)]
+    !!   [M  k Phi_q^T; k Phi_q  0] [qdd; lam] = [f_ext - f_int - f_sd(q, qd);
+    !!                                             -k (Phi_tt + qd^T Phi_qq qd)]
     !! with mu = k lam. The velocity step is a mass-weighted projection of qd0.
     subroutine initial_rates(m, ls, vals, fgrav, x, stats, status, info)
         type(mbs_model), intent(in) :: m
