@@ -14,11 +14,12 @@ module assembly
     use flexmbs_kinds, only: wp
     use beam2d, only: beam_internal_forces, MAX_EDOF
     use constraints, only: constraint_row, MAX_CDOF
+    use force_elements, only: spring_damper
     use model_data, only: mbs_model, law_value
     implicit none
     private
     public :: internal_forces, mass_times, external_forces, constraint_values
-    public :: residual, iteration_matrix
+    public :: residual, iteration_matrix, spring_forces, spring_times
 
 contains
 
@@ -115,11 +116,11 @@ contains
         call constraint_row(m%c_kind(r), m%c_coef(:, r), m%c_c0(r), drive, qv, phi, grad, hess)
     end subroutine constraint_values
 
-    !> Residual of eq. (1): r_q = cm M qdd + f_int - f_ext + Phi_q^T (mu + p Phi), r_c = k Phi.
-    !! `cm` = 0 gives the static residual. Returns also max |Phi|.
-    subroutine residual(m, q, qdd, mu, t, fgrav, cm, kscale, pen, r, phimax, lf)
+    !> Residual of eq. (1): r_q = cm M qdd + f_int + f_sd - f_ext + Phi_q^T (mu + p Phi),
+    !! r_c = k Phi. `cm` = 0 and qd = 0 give the static residual. Returns also max |Phi|.
+    subroutine residual(m, q, qd, qdd, mu, t, fgrav, cm, kscale, pen, r, phimax, lf)
         type(mbs_model), intent(in) :: m
-        real(wp), intent(in) :: q(m%ndof), qdd(m%ndof), mu(m%nc), t, fgrav(m%ndof)
+        real(wp), intent(in) :: q(m%ndof), qd(m%ndof), qdd(m%ndof), mu(m%nc), t, fgrav(m%ndof)
         real(wp), intent(in) :: cm, kscale, pen
         real(wp), intent(in), optional :: lf    !! load factor on f_ext (static load stepping)
         real(wp), intent(out) :: r(m%n)
@@ -131,6 +132,7 @@ contains
         call external_forces(m, fgrav, t, fext)
         if (present(lf)) fext = lf * fext
         r(1:m%ndof) = fint - fext
+        if (m%nsd > 0) call spring_forces(m, q, qd, r(1:m%ndof))
         if (cm /= 0) then
             call mass_times(m, qdd, mq)
             r(1:m%ndof) = r(1:m%ndof) + cm * mq
@@ -147,12 +149,13 @@ contains
     end subroutine residual
 
     !> Iteration matrix of eq. (7) (see the module header) into `vals`.
-    subroutine iteration_matrix(m, q, mu, t, cm, ck, kscale, pen, vals)
+    subroutine iteration_matrix(m, q, qd, mu, t, cm, ck, cc, kscale, pen, vals)
         type(mbs_model), intent(in) :: m
-        real(wp), intent(in) :: q(m%ndof), mu(m%nc), t
+        real(wp), intent(in) :: q(m%ndof), qd(m%ndof), mu(m%nc), t
         real(wp), intent(in) :: cm      !! coefficient of M (beta' in dynamics, 0 in statics)
         real(wp), intent(in) :: ck      !! coefficient of the stiffness terms (1, or 0 for the
                                         !! initial-acceleration system)
+        real(wp), intent(in) :: cc      !! coefficient of C_t (gamma' in dynamics, 0 in statics)
         real(wp), intent(in) :: kscale, pen
         real(wp), intent(out) :: vals(:)
         real(wp) :: fint(m%ndof)
@@ -160,6 +163,10 @@ contains
         integer :: e, ne, a, b, i
         vals = 0
         if (ck /= 0) call internal_forces(m, q, fint, vals, ck)
+        if (m%nsd > 0 .and. (ck /= 0 .or. cc /= 0)) then
+            fint = 0
+            call spring_forces(m, q, qd, fint, vals, ck, cc)
+        end if
         if (cm /= 0) then
             do e = 1, m%nel
                 ne = 3 * m%el_nen(e)
@@ -188,5 +195,49 @@ contains
             end do
         end do
     end subroutine iteration_matrix
+
+    !> Adds the spring-damper forces f_sd(q, qd) to f; with `vals`, adds ck K + cc C
+    !! of every spring-damper at its positions (force_elements.f90).
+    subroutine spring_forces(m, q, qd, f, vals, ck, cc)
+        type(mbs_model), intent(in) :: m
+        real(wp), intent(in) :: q(m%ndof), qd(m%ndof)
+        real(wp), intent(inout) :: f(m%ndof)
+        real(wp), intent(inout), optional :: vals(:)
+        real(wp), intent(in), optional :: ck, cc
+        real(wp) :: fe(4), ke(4, 4), ce(4, 4)
+        integer :: i, a, b
+        do i = 1, m%nsd
+            if (present(vals)) then
+                call spring_damper(m%sd_prop(:, i), q(m%sd_dofs(:, i)), qd(m%sd_dofs(:, i)), fe, ke, ce)
+                do b = 1, 4
+                    do a = 1, 4
+                        vals(m%map_sd(a, b, i)) = vals(m%map_sd(a, b, i)) + ck * ke(a, b) + cc * ce(a, b)
+                    end do
+                end do
+            else
+                call spring_damper(m%sd_prop(:, i), q(m%sd_dofs(:, i)), qd(m%sd_dofs(:, i)), fe)
+            end if
+            do a = 1, 4
+                f(m%sd_dofs(a, i)) = f(m%sd_dofs(a, i)) + fe(a)
+            end do
+        end do
+    end subroutine spring_forces
+
+    !> y = (ck K_sd + cc C_sd) x: the spring-damper tangents at (q, qd) times x, matrix-free.
+    subroutine spring_times(m, q, qd, x, ck, cc, y)
+        type(mbs_model), intent(in) :: m
+        real(wp), intent(in) :: q(m%ndof), qd(m%ndof), x(m%ndof), ck, cc
+        real(wp), intent(out) :: y(m%ndof)
+        real(wp) :: fe(4), ke(4, 4), ce(4, 4), ye(4)
+        integer :: i, a
+        y = 0
+        do i = 1, m%nsd
+            call spring_damper(m%sd_prop(:, i), q(m%sd_dofs(:, i)), qd(m%sd_dofs(:, i)), fe, ke, ce)
+            ye = matmul(ck * ke + cc * ce, x(m%sd_dofs(:, i)))
+            do a = 1, 4
+                y(m%sd_dofs(a, i)) = y(m%sd_dofs(a, i)) + ye(a)
+            end do
+        end do
+    end subroutine spring_times
 
 end module assembly

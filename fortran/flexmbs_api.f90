@@ -114,7 +114,8 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
                     map_el, map_diag, map_cq, map_qc, map_qq, nap, nai, ap, ai, &
                     h, rho_inf, tol, max_iter, max_cuts, solver, reuse, static_start, &
                     kscale, penalty, out_dofs, q_out, qd_out, qdd_out, mu_out, stats, status, info, &
-                    nv, nva, nsens, dprop, sens_dofs, dq_out)
+                    nv, nva, nsens, dprop, sens_dofs, dq_out, &
+                    nsd, nsda, sd_dofs, sd_prop, map_sd, want_dmu, ndmu, dmu_out)
     use iso_c_binding, only: c_double, c_int
     use model_data, only: mbs_model, model_from_arrays
     use generalized_alpha, only: ga_settings, ga_stats, ga_simulate, GA_NO_MEMORY, MEM_MODEL
@@ -147,17 +148,25 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     real(c_double), intent(in) :: dprop(5, nela, nva)       !! d[EA,kGA,EI,rhoA,rhoI]/dp per element
     integer(c_int), intent(in) :: sens_dofs(nsens)          !! coordinates whose dq/dp is returned
     real(c_double), intent(out) :: dq_out(nsens, nva, nsteps + 1)  !! dq/dp on the grid
+    integer(c_int), intent(in) :: nsd, nsda                 !! spring-dampers, extent (>= 1)
+    integer(c_int), intent(in) :: sd_dofs(4, nsda)          !! x_a, y_a, x_b, y_b (1-based)
+    real(c_double), intent(in) :: sd_prop(4, nsda)          !! k, c, l0, f0
+    integer(c_int), intent(in) :: map_sd(16, nsda)          !! value positions of the 4 x 4 blocks
+    integer(c_int), intent(in) :: want_dmu                  !! 1: return d(mu)/dp (needs nv > 0)
+    integer(c_int), intent(in) :: ndmu                      !! extent: nca when want_dmu, else 1
+    real(c_double), intent(out) :: dmu_out(ndmu, nva, nsteps + 1)  !! d(mu)/dp on the grid
     type(mbs_model) :: m
     type(ga_settings) :: s
     type(ga_stats) :: st
     integer :: stat
     real(c_double) :: nbytes
-    q_out = 0; qd_out = 0; qdd_out = 0; mu_out = 0; dq_out = 0; stats = 0; info = 0
+    q_out = 0; qd_out = 0; qdd_out = 0; mu_out = 0; dq_out = 0; dmu_out = 0; stats = 0; info = 0
     call model_from_arrays(m, int(ndof), int(nc), int(nel), int(nload), int(nlaw), int(nnz), &
                            qref, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
                            ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, &
                            c_c0, c_law, c_lawcoef, law_h, law_val, law_der, law_dd0, &
-                           map_el, map_diag, map_cq, map_qc, map_qq, stat, nbytes)
+                           map_el, map_diag, map_cq, map_qc, map_qq, stat, nbytes, &
+                           int(nsd), int(sd_dofs), sd_prop, int(map_sd))
     if (stat /= 0) then
         status = int(GA_NO_MEMORY, c_int)
         info = [0.0_c_double, nbytes, 0.0_c_double, real(MEM_MODEL, c_double)]
@@ -174,7 +183,11 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     s%static_start = static_start /= 0
     s%kscale = kscale
     s%penalty = penalty
-    if (nv > 0) then
+    if (nv > 0 .and. want_dmu /= 0 .and. ndmu >= nc) then
+        call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
+                         mu_out, st, stat, info, dprop(:, :, 1:nv), int(sens_dofs), dq_out(:, 1:nv, :), &
+                         dmu_out(:, 1:nv, :))
+    else if (nv > 0) then
         call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
                          mu_out, st, stat, info, dprop(:, :, 1:nv), int(sens_dofs), dq_out(:, 1:nv, :))
     else
@@ -213,13 +226,14 @@ end subroutine beam_element_mass
 
 !> Residual of eq. (1) and iteration matrix of eq. (7) of a model at one state
 !! (dense storage: vals is the n x n matrix, column-major). With cm = 0, ck = 1,
-!! kscale = 0, pen = 0 and mu = 0 the leading ndof x ndof block is K_t.
+!! cc = 0, kscale = 0, pen = 0 and mu = 0 the leading ndof x ndof block is K_t.
 subroutine system_matrices(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npts, &
                            qref, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
                            ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, c_c0, c_law, c_lawcoef, &
                            law_h, law_val, law_der, law_dd0, &
                            map_el, map_diag, map_cq, map_qc, map_qq, &
-                           q, qdd, mu, t, cm, ck, kscale, pen, r, vals, phimax, status)
+                           q, qdd, mu, t, cm, ck, kscale, pen, r, vals, phimax, status, &
+                           nsd, nsda, sd_dofs, sd_prop, map_sd, qd, cc)
     use iso_c_binding, only: c_double, c_int
     use model_data, only: mbs_model, model_from_arrays
     use assembly, only: residual, iteration_matrix, mass_times
@@ -243,6 +257,12 @@ subroutine system_matrices(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nla
     real(c_double), intent(out) :: vals(nnz)                         !! iteration matrix values
     real(c_double), intent(out) :: phimax                            !! max |Phi|
     integer(c_int), intent(out) :: status                            !! 0 ok, 9 out of memory
+    integer(c_int), intent(in) :: nsd, nsda                          !! spring-dampers, extent (>= 1)
+    integer(c_int), intent(in) :: sd_dofs(4, nsda)
+    real(c_double), intent(in) :: sd_prop(4, nsda)
+    integer(c_int), intent(in) :: map_sd(16, nsda)
+    real(c_double), intent(in) :: qd(ndof)                           !! velocities (spring-dampers)
+    real(c_double), intent(in) :: cc                                 !! coefficient of C_t (gamma')
     type(mbs_model) :: m
     real(c_double) :: fgrav(ndof), nbytes
     integer :: stat
@@ -251,10 +271,11 @@ subroutine system_matrices(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nla
                            qref, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
                            ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, &
                            c_c0, c_law, c_lawcoef, law_h, law_val, law_der, law_dd0, &
-                           map_el, map_diag, map_cq, map_qc, map_qq, stat, nbytes)
+                           map_el, map_diag, map_cq, map_qc, map_qq, stat, nbytes, &
+                           int(nsd), int(sd_dofs), sd_prop, int(map_sd))
     status = int(stat * 9, c_int)
     if (stat /= 0) return
     call mass_times(m, m%gacc, fgrav)
-    call residual(m, q, qdd, mu(1:max(nc, 0)), t, fgrav, cm, kscale, pen, r, phimax)
-    call iteration_matrix(m, q, mu(1:max(nc, 0)), t, cm, ck, kscale, pen, vals)
+    call residual(m, q, qd, qdd, mu(1:max(nc, 0)), t, fgrav, cm, kscale, pen, r, phimax)
+    call iteration_matrix(m, q, qd, mu(1:max(nc, 0)), t, cm, ck, cc, kscale, pen, vals)
 end subroutine system_matrices

@@ -12,7 +12,7 @@ module generalized_alpha
     use constraints, only: MAX_CDOF
     use model_data, only: mbs_model, law_rate, law_accel0
     use assembly, only: residual, iteration_matrix, mass_times, internal_forces, &
-                        external_forces, constraint_values
+                        external_forces, constraint_values, spring_forces, spring_times
     use sensitivity, only: mass_design_derivative_times, stiffness_times, &
                            constraint_curvature, step_design_rhs
     use linear_solver, only: linear_system, ls_init_dense, ls_init_sparse, ls_factor, &
@@ -152,9 +152,10 @@ contains
     !! With `dprop` (5, nel, nv) = d[EA, kGA, EI, rhoA, rhoI]/dp, the design
     !! derivatives of the discrete equations are carried forward (direct
     !! differentiation, see sens_step) and dq/dp of the coordinates `sens_dofs` is
-    !! returned in dq_out(:, v, j+1).
+    !! returned in dq_out(:, v, j+1); with `dmu_out`, d(mu)/dp of every constraint row
+    !! (the multipliers' part of the same solve) in dmu_out(:, v, j+1).
     subroutine ga_simulate(m, s, ap, ai, q0, qd0, out_dofs, q_out, qd_out, qdd_out, mu_out, &
-                           stats, status, info, dprop, sens_dofs, dq_out)
+                           stats, status, info, dprop, sens_dofs, dq_out, dmu_out)
         type(mbs_model), intent(in) :: m
         type(ga_settings), intent(in) :: s
         integer, intent(in) :: ap(:), ai(:)           !! CSC pattern (0-based), KLU only
@@ -167,6 +168,8 @@ contains
         real(wp), intent(in), optional :: dprop(:, :, :)     !! (5, nel, nv) section derivatives
         integer, intent(in), optional :: sens_dofs(:)        !! coordinates whose derivatives are returned
         real(wp), intent(out), optional :: dq_out(:, :, :)   !! (nsens, nv, nsteps + 1)
+        !> (nc, nv, nsteps + 1): d(mu)/dp of every constraint row, mu = k lambda (only when present)
+        real(wp), intent(out), optional :: dmu_out(:, :, :)
         type(linear_system) :: ls
         type(ga_state) :: x, xsave
         real(wp), allocatable :: fgrav(:), vals(:)
@@ -227,6 +230,7 @@ contains
                 goto 900
             end if
             dq_out = 0
+            if (present(dmu_out)) dmu_out = 0
         end if
         x%q = q0
         x%qd = qd0
@@ -326,6 +330,7 @@ contains
             qdd_out(:, jj + 1) = x%qdd(out_dofs)
             if (m%nc > 0) mu_out(:, jj + 1) = x%mu
             if (nv > 0) dq_out(:, :, jj + 1) = x%dq(sens_dofs, :)
+            if (nv > 0 .and. m%nc > 0 .and. present(dmu_out)) dmu_out(1:m%nc, :, jj + 1) = x%dmu
         end subroutine store
 
         !> One generalized-alpha step from tn to tn + hh (eqs. 3–5), Newton on eq. (7).
@@ -358,7 +363,7 @@ contains
             err_prev = huge(1.0_wp)
             stat = GA_NEWTON_FAILED
             do it = 1, s%max_iter
-                call residual(m, x%q, x%qdd, x%mu, tnew, fgrav, 1.0_wp, kdyn, pdyn, r, phimax)
+                call residual(m, x%q, x%qd, x%qdd, x%mu, tnew, fgrav, 1.0_wp, kdyn, pdyn, r, phimax)
                 stats%residual_evaluations = stats%residual_evaluations + 1
                 if (.not. all(abs(r) <= huge(1.0_wp))) then
                     stat = GA_NONFINITE
@@ -366,7 +371,8 @@ contains
                     return
                 end if
                 if (refresh .or. .not. fact_valid .or. fact_h /= hh) then
-                    call iteration_matrix(m, x%q, x%mu, tnew, betap, 1.0_wp, kdyn, pdyn, vals)
+                    call iteration_matrix(m, x%q, x%qd, x%mu, tnew, betap, 1.0_wp, gammap, kdyn, &
+                                          pdyn, vals)
                     call ls_factor(ls, vals, lst)
                     if (lst == LS_NO_MEMORY) then
                         fact_valid = .false.
@@ -417,17 +423,19 @@ contains
         !! with respect to p). With qdd'_{n+1} = beta' (q'_{n+1} - Qhat) and
         !! qd'_{n+1} = Vhat + gamma' (q'_{n+1} - Qhat), where Qhat and Vhat collect the
         !! known derivatives of step n, the derivative of the residual gives
-        !!   S [q'; lambda'] = [ -dr/dp + beta' M Qhat ; 0 ],  mu' = k lambda',
+        !!   S [q'; lambda'] = [ -dr/dp + beta' M Qhat + C_t (gamma' Qhat - Vhat) ; 0 ],
+        !! mu' = k lambda' (k: the scaling of the iteration matrix S, constant over the run),
         !! with S the iteration matrix of eq. (7) at the converged state: the
         !! factorization Newton already holds (full Newton: taken within `tol` of
         !! the solution), or a fresh one in modified Newton.
         subroutine sens_step(hh, tnew, betap, gammap, stat)
             real(wp), intent(in) :: hh, tnew, betap, gammap
             integer, intent(out) :: stat
-            integer :: lst
+            integer :: lst, v
+            real(wp) :: cv(m%ndof)
             stat = GA_OK
             if (s%reuse) then
-                call iteration_matrix(m, x%q, x%mu, tnew, betap, 1.0_wp, kdyn, pdyn, vals)
+                call iteration_matrix(m, x%q, x%qd, x%mu, tnew, betap, 1.0_wp, gammap, kdyn, pdyn, vals)
                 call ls_factor(ls, vals, lst)
                 if (lst == LS_NO_MEMORY) then
                     stat = GA_NO_MEMORY
@@ -445,6 +453,13 @@ contains
             qhat = x%dq + hh * x%dqd + hh**2 * ((0.5_wp - beta) * x%da + beta * ap_)
             vhat = x%dqd + hh * ((1 - gamma) * x%da + gamma * ap_)
             call step_design_rhs(m, dprop, x%q, x%qdd - m%gacc, betap, qhat, rhs(1:m%ndof, :))
+            if (m%nsd > 0) then
+                ! velocity-dependent forces: C_t qd' = gamma' C_t q' + C_t (vhat - gamma' qhat)
+                do v = 1, nv
+                    call spring_times(m, x%q, x%qd, gammap * qhat(:, v) - vhat(:, v), 0.0_wp, 1.0_wp, cv)
+                    rhs(1:m%ndof, v) = rhs(1:m%ndof, v) + cv
+                end do
+            end if
             rhs(m%ndof + 1:, :) = 0
             call ls_solve(ls, rhs, lst)
             if (lst /= LS_OK) then
@@ -514,6 +529,7 @@ contains
         real(wp), intent(out) :: info(4)
         real(wp), intent(out) :: ks, ps          !! k and p used (for the sensitivities)
         real(wp) :: q_start(m%ndof), r(m%n), z(m%n, 1), err, phimax, lf
+        real(wp) :: qzero(m%ndof)                !! velocities of the static state
         integer :: nincr, inc, it, lst, attempt
         logical :: ok
         ks = s%kscale
@@ -521,6 +537,7 @@ contains
         ps = s%penalty
         if (.not. (ps > 0)) ps = ks
         q_start = x%q
+        qzero = 0
         nincr = 1
         do attempt = 1, 3
             x%q = q_start
@@ -530,10 +547,12 @@ contains
                 lf = real(inc, wp) / nincr
                 ok = .false.
                 do it = 1, 4 * s%max_iter
-                    call residual(m, x%q, x%qdd, x%mu, 0.0_wp, fgrav, 0.0_wp, ks, ps, r, phimax, lf)
+                    call residual(m, x%q, qzero, x%qdd, x%mu, 0.0_wp, fgrav, 0.0_wp, ks, ps, r, &
+                                  phimax, lf)
                     stats%residual_evaluations = stats%residual_evaluations + 1
                     if (.not. all(abs(r) <= huge(1.0_wp))) exit
-                    call iteration_matrix(m, x%q, x%mu, 0.0_wp, 0.0_wp, 1.0_wp, ks, ps, vals)
+                    call iteration_matrix(m, x%q, qzero, x%mu, 0.0_wp, 0.0_wp, 1.0_wp, 0.0_wp, ks, &
+                                          ps, vals)
                     call ls_factor(ls, vals, lst)
                     if (lst == LS_NO_MEMORY) then
                         status = GA_NO_MEMORY
@@ -573,7 +592,8 @@ contains
 
     !> Consistent initial velocities and accelerations (and multipliers) at t = 0:
     !!   [M  k Phi_q^T; k Phi_q  0] [qd; .]   = [M qd0; -k Phi_t]
-    !!   [M  k Phi_q^T; k Phi_q  0] [qdd; lam] = [f_ext - f_int; -k (Phi_tt + qd^T Phi_qq qd)]
+    !!   [M  k Phi_q^T; k Phi_q  0] [qdd; lam] = [f_ext - f_int - f_sd(q, qd);
+    !!                                             -k (Phi_tt + qd^T Phi_qq qd)]
     !! with mu = k lam. The velocity step is a mass-weighted projection of qd0.
     subroutine initial_rates(m, ls, vals, fgrav, x, stats, status, info)
         type(mbs_model), intent(in) :: m
@@ -592,7 +612,7 @@ contains
         info = 0
         k0 = mass_scale(m)
         mu0 = 0
-        call iteration_matrix(m, x%q, mu0, 0.0_wp, 1.0_wp, 0.0_wp, k0, 0.0_wp, vals)
+        call iteration_matrix(m, x%q, x%qd, mu0, 0.0_wp, 1.0_wp, 0.0_wp, 0.0_wp, k0, 0.0_wp, vals)
         call ls_factor(ls, vals, lst)
         if (lst == LS_NO_MEMORY) then
             status = GA_NO_MEMORY
@@ -620,6 +640,7 @@ contains
         call internal_forces(m, x%q, fint)
         call external_forces(m, fgrav, 0.0_wp, fext)
         stats%residual_evaluations = stats%residual_evaluations + 1
+        if (m%nsd > 0) call spring_forces(m, x%q, x%qd, fint)
         z(1:m%ndof, 2) = fext - fint
         do i = 1, m%nc
             call constraint_values(m, i, x%q, 0.0_wp, phi, grad, hess)
@@ -657,15 +678,17 @@ contains
         type(ga_state), intent(inout) :: x
         integer, intent(out) :: status
         real(wp), allocatable :: rhs(:, :), zero(:, :)
+        real(wp) :: qzero(m%ndof)
         integer :: lst, ierr
         status = GA_OK
+        qzero = 0
         allocate (rhs(m%n, size(dprop, 3)), zero(m%ndof, size(dprop, 3)), stat=ierr)
         if (ierr /= 0) then
             status = GA_NO_MEMORY
             return
         end if
         zero = 0
-        call iteration_matrix(m, x%q, x%mu, 0.0_wp, 0.0_wp, 1.0_wp, ks, ps, vals)
+        call iteration_matrix(m, x%q, qzero, x%mu, 0.0_wp, 0.0_wp, 1.0_wp, 0.0_wp, ks, ps, vals)
         call ls_factor(ls, vals, lst)
         if (lst /= LS_OK) then
             status = GA_STATIC_FAILED
@@ -686,7 +709,7 @@ contains
     !> Design derivatives of the consistent initial velocities and accelerations,
     !! with the factorization of [M k Phi_q^T; k Phi_q 0] left by initial_rates:
     !!   M qd'  + k Phi_q^T nu'  = dM/dp (qd0 - qd)           Phi_q qd'  = -(Phi_qq q0') qd
-    !!   M qdd' + k Phi_q^T lam' = dM/dp (g - qdd) - df_int/dp - (K_t + mu Phi_qq) q0'
+    !!   M qdd' + k Phi_q^T lam' = dM/dp (g - qdd) - df_int/dp - (K_t + mu Phi_qq) q0' - C_t qd'
     !!                                    Phi_q qdd' = -(Phi_qq q0') qdd - 2 qd^T Phi_qq qd'
     !! (exact for linear constraints, and for rigid links started at rest; the
     !! third derivative of a rigid link times qd^2 is neglected).
@@ -728,6 +751,13 @@ contains
         do v = 1, nv
             call stiffness_times(m, x%q, x%mu, x%dq(:, v), kq)
             rhs(1:m%ndof, v) = rhs(1:m%ndof, v) - kq
+            if (m%nsd > 0) then
+                ! spring-dampers: - K_sd q0' - C_sd qd'
+                call spring_times(m, x%q, x%qd, x%dq(:, v), 1.0_wp, 0.0_wp, kq)
+                rhs(1:m%ndof, v) = rhs(1:m%ndof, v) - kq
+                call spring_times(m, x%q, x%qd, x%dqd(:, v), 0.0_wp, 1.0_wp, kq)
+                rhs(1:m%ndof, v) = rhs(1:m%ndof, v) - kq
+            end if
             call constraint_curvature(m, x%q, x%dq(:, v), x%qdd, c1)
             call constraint_curvature(m, x%q, x%qd, x%dqd(:, v), c2)
             rhs(m%ndof + 1:, v) = -k0 * (c1 + 2 * c2)

@@ -5,6 +5,7 @@ module model_data
     use flexmbs_kinds, only: wp
     use beam2d, only: beam_mass, beam_reference_strains, MAX_EDOF, MAX_GAUSS
     use constraints, only: MAX_CDOF, CON_LINEAR
+    use force_elements, only: SD_NPROP
     implicit none
     private
     public :: mbs_model, law_value, law_rate, law_accel0
@@ -17,6 +18,7 @@ module model_data
         integer :: nload = 0                     !! time-dependent nodal loads
         integer :: nlaw = 0                      !! tabulated time laws
         integer :: nnz = 0                       !! stored values of the iteration matrix
+        integer :: nsd = 0                       !! spring-dampers (force_elements.f90)
         real(wp), allocatable :: qref(:)         !! reference (stress-free) configuration
         real(wp), allocatable :: lumped(:)       !! lumped diagonal masses (point masses, inertias)
         real(wp), allocatable :: gacc(:)         !! gravity acceleration per coordinate
@@ -42,6 +44,9 @@ module model_data
         real(wp), allocatable :: law_val(:, :)   !! (nlaw, npts) values on the grid
         real(wp), allocatable :: law_der(:, :)   !! (nlaw, npts) first derivatives on the grid
         real(wp), allocatable :: law_dd0(:)      !! second derivatives at t = 0
+        integer, allocatable :: sd_dofs(:, :)    !! (4, nsd) coordinates x_a, y_a, x_b, y_b
+        real(wp), allocatable :: sd_prop(:, :)   !! (SD_NPROP, nsd) k, c, l0, f0
+        integer, allocatable :: map_sd(:, :, :)  !! (4, 4, nsd) value positions of the spring blocks
         integer, allocatable :: map_el(:, :, :)  !! (MAX_EDOF, MAX_EDOF, nel) value positions
         integer, allocatable :: map_diag(:)      !! (ndof) positions of the diagonal
         integer, allocatable :: map_cq(:, :)     !! (MAX_CDOF, nc) positions of (ndof+r, dof)
@@ -62,7 +67,8 @@ contains
                                  el_nen, el_dofs, el_len, el_prop, ld_dof, ld_law, ld_amp, &
                                  c_kind, c_dofs, c_coef, c_c0, c_law, c_lawcoef, &
                                  law_h, law_val, law_der, law_dd0, &
-                                 map_el, map_diag, map_cq, map_qc, map_qq, status, nbytes)
+                                 map_el, map_diag, map_cq, map_qc, map_qq, status, nbytes, &
+                                 nsd, sd_dofs, sd_prop, map_sd)
         type(mbs_model), intent(out) :: m
         integer, intent(in) :: ndof, nc, nel, nload, nlaw, nnz
         real(wp), intent(in) :: qref(:), lumped(:), gacc(:)
@@ -76,7 +82,10 @@ contains
         integer, intent(in) :: map_el(:, :), map_diag(:), map_cq(:, :), map_qc(:, :), map_qq(:, :)
         integer, intent(out) :: status           !! 0 ok, 1 out of memory
         real(wp), intent(out) :: nbytes          !! bytes asked for when status = 1
-        integer :: e, r, ne, nca, nld, ierr
+        integer, intent(in), optional :: nsd     !! spring-dampers (0 when absent)
+        integer, intent(in), optional :: sd_dofs(:, :), map_sd(:, :)
+        real(wp), intent(in), optional :: sd_prop(:, :)
+        integer :: e, r, ne, nca, nld, ierr, nsa
         m%ndof = ndof
         m%nc = nc
         m%nel = nel
@@ -86,6 +95,9 @@ contains
         ne = max(nel, 1)
         nca = max(nc, 1)
         nld = max(nload, 1)
+        m%nsd = 0
+        if (present(nsd)) m%nsd = nsd
+        nsa = max(m%nsd, 1)
         status = 0
         nbytes = 0
         allocate (m%qref(ndof), m%lumped(ndof), m%gacc(ndof), m%map_diag(ndof), &
@@ -97,12 +109,14 @@ contains
                   m%map_cq(size(map_cq, 1), nca), m%map_qc(size(map_qc, 1), nca), &
                   m%map_qq(MAX_CDOF, MAX_CDOF, nca), &
                   m%law_val(size(law_val, 1), size(law_val, 2)), &
-                  m%law_der(size(law_der, 1), size(law_der, 2)), m%law_dd0(size(law_dd0)), stat=ierr)
+                  m%law_der(size(law_der, 1), size(law_der, 2)), m%law_dd0(size(law_dd0)), &
+                  m%sd_dofs(4, nsa), m%sd_prop(SD_NPROP, nsa), m%map_sd(4, 4, nsa), stat=ierr)
         if (ierr /= 0) then
             nbytes = 8.0_wp * (4.0_wp * ndof + real(ne, wp) * (1 + size(el_dofs, 1) + 1 &
                      + size(el_prop, 1) + MAX_EDOF**2) + 3.0_wp * nld &
                      + real(nca, wp) * (4 + size(c_dofs, 1) + size(c_coef, 1) + 2 * size(map_cq, 1) &
-                     + MAX_CDOF**2) + 2.0_wp * size(law_val) + size(law_dd0))
+                     + MAX_CDOF**2) + 2.0_wp * size(law_val) + size(law_dd0) &
+                     + real(nsa, wp) * (4 + SD_NPROP + 16))
             call model_free(m)
             status = 1
             return
@@ -136,6 +150,16 @@ contains
         m%law_val = law_val
         m%law_der = law_der
         m%law_dd0 = law_dd0
+        m%sd_dofs = 1
+        m%sd_prop = 0
+        m%map_sd = 1
+        if (m%nsd > 0) then
+            m%sd_dofs = sd_dofs(:, 1:nsa)
+            m%sd_prop = sd_prop(:, 1:nsa)
+            do r = 1, nsa
+                m%map_sd(:, :, r) = reshape(map_sd(:, r), [4, 4])
+            end do
+        end if
         call model_finish(m, status, nbytes)
         if (status /= 0) call model_free(m)
     end subroutine model_from_arrays

@@ -36,6 +36,7 @@ from flexmbs.checks import taylor_test
 from flexmbs.errors import ModelError
 from flexmbs.optimize.fully import FullyCoupledProblem, aggregate_constraints
 from flexmbs.sensitivity import case_gradients, check_sensitivity
+from flexmbs.simulate import simulate
 
 # (case, design in mm): published optima of Tables 1, 2 and 3, where the deviation is active
 DESIGNS = {
@@ -267,3 +268,56 @@ def test_cli_gradient_json_reports_the_library_derivatives():
                                    ref[method].d_max_deviation, rtol=1e-12)
         np.testing.assert_allclose(out["d_mass_d_design_kg_per_mm"], ref[method].d_mass,
                                    rtol=1e-12)
+
+
+def _constraint_forces(case, p, sim_kw, rows=None):
+    """mu (nt, nc) and d(mu)/dp (nt, nc, nv) of a robot run of 200 steps."""
+    m = case.build_model(p)
+    r = simulate(m, 200 * case.h, h=case.h, rho_inf=case.rho_inf, start=case.start_mode,
+                 store=[0], design_derivatives=case.element_property_derivatives(p),
+                 constraint_force_derivatives=True, **sim_kw)
+    return r.mu, r.dmu
+
+
+@pytest.mark.parametrize("mode", list(MODES))
+def test_constraint_force_derivatives_pass_the_taylor_test(mode):
+    """d(mu)/dp of every constraint row (Result.dmu, constraint_force_derivatives=True): the
+    motor torques and the pin and hinge reactions of the robot (28) over 200 steps, along a
+    random direction: Taylor order > 1.8, and < 1.3 with a 1e-3 error in one component.
+    Measured (both modes): torques up to 38 N m, noise plateau of the remainder 2e-10 (Newton
+    tolerance), right remainders 5e-6 .. 2e-8 at steps 2^-6 .. 2^-10 mm (100x above the
+    noise 4e-10 given), orders 2.00; perturbed orders 0.89-1.07."""
+    case = load_case("robot_2dof")
+    p = np.asarray(DESIGNS["robot_2dof"], float)
+    labels = case.build_model(p).compile().row_labels
+    motors = [k for k, lab in enumerate(labels) if lab.startswith("motor")]
+    assert len(motors) == 2
+    mu, dmu = _constraint_forces(case, p, MODES[mode])
+    assert dmu.shape == mu.shape + (4,)
+    d = _direction(4)
+    i = int(np.argmax(np.abs(d)))
+
+    def fun(x):
+        v = _constraint_forces(case, x, MODES[mode])[0]
+        return {"all": v, "torque": v[:, motors], "torque perturbed": v[:, motors]}
+
+    value = {"all": mu, "torque": mu[:, motors], "torque perturbed": mu[:, motors]}
+    jac = {"all": dmu, "torque": dmu[:, motors], "torque perturbed": _perturbed(dmu[:, motors], i)}
+    chk = taylor_test(fun, p, jac, d, step=2.0 ** -6, halvings=4, value=value, noise=4e-10)
+    assert chk["all"].ok, chk["all"].table()
+    assert chk["torque"].ok, chk["torque"].table()
+    wrong = chk["torque perturbed"]
+    assert not wrong.ok and wrong.order < 1.3, wrong.table()
+
+
+def test_constraint_force_derivatives_are_only_computed_when_asked():
+    """Result.dmu is None by default (nothing stored), and asking for it without design
+    derivatives is a ModelError naming the argument."""
+    case = load_case("robot_2dof")
+    p = np.asarray(DESIGNS["robot_2dof"], float)
+    m = case.build_model(p)
+    r = simulate(m, 10 * case.h, h=case.h, store=[0],
+                 design_derivatives=case.element_property_derivatives(p))
+    assert r.dmu is None and r.dq is not None
+    with pytest.raises(ModelError, match="constraint_force_derivatives"):
+        simulate(m, 10 * case.h, h=case.h, constraint_force_derivatives=True)

@@ -580,9 +580,10 @@ def test_iteration_matrix_checker_detects_a_missing_penalty_term(monkeypatch):
     real = simulate_module.system_matrices
 
     def without_penalty_in_matrix(model, q, qdd=None, mu=None, t=0.0, *, cm=0.0, ck=1.0,
-                                  kscale=0.0, penalty=0.0, props=None):
-        r, _ = real(model, q, qdd, mu, t, cm=cm, ck=ck, kscale=kscale, penalty=penalty)
-        _, s = real(model, q, qdd, mu, t, cm=cm, ck=ck, kscale=kscale, penalty=0.0)
+                                  kscale=0.0, penalty=0.0, props=None, qd=None, cc=0.0):
+        r, _ = real(model, q, qdd, mu, t, cm=cm, ck=ck, kscale=kscale, penalty=penalty, qd=qd,
+                    cc=cc)
+        _, s = real(model, q, qdd, mu, t, cm=cm, ck=ck, kscale=kscale, penalty=0.0, qd=qd, cc=cc)
         return r, s
 
     m, _, _ = robot((50, 50, 50, 50))

@@ -183,16 +183,17 @@ def generalized_alpha_beta_prime(h, rho_inf):
 
 
 def check_iteration_matrix(model, q, qdd=None, mu=None, t=0.0, *, beta_prime=None, kscale=None,
-                           penalty=None, step=1e-6):
+                           penalty=None, step=1e-6, qd=None, gamma_prime=None):
     """Check the iteration matrix of eq. (7) against finite differences of the residual.
 
     The unknowns of a Newton correction are (dq, dlambda) with the physical
     multipliers mu = k lambda (see fortran/assembly.f90), and the accelerations
-    follow the positions as dqdd = beta' dq. Column j of the iteration matrix
-    is therefore compared with the central difference of
+    follow the positions as dqdd = beta' dq, the velocities as dqd = gamma' dq
+    (eqs. 3-5). Column j of the iteration matrix is therefore compared with the
+    central difference of
 
-        r(q + e dq_j, qdd + beta' e dq_j, mu)           for a coordinate j,
-        r(q, qdd, mu + k e)                             for a multiplier,
+        r(q + e dq_j, qd + gamma' e dq_j, qdd + beta' e dq_j, mu)   for a coordinate j,
+        r(q, qd, qdd, mu + k e)                                      for a multiplier,
 
     where r is the dynamic residual of eq. (1) (mass term with factor 1),
     computed by :func:`flexmbs.simulate.system_matrices`.
@@ -211,6 +212,11 @@ def check_iteration_matrix(model, q, qdd=None, mu=None, t=0.0, *, beta_prime=Non
     beta_prime : float or None, default None
         Coefficient of M in the iteration matrix; None: the generalized-alpha
         value for h = 5e-4 s and rho_inf = 0.5 (the paper's settings).
+    qd : (ndof,) array or None, default None (zero)
+        Velocities of the state (they matter for spring-dampers only).
+    gamma_prime : float or None, default None
+        Coefficient of the damping matrix C_t; None: the generalized-alpha value
+        gamma / (beta h) for h = 5e-4 s and rho_inf = 0.5.
     kscale, penalty : float or None, default None
         k and p of eq. (1); None: k = the mean absolute diagonal of
         beta' M + K_t (the core's automatic choice), p = k.
@@ -232,20 +238,29 @@ def check_iteration_matrix(model, q, qdd=None, mu=None, t=0.0, *, beta_prime=Non
     mu = np.zeros(nc) if mu is None else np.asarray(mu, float)
     if q.shape != (ndof,) or qdd.shape != (ndof,) or mu.shape != (nc,):
         raise ModelError(f"check_iteration_matrix: q and qdd need {ndof} entries, mu {nc}")
+    qd = np.zeros(ndof) if qd is None else np.asarray(qd, float)
+    if qd.shape != (ndof,):
+        raise ModelError(f"check_iteration_matrix: qd needs {ndof} entries, got shape {qd.shape}")
     if beta_prime is None:
         beta_prime = generalized_alpha_beta_prime(5e-4, 0.5)
+    if gamma_prime is None:
+        rho, h_ = 0.5, 5e-4
+        alpha_m, alpha_f = (2 * rho - 1) / (rho + 1), rho / (rho + 1)
+        gamma = 0.5 - alpha_m + alpha_f
+        gamma_prime = gamma / (0.25 * (gamma + 0.5) ** 2 * h_)
     if kscale is None:
-        _, s0 = system_matrices(model, q, qdd, mu, t, cm=beta_prime, ck=1.0)
+        _, s0 = system_matrices(model, q, qdd, mu, t, cm=beta_prime, ck=1.0, qd=qd,
+                                cc=gamma_prime)
         kscale = float(np.mean(np.abs(np.diag(s0)[:ndof]))) or 1.0
     if penalty is None:
         penalty = kscale
 
-    def res(qq, aa, mm):
+    def res(qq, aa, mm, vv=qd):
         return system_matrices(model, qq, aa, mm, t, cm=1.0, ck=1.0, kscale=kscale,
-                               penalty=penalty)[0]
+                               penalty=penalty, qd=vv)[0]
 
     _, s = system_matrices(model, q, qdd, mu, t, cm=beta_prime, ck=1.0, kscale=kscale,
-                           penalty=penalty)
+                           penalty=penalty, qd=qd, cc=gamma_prime)
     h = step * max(1.0, float(np.max(np.abs(q))))
     n = ndof + nc
     sfd = np.empty((n, n))
@@ -253,8 +268,8 @@ def check_iteration_matrix(model, q, qdd=None, mu=None, t=0.0, *, beta_prime=Non
         if j < ndof:
             e = np.zeros(ndof)
             e[j] = h
-            sfd[:, j] = (res(q + e, qdd + beta_prime * e, mu)
-                         - res(q - e, qdd - beta_prime * e, mu)) / (2 * h)
+            sfd[:, j] = (res(q + e, qdd + beta_prime * e, mu, qd + gamma_prime * e)
+                         - res(q - e, qdd - beta_prime * e, mu, qd - gamma_prime * e)) / (2 * h)
         else:
             e = np.zeros(nc)
             e[j - ndof] = kscale

@@ -98,6 +98,9 @@ class CompiledModel:
     nload: int
     row_labels: list
     patterns: dict  # 'dense' / 'klu' -> maps
+    nsd: int = 0                     # spring-dampers
+    sd_dofs: np.ndarray | None = None   # (4, nsda) 1-based x_a, y_a, x_b, y_b
+    sd_prop: np.ndarray | None = None   # (4, nsda) k, c, l0, f0
 
 
 class Model:
@@ -115,6 +118,7 @@ class Model:
         self._laws = []
         self._loads = []            # (dof, amp, law index)
         self._gravity = (0.0, 0.0)
+        self._springs = []          # (node_a, node_b, k, c, l0, f0)
         self._compiled = None
 
     # ------------------------------------------------------------------ nodes
@@ -322,6 +326,89 @@ class Model:
         for k, lab in ((0, "x"), (1, "y")):
             self._row(CON_LINEAR, [3 * a + k, 3 * b + k], [1.0, -1.0], 0.0, label=f"hinge {a}-{b} {lab}")
 
+    def _coincide(self, a, b, what):
+        gap = math.dist(self._nodes[a][:2], self._nodes[b][:2])
+        scale = max(1.0, max(abs(v) for n in self._nodes for v in n[:2]))
+        if gap > 1e-9 * scale:
+            raise ModelError(f"{what} between nodes {a} and {b}: they are {gap:.3g} m apart")
+
+    def _axis(self, axis, what):
+        try:
+            ax = np.asarray(axis, float)
+        except (TypeError, ValueError):
+            raise ModelError(f"{what}: axis must be a nonzero (x, y) pair, got {axis!r}") from None
+        if ax.shape != (2,) or not np.all(np.isfinite(ax)) or not np.any(ax):
+            raise ModelError(f"{what}: axis must be a finite nonzero (x, y) pair, got {axis!r}")
+        return ax / np.linalg.norm(ax)
+
+    def _point(self, node, point, what):
+        if point is None:
+            return np.array(self._nodes[node][:2])
+        try:
+            pt = np.asarray(point, float)
+        except (TypeError, ValueError):
+            raise ModelError(f"{what}: point must be an (x, y) pair or None, got {point!r}") from None
+        if pt.shape != (2,) or not np.all(np.isfinite(pt)):
+            raise ModelError(f"{what}: point must be a finite (x, y) pair or None, got {point!r}")
+        return pt
+
+    def weld(self, node_a, node_b):
+        """A rigid connection of two nodes of different bodies at the same point.
+
+        Three linear rows: the same position (x_b = x_a, y_b = y_a) and a fixed relative
+        rotation (phi_b - phi_a kept at its reference value). The nodes must coincide in
+        the reference configuration (for nodes apart, use `rigid_link`).
+        """
+        a = self._check_node(node_a, "weld node_a")
+        b = self._check_node(node_b, "weld node_b")
+        if a == b:
+            raise ModelError(f"weld: both nodes are node {a}")
+        self._coincide(a, b, "weld")
+        for k, lab in ((0, "x"), (1, "y")):
+            self._row(CON_LINEAR, [3 * a + k, 3 * b + k], [1.0, -1.0], 0.0, label=f"weld {a}-{b} {lab}")
+        self._row(CON_LINEAR, [3 * b + 2, 3 * a + 2], [1.0, -1.0], self._nodes[b][2] - self._nodes[a][2],
+                  label=f"weld {a}-{b} angle")
+
+    def slider(self, node, axis, point=None):
+        """A prismatic joint on the ground: `node` moves along a fixed line, its rotation fixed.
+
+        The line passes through `point` (default: the node's reference position) with
+        direction `axis` (any length). Two linear rows: n . (x - point) = 0 with n the unit
+        normal of the axis, and phi = its reference value. The node must lie on the line in
+        the reference configuration. Combine with `drive_translation` to prescribe the
+        motion along the line, or leave it free (a slider block).
+        """
+        node = self._check_node(node, "slider")
+        ax = self._axis(axis, "slider")
+        pt = self._point(node, point, "slider")
+        nrm = np.array([-ax[1], ax[0]])
+        x = np.array(self._nodes[node][:2])
+        off = float(nrm @ (x - pt))
+        scale = max(1.0, max(abs(v) for n in self._nodes for v in n[:2]))
+        if abs(off) > 1e-9 * scale:
+            raise ModelError(f"slider: node {node} at ({x[0]:.6g}, {x[1]:.6g}) is {abs(off):.3g} m "
+                             f"off the line through point=({pt[0]:.6g}, {pt[1]:.6g}) along "
+                             f"axis=({ax[0]:.6g}, {ax[1]:.6g}); the node must lie on the line")
+        self._row(CON_LINEAR, [3 * node, 3 * node + 1], [nrm[0], nrm[1]], float(nrm @ pt),
+                  label=f"slider node {node} normal")
+        self._row(CON_LINEAR, [3 * node + 2], [1.0], self._nodes[node][2],
+                  label=f"slider node {node} phi")
+
+    def drive_translation(self, node, law, axis, point=None):
+        """A linear motor: prescribe the position of `node` along `axis`.
+
+        One linear row: a . (x - point) = law(t), with a the unit vector of `axis` and
+        `point` (default: the node's reference position, so law(0) = 0 starts there).
+        The other directions are free: combine with `slider` for a driven prismatic joint.
+        `law` is a TimeLaw (analytic rate and acceleration), a callable or a number.
+        """
+        node = self._check_node(node, "drive_translation")
+        ax = self._axis(axis, "drive_translation")
+        pt = self._point(node, point, "drive_translation")
+        li = self._law(law, f"translation drive at node {node}")
+        self._row(CON_LINEAR, [3 * node, 3 * node + 1], [ax[0], ax[1]], float(ax @ pt), li, 1.0,
+                  label=f"translation drive node {node}")
+
     def drive_rotation(self, node, law, relative_to=None):
         """A motor: prescribe the rotation of `node`.
 
@@ -380,6 +467,49 @@ class Model:
             if v != 0.0:
                 self._loads.append((3 * node + k, v, li))
         self._changed()
+
+    def add_spring_damper(self, node_a, node_b, stiffness, damping=0.0, free_length=None,
+                          preload=0.0):
+        """A point-to-point spring-damper between the positions of two nodes.
+
+        The force acts along the current line between the nodes, with tension
+        N = stiffness (l - free_length) + damping dl/dt + preload (positive: pulls the
+        nodes together); l is the current distance, `free_length` defaults to the
+        reference distance. Rotations are not involved. Units: N/m, N s/m, m, N.
+        Returns the index of the spring-damper.
+        """
+        a = self._check_node(node_a, "add_spring_damper node_a")
+        b = self._check_node(node_b, "add_spring_damper node_b")
+        if a == b:
+            raise ModelError(f"add_spring_damper: node_a and node_b are both node {a}")
+        vals = {}
+        for name, v in (("stiffness", stiffness), ("damping", damping), ("preload", preload)):
+            try:
+                v = float(v)
+            except (TypeError, ValueError):
+                raise ModelError(f"add_spring_damper: {name} must be a number, got {v!r}") from None
+            if not math.isfinite(v) or (name != "preload" and v < 0):
+                allowed = "finite" if name == "preload" else "finite and >= 0"
+                raise ModelError(f"add_spring_damper: {name} must be {allowed}, got {v!r}")
+            vals[name] = v
+        dist = math.dist(self._nodes[a][:2], self._nodes[b][:2])
+        if free_length is None:
+            l0 = dist
+        else:
+            try:
+                l0 = float(free_length)
+            except (TypeError, ValueError):
+                raise ModelError(f"add_spring_damper: free_length must be a number or None, "
+                                 f"got {free_length!r}") from None
+            if not (math.isfinite(l0) and l0 >= 0):
+                raise ModelError(f"add_spring_damper: free_length must be finite and >= 0, "
+                                 f"got {free_length!r}")
+        if dist <= 0:
+            raise ModelError(f"add_spring_damper: nodes {a} and {b} coincide in the reference "
+                             "configuration (the direction of the force is undefined there)")
+        self._springs.append((a, b, vals["stiffness"], vals["damping"], l0, vals["preload"]))
+        self._changed()
+        return len(self._springs) - 1
 
     # ------------------------------------------------------------------ compile
     def reference_coordinates(self):
@@ -440,12 +570,19 @@ class Model:
         ld_amp = np.zeros(nlda)
         for k, (d, amp, li) in enumerate(self._loads):
             ld_dof[k], ld_amp[k], ld_law[k] = d + 1, amp, li
+        nsda = max(len(self._springs), 1)
+        sd_dofs = np.ones((4, nsda), np.int32, order="F")
+        sd_prop = np.zeros((4, nsda), order="F")
+        for k, (a, b, ks, cs, l0, f0) in enumerate(self._springs):
+            sd_dofs[:, k] = [3 * a + 1, 3 * a + 2, 3 * b + 1, 3 * b + 2]
+            sd_prop[:, k] = [ks, cs, l0, f0]
         cm = CompiledModel(ndof=ndof, nc=nc, n=n, qref=self.reference_coordinates(), lumped=lumped,
                            gacc=gacc, el_nen=el_nen, el_dofs=el_dofs, el_len=el_len,
                            ld_dof=ld_dof, ld_law=ld_law, ld_amp=ld_amp, c_kind=c_kind,
                            c_dofs=c_dofs, c_coef=c_coef, c_c0=c_c0, c_law=c_law,
                            c_lawcoef=c_lawcoef, nel=nel, nload=len(self._loads),
-                           row_labels=[r.label for r in self._rows], patterns={})
+                           row_labels=[r.label for r in self._rows], patterns={},
+                           nsd=len(self._springs), sd_dofs=sd_dofs, sd_prop=sd_prop)
         self._compiled = cm
         return cm
 
@@ -484,6 +621,13 @@ class Model:
             qb = np.repeat(cd0[None, :, :], MAX_CDOF, axis=0)
             rows.append(qa.ravel())
             cols.append(qb.ravel())
+        # spring-damper blocks (4 x 4 of x_a, y_a, x_b, y_b)
+        sdd = cm.sd_dofs.astype(np.int64) - 1                 # (4, nsda)
+        sr = np.repeat(sdd[:, None, :], 4, axis=1)
+        sc = np.repeat(sdd[None, :, :], 4, axis=0)
+        if cm.nsd > 0:
+            rows.append(sr.ravel())
+            cols.append(sc.ravel())
         r_all = np.concatenate(rows)
         c_all = np.concatenate(cols)
         if kind == "dense":
@@ -511,7 +655,9 @@ class Model:
         qa = np.repeat(cd0[:, None, :], MAX_CDOF, axis=1)
         qb = np.repeat(cd0[None, :, :], MAX_CDOF, axis=0)
         map_qq = np.asfortranarray(np.transpose(pos(qa, qb), (1, 0, 2)).reshape(MAX_CDOF * MAX_CDOF, nca))
+        map_sd = np.asfortranarray(np.transpose(pos(sr, sc), (1, 0, 2)).reshape(16, sdd.shape[1]))
         pat = dict(nnz=nnz, ap=ap, ai=ai, map_el=map_el.astype(np.int32), map_diag=map_diag,
+                   map_sd=map_sd.astype(np.int32),
                    map_cq=map_cq, map_qc=map_qc, map_qq=map_qq.astype(np.int32))
         cm.patterns[kind] = pat
         return pat

@@ -140,9 +140,10 @@ class MemoryEstimate:
         return ", ".join(f"{name} {format_bytes(v)}" for name, v in items if v > 0)
 
 
-def estimate_memory(*, n, ndof, nc, nel, nt, nout, solver, nlaw=0, nv=0, nsens=0):
+def estimate_memory(*, n, ndof, nc, nel, nt, nout, solver, nlaw=0, nv=0, nsens=0, dmu=False):
     """Peak bytes of a simulation of n = ndof + nc unknowns, nel elements, on nt grid points,
-    storing nout coordinates (and nsens x nv design derivatives)."""
+    storing nout coordinates (and nsens x nv design derivatives; with dmu, the nc x nv
+    derivatives of the constraint forces)."""
     f8 = 8.0
     nca = max(nc, 1)
     nela = max(nel, 1)
@@ -152,6 +153,8 @@ def estimate_memory(*, n, ndof, nc, nel, nt, nout, solver, nlaw=0, nv=0, nsens=0
     p["constraint forces mu"] = f8 * nca * nt
     if nv:
         p["design derivatives dq/dp"] = f8 * nsens * nv * nt + f8 * 5 * nela * nv * 2
+        if dmu:
+            p["design derivatives dmu/dp"] = f8 * nca * nv * nt
     # time grid (and its transient) and the tabulated laws (Python table + core copy)
     p["time grid and laws"] = 2 * f8 * nt + 4 * f8 * nlaw * nt
     # model arrays: compiled arrays in Python (~120 B/element), value maps (81 int32 per element

@@ -89,6 +89,8 @@ class Result:
     wall_time : seconds spent in the simulation (including the set-up in Python).
     validity : flexmbs.validity.Validity, the checks run after the simulation (strains of the
         beams, constraint drift, energy of a free system); see simulate(validity=...).
+    sens_dofs, dq : with design_derivatives: the coordinates and their dq/dp (nt, nsens, nv).
+    dmu : with constraint_force_derivatives=True: d(mu)/dp (nt, nc, nv) of every constraint row.
     """
     t: np.ndarray
     q: np.ndarray
@@ -102,6 +104,7 @@ class Result:
     sens_dofs: np.ndarray | None = None
     dq: np.ndarray | None = None
     validity: object = None
+    dmu: np.ndarray | None = None
 
     def position_derivative(self, node):
         """(nt, 2, nv) design derivatives of a node's position (needs design_derivatives)."""
@@ -262,15 +265,17 @@ def core_model_args(model: Model, storage, t, props=None):
         c_kind=cm.c_kind, c_dofs=cm.c_dofs, c_coef=cm.c_coef, c_c0=cm.c_c0, c_law=cm.c_law,
         c_lawcoef=cm.c_lawcoef, law_h=law_h, law_val=law_val, law_der=law_der, law_dd0=law_dd0,
         map_el=pat["map_el"], map_diag=pat["map_diag"], map_cq=pat["map_cq"], map_qc=pat["map_qc"],
-        map_qq=pat["map_qq"])
+        map_qq=pat["map_qq"], nsd=cm.nsd, sd_dofs=cm.sd_dofs, sd_prop=cm.sd_prop, map_sd=pat["map_sd"])
 
 
 def system_matrices(model: Model, q, qdd=None, mu=None, t=0.0, *, cm=0.0, ck=1.0, kscale=0.0,
-                    penalty=0.0, props=None):
+                    penalty=0.0, props=None, qd=None, cc=0.0):
     """Residual r (n,) of eq. (1) and dense iteration matrix S (n, n) of eq. (7) at a state.
 
-    With the defaults (cm = 0, ck = 1, kscale = 0, penalty = 0, mu = 0) the leading
-    ndof x ndof block of S is the tangent stiffness K_t(q) and r[:ndof] = f_int - f_ext.
+    With the defaults (cm = 0, ck = 1, cc = 0, kscale = 0, penalty = 0, mu = 0, qd = 0) the
+    leading ndof x ndof block of S is the tangent stiffness K_t(q) and r[:ndof] = f_int - f_ext.
+    `qd` (default 0) are the velocities of the velocity-dependent forces (spring-dampers) and
+    `cc` the coefficient of their damping matrix C_t in S (gamma' in dynamics).
     The time laws are evaluated at t exactly.
     """
     c = model.compile()
@@ -282,6 +287,7 @@ def system_matrices(model: Model, q, qdd=None, mu=None, t=0.0, *, cm=0.0, ck=1.0
                             "(46340 unknowns)", required=need, available=avail)
     q = np.asarray(q, float)
     qdd = np.zeros(c.ndof) if qdd is None else np.asarray(qdd, float)
+    qd = np.zeros(c.ndof) if qd is None else np.asarray(qd, float)
     mu_arr = np.zeros(max(c.nc, 1))
     if mu is not None:
         mu_arr[:c.nc] = mu
@@ -290,7 +296,7 @@ def system_matrices(model: Model, q, qdd=None, mu=None, t=0.0, *, cm=0.0, ck=1.0
     margs = core_model_args(model, "dense", grid, props)
     r, vals, _, status = _core.system_matrices(**margs, q=q, qdd=qdd, mu=mu_arr, t=float(t),
                                                cm=float(cm), ck=float(ck), kscale=float(kscale),
-                                               pen=float(penalty))
+                                               pen=float(penalty), qd=qd, cc=float(cc))
     if status != 0:
         raise ResourceError(f"out of memory in the core: could not allocate the model arrays "
                             f"({c.nel} elements, {c.n} unknowns)")
@@ -331,7 +337,8 @@ def _check_flag(name, value):
 def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="all",
              solver="auto", reuse_jacobian=False, tol=1e-10, max_iter=20, max_cuts=6,
              kscale=None, penalty=None, q0=None, qd0=None, design_derivatives=None,
-             sensitivity_dofs=None, memory_limit=None, validity="warn"):
+             sensitivity_dofs=None, constraint_force_derivatives=False, memory_limit=None,
+             validity="warn"):
     """Simulate a model with generalized-alpha (eqs. 3-6) and Newton-Raphson (eq. 7).
 
     Parameters
@@ -369,6 +376,11 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         every converged step, and `Result.dq` holds dq/dp.
     sensitivity_dofs : array of int, optional
         Coordinates (0-based) whose derivatives are kept (default: the stored ones).
+    constraint_force_derivatives : bool, default False
+        With design_derivatives: also return d(mu)/dp of every constraint row (the physical
+        multipliers of eq. 1, as in Result.mu) in `Result.dmu` (nt, nc, nv). The same
+        solve gives them (no extra factorization); off by default, as they take
+        nt * nc * nv numbers.
     memory_limit : float (bytes), None or math.inf, default None
         Before the run, the memory it needs is estimated (flexmbs.resources.estimate_memory:
         stored outputs over the time grid, constraint forces, design derivatives, the dense
@@ -444,9 +456,16 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         shape = np.shape(design_derivatives)
         nv_est = shape[2] if len(shape) == 3 else 0
     nsens_est = out.size if sensitivity_dofs is None else np.size(sensitivity_dofs)
+    if not isinstance(constraint_force_derivatives, (bool, np.bool_)):
+        raise ModelError(f"constraint_force_derivatives must be True or False, got "
+                         f"{constraint_force_derivatives!r}")
+    if constraint_force_derivatives and design_derivatives is None:
+        raise ModelError("constraint_force_derivatives=True needs design_derivatives=...")
+    want_dmu = bool(constraint_force_derivatives)
     est = estimate_memory(n=n_unknowns, ndof=model.ndof, nc=len(model._rows),
                           nel=len(model._elements), nt=nsteps + 1, nout=out.size, solver=solver,
-                          nlaw=len(model.laws()), nv=nv_est, nsens=nsens_est)
+                          nlaw=len(model.laws()), nv=nv_est, nsens=nsens_est,
+                          dmu=want_dmu)
     check_memory(est, memory_limit, what=f"simulate (solver={solver!r}, {n_unknowns} unknowns, "
                                          f"{nsteps} steps)")
 
@@ -478,14 +497,15 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         nv, sdofs = 0, np.zeros(1, int)
         dprop_f = np.zeros((5, nel, 1), order="F")
     try:
-        q_out, qd_out, qdd_out, mu_out, stats, status, info, dq_out = call_with_stack(
+        q_out, qd_out, qdd_out, mu_out, stats, status, info, dq_out, dmu_out = call_with_stack(
             _core.simulate, est.stack, **margs, nsteps=nsteps, q0=q_init, qd0=qd_init,
             ap=pat["ap"], ai=pat["ai"], h=float(h),
             rho_inf=float(rho_inf), tol=float(tol), max_iter=int(max_iter),
             max_cuts=int(max_cuts), solver=_SOLVERS[solver], reuse=int(bool(reuse_jacobian)),
             static_start=int(start == "static"), kscale=float(kscale or 0.0),
             penalty=float(penalty or 0.0), out_dofs=(out + 1).astype(np.int32),
-            nv=nv, dprop=dprop_f, sens_dofs=(sdofs + 1).astype(np.int32))
+            nv=nv, dprop=dprop_f, sens_dofs=(sdofs + 1).astype(np.int32),
+            want_dmu=int(want_dmu), ndmu=max(cm.nc, 1) if want_dmu else 1)
     except MemoryError as exc:    # the wrapper could not allocate the output arrays
         if isinstance(exc, ResourceError):
             raise
@@ -513,7 +533,8 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
                   settings=dict(h=h, t_end=t_end, rho_inf=rho_inf, start=start, solver=solver,
                                 reuse_jacobian=reuse_jacobian),
                   sens_dofs=sdofs if nv else None,
-                  dq=np.transpose(dq_out[:, :nv, :], (2, 0, 1)) if nv else None)
+                  dq=np.transpose(dq_out[:, :nv, :], (2, 0, 1)) if nv else None,
+                  dmu=np.transpose(dmu_out[:cm.nc, :nv, :], (2, 0, 1)) if want_dmu else None)
     res.validity = check_result(model, res, limits, law_val=margs["law_val"], tol=float(tol),
                                 props=props)
     apply_validity(res.validity, res)

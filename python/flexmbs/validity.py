@@ -353,11 +353,21 @@ def _energy_check(model, cm, result, lim, props):
             dens = (stiff[0][None, :, None] * (e1 - r1) ** 2 + stiff[1][None, :, None] * (e2 - r2) ** 2
                     + stiff[2][None, :, None] * (kap - rk) ** 2)
             strain[sl] += 0.5 * np.einsum("tek,k,e->t", dens, wg, jac)
+    # spring-dampers: strain energy k (l - l0)^2 / 2, potential f0 l of the preload (the
+    # damper only dissipates)
+    pot_sd = np.zeros(nt)
+    for k in range(cm.nsd):
+        sd = cm.sd_dofs[:, k] - 1
+        ks, _, l0, f0 = cm.sd_prop[:, k]
+        ln = np.hypot(q[:, sd[2]] - q[:, sd[0]], q[:, sd[3]] - q[:, sd[1]])
+        strain += 0.5 * ks * (ln - l0) ** 2
+        pot_sd += f0 * (ln - ln[0])
     fext = fg.copy()
     np.add.at(fext, cm.ld_dof[:cm.nload] - 1, cm.ld_amp[:cm.nload])
     pot = np.zeros(nt)
     for sl in _chunks(nt, cm.ndof):
         pot[sl] = -((q[sl] - q[0]) @ fext)
+    pot += pot_sd
     energy = kin + strain + pot
     scale = float(np.max(kin + strain))
     if not np.all(np.isfinite(energy)):
