@@ -138,7 +138,7 @@ def test_joint_builders_bad_input():
         m.slider(a, (0.0, 0.0))
     with pytest.raises(ModelError, match=r"slider: node 1 at \(1, 0\) is 0.707 m off the line"):
         m.slider(b, (1.0, 1.0), point=(0.0, 0.0))
-    with pytest.raises(ModelError, match="drive_translation: point must be a finite"):
+    with pytest.raises(ModelError, match=r"drive_translation: point (y )?must be .*finite"):
         m.drive_translation(a, 0.0, (1.0, 0.0), point=(1.0, math.nan))
     with pytest.raises(ModelError, match="drive_translation: unknown node 5"):
         m.drive_translation(5, 0.0, (1.0, 0.0))

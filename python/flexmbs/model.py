@@ -341,16 +341,11 @@ class Model:
             raise ModelError(f"{what}: axis must be a finite nonzero (x, y) pair, got {axis!r}")
         return ax / np.linalg.norm(ax)
 
-    def _point(self, node, point, what):
+    def _line_point(self, node, point, what):
+        """A point of a joint's line: `point`, or the node's reference position if None."""
         if point is None:
             return np.array(self._nodes[node][:2])
-        try:
-            pt = np.asarray(point, float)
-        except (TypeError, ValueError):
-            raise ModelError(f"{what}: point must be an (x, y) pair or None, got {point!r}") from None
-        if pt.shape != (2,) or not np.all(np.isfinite(pt)):
-            raise ModelError(f"{what}: point must be a finite (x, y) pair or None, got {point!r}")
-        return pt
+        return self._point(f"{what}: point", point)
 
     def weld(self, node_a, node_b):
         """A rigid connection of two nodes of different bodies at the same point.
@@ -380,7 +375,7 @@ class Model:
         """
         node = self._check_node(node, "slider")
         ax = self._axis(axis, "slider")
-        pt = self._point(node, point, "slider")
+        pt = self._line_point(node, point, "slider")
         nrm = np.array([-ax[1], ax[0]])
         x = np.array(self._nodes[node][:2])
         off = float(nrm @ (x - pt))
@@ -404,7 +399,7 @@ class Model:
         """
         node = self._check_node(node, "drive_translation")
         ax = self._axis(axis, "drive_translation")
-        pt = self._point(node, point, "drive_translation")
+        pt = self._line_point(node, point, "drive_translation")
         li = self._law(law, f"translation drive at node {node}")
         self._row(CON_LINEAR, [3 * node, 3 * node + 1], [ax[0], ax[1]], float(ax @ pt), li, 1.0,
                   label=f"translation drive node {node}")
