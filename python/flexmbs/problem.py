@@ -26,6 +26,7 @@ from flexmbs.errors import CaseError, ModelError
 from flexmbs.mechanism import Mechanism
 from flexmbs.responses.aggregate import aggregate
 from flexmbs.responses.deviation import deviation, deviation_terms
+from flexmbs.responses.stress import beam_stress
 from flexmbs.simulate import simulate
 
 __all__ = ["Problem", "Evaluation", "load_problem"]
@@ -199,7 +200,21 @@ class Problem:
                 frame = mech.model.body(t.frame).first if t.frame != "ground" else None
                 parts.append(deviation_terms(node, ref, result, t, frame, rel, gradient))
             return deviation(parts, gradient)
-        raise ModelError(f"response {r.name!r}: type {r.type!r} is not evaluated yet")
+        if isinstance(r, Stress):
+            # the largest normal stress over the beams' elements and stations, step by step
+            vals, grads = [], []
+            for b in r.bodies:
+                c, dc = mech.half_depths(x, b)
+                bs = beam_stress(mech.model, result, b, dc=dc if gradient else None)
+                nt = bs.normal.shape[0]
+                vals.append(bs.normal.reshape(nt, -1))
+                if gradient:
+                    grads.append(bs.d_normal.reshape(nt, vals[-1].shape[1], -1))
+            v = np.concatenate(vals, axis=1)
+            j = np.argmax(v, axis=1)
+            rows = np.arange(v.shape[0])
+            return v[rows, j], (np.concatenate(grads, axis=1)[rows, j] if gradient else None)
+        raise ModelError(f"response {r.name!r}: type {r.type!r} cannot be evaluated")
 
     def evaluate(self, x=None, gradient=True):
         """Every response, the objective and the constraints at design x (user units)."""
