@@ -304,3 +304,38 @@ def test_out_of_reach_names_time():
                                              lambda t: 0 * t))
     with pytest.raises(ModelError, match=r"t = 0\.0[56]\d* s"):
         rigid_reference(m, np.linspace(0, 0.1, 101))
+
+
+# --------------------------------------------------------------------------- constraint rows
+def test_constraint_jacobian_and_gamma_taylor():
+    """flexmbs.constraints on every row kind (linear, rigid link x and y of a rigid body, a
+    driven row): Phi_q passes a Taylor test (remainder order 2); and gamma is the second
+    derivative of Phi along a path q(s) = q0 + s v + s^2 a / 2: the Taylor test of
+    s -> Phi_q(q(s)) q'(s) with derivative Phi_q a - gamma(q0, v) (Phi_t = 0 at fixed laws)."""
+    from flexmbs.checks import taylor_test
+    m = Model()
+    beam = m.add_beam("b", (0.0, 0.0), (0.5, 0.2), 1, material=MAT, section=SEC)
+    n = m.add_node(0.9, 0.4)
+    body = m.add_rigid_body("r", [beam.last, n], mass=1.0, inertia=0.1)
+    m.pin(beam.first)
+    m.drive_rotation(beam.first, TimeLaw.constant(0.4))
+    m.prescribe_position(n, y=0.5)
+    cm = m.compile()
+    assert set(cm.c_kind[:cm.nc]) == {1, 2, 3}
+    rng = np.random.default_rng(1)
+    q0 = m.reference_coordinates() + rng.normal(size=cm.ndof) * 0.1
+    val = law_tables(m, [0.0])[0][:, 0]
+    chk = taylor_test(lambda q: constraint_values(cm, q, val), q0, constraint_jacobian(cm, q0),
+                      rng.normal(size=cm.ndof), step=1e-2)
+    assert chk.ok, chk
+    v, a = rng.normal(size=cm.ndof), rng.normal(size=cm.ndof)
+    acc0 = np.zeros(len(m.laws()))
+
+    def rate(s):
+        s = float(s[0])
+        return constraint_jacobian(cm, q0 + s * v + 0.5 * s * s * a) @ (v + s * a)
+
+    deriv = constraint_jacobian(cm, q0) @ a - acceleration_rhs(cm, q0, v, acc0)
+    chk = taylor_test(rate, np.zeros(1), deriv[:, None], np.ones(1), step=1e-2)
+    assert chk.ok, chk
+    assert body.nodes[0] in rigid_groups(m)[0]     # beam and rigid body share a node: one group
