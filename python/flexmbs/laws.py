@@ -78,6 +78,27 @@ class TimeLaw:
             raise ModelError(f"time law {self.name!r}: {what} is not finite at t = {bad[0]:.6g} s")
         return out
 
+    def evaluate(self, t):
+        """(theta, theta', theta'') on the grid t, each an array of t's shape.
+
+        Missing derivatives come from central differences of the value (steps 1e-6 s for the
+        rate, 1e-4 s for the acceleration), as in `tabulate`.
+        """
+        t = np.asarray(t, float)
+        v = self._eval(self.value, t, "value")
+        if self.rate is not None:
+            d = self._eval(self.rate, t, "rate")
+        else:
+            e = 1e-6
+            d = (self._eval(self.value, t + e, "value") - self._eval(self.value, t - e, "value")) / (2 * e)
+        if self.accel is not None:
+            dd = self._eval(self.accel, t, "acceleration")
+        else:
+            e = 1e-4
+            dd = (self._eval(self.value, t + e, "value") - 2 * v
+                  + self._eval(self.value, t - e, "value")) / e ** 2
+        return v, d, dd
+
     def tabulate(self, t):
         """(theta, theta') on the grid t and theta''(t[0])."""
         t = np.asarray(t, float)

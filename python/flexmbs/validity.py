@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from flexmbs.constraints import constraint_jacobian, constraint_values
 from flexmbs.errors import InvalidResultError, ModelError, ValidityWarning
 from flexmbs.responses.strain import columns as _columns
 from flexmbs.responses.strain import (element_groups, gauss_points, half_depth, raw_strains,
@@ -253,32 +254,6 @@ def _qscale(cm):
     return s
 
 
-def constraint_values(cm, q, law_val):
-    """Phi (nt, nc) of every constraint row at states q (nt, ndof) (all coordinates);
-    law_val (nlaw, nt): the time laws on the same grid."""
-    nc = cm.nc
-    out = np.zeros((q.shape[0], nc))
-    for r in range(nc):
-        d = cm.c_dofs[:, r].astype(np.int64) - 1
-        coef = cm.c_coef[:, r]
-        drive = 0.0
-        if cm.c_law[r] > 0:
-            drive = cm.c_lawcoef[r] * law_val[cm.c_law[r] - 1]
-        kind = int(cm.c_kind[r])
-        if kind in (2, 3):
-            ph = q[:, d[2]]
-            c, s = np.cos(ph), np.sin(ph)
-            rr = (c * coef[0] - s * coef[1]) if kind == 2 else (s * coef[0] + c * coef[1])
-            out[:, r] = q[:, d[1]] - q[:, d[0]] - rr - cm.c_c0[r] - drive
-        else:
-            v = np.zeros(q.shape[0])
-            for k in range(len(d)):
-                if d[k] >= 0 and coef[k] != 0.0:
-                    v += coef[k] * q[:, d[k]]
-            out[:, r] = v - cm.c_c0[r] - drive
-    return out
-
-
 def _drift_check(model, cm, result, lim, law_val, tol):
     if cm.nc == 0:
         return Check("constraint drift", "skipped", note="the model has no constraints")
@@ -424,29 +399,6 @@ def apply_validity(validity, result=None):
 
 
 # --------------------------------------------------------------------------- diagnosis
-def _jacobian_rows(cm, q):
-    """Dense constraint Jacobian Phi_q (nc, ndof) at q."""
-    jac = np.zeros((cm.nc, cm.ndof))
-    for r in range(cm.nc):
-        d = cm.c_dofs[:, r].astype(np.int64) - 1
-        coef = cm.c_coef[:, r]
-        kind = int(cm.c_kind[r])
-        if kind in (2, 3):
-            ph = q[d[2]]
-            c, s = math.cos(ph), math.sin(ph)
-            jac[r, d[0]] -= 1.0
-            jac[r, d[1]] += 1.0
-            if kind == 2:
-                jac[r, d[2]] += s * coef[0] + c * coef[1]
-            else:
-                jac[r, d[2]] -= c * coef[0] - s * coef[1]
-        else:
-            for k in range(len(d)):
-                if d[k] >= 0:
-                    jac[r, d[k]] += coef[k]
-    return jac
-
-
 def redundant_constraints(model, q=None, rtol=1e-9):
     """Redundant constraint rows: [(row, [rows it repeats])], in model order.
 
@@ -457,7 +409,7 @@ def redundant_constraints(model, q=None, rtol=1e-9):
     if cm.nc == 0:
         return []
     q = cm.qref if q is None else np.asarray(q, float)
-    jac = _jacobian_rows(cm, q)
+    jac = constraint_jacobian(cm, q)
     used = np.where(np.any(jac != 0.0, axis=0))[0]
     jac = jac[:, used]
     basis = np.zeros((0, jac.shape[1]))   # orthonormal rows
@@ -503,7 +455,7 @@ def free_directions(model, q=None, *, mass=False, rtol=1e-9, max_unknowns=3000):
         mm = sm[:cm.ndof, :cm.ndof]
         a = a + mm / max(np.abs(mm).max(), 1e-300)
     if cm.nc:
-        jac = _jacobian_rows(cm, q)
+        jac = constraint_jacobian(cm, q)
         _, sv, vt = np.linalg.svd(jac)
         rank = int(np.sum(sv > rtol * max(sv.max(), 1e-300))) if sv.size else 0
         z = vt[rank:].T
