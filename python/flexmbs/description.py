@@ -62,7 +62,8 @@ class Law(_Strict):
       cycloid        start + stroke (t/period - sin(2 pi t/period)/(2 pi)) (used as is
                      beyond the period, like the paper's eq. 26)
       polynomial     sum coefficients[k] t^k
-      samples        cubic spline through (times, values)
+      samples        through (times, values): 'pchip' (monotone cubic, no overshoot; default)
+                     or 'cubic' (cubic spline, continuous acceleration) `interpolation`
       reference      (drives only) the motion the rigid reference gives this drive when the
                      mechanism's ideal motion is prescribed by `paths`
     A rotation drive's law is added to the driven node's initial angle unless
@@ -87,6 +88,7 @@ class Law(_Strict):
     coefficients: list[Finite] | None = None
     times: list[Finite] | None = None
     values: list[Finite] | None = None
+    interpolation: Literal["pchip", "cubic"] = "pchip"
     absolute: bool = False
 
     @model_validator(mode="after")

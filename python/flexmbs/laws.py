@@ -45,9 +45,17 @@ class TimeLaw:
                    lambda t: np.zeros(np.shape(t)), name=name)
 
     @classmethod
-    def samples(cls, t, values, name="samples"):
-        """A law through sampled values (cubic spline, not-a-knot)."""
-        from scipy.interpolate import CubicSpline
+    def samples(cls, t, values, name="samples", interpolation="cubic"):
+        """A law through sampled values.
+
+        interpolation: 'cubic' (cubic spline, not-a-knot: smooth, continuous acceleration, but
+        it overshoots between samples of a step-like profile) or 'pchip' (monotone piecewise
+        cubic Hermite, scipy's PchipInterpolator: no overshoot, continuous rate, acceleration
+        piecewise)."""
+        from scipy.interpolate import CubicSpline, PchipInterpolator
+        if interpolation not in ("cubic", "pchip"):
+            raise ModelError(f"TimeLaw.samples {name!r}: interpolation must be 'cubic' or "
+                             f"'pchip', got {interpolation!r}")
         arrays = []
         for what, v in (("t", t), ("values", values)):
             try:
@@ -64,7 +72,8 @@ class TimeLaw:
                              f"got {arrays[0].size} and {arrays[1].size}")
         if np.any(np.diff(arrays[0]) <= 0):
             raise ModelError(f"TimeLaw.samples {name!r}: t must be strictly increasing")
-        spline = CubicSpline(arrays[0], arrays[1])
+        spline = (CubicSpline if interpolation == "cubic" else PchipInterpolator)(arrays[0],
+                                                                                 arrays[1])
         return cls(spline, spline.derivative(1), spline.derivative(2), name=name)
 
     def _eval(self, f, t, what):

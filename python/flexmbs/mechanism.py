@@ -72,8 +72,8 @@ def make_law(spec, name="law", shift=0.0):
         p = np.polynomial.Polynomial(c)
         return TimeLaw(p, p.deriv(1), p.deriv(2), name=name)
     if k == "samples":
-        law = TimeLaw.samples(spec.times, np.array(spec.values) + shift, name=name)
-        return law
+        return TimeLaw.samples(spec.times, np.array(spec.values) + shift, name=name,
+                               interpolation=spec.interpolation)
     raise ModelError(f"{name}: a law of type {k!r} has no formula (it is computed from the "
                      "rigid reference)")
 
@@ -148,7 +148,10 @@ class Mechanism:
         self._bodies = {b.name: b for b in d.bodies}
         self.model, self.node = self._structure(d.case.name)
         self._reference = None
-        self._add_constraints(self.model, reference=False)
+        # drives whose law is 'reference' follow the rigid reference: compute it first
+        needs = any(dr.law.type == "reference" for dr in d.drives)
+        self._add_constraints(self.model, reference=False,
+                              motion=self.reference if needs else None)
         self.set_design(self.start)
 
     # ------------------------------------------------------------------ structure
@@ -272,21 +275,12 @@ class Mechanism:
             q0 = assemble(ref, 0.0).q
             self._reference = rigid_reference(ref, self.t, q0=q0)
             self.reference_model = ref
-            if any(dr.law.type == "reference" for dr in self.description.drives):
-                self._rebuild_with_reference_laws()
         return self._reference
-
-    def _rebuild_with_reference_laws(self):
-        design = self._x
-        self.model, _ = self._structure(self.description.case.name)
-        self._add_constraints(self.model, reference=False, motion=self._reference)
-        self.set_design(design)
 
     def initial_state(self):
         """(q0, qd0): the assembled initial configuration (loops closed by position analysis,
         every beam straight) and the rigid velocity field the drives impose at t = 0."""
         from flexmbs.kinematics import assemble, drive_velocities
-        self.reference            # drives with reference laws need it
         a = assemble(self.model, 0.0)
         return a.q, drive_velocities(self.model, a.q, 0.0)
 

@@ -158,7 +158,6 @@ class Problem:
         the coordinates the responses need (all responses, or `responses`)."""
         mech = self.mechanism
         x = mech.start if x is None else mech.design_values(x)
-        mech.reference                        # drives with 'reference' laws need it
         model = mech.set_design(x)
         names = list(self._resp) if responses is None else list(responses)
         nodes = self._nodes_needed(names)
