@@ -334,6 +334,13 @@ def _check_flag(name, value):
         raise ModelError(f"{name} must be True or False, got {value!r}")
 
 
+def _drives_move_at_start(cm, margs):
+    """Whether a driven constraint row has a non-zero rate at t = 0."""
+    rows = cm.c_law[:cm.nc]
+    used = rows[rows > 0] - 1
+    return bool(used.size) and bool(np.any(np.asarray(margs["law_der"])[used, 0] != 0.0))
+
+
 def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="all",
              solver="auto", reuse_jacobian=False, tol=1e-10, max_iter=20, max_cuts=6,
              kscale=None, penalty=None, q0=None, qd0=None, design_derivatives=None,
@@ -351,7 +358,9 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     rho_inf : float in [0, 1], default 0.5
         Spectral radius at infinite frequency (1: no numerical damping).
     start : {'rest', 'static'}, default 'rest'
-        'rest': the reference configuration, velocities from the drives at t = 0;
+        'rest': the reference configuration (or q0) moving with the rigid-body velocity
+        field the drives impose at t = 0 (flexmbs.kinematics.drive_velocities: every body
+        moves rigidly; zero when no drive moves at t = 0), unless qd0 is given;
         'static': static equilibrium under the loads at the drives' initial positions.
     store : 'all', or a list of node ids / Body objects, default 'all'
         Which coordinates to keep at every step (memory for long runs).
@@ -477,6 +486,13 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
 
     q_init = cm.qref.copy() if q0 is None else _numeric_array("q0", q0).copy()
     qd_init = np.zeros(cm.ndof) if qd0 is None else _numeric_array("qd0", qd0).copy()
+    if qd0 is None and start == "rest" and q_init.shape == (cm.ndof,) \
+            and _drives_move_at_start(cm, margs):
+        # the rigid-body velocity field the drives impose (every body moving rigidly), not
+        # zero velocities of the nodes the drives do not hold: those would start a spurious
+        # vibration of the flexible bodies
+        from flexmbs.kinematics import drive_velocities
+        qd_init = drive_velocities(model, q_init, float(t[0]))
     for name, v in (("q0", q_init), ("qd0", qd_init)):
         if v.shape != (cm.ndof,) or not np.all(np.isfinite(v)):
             raise ModelError(f"{name} must be a finite array of {cm.ndof} coordinates")
