@@ -14,9 +14,10 @@ class TimeLaw:
 
     Parameters
     ----------
-    value, rate, accel : callables of a numpy array of times
-        theta(t), theta'(t), theta''(t). All are evaluated once, vectorized, on
-        the simulation's time grid before the Fortran loop starts. If `rate` or
+    value, rate, accel : callables of time
+        theta(t), theta'(t), theta''(t). All are evaluated once on the simulation's time
+        grid before the Fortran loop starts: on the whole array of times at once, or, for a
+        function of a single time (a Python `if`, math functions), time by time. If `rate` or
         `accel` is missing it is obtained by central differences (step 1e-6 s);
         give them analytically where you can.
     name : str
@@ -77,10 +78,22 @@ class TimeLaw:
         return cls(spline, spline.derivative(1), spline.derivative(2), name=name)
 
     def _eval(self, f, t, what):
+        ta = np.asarray(t, float)
         try:
-            out = np.asarray(f(np.asarray(t, float)), dtype=float)
+            out = np.asarray(f(ta), dtype=float)
+            if out.shape not in ((), ta.shape):
+                raise ValueError("shape")
         except ModelError as exc:
             raise ModelError(f"time law {self.name!r}: {exc}") from None
+        except (TypeError, ValueError, IndexError):
+            # a function of one time (a Python `if`, math.sin): evaluate it time by time
+            try:
+                out = np.array([float(f(float(tk))) for tk in ta.ravel()]).reshape(ta.shape)
+            except ModelError as exc:
+                raise ModelError(f"time law {self.name!r}: {exc}") from None
+            except (TypeError, ValueError, ArithmeticError) as exc:
+                raise ModelError(f"time law {self.name!r}: its {what} cannot be evaluated at "
+                                 f"the times of the grid ({type(exc).__name__}: {exc})") from None
         out = np.broadcast_to(out, np.shape(t)).astype(float)
         if not np.all(np.isfinite(out)):
             bad = np.asarray(t)[~np.isfinite(out)].ravel()
