@@ -40,7 +40,8 @@ import scipy.linalg as sla
 
 from flexmbs.errors import ModelError
 from flexmbs.model import Body, Model
-from flexmbs.simulate import Result, system_matrices
+from flexmbs.core import system_matrices
+from flexmbs.simulate import Result
 
 __all__ = ["TangentFrame", "ChordFrame", "BodyStiffness", "BodyLoads", "EquivalentStaticLoads",
            "local_displacements", "equivalent_static_loads", "esl_change", "StaticSolution",

@@ -23,7 +23,13 @@ import threading
 from dataclasses import dataclass, field
 
 from flexmbs.errors import ModelError, ResourceError
-from flexmbs.validity import CHECK_WORK_BYTES
+
+#: Values of one temporary array of the validity checks (flexmbs.validity): they run over the
+#: stored history in chunks of time points so that their work memory stays bounded whatever the
+#: run's length.
+CHUNK_VALUES = 250_000
+#: Bytes of work memory of the checks at most (a few temporaries of CHUNK_VALUES doubles).
+CHECK_WORK_BYTES = 6 * 8 * CHUNK_VALUES
 
 __all__ = ["MemoryEstimate", "estimate_memory", "available_memory", "memory_limit",
            "check_memory", "limit_source", "format_bytes", "format_seconds", "call_with_stack", "stack_limit",

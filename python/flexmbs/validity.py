@@ -45,6 +45,7 @@ import numpy as np
 
 from flexmbs.constraints import constraint_jacobian, constraint_values
 from flexmbs.errors import InvalidResultError, ModelError, ValidityWarning
+from flexmbs.resources import CHUNK_VALUES
 from flexmbs.responses.strain import columns as _columns
 from flexmbs.responses.strain import (element_groups, gauss_points, half_depth, raw_strains,
                                       shape)
@@ -157,12 +158,6 @@ def _grade(value, warn, fail):
     return "warn" if value > warn else "ok"
 
 
-#: Values of one temporary array of the checks: they run over the stored history in chunks of
-#: time points so that their work memory stays bounded whatever the run's length
-#: (flexmbs.resources.estimate_memory counts CHECK_WORK_BYTES).
-CHUNK_VALUES = 250_000
-#: Bytes of work memory of the checks at most (a few temporaries of CHUNK_VALUES doubles).
-CHECK_WORK_BYTES = 6 * 8 * CHUNK_VALUES
 
 
 def _chunks(nt, width):
@@ -441,7 +436,7 @@ def free_directions(model, q=None, *, mass=False, rtol=1e-9, max_unknowns=3000):
     `mass`): [(node, direction, body name)] of the largest component of each null vector of
     Z^T A Z, Z spanning the null space of Phi_q and A = K / |K| (+ M / |M|). None when the model
     is too large for this dense analysis (ndof > max_unknowns)."""
-    from flexmbs.simulate import system_matrices
+    from flexmbs.core import system_matrices
     cm = model.compile()
     if cm.ndof > max_unknowns:
         return None

@@ -1,0 +1,100 @@
+"""The layer over the compiled Fortran core (flexmbs._core): a model's arrays as the core's
+keyword arguments, and the residual and iteration matrix at a state. `simulate` (simulate.py)
+and the diagnoses of failed runs (validity.py) both build on it."""
+from __future__ import annotations
+
+import numpy as np
+
+from flexmbs import _core
+from flexmbs.errors import ModelError, ResourceError
+from flexmbs.model import Model
+from flexmbs.resources import format_bytes, limit_source
+from flexmbs.resources import memory_limit as _memory_limit
+
+__all__ = ["core_model_args", "system_matrices"]
+
+# The core's BLAS works on small systems thousands of times per run: one thread
+# (no pool latency); parallelism belongs to batch runs over designs.
+_core.blas_single_thread()
+
+
+def core_model_args(model: Model, storage, t, props=None):
+    """Keyword arguments describing `model` to the Fortran core (flexmbs_api.f90).
+
+    storage: 'dense' or 'klu' (matrix layout); t: the time grid on which the
+    laws are tabulated (uniform); props: (5, nel) element properties (default:
+    the model's current sections).
+    """
+    cm = model.compile()
+    pat = model.pattern(storage)
+    if props is None:
+        props = model.element_properties()
+    props = np.asarray(props, float)
+    if props.shape != (5, cm.el_dofs.shape[1]) or not np.all(np.isfinite(props)):
+        raise ModelError(f"props must be a finite (5, {cm.el_dofs.shape[1]}) array of element "
+                         f"properties [EA, kGA, EI, rhoA, rhoI], got shape {props.shape}")
+    t = np.atleast_1d(np.asarray(t, float))
+    if t.size < 2:
+        t = np.array([0.0, 1.0])
+    law_h = float(t[1] - t[0])
+    laws = model.laws()
+    if laws:
+        # the laws do not depend on the design: tabulate once per model and time grid
+        key = (tuple(id(law) for law in laws), t.size, float(t[0]), float(t[-1]))
+        cache = model.__dict__.setdefault("_law_tables", {})
+        if key not in cache:
+            if len(cache) > 8:
+                cache.clear()
+            tab = [law.tabulate(t) for law in laws]
+            cache[key] = (np.asfortranarray(np.array([v for v, _, _ in tab])),
+                          np.asfortranarray(np.array([d for _, d, _ in tab])),
+                          np.array([dd for _, _, dd in tab]))
+        law_val, law_der, law_dd0 = cache[key]
+    else:
+        law_val = np.zeros((1, t.size), order="F")
+        law_der = np.zeros((1, t.size), order="F")
+        law_dd0 = np.zeros(1)
+    return dict(
+        nc=cm.nc, nel=cm.nel, nload=cm.nload, nlaw=len(laws), nnz=pat["nnz"],
+        qref=cm.qref, lumped=cm.lumped, gacc=cm.gacc,
+        el_nen=cm.el_nen, el_dofs=cm.el_dofs, el_len=cm.el_len, el_prop=np.asfortranarray(props),
+        ld_dof=cm.ld_dof, ld_law=cm.ld_law, ld_amp=cm.ld_amp,
+        c_kind=cm.c_kind, c_dofs=cm.c_dofs, c_coef=cm.c_coef, c_c0=cm.c_c0, c_law=cm.c_law,
+        c_lawcoef=cm.c_lawcoef, law_h=law_h, law_val=law_val, law_der=law_der, law_dd0=law_dd0,
+        map_el=pat["map_el"], map_diag=pat["map_diag"], map_cq=pat["map_cq"], map_qc=pat["map_qc"],
+        map_qq=pat["map_qq"], nsd=cm.nsd, sd_dofs=cm.sd_dofs, sd_prop=cm.sd_prop, map_sd=pat["map_sd"])
+
+
+def system_matrices(model: Model, q, qdd=None, mu=None, t=0.0, *, cm=0.0, ck=1.0, kscale=0.0,
+                    penalty=0.0, props=None, qd=None, cc=0.0):
+    """Residual r (n,) of eq. (1) and dense iteration matrix S (n, n) of eq. (7) at a state.
+
+    With the defaults (cm = 0, ck = 1, cc = 0, kscale = 0, penalty = 0, mu = 0, qd = 0) the
+    leading ndof x ndof block of S is the tangent stiffness K_t(q) and r[:ndof] = f_int - f_ext.
+    `qd` (default 0) are the velocities of the velocity-dependent forces (spring-dampers) and
+    `cc` the coefficient of their damping matrix C_t in S (gamma' in dynamics).
+    The time laws are evaluated at t exactly.
+    """
+    c = model.compile()
+    need, avail = 16.0 * c.n * c.n, _memory_limit(None)
+    if need > avail or c.n > 46340:
+        raise ResourceError(f"system_matrices returns the dense {c.n} x {c.n} iteration matrix: "
+                            f"{format_bytes(need)}, more than {limit_source(None)} "
+                            f"({format_bytes(avail)}) or beyond the core's 32-bit indexing "
+                            "(46340 unknowns)", required=need, available=avail)
+    q = np.asarray(q, float)
+    qdd = np.zeros(c.ndof) if qdd is None else np.asarray(qdd, float)
+    qd = np.zeros(c.ndof) if qd is None else np.asarray(qd, float)
+    mu_arr = np.zeros(max(c.nc, 1))
+    if mu is not None:
+        mu_arr[:c.nc] = mu
+    # the core tabulates laws on a grid from 0; t itself is a grid point
+    grid = np.array([0.0, float(t)]) if t > 0 else np.array([0.0, 1e-6])
+    margs = core_model_args(model, "dense", grid, props)
+    r, vals, _, status = _core.system_matrices(**margs, q=q, qdd=qdd, mu=mu_arr, t=float(t),
+                                               cm=float(cm), ck=float(ck), kscale=float(kscale),
+                                               pen=float(penalty), qd=qd, cc=float(cc))
+    if status != 0:
+        raise ResourceError(f"out of memory in the core: could not allocate the model arrays "
+                            f"({c.nel} elements, {c.n} unknowns)")
+    return r, vals.reshape(c.n, c.n, order="F")
