@@ -6,6 +6,12 @@ Usage::
                           [--eps E] [--max-cycles N] [--confirm-cycles N] [--move-limit F]
                           [--frame tangent|chord] [--json] [--history FILE] [--plot FILE.png]
 
+CASE is a case of the paper's format (optimized by the registered methods) or a general-format
+case (docs/case-format.md: a .toml file with [[bodies]], or a name found only in cases/general,
+e.g. slider_crank_press), optimized with ``--method fully`` on its own objective and constraints
+(flexmbs.optimize.problem_fully; --t-end, --h, --rho-inf and --set time.h=... override its
+[time] table and other keys).
+
 Methods are looked up in `METHODS` (name -> "module:function", the function takes the parsed
 arguments and the Case and returns an OptimizationResult); method-specific options are added
 by the functions listed in `METHOD_OPTIONS` ("module:function", called with the parser). The
@@ -20,14 +26,16 @@ from __future__ import annotations
 
 import importlib
 import sys
+import tomllib
+from pathlib import Path
 
 from flexmbs.cli import (add_case_arguments, case_from_args, figure_file, output_file,
-                         parse_design, print_json)
+                         parse_design, parse_set, print_json)
 from flexmbs.errors import CaseError
 from flexmbs.optimize.result import HistoryWriter
 
 __all__ = ["register", "run_optimize", "run_weakly", "add_weakly_options", "start_from_args",
-           "METHODS", "METHOD_OPTIONS"]
+           "general_problem", "run_general", "METHODS", "METHOD_OPTIONS"]
 
 #: Optimization methods: name -> "module:function(args, case) -> OptimizationResult".
 METHODS = {"weakly": "flexmbs.optimize.cli:run_weakly",
@@ -49,7 +57,9 @@ def register(subparsers):
         "optimize", help="minimize the beam mass of a case under its deviation limit",
         description="Minimize the beam mass of a case subject to its deviation limit at every "
                     "time step, with the weakly coupled method (equivalent static loads in "
-                    "cycles, paper 5.3) or another registered method.")
+                    "cycles, paper 5.3) or another registered method. A general-format case "
+                    "(docs/case-format.md) is optimized on its own objective and constraints "
+                    "with --method fully.")
     add_case_arguments(p)
     p.add_argument("--method", choices=sorted(METHODS), default="weakly",
                    help="optimization method (default: weakly)")
@@ -117,8 +127,9 @@ def _interrupted(args, writer):
     recs = writer.records
     where = (f"history of {len(recs)} record(s) in {writer.path}" if writer.path
              else "no history file (--history FILE keeps one)")
-    if recs and recs[-1].get("design_mm") is not None:
-        p = ",".join(f"{v:.6g}" for v in recs[-1]["design_mm"])
+    last = recs[-1].get("design_mm", recs[-1].get("design")) if recs else None
+    if last is not None:
+        p = ",".join(f"{v:.6g}" for v in last)
         how = f"to resume from the last design analysed, run the same command with --start={p}"
         if writer.path:
             how += " and a new --history name (an existing history file is started afresh)"
@@ -127,9 +138,105 @@ def _interrupted(args, writer):
     print(f"flexmbs optimize: interrupted; {where}; {how}", file=sys.stderr, flush=True)
 
 
+def _general_case_file(name):
+    """The file of a general-format CASE (a .toml file with [[bodies]], or a name found only in
+    cases/general, since the paper's names keep their meaning) and its parsed table; None for a
+    case in the paper's format (or one load_case will report as missing or malformed)."""
+    from flexmbs.casefile import is_general_format
+    from flexmbs.cases import case_folders, case_path
+
+    p = Path(name)
+    f = p if p.is_file() else None
+    if f is None:
+        try:
+            case_path(name)
+            return None                                   # a paper case name
+        except CaseError:
+            pass
+        stem = p.name[:-5] if p.name.endswith(".toml") else p.name
+        if len(p.parts) == 1:
+            f = next((folder / "general" / f"{stem}.toml" for folder in case_folders()
+                      if (folder / "general" / f"{stem}.toml").is_file()), None)
+        if f is None:
+            return None
+    try:
+        data = tomllib.loads(f.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return None                                       # load_case names the problem
+    return (f, data) if is_general_format(data) else None
+
+
+def general_problem(args, found):
+    """The Problem of a general-format case, with --t-end, --h, --rho-inf (keys of [time]) and
+    --set KEY=VALUE (a dotted path through the case's tables, e.g. time.h=2e-4) applied."""
+    from flexmbs.casefile import description_from_dict
+    from flexmbs.problem import Problem
+
+    f, data = found
+    overrides = parse_set(args.set)
+    for key, value in (("t_end", args.t_end), ("h", args.h), ("rho_inf", args.rho_inf)):
+        if value is not None:
+            overrides[f"time.{key}"] = value
+    for key, value in overrides.items():
+        *path, leaf = key.split(".")
+        table = data
+        for k, part in enumerate(path):
+            table = table.get(part) if isinstance(table, dict) else None
+            if not isinstance(table, dict):
+                raise CaseError(f"--set {key}={value!r}: {'.'.join(path[:k + 1])!r} is not a "
+                                f"table of the general-format case {str(f)!r} (give a dotted "
+                                f"path through its tables, e.g. time.h=2e-4)")
+        table[leaf] = value
+    return Problem(description_from_dict(data, str(f)))
+
+
+def run_general(args, problem):
+    """``flexmbs optimize CASE`` for a general-format case: the fully coupled method on its
+    objective and constraints (flexmbs.optimize.problem_fully)."""
+    from flexmbs.optimize.problem_fully import optimize_problem
+
+    if args.method != "fully":
+        raise CaseError(f"--method {args.method}: the weakly coupled method on general-format "
+                        f"cases is not yet available (weakly is the default method); use "
+                        f"--method fully for {problem.description.case.name!r}")
+    defaults = dict(sensitivity="direct", aggregation="none", aggregation_parameter=None,
+                    windows=1, constraint_form="linear")
+    for opt, default in defaults.items():
+        if getattr(args, opt, default) != default:
+            raise CaseError(f"--{opt.replace('_', '-')} {getattr(args, opt)}: a general-format "
+                            f"case sets its constraints (aggregation, form) in its "
+                            f"[[constraints]] tables and is always differentiated directly; "
+                            f"leave this option out")
+    start = None
+    if args.start is not None:
+        from flexmbs.cli_evaluate import _design
+        try:
+            start = _design(args.start, problem)
+        except CaseError as exc:
+            raise CaseError(str(exc).replace("--design", "--start")) from None
+    progress = None if args.json else _print_general_iteration
+    max_it = 100 if args.max_iterations is None else args.max_iterations
+    return optimize_problem(problem, start, optimizer=args.optimizer, kkt_tol=args.kkt_tol,
+                            max_iterations=max_it, history=args.history, progress=progress)
+
+
+def _print_general_iteration(rec):
+    p = ", ".join(f"{v:.5g}" for v in rec["design"])
+    print(f"iteration {rec['iteration']:3d}  x = [{p}]  objective {rec['objective']:.6g}  "
+          f"violation {rec['max_violation']:.1e}  KKT {rec['kkt_residual']:.1e}  "
+          f"simulations {rec['simulations']}", flush=True)
+
+
 def run_optimize(args):
-    case = case_from_args(args)
-    run = _load(METHODS[args.method])
+    found = _general_case_file(args.case)
+    if found is not None:
+        problem = general_problem(args, found)
+        case = None
+        run = run_general
+    else:
+        problem = None
+        case = case_from_args(args)
+        run = _load(METHODS[args.method])
     # output paths are checked before the run, not after it
     history_path = args.history
     if history_path:
@@ -139,7 +246,7 @@ def run_optimize(args):
     writer = HistoryWriter(history_path)
     args.history = writer           # the methods accept a HistoryWriter for `history`
     try:
-        result = run(args, case)
+        result = run(args, case if problem is None else problem)
     except KeyboardInterrupt:
         writer.close()
         _interrupted(args, writer)
@@ -148,10 +255,10 @@ def run_optimize(args):
         writer.close()
         args.history = history_path
     if args.plot:
-        result.plot(args.plot, limit_m=case.limit_m)
+        result.plot(args.plot, limit_m=None if case is None else case.limit_m)
     if args.json:
         out = result.to_dict()
-        out["case_file"] = case.source
+        out["case_file"] = case.source if case is not None else str(found[0])
         if args.history:
             out["history_file"] = args.history
         if args.plot:

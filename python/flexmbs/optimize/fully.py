@@ -247,6 +247,23 @@ class FullyCoupledProblem:
             self._windows_idx = (nt, np.array_split(np.arange(nt), self.windows))
         return self._windows_idx[1]
 
+    # ------------------------------------------------------------------ history records
+    def record_fields(self, ev, active_tol):
+        """The problem's part of an iterate's history record (read by the optimizers' monitor):
+        design, mass, deviation maximum, violation and active time steps."""
+        active = (np.flatnonzero(ev.deviation >= (1.0 - active_tol) * self.limit) + 1).tolist()
+        return dict(design_mm=ev.design_mm, mass_kg=ev.mass, max_deviation_m=ev.max_deviation,
+                    t_at_max_s=float(ev.t[ev.step_at_max - 1]), step_at_max=ev.step_at_max,
+                    max_violation=ev.violation, active_steps={self.constraint_name: active})
+
+    def record_tail(self, ev, active_tol):
+        """Fields appended to the record after the monitor's own: the active aggregated
+        constraints (their windows' step ranges) when the constraints are aggregated."""
+        if self.aggregation == "none":
+            return {}
+        labels = self.constraint_labels(ev.deviation.size)
+        return {"active_constraints": [labels[j] for j in np.flatnonzero(ev.g >= -active_tol)]}
+
     # ------------------------------------------------------------------ evaluation
     def evaluate(self, x, gradient=True):
         """Analyse the scaled design x (cached: one simulation per design).
@@ -415,7 +432,13 @@ class _Stop(Exception):
 
 
 class _Monitor:
-    """Records the iterates, writes the history, applies the stopping test."""
+    """Records the iterates, writes the history, applies the stopping test.
+
+    Works on any scaled problem P with lower, upper (scaled bounds), simulations,
+    gradient_evaluations, record_fields(ev, active_tol) and record_tail(ev, active_tol)
+    (the problem's fields of a history record), whose evaluations have x, f, df, g, dg and
+    violation: FullyCoupledProblem here, the general-format problems of problem_fully.py.
+    """
 
     def __init__(self, problem, writer, progress, *, objective_rel_change, constraint_violation,
                  design_rel_change, kkt_tol, active_tol, max_iterations, max_simulations, t0):
@@ -465,20 +488,13 @@ class _Monitor:
         obj_change = None if prev is None else abs(ev.f - prev.f) / max(abs(ev.f), 1e-300)
         des_change = (None if prev is None else
                       float(np.max(np.abs(ev.x - prev.x) / np.maximum(np.abs(ev.x), 1e-300))))
-        dev = ev.deviation
-        active = (np.flatnonzero(dev >= (1.0 - self.active_tol) * P.limit) + 1).tolist()
-        record = dict(
-            iteration=k, design_mm=ev.design_mm, mass_kg=ev.mass,
-            max_deviation_m=ev.max_deviation, t_at_max_s=float(ev.t[ev.step_at_max - 1]),
-            step_at_max=ev.step_at_max, max_violation=ev.violation,
-            active_steps={P.constraint_name: active},
-            objective_rel_change=obj_change, design_rel_change=des_change, kkt_residual=kkt,
-            simulations=P.simulations, gradient_evaluations=P.gradient_evaluations,
-            wall_time_s=time.perf_counter() - self.t0)
-        if P.aggregation != "none":
-            labels = P.constraint_labels(dev.size)
-            record["active_constraints"] = [labels[j] for j in
-                                            np.flatnonzero(ev.g >= -self.active_tol)]
+        record = dict(iteration=k)
+        record.update(P.record_fields(ev, self.active_tol))
+        record.update(objective_rel_change=obj_change, design_rel_change=des_change,
+                      kkt_residual=kkt, simulations=P.simulations,
+                      gradient_evaluations=P.gradient_evaluations,
+                      wall_time_s=time.perf_counter() - self.t0)
+        record.update(P.record_tail(ev, self.active_tol))
         record.update(extra)
         self.iterates.append(ev)
         self.writer.write(record)
@@ -730,6 +746,28 @@ def _run_slsqp(P, mon, x0, ftol=1e-10):
 
 
 # ============================================================================ driver
+def _check_stopping(obj_tol, viol_tol, des_tol, kkt_tol, active_tol, max_iterations,
+                    max_simulations):
+    """Check the stopping settings (ModelError naming the bad one); return the two limits as
+    integers."""
+    for name, val in (("objective_rel_change", obj_tol), ("constraint_violation", viol_tol),
+                      ("kkt_tol", kkt_tol), ("active_tol", active_tol)):
+        real_number(name, val, positive=True)
+    if des_tol is not None:
+        real_number("design_rel_change (or None)", des_tol, positive=True)
+    return (whole_number("max_iterations", max_iterations, 1),
+            whole_number("max_simulations", max_simulations, 1))
+
+
+def _mma_settings(mma_options):
+    """MMA keyword arguments and the GCMMA inner-iteration limit from `mma_options`."""
+    if mma_options is not None and not isinstance(mma_options, dict):
+        raise ModelError(f"mma_options must be a dict or None, got {mma_options!r}")
+    mma_kw = dict(mma_options or {})
+    max_inner = whole_number("mma_options max_inner", mma_kw.pop("max_inner", 20), 1)
+    return mma_kw, max_inner
+
+
 def optimize_fully(case, start_mm=None, *, sensitivity="direct", optimizer="mma",
                    constraint_form="linear", aggregation="none", aggregation_parameter=None,
                    windows=1, fd_step=1e-6, scale_mm=None, objective_rel_change=None,
@@ -819,13 +857,8 @@ def optimize_fully(case, start_mm=None, *, sensitivity="direct", optimizer="mma"
                 else constraint_violation)
     des_tol = settings.get("design_rel_change") if design_rel_change is None else design_rel_change
     max_it = settings.get("max_iterations", 100) if max_iterations is None else max_iterations
-    for name, val in (("objective_rel_change", obj_tol), ("constraint_violation", viol_tol),
-                      ("kkt_tol", kkt_tol), ("active_tol", active_tol)):
-        real_number(name, val, positive=True)
-    if des_tol is not None:
-        real_number("design_rel_change (or None)", des_tol, positive=True)
-    max_it = whole_number("max_iterations", max_it, 1)
-    max_simulations = whole_number("max_simulations", max_simulations, 1)
+    max_it, max_simulations = _check_stopping(obj_tol, viol_tol, des_tol, kkt_tol, active_tol,
+                                              max_it, max_simulations)
     real_number("trust_radius", trust_radius, positive=True)
     real_number("max_trust_radius", max_trust_radius, positive=True)
     if not (trust_radius <= max_trust_radius):
@@ -833,13 +866,10 @@ def optimize_fully(case, start_mm=None, *, sensitivity="direct", optimizer="mma"
                          f"{max_trust_radius!r}")
     if model_fidelity is not None:
         real_number("model_fidelity (or None)", model_fidelity, positive=True)
-    if mma_options is not None and not isinstance(mma_options, dict):
-        raise ModelError(f"mma_options must be a dict or None, got {mma_options!r}")
     if simulate_kw is not None and not isinstance(simulate_kw, dict):
         raise ModelError(f"simulate_kw must be a dict of simulate's keyword arguments or None, "
                          f"got {simulate_kw!r}")
-    mma_kw = dict(mma_options or {})
-    max_inner = whole_number("mma_options max_inner", mma_kw.pop("max_inner", 20), 1)
+    mma_kw, max_inner = _mma_settings(mma_options)
 
     problem = FullyCoupledProblem(
         case, p0 if scale_mm is None else scale_mm, sensitivity=sensitivity, fd_step=fd_step,

@@ -1,0 +1,390 @@
+"""The fully coupled method on any general-format problem (docs/case-format.md).
+
+`optimize_problem(problem)` minimizes the problem's objective subject to its constraints
+(`flexmbs.problem.Evaluation.constraints` g <= 0, normalised so that 0 is the limit, one row
+per time step for ``over = "every_step"``) and the design variables' bounds. Every iteration
+simulates the current design and differentiates it exactly (`Problem.evaluate`, direct
+differentiation): the fully coupled method of the paper's sections 4 and 5.4, as
+`flexmbs.optimize.fully.optimize_fully` applies it to the paper's cases, on whatever the case
+file describes.
+
+The optimizer loop is the one of fully.py (`_run_mma`, `_run_slsqp`, `_Monitor`, the KKT test):
+this module only adapts a Problem to it (`ScaledProblem`):
+
+- design variables scaled by the start, x = p / p_start (x = 1 at the start, the bounds
+  p_lower / p_start .. p_upper / p_start), as fully.py does;
+- objective scaled by its value at the start, f = F(p) / |F(p_start)|;
+- constraints as Problem gives them (already relative), Jacobian scaled with x;
+- one simulation per design (a cache keyed on the design); trial designs are simulated with
+  their gradients, since a trial is most often accepted.
+
+Stopping test (as fully.py's): the paper's, relative objective change between two iterations
+< `objective_rel_change` (1e-3) and constraint violation max(0, max g) < `constraint_violation`
+(1e-6), together with the first-order test (relative KKT residual < `kkt_tol`, 1e-3, over
+the constraints within `active_tol` of their limit and the bounds touched); a run whose design
+stops changing for 5 iterations ends as not converged.
+
+>>> from flexmbs.optimize.problem_fully import optimize_problem
+>>> res = optimize_problem("slider_crank_press")                   # doctest: +SKIP
+>>> res.design, res.objective, res.max_violation                  # doctest: +SKIP
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from flexmbs.errors import ModelError
+from flexmbs.optimize.fully import (_check_stopping, _mma_settings, _Monitor, _run_mma,
+                                    _run_slsqp)
+from flexmbs.optimize.mma import MMA
+from flexmbs.optimize.result import HistoryWriter, jsonable
+from flexmbs.optimize.weakly import _progress_callback
+
+__all__ = ["optimize_problem", "ScaledProblem", "ProblemOptimizationResult", "OPTIMIZERS"]
+
+#: Optimizers of general-format problems: GCMMA (default) and plain scipy SLSQP.
+OPTIMIZERS = ("mma", "slsqp")
+
+
+@dataclass
+class ScaledEvaluation:
+    """One design of a ScaledProblem: scaled design x, objective f and constraints g with
+    their x-gradients (df, dg; dg None until computed), and the Problem's Evaluation."""
+    x: np.ndarray
+    design: np.ndarray
+    f: float
+    df: np.ndarray | None
+    g: np.ndarray
+    dg: np.ndarray | None
+    evaluation: object
+
+    @property
+    def violation(self):
+        """Constraint violation max(0, max g) (0 without constraints)."""
+        return float(max(0.0, self.g.max())) if self.g.size else 0.0
+
+
+class ScaledProblem:
+    """A `flexmbs.problem.Problem` scaled for the optimizers of fully.py.
+
+    Parameters
+    ----------
+    problem : flexmbs.problem.Problem
+    scale : (nv,) array, optional
+        x = p / scale; default the problem's start design.
+
+    Attributes
+    ----------
+    lower, upper : scaled bounds; simulations : Problem.evaluate calls (one simulation each);
+    gradient_evaluations : those with gradients; evaluations : distinct designs analysed;
+    sensitivity : 'direct' (trial designs are evaluated with their gradients).
+    """
+
+    sensitivity = "direct"
+
+    def __init__(self, problem, scale=None):
+        self.problem = problem
+        self.nv = len(problem.variables)
+        if self.nv == 0:
+            raise ModelError("the case has no [[design]] variables: nothing to optimize")
+        if problem.description.objective is None:
+            raise ModelError("the case has no [objective]: nothing to minimize")
+        scale = problem.start if scale is None else problem.mechanism.design_values(scale)
+        self.scale = np.asarray(scale, float)
+        self.lower = problem.lower / self.scale
+        self.upper = problem.upper / self.scale
+        self.simulations = 0
+        self.gradient_evaluations = 0
+        self.evaluations = 0
+        self._cache = {}
+        self._order = []
+        self._cache_size = 32
+        # the objective's scale: its value at x = 1 (that evaluation is kept, rescaled)
+        self.f_ref = 1.0
+        ev = self.evaluate(np.ones(self.nv), gradient=True)
+        self.f_ref = abs(ev.f) or 1.0
+        ev.f /= self.f_ref
+        ev.df = ev.df / self.f_ref
+
+    def design(self, x):
+        """The design (user units) of a scaled design."""
+        return np.asarray(x, float) * self.scale
+
+    def to_x(self, design):
+        """The scaled design of a design in user units."""
+        return np.asarray(design, float) / self.scale
+
+    def evaluate(self, x, gradient=True):
+        """The scaled design x analysed (cached: one simulation per design)."""
+        x = np.clip(np.asarray(x, float), self.lower, self.upper)
+        key = x.tobytes()
+        ev = self._cache.get(key)
+        if ev is None or (gradient and ev.dg is None):
+            if ev is None:
+                self.evaluations += 1
+            ev = self._analyse(x, gradient)
+            if key not in self._cache:
+                self._order.append(key)
+            self._cache[key] = ev
+            if len(self._order) > self._cache_size:
+                self._cache.pop(self._order.pop(0), None)
+        return ev
+
+    def _analyse(self, x, gradient):
+        p = self.design(x)
+        self.simulations += 1
+        ev = self.problem.evaluate(p, gradient=gradient)
+        if gradient:
+            self.gradient_evaluations += 1
+        df = (None if ev.d_objective is None else
+              np.asarray(ev.d_objective) * self.scale / self.f_ref)
+        dg = None if ev.jacobian is None else np.asarray(ev.jacobian) * self.scale[None, :]
+        return ScaledEvaluation(x=x, design=p, f=float(ev.objective) / self.f_ref, df=df,
+                                g=np.asarray(ev.constraints, float), dg=dg, evaluation=ev)
+
+    # ------------------------------------------------------------------ history records
+    def active_constraints(self, ev, active_tol):
+        """{response: 1-based rows of its constraint block within active_tol of the limit}
+        (for ``over = "every_step"`` the rows are the time steps)."""
+        out = {}
+        names = ev.evaluation.constraint_names
+        rows = {}
+        for j, name in enumerate(names):
+            rows.setdefault(name, []).append(j)
+        for name, idx in rows.items():
+            g = ev.g[idx]
+            out[name] = (np.flatnonzero(g >= -active_tol) + 1).tolist()
+        return out
+
+    def record_fields(self, ev, active_tol):
+        """The problem's part of a history record: design, objective, violation, largest
+        value of every response, active constraints."""
+        e = ev.evaluation
+        return dict(design=ev.design, objective=float(e.objective),
+                    max_violation=ev.violation,
+                    responses={k: float(np.max(v)) for k, v in e.values.items()},
+                    active_constraints=self.active_constraints(ev, active_tol))
+
+    def record_tail(self, ev, active_tol):
+        return {}
+
+
+@dataclass
+class ProblemOptimizationResult:
+    """Outcome of `optimize_problem`.
+
+    Attributes
+    ----------
+    method : 'fully'. case : the case name. variables, units : names and units of the design.
+    design : (nv,) final design (user units, the last accepted iterate). start : the start.
+    objective : its objective value (unscaled). objective_name : the objective's response.
+    max_violation : max(0, max g) of the final design, re-checked by a fresh simulation
+        (relative: 1e-3 is 0.1 % beyond a limit).
+    iterations : optimizer iterations (accepted designs after the start).
+    evaluations : distinct designs analysed. simulations : simulations run (the re-check
+        included). converged, reason : the stopping test's verdict, in words.
+    history : one record per iteration (iteration 0: the start), as written to the history
+        file. wall_time_s. details : optimizer, kkt_residual, paper_test_iteration, stopping
+        settings, gradient_evaluations.
+    evaluation : the fresh `flexmbs.problem.Evaluation` of the final design (not in JSON).
+    """
+    method: str
+    case: str
+    variables: list
+    units: list
+    design: np.ndarray
+    start: np.ndarray
+    objective: float
+    objective_name: str
+    max_violation: float
+    iterations: int
+    evaluations: int
+    simulations: int
+    converged: bool
+    reason: str
+    history: list
+    wall_time_s: float
+    details: dict = field(default_factory=dict)
+    evaluation: object = field(default=None, repr=False)
+
+    @property
+    def feasible(self):
+        """All constraints of the final design hold within 1e-6 (relative)."""
+        return self.max_violation < 1e-6
+
+    def to_dict(self, history=True):
+        """A JSON-ready dict: the fields above, `details` merged at the top level."""
+        d = dict(method=self.method, case=self.case, variables=self.variables, units=self.units,
+                 design=self.design, start=self.start, objective=self.objective,
+                 objective_name=self.objective_name, max_violation=self.max_violation,
+                 iterations=self.iterations, evaluations=self.evaluations,
+                 simulations=self.simulations, converged=self.converged, reason=self.reason,
+                 wall_time_s=self.wall_time_s)
+        for k, v in self.details.items():
+            d.setdefault(k, v)
+        if history:
+            d["history"] = self.history
+        return jsonable(d)
+
+    def to_json(self, history=True, indent=None):
+        return json.dumps(self.to_dict(history=history), indent=indent)
+
+    def summary(self):
+        """A few lines for people."""
+        p = ", ".join(f"{n} = {v:.5g} {u}" for n, v, u in
+                      zip(self.variables, self.design, self.units))
+        return (f"{self.method} coupled, case {self.case}: "
+                f"{'converged' if self.converged else 'NOT converged'} ({self.reason})\n"
+                f"  design {p}\n"
+                f"  objective {self.objective_name} = {self.objective:.6g}, constraint "
+                f"violation {self.max_violation:.2e} (re-checked)\n"
+                f"  {self.iterations} iterations, {self.simulations} simulations, "
+                f"{self.wall_time_s:.2f} s")
+
+    def plot(self, path, limit_m=None):
+        """Figure (PNG/PDF by extension): objective and constraint violation per iteration.
+        (limit_m: unused, for the signature of OptimizationResult.plot.)"""
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        its = [r.get("iteration") for r in self.history]
+        fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+        ax1.plot(its, [r.get("objective") for r in self.history], "o-")
+        ax1.set_xlabel("iteration")
+        ax1.set_ylabel(self.objective_name)
+        ax1.set_title("fully coupled: objective history")
+        ax1.grid(True, alpha=0.3)
+        ax2.semilogy(its, [max(r.get("max_violation") or 0.0, 1e-16) for r in self.history],
+                     "o-")
+        ax2.set_xlabel("iteration")
+        ax2.set_ylabel("max(0, max g)")
+        ax2.set_title("constraint violation")
+        ax2.grid(True, alpha=0.3)
+        fig.tight_layout()
+        from flexmbs.batch import atomic_open
+        fmt = os.path.splitext(os.fspath(path))[1][1:].lower() or None
+        try:
+            with atomic_open(path, "wb") as fh:
+                fig.savefig(fh, dpi=120, format=fmt)
+        finally:
+            plt.close(fig)
+        return path
+
+
+def optimize_problem(problem, x0=None, *, optimizer="mma", max_iterations=100,
+                     max_simulations=1000, objective_rel_change=1e-3, constraint_violation=1e-6,
+                     design_rel_change=None, kkt_tol=1e-3, active_tol=1e-3, scale=None,
+                     mma_options=None, history=None, progress=None):
+    """Minimize a general-format problem's objective under its constraints, fully coupled.
+
+    Parameters
+    ----------
+    problem : flexmbs.problem.Problem, or a case path, a name in cases/general, a dict or a
+        Description (then loaded with flexmbs.problem.load_problem).
+    x0 : array, optional
+        Starting design (user units, within the bounds); default the case's start.
+    optimizer : {'mma', 'slsqp'}, default 'mma'
+        Svanberg's globally convergent MMA (`flexmbs.optimize.mma`, with fully.py's inner
+        iterations) or plain scipy SLSQP (no move limits).
+    max_iterations : int, default 100
+    max_simulations : int, default 1000
+    objective_rel_change : float, default 1e-3
+        The paper's test: relative objective change between two iterations below this ...
+    constraint_violation : float, default 1e-6
+        ... and constraint violation max(0, max g) below this (g relative to the limits).
+    design_rel_change : float, optional
+        If given, the relative change of the (scaled) design must be below it too.
+    kkt_tol : float, default 1e-3
+        First-order test that must hold as well (relative KKT residual, fully.kkt_residual).
+    active_tol : float, default 1e-3
+        Constraints with g >= -active_tol are active (KKT test, history).
+    scale : array, optional
+        Design scale, x = p / scale; default the start.
+    mma_options : dict, optional
+        Keyword arguments of `flexmbs.optimize.mma.MMA` and max_inner (default 20).
+    history : str, path or HistoryWriter, optional
+        One JSON line per iteration written as the run goes (iteration 0: the start); keys
+        iteration, design, objective, max_violation, responses (largest value of each),
+        active_constraints, objective_rel_change, design_rel_change, kkt_residual,
+        simulations, gradient_evaluations, wall_time_s (mma: mma_inner_iterations).
+    progress : callable, optional
+        Called with each history record.
+
+    Returns
+    -------
+    ProblemOptimizationResult
+
+    Raises
+    ------
+    ModelError
+        Bad option (named), a start outside the bounds, no design variables or no objective.
+    flexmbs.errors.SimulationError
+        If the simulation of the start fails.
+    """
+    from flexmbs.problem import load_problem
+
+    t0 = time.perf_counter()
+    if not isinstance(optimizer, str) or optimizer not in OPTIMIZERS:
+        raise ModelError(f"optimizer must be one of {OPTIMIZERS} for a general-format problem, "
+                         f"got {optimizer!r}")
+    max_iterations, max_simulations = _check_stopping(
+        objective_rel_change, constraint_violation, design_rel_change, kkt_tol, active_tol,
+        max_iterations, max_simulations)
+    mma_kw, max_inner = _mma_settings(mma_options)
+    progress = _progress_callback(progress)
+    problem = load_problem(problem)
+    mech = problem.mechanism
+    p0 = problem.start if x0 is None else mech.design_values(x0)
+    lo, hi = problem.lower, problem.upper
+    bad = np.flatnonzero((p0 < lo * (1 - 1e-12)) | (p0 > hi * (1 + 1e-12)))
+    if bad.size:
+        i = int(bad[0])
+        raise ModelError(f"x0: {problem.variables[i]} = {float(p0[i])!r} lies outside its "
+                         f"bounds [{lo[i]:g}, {hi[i]:g}]")
+    P = ScaledProblem(problem, p0 if scale is None else scale)
+    opt = MMA(P.lower, P.upper, **mma_kw) if optimizer == "mma" else None
+    writer = history if isinstance(history, HistoryWriter) else HistoryWriter(history)
+    own_writer = not isinstance(history, HistoryWriter)
+    mon = _Monitor(P, writer, progress, objective_rel_change=objective_rel_change,
+                   constraint_violation=constraint_violation,
+                   design_rel_change=design_rel_change, kkt_tol=kkt_tol, active_tol=active_tol,
+                   max_iterations=max_iterations, max_simulations=max_simulations, t0=t0)
+    try:
+        if optimizer == "mma":
+            _run_mma(P, mon, P.to_x(p0), opt, max_inner=max_inner)
+        else:
+            _run_slsqp(P, mon, P.to_x(p0))
+    finally:
+        if own_writer:
+            writer.close()
+    if not mon.iterates:
+        raise ModelError("the optimization recorded no iterate")
+    last = mon.iterates[-1]
+    # the constraints of the final design re-checked by a fresh simulation (no cache)
+    fresh = problem.evaluate(last.design, gradient=False)
+    P.simulations += 1
+    desc = problem.description
+    details = dict(optimizer=optimizer, kkt_residual=mon.last_kkt,
+                   paper_test_iteration=mon.paper_test_iteration,
+                   gradient_evaluations=P.gradient_evaluations, scale=P.scale,
+                   stopping=dict(objective_rel_change=objective_rel_change,
+                                 constraint_violation=constraint_violation,
+                                 design_rel_change=design_rel_change, kkt_tol=kkt_tol,
+                                 active_tol=active_tol))
+    if optimizer == "mma":
+        details["mma_inner_iterations"] = sum(r.get("mma_inner_iterations") or 0
+                                              for r in writer.records)
+    viol = float(max(0.0, fresh.constraints.max())) if fresh.constraints.size else 0.0
+    return ProblemOptimizationResult(
+        method="fully", case=desc.case.name, variables=problem.variables,
+        units=[v.unit for v in desc.design], design=last.design.copy(), start=p0.copy(),
+        objective=float(fresh.objective), objective_name=desc.objective.response,
+        max_violation=viol, iterations=mon.iteration, evaluations=P.evaluations,
+        simulations=P.simulations, converged=mon.converged, reason=mon.reason or "stopped",
+        history=list(writer.records), wall_time_s=time.perf_counter() - t0, details=details,
+        evaluation=fresh)
