@@ -32,18 +32,21 @@ from pathlib import Path
 from flexmbs.cli import (add_case_arguments, case_from_args, figure_file, output_file,
                          parse_design, parse_set, print_json)
 from flexmbs.errors import CaseError
+from flexmbs.optimize.fully import (AGGREGATIONS, CONSTRAINT_FORMS, OPTIMIZERS,
+                                    optimize_fully)
 from flexmbs.optimize.result import HistoryWriter
 
 __all__ = ["register", "run_optimize", "run_weakly", "add_weakly_options", "start_from_args",
-           "general_problem", "run_general", "METHODS", "METHOD_OPTIONS"]
+           "general_problem", "run_general", "METHODS", "METHOD_OPTIONS", "run_fully",
+           "add_fully_options"]
 
 #: Optimization methods: name -> "module:function(args, case) -> OptimizationResult".
 METHODS = {"weakly": "flexmbs.optimize.cli:run_weakly",
-           "fully": "flexmbs.optimize.fully:run_cli"}
+           "fully": "flexmbs.optimize.cli:run_fully"}
 
 #: Functions adding method-specific options to the parser, "module:function(parser)".
 METHOD_OPTIONS = ["flexmbs.optimize.cli:add_weakly_options",
-                  "flexmbs.optimize.fully:add_cli_options"]
+                  "flexmbs.optimize.cli:add_fully_options"]
 
 
 def _load(spec):
@@ -274,3 +277,51 @@ def run_optimize(args):
                 print(f"  {what:<8s} {f}")
     sys.stdout.flush()
     return 0 if result.converged else 1
+
+
+# ----------------------------------------------------------------------------- fully coupled
+def add_fully_options(parser):
+    """Options of ``flexmbs optimize CASE --method fully``."""
+    g = parser.add_argument_group("fully coupled method")
+    g.add_argument("--sensitivity", choices=("direct", "fd"), default="direct",
+                   help="design sensitivities: direct differentiation (default) or forward "
+                        "finite differences (the paper's, relative step --fd-step)")
+    g.add_argument("--fd-step", type=float, default=1e-6, metavar="S",
+                   help="relative finite-difference step, default 1e-6")
+    g.add_argument("--optimizer", choices=OPTIMIZERS, default="mma",
+                   help="mma: Svanberg's globally convergent MMA (default); sqp: trust-region "
+                        "SQP; slsqp: plain scipy SLSQP (no move limits, fails from some starts)")
+    g.add_argument("--aggregation", choices=AGGREGATIONS, default="none",
+                   help="none: one constraint per time step (the paper's, default); ks / pnorm: "
+                        "aggregated constraints, eq. (22)")
+    g.add_argument("--aggregation-parameter", type=float, default=None, metavar="R",
+                   help="KS rho (default 100) or p-norm exponent (default 50)")
+    g.add_argument("--windows", type=int, default=1, metavar="N",
+                   help="aggregate over N consecutive time windows, default 1")
+    g.add_argument("--constraint-form", choices=CONSTRAINT_FORMS, default="linear",
+                   help="dl/limit - 1 <= 0 (default) or (dl/limit)^2 - 1 <= 0")
+    g.add_argument("--kkt-tol", type=float, default=1e-3, metavar="TOL",
+                   help="first-order test added to the paper's stopping test, default 1e-3")
+    g.add_argument("--max-iterations", type=int, default=None, metavar="N",
+                   help="maximum optimizer iterations; default: the case file's, else 100")
+
+
+def run_fully(args, case):
+    """Handler of ``flexmbs optimize CASE --method fully``: returns an OptimizationResult."""
+    progress = None if args.json else _print_iteration
+    return optimize_fully(case, start_from_args(args, case), sensitivity=args.sensitivity,
+                          fd_step=args.fd_step, optimizer=args.optimizer,
+                          aggregation=args.aggregation,
+                          aggregation_parameter=args.aggregation_parameter,
+                          windows=args.windows, constraint_form=args.constraint_form,
+                          kkt_tol=args.kkt_tol, max_iterations=args.max_iterations,
+                          history=args.history, progress=progress)
+
+
+def _print_iteration(rec):
+    p = ", ".join(f"{v:.3f}" for v in rec["design_mm"])
+    active = next(iter(rec["active_steps"].values()), [])
+    shown = ",".join(str(n) for n in active[:6]) + (",..." if len(active) > 6 else "")
+    print(f"iteration {rec['iteration']:3d}  p = [{p}] mm  mass {rec['mass_kg']:.4f} kg  "
+          f"max deviation {rec['max_deviation_m'] * 1e3:.4f} mm  KKT {rec['kkt_residual']:.1e}  "
+          f"simulations {rec['simulations']}  active [{shown}]", flush=True)

@@ -76,7 +76,7 @@ from flexmbs.responses.aggregate import DEFAULT_PARAMETER, aggregate_constraints
 from flexmbs.sensitivity import case_gradients
 
 __all__ = ["optimize_fully", "FullyCoupledProblem", "Evaluation", "kkt_residual", "solve_qp",
-           "aggregate_constraints", "add_cli_options", "run_cli",
+           "aggregate_constraints",
            "OPTIMIZERS", "SENSITIVITIES", "AGGREGATIONS", "CONSTRAINT_FORMS"]
 
 OPTIMIZERS = ("mma", "sqp", "slsqp")
@@ -923,53 +923,3 @@ def optimize_fully(case, start_mm=None, *, sensitivity="direct", optimizer="mma"
         reason=mon.reason or "stopped", history=list(writer.records),
         max_deviation_m=ev.max_deviation, wall_time_s=time.perf_counter() - t0,
         start_mm=p0.copy(), details=details, t=ev.t.copy(), deviation=ev.deviation.copy())
-
-
-# ============================================================================ command line
-def add_cli_options(parser):
-    """Options of ``flexmbs optimize CASE --method fully`` (registered in optimize/cli.py)."""
-    g = parser.add_argument_group("fully coupled method")
-    g.add_argument("--sensitivity", choices=("direct", "fd"), default="direct",
-                   help="design sensitivities: direct differentiation (default) or forward "
-                        "finite differences (the paper's, relative step --fd-step)")
-    g.add_argument("--fd-step", type=float, default=1e-6, metavar="S",
-                   help="relative finite-difference step, default 1e-6")
-    g.add_argument("--optimizer", choices=OPTIMIZERS, default="mma",
-                   help="mma: Svanberg's globally convergent MMA (default); sqp: trust-region "
-                        "SQP; slsqp: plain scipy SLSQP (no move limits, fails from some starts)")
-    g.add_argument("--aggregation", choices=AGGREGATIONS, default="none",
-                   help="none: one constraint per time step (the paper's, default); ks / pnorm: "
-                        "aggregated constraints, eq. (22)")
-    g.add_argument("--aggregation-parameter", type=float, default=None, metavar="R",
-                   help="KS rho (default 100) or p-norm exponent (default 50)")
-    g.add_argument("--windows", type=int, default=1, metavar="N",
-                   help="aggregate over N consecutive time windows, default 1")
-    g.add_argument("--constraint-form", choices=CONSTRAINT_FORMS, default="linear",
-                   help="dl/limit - 1 <= 0 (default) or (dl/limit)^2 - 1 <= 0")
-    g.add_argument("--kkt-tol", type=float, default=1e-3, metavar="TOL",
-                   help="first-order test added to the paper's stopping test, default 1e-3")
-    g.add_argument("--max-iterations", type=int, default=None, metavar="N",
-                   help="maximum optimizer iterations; default: the case file's, else 100")
-
-
-def run_cli(args, case):
-    """Handler of ``flexmbs optimize CASE --method fully``: returns an OptimizationResult."""
-    from flexmbs.optimize.cli import start_from_args
-
-    progress = None if args.json else _print_iteration
-    return optimize_fully(case, start_from_args(args, case), sensitivity=args.sensitivity,
-                          fd_step=args.fd_step, optimizer=args.optimizer,
-                          aggregation=args.aggregation,
-                          aggregation_parameter=args.aggregation_parameter,
-                          windows=args.windows, constraint_form=args.constraint_form,
-                          kkt_tol=args.kkt_tol, max_iterations=args.max_iterations,
-                          history=args.history, progress=progress)
-
-
-def _print_iteration(rec):
-    p = ", ".join(f"{v:.3f}" for v in rec["design_mm"])
-    active = next(iter(rec["active_steps"].values()), [])
-    shown = ",".join(str(n) for n in active[:6]) + (",..." if len(active) > 6 else "")
-    print(f"iteration {rec['iteration']:3d}  p = [{p}] mm  mass {rec['mass_kg']:.4f} kg  "
-          f"max deviation {rec['max_deviation_m'] * 1e3:.4f} mm  KKT {rec['kkt_residual']:.1e}  "
-          f"simulations {rec['simulations']}  active [{shown}]", flush=True)
