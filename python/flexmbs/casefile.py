@@ -44,7 +44,7 @@ def _friendly(err):
     return f"key '{_loc(loc)}' {msg}{shown}"
 
 
-_TAGS = ("beam", "rigid", "mass", "deviation", "stress")
+_TAGS = ("beam", "rigid", "mass", "deviation", "stress", "torque", "reaction")
 
 
 def description_from_dict(data, source="<dict>"):

@@ -32,7 +32,8 @@ from typing import Annotated, Literal, Union
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 __all__ = ["Description", "Law", "Beam", "Rigid", "PointMass", "Joint", "Drive", "Load",
-           "SpringDamper", "DesignVariable", "Deviation", "Mass", "Stress", "Constraint",
+           "SpringDamper", "DesignVariable", "Deviation", "Mass", "Stress", "Torque", "Reaction",
+           "Constraint",
            "TimeSettings", "Section", "MaterialSpec", "Term", "PointRef"]
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
@@ -363,7 +364,29 @@ class Stress(_Strict):
     bodies: Annotated[list[Name], Field(min_length=1)]
 
 
-Response = Annotated[Union[Deviation, Mass, Stress], Field(discriminator="type")]
+class Torque(_Strict):
+    """The motor torque (N m) of the rotation drive named `drive`, positive counter-clockwise on
+    the driven body (its `body`; a relative drive's `relative_to` body receives the opposite
+    torque), or the force (N) of a translation drive along its axis, over time. A bound on its
+    absolute value is a constraint with upper = limit and lower = -limit."""
+    name: Name
+    type: Literal["torque"]
+    drive: Name
+
+
+class Reaction(_Strict):
+    """The reaction force (N) of the joint named `joint` over time: the force the joint exerts
+    on the node of its (first) body at its point, in the ground frame, component `x`, `y` or
+    `magnitude` (of a pin, hinge, clamp and weld: both components; of a slider: the normal
+    force, along the normal of its axis)."""
+    name: Name
+    type: Literal["reaction"]
+    joint: Name
+    component: Literal["x", "y", "magnitude"] = "magnitude"
+
+
+Response = Annotated[Union[Deviation, Mass, Stress, Torque, Reaction],
+                     Field(discriminator="type")]
 
 
 class Constraint(_Strict):
@@ -446,6 +469,8 @@ class Description(_Strict):
         unique("bodies", [b.name for b in self.bodies])
         dvars = unique("design variables", [v.name for v in self.design])
         responses = unique("responses", [r.name for r in self.responses])
+        joints = unique("joints", [j.name for j in self.joints if j.name is not None])
+        drives = unique("drives", [d.name for d in self.drives if d.name is not None])
         pts = set(self.points)
 
         def point(where, p):
@@ -518,6 +543,14 @@ class Description(_Strict):
                         body_point(where, t.relative_to.body, t.relative_to.at)
                     if t.frame != "ground" and t.frame not in bodies:
                         raise ValueError(f"{where}: frame {t.frame!r} is neither 'ground' nor a body")
+            elif isinstance(r, Torque):
+                if r.drive not in drives:
+                    raise ValueError(f"{where}: unknown drive {r.drive!r} (named drives: "
+                                     f"{', '.join(sorted(drives)) or 'none'})")
+            elif isinstance(r, Reaction):
+                if r.joint not in joints:
+                    raise ValueError(f"{where}: unknown joint {r.joint!r} (named joints: "
+                                     f"{', '.join(sorted(joints)) or 'none'})")
             else:
                 for b in (r.bodies or []):
                     if b not in bodies or not isinstance(bodies[b], Beam):

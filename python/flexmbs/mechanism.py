@@ -120,6 +120,8 @@ class Mechanism:
     node : dict (body, point) -> node id
     nsteps, t : the time grid (t_end rounded to a whole number of steps h)
     variables : list of design variable names; x is in their own units
+    joint_rows, drive_rows : per joint / drive of the description (in its order), the indices
+        of the model's constraint rows it added (motor torques and joint reactions read them)
     """
 
     def __init__(self, description: Description):
@@ -204,7 +206,9 @@ class Mechanism:
         'reference' take their motion from `motion`; True: the rigid reference's constraints,
         paths instead of those drives)."""
         d, node = self.description, self.node
+        joint_rows, drive_rows = [], []
         for k, j in enumerate(d.joints):
+            first = len(m._rows)
             if j.type in ("pin", "clamp", "slider"):
                 n = node[(j.body, j.at)]
                 if j.type == "pin":
@@ -218,13 +222,16 @@ class Mechanism:
                 if a == b:
                     raise ModelError(f"joint {j.name or k + 1}: bodies {j.bodies} share one node")
                 (m.hinge if j.type == "hinge" else m.weld)(a, b)
+            joint_rows.append(list(range(first, len(m._rows))))
         q0 = m.reference_coordinates()
         for k, dr in enumerate(d.drives):
+            first = len(m._rows)
             name = f"drive {dr.name or k + 1}"
             n = node[(dr.body, dr.at)]
             other = node[(dr.relative_to, dr.at)] if dr.relative_to is not None else None
             if dr.law.type == "reference":
                 if reference:
+                    drive_rows.append([])
                     continue
                 law = self._reference_law(dr, n, other, motion, name)
             elif dr.type == "rotation":
@@ -237,6 +244,9 @@ class Mechanism:
                 m.drive_rotation(n, law, relative_to=other)
             else:
                 m.drive_translation(n, law, dr.axis)
+            drive_rows.append(list(range(first, len(m._rows))))
+        if not reference:
+            self.joint_rows, self.drive_rows = joint_rows, drive_rows
         if reference:
             for k, p in enumerate(d.paths):
                 n = node[(p.body, p.at)]

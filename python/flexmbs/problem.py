@@ -9,8 +9,9 @@ mechanism; `Problem.evaluate(x)` gives every value and its gradient for a design
 
 Gradients are exact (direct differentiation of the discrete generalized-alpha equations in the
 Fortran core, one extra multi-right-hand-side solve per step); only the coordinates the
-responses need are stored and differentiated, and nothing is differentiated when
-``gradient=False``.
+responses need are stored and differentiated, the multipliers' derivatives (motor torques,
+joint reactions) are asked for only when such a response is evaluated, and nothing is
+differentiated when ``gradient=False``.
 """
 from __future__ import annotations
 
@@ -21,11 +22,12 @@ from pathlib import Path
 import numpy as np
 
 from flexmbs.casefile import description_from_dict, read_description
-from flexmbs.description import Deviation, Description, Mass, Stress
+from flexmbs.description import Deviation, Description, Mass, Reaction, Stress, Torque
 from flexmbs.errors import CaseError, ModelError
 from flexmbs.mechanism import Mechanism
 from flexmbs.responses.aggregate import aggregate
 from flexmbs.responses.deviation import deviation, deviation_terms
+from flexmbs.responses.forces import constraint_force, joint_reaction
 from flexmbs.responses.stress import beam_stress
 from flexmbs.simulate import simulate
 
@@ -153,9 +155,13 @@ class Problem:
                     nodes.update(mech.model.body(b).nodes)
         return sorted(nodes)
 
+    def _needs_forces(self, names):
+        return any(isinstance(self._resp[n], (Torque, Reaction)) for n in names)
+
     def simulate(self, x=None, *, gradient=False, responses=None, store=None):
         """Simulate design x (default: start); with gradient=True the design derivatives of
-        the coordinates the responses need (all responses, or `responses`)."""
+        the coordinates the responses need (all responses, or `responses`), and those of the
+        constraint multipliers (Result.dmu) if a torque or reaction response is among them."""
         mech = self.mechanism
         x = mech.start if x is None else mech.design_values(x)
         model = mech.set_design(x)
@@ -167,10 +173,13 @@ class Problem:
                   qd0=None if ts.start == "static" else qd0)
         if store is None:
             store = nodes if nodes else "all"
-        if gradient and nodes and mech.variables:
-            dofs = np.array([3 * n + k for n in nodes for k in range(3)])
+        forces = self._needs_forces(names)
+        if gradient and (nodes or forces) and mech.variables:
+            # the core needs at least one sensitivity coordinate: node 0's when only the
+            # multipliers' derivatives are wanted
+            dofs = np.array([3 * n + k for n in (nodes or [0]) for k in range(3)])
             kw.update(design_derivatives=mech.element_property_derivatives(x),
-                      sensitivity_dofs=dofs)
+                      sensitivity_dofs=dofs, constraint_force_derivatives=forces)
         return simulate(model, mech.t_end, ts.h, store=store, **kw)
 
     # ------------------------------------------------------------------ responses
@@ -213,7 +222,34 @@ class Problem:
             j = np.argmax(v, axis=1)
             rows = np.arange(v.shape[0])
             return v[rows, j], (np.concatenate(grads, axis=1)[rows, j] if gradient else None)
+        if isinstance(r, Torque):
+            # the force of the drive's row: the torque on its body (the module's convention)
+            k = [dr.name for dr in self.description.drives].index(r.drive)
+            rows = mech.drive_rows[k]
+            return constraint_force(mech.model, result, rows[0],
+                                    result.dmu if gradient else None)
+        if isinstance(r, Reaction):
+            k = [j.name for j in self.description.joints].index(r.joint)
+            return self._reaction(self.description.joints[k], mech.joint_rows[k], r.component,
+                                  result, gradient)
         raise ModelError(f"response {r.name!r}: type {r.type!r} cannot be evaluated")
+
+    def _reaction(self, joint, rows, component, result, gradient):
+        """Reaction of a joint on its first body's node, ground frame (see Reaction)."""
+        m = self.mechanism.model
+        dmu = result.dmu if gradient else None
+        if joint.type == "slider":
+            # row 0: n . x = c, so the force on the node is F n (F = -mu, forces.py)
+            f, df = constraint_force(m, result, rows[0], dmu)
+            row = m._rows[rows[0]]
+            nx, ny = row.coef
+            parts = {"x": (nx * f, None if df is None else nx * df),
+                     "y": (ny * f, None if df is None else ny * df),
+                     "magnitude": (np.abs(f), None if df is None else np.sign(f)[:, None] * df)}
+            return parts[component]
+        rc = joint_reaction(m, result, (rows[0], rows[1]), dmu)   # rows x, y of the joint
+        return {"x": (rc.x, rc.dx), "y": (rc.y, rc.dy),
+                "magnitude": (rc.magnitude, rc.dmagnitude)}[component]
 
     def evaluate(self, x=None, gradient=True):
         """Every response, the objective and the constraints at design x (user units)."""
