@@ -136,3 +136,44 @@ def test_press_chord_frame_lands_on_the_dynamic_constraint():
     its limit, |g| < 0.06 (twice that bound; measured 0.006)."""
     r = optimize_problem_weakly(GENERAL / "slider_crank_press.toml", frame_kind="chord")
     assert abs(r.details["max_violation"]) < 0.06
+
+
+def _static_at(prob, x, **kw):
+    static = StaticModel(prob, **kw)
+    res = prob.simulate(x, store="all")
+    model = prob.mechanism.set_design(x)
+    static.set_loads(equivalent_static_loads(model, res, static.frames,
+                                             stiffness=static.stiffness))
+    values, _ = static.responses_at(x, gradient=False)
+    return values, prob.evaluate(x, gradient=False).values
+
+
+def test_static_model_reproduces_the_simulation_at_the_esl_design():
+    """At the design the ESL were computed at, K^-1 g_eq = u (eq. 19), so: (a) the robot's
+    static deviation (28) is the simulated one, because both arms' frame angles are the
+    motors' prescribed absolute angles, i.e. the rigid reference's (the chain identity
+    R u_A = x_A - x_A,r, R u_tip = (x_tip - x_A) - (x_tip,r - x_A,r)); (b) the press rod's
+    static stress E(|eps| + c|kappa|) is the simulated one (strains do not depend on the
+    frame). Both to 1e-6 relative to the history's maximum (measured 1e-11 and 4e-11)."""
+    robot = Problem(GENERAL / "robot_2dof.toml")
+    static, dynamic = _static_at(robot, [40.0, 30.0, 35.0, 25.0])
+    dl = dynamic["deviation_28"]
+    assert static["deviation_28"].shape == (1, dl.size)
+    assert np.abs(static["deviation_28"][0] - dl).max() < 1e-6 * dl.max()
+    press = Problem(GENERAL / "slider_crank_press.toml")
+    static, dynamic = _static_at(press, [25.0])
+    s = dynamic["rod_stress"]
+    assert np.abs(static["rod_stress"][0] - s).max() < 1e-6 * s.max()
+
+
+def test_bad_arguments_are_typed_errors():
+    """A start outside the bounds, a frames value that is not a dict and an unknown frame kind
+    are ModelErrors naming the argument and the value."""
+    from flexmbs.errors import ModelError
+    case = GENERAL / "slider_crank_press.toml"
+    with pytest.raises(ModelError, match=r"x0 = \[70.0\] lies outside the bounds"):
+        optimize_problem_weakly(case, [70.0])
+    with pytest.raises(ModelError, match="frames must be a dict"):
+        optimize_problem_weakly(case, frames=["rod"])
+    with pytest.raises(ModelError, match="frame_kind must be 'tangent' or 'chord', got 'arc'"):
+        optimize_problem_weakly(case, frame_kind="arc")
