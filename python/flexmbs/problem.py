@@ -31,7 +31,7 @@ from flexmbs.responses.forces import constraint_force, joint_reaction
 from flexmbs.responses.stress import beam_stress
 from flexmbs.simulate import simulate
 
-__all__ = ["Problem", "Evaluation", "load_problem"]
+__all__ = ["Problem", "Evaluation", "load_problem", "constraint_rows"]
 
 
 def load_problem(case):
@@ -267,32 +267,49 @@ class Problem:
         obj = self.description.objective
         if obj is not None:
             f, df = _scalar(values[obj.response], grads[obj.response], obj.over, None, t)
-        g_rows, j_rows, names = [], [], []
-        for c in self.description.constraints:
-            v, dv = values[c.response], grads[c.response]
-            for bound, sign in ((c.upper, 1.0), (c.lower, -1.0)):
-                if bound is None:
-                    continue
-                s = abs(bound) if bound != 0 else 1.0
-                # g = sign (r - bound) / |bound| <= 0, aggregated over time as asked
-                r = sign * np.asarray(v, float) / s
-                dr = None if dv is None else sign * np.asarray(dv, float) / s
-                if np.ndim(r):
-                    r, dr = aggregate(r, dr, c.over, parameter=c.parameter, t=t,
-                                      window=c.window)
-                g = np.atleast_1d(r) - sign * bound / s
-                g_rows.append(g)
-                names += [c.response] * g.size
-                if dr is not None:
-                    j_rows.append(np.atleast_2d(dr))
-        cons = np.concatenate(g_rows) if g_rows else np.zeros(0)
-        jac = (np.vstack(j_rows) if j_rows else np.zeros((0, len(mech.variables)))) \
-            if gradient else None
+        cons, jac, names, _ = constraint_rows(self.description, values, grads, t,
+                                              len(mech.variables), gradient)
         return Evaluation(x=x, t=t, values=values, gradients=grads if gradient else {},
                           objective=f, d_objective=df if gradient else None, constraints=cons,
                           jacobian=jac, constraint_names=names,
                           stats=result.stats if result is not None else {},
                           wall_time=_time.perf_counter() - t0)
+
+
+def constraint_rows(description, values, gradients, t, nv, gradient=True):
+    """The normalised constraint rows g <= 0 of a description from response values.
+
+    values[name], gradients[name]: a response's history (nt,) or scalar and its gradient
+    ((nt, nv), (nv,) or None). A bound b gives g = sign (r - b) / |b| (|b| = 1 for b = 0),
+    aggregated over time as the constraint asks ('every_step': one row per step).
+
+    Returns
+    -------
+    g : (ng,) values; jacobian : (ng, nv) or None; names : the response of each row;
+    groups : (ng,) index of the (constraint, bound) each row comes from.
+    """
+    g_rows, j_rows, names, groups = [], [], [], []
+    for c in description.constraints:
+        v, dv = values[c.response], gradients.get(c.response)
+        for bound, sign in ((c.upper, 1.0), (c.lower, -1.0)):
+            if bound is None:
+                continue
+            s = abs(bound) if bound != 0 else 1.0
+            # g = sign (r - bound) / |bound| <= 0, aggregated over time as asked
+            r = sign * np.asarray(v, float) / s
+            dr = None if dv is None or not gradient else sign * np.asarray(dv, float) / s
+            if np.ndim(r):
+                r, dr = aggregate(r, dr, c.over, parameter=c.parameter, t=t,
+                                  window=c.window)
+            g = np.atleast_1d(r) - sign * bound / s
+            groups += [len(g_rows)] * g.size
+            g_rows.append(g)
+            names += [c.response] * g.size
+            if dr is not None:
+                j_rows.append(np.atleast_2d(dr))
+    cons = np.concatenate(g_rows) if g_rows else np.zeros(0)
+    jac = (np.vstack(j_rows) if j_rows else np.zeros((0, nv))) if gradient else None
+    return cons, jac, names, np.asarray(groups, int)
 
 
 def _scalar(v, dv, how, parameter, t):

@@ -2,6 +2,7 @@
 and the objects shared with the fully coupled method.
 
     optimize_weakly        weakly coupled cycles (weakly.py)
+    optimize_problem_weakly  the same on any general-format Problem (problem_weakly.py)
     optimize_fully         fully coupled dynamic response optimization (fully.py)
     optimize_problem       the fully coupled method on a general-format Problem (problem_fully.py)
     OptimizationResult     result of either method (result.py)
@@ -12,6 +13,7 @@ from flexmbs.optimize.fully import optimize_fully
 from flexmbs.optimize.problem_fully import optimize_problem
 from flexmbs.optimize.result import HistoryWriter, OptimizationResult, read_history
 from flexmbs.optimize.weakly import optimize_weakly
+from flexmbs.optimize.problem_weakly import optimize_problem_weakly
 
-__all__ = ["optimize_weakly", "optimize_fully", "optimize_problem", "OptimizationResult",
-           "HistoryWriter", "read_history"]
+__all__ = ["optimize_weakly", "optimize_problem_weakly", "optimize_fully", "optimize_problem",
+           "OptimizationResult", "HistoryWriter", "read_history"]

@@ -1,0 +1,643 @@
+"""The weakly coupled method (paper 5.3) on any general-format problem (`flexmbs.problem.Problem`).
+
+One cycle: MBS analysis of the current design -> equivalent static loads (ESL) of every beam the
+constraints need, through a corotational frame (`flexmbs.esl`) -> test of eq. (25) -> static
+multi-load-case optimization (23) with the ESL held fixed -> next design. The cycle loop, the
+oscillation detection and the confirmation cycles are those of `flexmbs.optimize.weakly`.
+
+The static model of the responses (the generic form of the paper's eqs. 29, 31, 34-35):
+
+* mass: exact (it does not depend on the loads);
+* deviation: a term's point is reached from the ground through a *chain* of bodies, found from
+  the joints: a path ground -(pin/clamp)- body -(hinge/weld, or a point mass `on` it)- body ...
+  ending at the term's point (or at a point joined to it). A beam traversed from point P to point
+  Q contributes R_0,n u_n(Q), the static displacement of Q in the beam's corotational frame at P,
+  rotated to the ground; rigid bodies and point masses contribute nothing. The flexible
+  deviation of the point is the sum of the contributions along its chain, exactly how (29), (31)
+  and (35) sum the arms' deflections; a term `relative_to` another point takes the difference of
+  the two chains (a common start cancels: (29)'s second term is arm 2 alone). A frame other than
+  the ground rotates the sum by the rigid reference's angle of that body, as the dynamic response.
+  A closed loop gives a point several chains (four-bar: A through the crank, and through the
+  follower and the coupler): every chain becomes its own constraint, as (34) and (35) do. Sliders
+  do not fix a point along their axis and so never start a chain; springs are not links.
+  A beam needs one frame: its entry point in the chains (four-bar: crank at O, follower at C,
+  coupler at B). When chains enter the same beam from both ends, `frames={body: point}` chooses,
+  the chains entering elsewhere are dropped, and a term left with no chain is a CaseError;
+  without `frames` the conflict itself is a CaseError naming the beam.
+* stress: E (|eps| + c |kappa|) of the beam's static displacement under each load case, the
+  strain kinematics of `flexmbs.responses.strain` in the body frame; the largest over the
+  elements' stations and the listed beams, step by step (as `Problem` does dynamically).
+
+The ESL bodies are the beams on a chain and the beams with a stress response (frame at the chain
+entry, else at the beam's `from` point, or as `frames` says); beams that enter no constraint need
+none. Component 'angle' has no static form here (CaseError).
+
+Example
+-------
+>>> from flexmbs.optimize.problem_weakly import optimize_problem_weakly   # doctest: +SKIP
+>>> r = optimize_problem_weakly("robot_2dof")                              # doctest: +SKIP
+>>> round(r.mass_kg, 3)                                                    # doctest: +SKIP
+0.959
+"""
+from __future__ import annotations
+
+import time
+from types import SimpleNamespace
+
+import numpy as np
+from scipy.optimize import minimize
+
+from flexmbs.description import Beam, Deviation, Mass, PointMass, Rigid, Stress, body_points
+from flexmbs.errors import CaseError, ModelError
+from flexmbs.esl import (BodyStiffness, ChordFrame, TangentFrame, equivalent_static_loads,
+                         esl_change, solve_static)
+from flexmbs.optimize.result import HistoryWriter, OptimizationResult
+from flexmbs.optimize.weakly import _oscillation, _progress_callback
+from flexmbs.problem import _scalar, constraint_rows, load_problem
+from flexmbs.responses.strain import raw_strain_derivatives, raw_strains, shape, gauss_points
+from flexmbs.sections import real_number, whole_number
+
+__all__ = ["optimize_problem_weakly", "chains", "StaticModel"]
+
+#: at most this many chain combinations per deviation response (loops multiply them)
+MAX_VARIANTS = 16
+
+
+# ---------------------------------------------------------------------------- chains
+def _links(description):
+    """Joint graph: roots [(body, point)] fixed to the ground, and same-point links
+    {(body, point): [(body, point), ...]} (hinge, weld, point mass `on` a body)."""
+    roots, links = [], {}
+
+    def link(a, b):
+        links.setdefault(a, []).append(b)
+        links.setdefault(b, []).append(a)
+    for j in description.joints:
+        if j.type in ("pin", "clamp"):
+            roots.append((j.body, j.at))
+        elif j.type in ("hinge", "weld"):
+            link((j.bodies[0], j.at), (j.bodies[1], j.at))
+    for b in description.bodies:
+        if isinstance(b, PointMass) and b.on is not None:
+            link((b.name, b.at), (b.on, b.at))
+    return roots, links
+
+
+def _same_point(vertex, links):
+    """The body-points joined to `vertex` at its point (itself included)."""
+    seen, todo = {vertex}, [vertex]
+    while todo:
+        for w in links.get(todo.pop(), []):
+            if w not in seen:
+                seen.add(w)
+                todo.append(w)
+    return seen
+
+
+def chains(description, body, point):
+    """Every chain from the ground to the point `point` of `body` (module docstring).
+
+    Returns a list of chains, each a tuple of (beam, entry point, exit point) traversals from
+    the ground outwards (an empty tuple: the point is held by rigid links only); chains that
+    differ only in rigid bodies are given once. CaseError when no chain reaches the point.
+    """
+    bodies = {b.name: b for b in description.bodies}
+    roots, links = _links(description)
+    target = _same_point((body, point), links)
+    found = []
+
+    def record(contrib):
+        if tuple(contrib) not in found:
+            found.append(tuple(contrib))
+
+    def leave(b, p, visited, contrib):
+        for nb, np_ in links.get((b, p), []):
+            if nb not in visited:
+                enter(nb, np_, visited | {nb}, contrib)
+
+    def enter(b, p, visited, contrib):
+        if (b, p) in target:
+            record(contrib)
+            return
+        leave(b, p, visited, contrib)
+        for q in body_points(bodies[b]):
+            if q == p:
+                continue
+            c = contrib + [(b, p, q)] if isinstance(bodies[b], Beam) else contrib
+            if (b, q) in target:
+                record(c)
+            else:
+                leave(b, q, visited, c)
+
+    for b, p in roots:
+        enter(b, p, {b}, [])
+    if not found:
+        raise CaseError(f"weakly coupled method: no chain of joints (pin/clamp to the ground, "
+                        f"hinges, welds) reaches point {point!r} of body {body!r}; a slider does "
+                        "not fix a point along its axis, so it cannot start a chain")
+    return found
+
+
+def _difference(chain, rel):
+    """{(beam, entry, exit): coefficient} of chain(point) - chain(relative point)."""
+    out = {}
+    for key in chain:
+        out[key] = out.get(key, 0.0) + 1.0
+    for key in rel or ():
+        out[key] = out.get(key, 0.0) - 1.0
+    return {k: v for k, v in out.items() if v != 0.0}
+
+
+# ---------------------------------------------------------------------------- static model
+class StaticModel:
+    """The static responses of a problem for one set of ESL (see the module docstring).
+
+    Parameters
+    ----------
+    problem : Problem
+    frames : dict body -> point, optional (frame point of a beam).
+    frame_kind : 'tangent' (default) or 'chord' (from the frame point to the beam's other end).
+    """
+
+    def __init__(self, problem, frames=None, frame_kind="tangent"):
+        self.problem = problem
+        d = problem.description
+        mech = problem.mechanism
+        self.mech = mech
+        beams = {b.name: b for b in d.bodies if isinstance(b, Beam)}
+        frames = dict(frames or {})
+        for name, pt in frames.items():
+            if name not in beams:
+                raise CaseError(f"frames: {name!r} is not a beam (beams: {', '.join(beams)})")
+            if pt not in (beams[name].start, beams[name].end):
+                raise CaseError(f"frames: beam {name!r} has no end point {pt!r} (its ends: "
+                                f"{beams[name].start}, {beams[name].end})")
+        used = set()
+        if d.objective is not None:
+            used.add(d.objective.response)
+        used.update(c.response for c in d.constraints)
+        resp = {r.name: r for r in d.responses}
+        self.responses = [resp[n] for n in resp if n in used]
+        # chains of every deviation term, then the frame entry of every beam on them
+        raw = {}
+        for r in self.responses:
+            if isinstance(r, Deviation):
+                for k, t in enumerate(r.terms):
+                    if t.component == "angle":
+                        raise CaseError(f"response {r.name!r}, term {k + 1}: component 'angle' "
+                                        "has no static form in the weakly coupled method")
+                    pc = chains(d, t.body, t.at)
+                    rc = chains(d, t.relative_to.body, t.relative_to.at) \
+                        if t.relative_to is not None else [None]
+                    raw[(r.name, k)] = [(a, b) for a in pc for b in rc]
+        entries = {}
+        for combos in raw.values():
+            for a, b in combos:
+                for beam, p, _ in list(a) + list(b or ()):
+                    entries.setdefault(beam, set()).add(p)
+        for beam, pts in entries.items():
+            if len(pts) > 1 and beam not in frames:
+                raise CaseError(f"weakly coupled method: chains enter beam {beam!r} from both "
+                                f"ends ({', '.join(sorted(pts))}); choose its frame point with "
+                                f"frames={{{beam!r}: point}}")
+        entry = {b: next(iter(p)) for b, p in entries.items()}
+        entry.update({b: p for b, p in frames.items()})
+        for r in self.responses:
+            if isinstance(r, Stress):
+                for b in r.bodies:
+                    entry.setdefault(b, beams[b].start)
+        # the deviation terms' variants: a chain combination each (loops give several)
+        self.variants = {}
+        for r in self.responses:
+            if not isinstance(r, Deviation):
+                continue
+            per_term = []
+            for k, t in enumerate(r.terms):
+                ok = [_difference(a, b) for a, b in raw[(r.name, k)]
+                      if all(entry[bm] == p for bm, p, _ in list(a) + list(b or ()))]
+                if not ok:
+                    raise CaseError(f"response {r.name!r}, term {k + 1}: every chain to point "
+                                    f"{t.at!r} of {t.body!r} enters a beam away from its frame "
+                                    f"point ({entry})")
+                per_term.append(ok)
+            combos = [[]]
+            for opts in per_term:
+                combos = [c + [o] for c in combos for o in opts]
+            if len(combos) > MAX_VARIANTS:
+                raise CaseError(f"response {r.name!r}: {len(combos)} chain combinations (closed "
+                                f"loops); at most {MAX_VARIANTS}: choose frames to open the loops")
+            self.variants[r.name] = combos
+        # ESL bodies: frames and stiffness (the structure only: built once)
+        model = mech.model
+        self.frames, self.stiffness, self.exit = [], {}, {}
+        for name in beams:
+            if name not in entry:
+                continue
+            body = model.body(name)
+            node = mech.node[(name, entry[name])]
+            far = body.last if node == body.first else body.first
+            fr = TangentFrame(node) if frame_kind == "tangent" else ChordFrame(node, far)
+            self.frames.append((name, fr))
+            self.stiffness[name] = BodyStiffness(model, body, fr)
+        self.entry = entry
+        self.loads = None
+
+    # ------------------------------------------------------------------ loads
+    def set_loads(self, loads):
+        """The cycle's EquivalentStaticLoads."""
+        self.loads = loads
+        self.nt = len(loads.bodies[0].t)
+
+    # ------------------------------------------------------------------ responses
+    def _solutions(self, x, gradient):
+        mech = self.mech
+        model = mech.set_design(x)
+        props = model.element_properties()
+        dprops = mech.element_property_derivatives(x)
+        out = {}
+        for b in self.loads:
+            sol = solve_static(b.stiffness, b.g_eq, props, dprops if gradient else None)
+            ks = b.stiffness
+            nd = len(ks.dofs)
+            u = np.zeros((self.nt, nd))
+            u[:, ks.free] = sol.u
+            du = None
+            if gradient:
+                du = np.zeros((self.nt, nd, dprops.shape[2]))
+                du[:, ks.free, :] = np.transpose(sol.du, (1, 2, 0))
+            out[b.name] = (u, du, b)
+        return out
+
+    def _point(self, sol, beam, point, gradient):
+        """R_0,n u_n of a beam's point: (nt, 2) and (nt, 2, nv) or None."""
+        u, du, b = sol[beam]
+        k = b.stiffness.nodes.index(self.mech.node[(beam, point)])
+        c, s = np.cos(b.angle)[:, None], np.sin(b.angle)[:, None]
+        loc = u[:, 3 * k:3 * k + 2]
+        w = np.column_stack([c[:, 0] * loc[:, 0] - s[:, 0] * loc[:, 1],
+                             s[:, 0] * loc[:, 0] + c[:, 0] * loc[:, 1]])
+        dw = None
+        if gradient:
+            dl = du[:, 3 * k:3 * k + 2, :]
+            dw = np.stack([c * dl[:, 0] - s * dl[:, 1], s * dl[:, 0] + c * dl[:, 1]], axis=1)
+        return w, dw
+
+    def _deviation(self, r, sol, nv, gradient):
+        """(nvar, nt) values and (nvar, nt, nv) gradients of a deviation's chain variants."""
+        ref = self.mech.reference.q
+        vals, grads = [], []
+        for combo in self.variants[r.name]:
+            comps, dcomps = [], []
+            for t, diff in zip(r.terms, combo):
+                w = np.zeros((self.nt, 2))
+                dw = np.zeros((self.nt, 2, nv))
+                for (beam, _, q), coef in diff.items():
+                    a, da = self._point(sol, beam, q, gradient)
+                    w += coef * a
+                    if gradient:
+                        dw += coef * da
+                if t.frame != "ground":
+                    th = ref[:, 3 * self.mech.model.body(t.frame).first + 2]
+                    c, s = np.cos(th), np.sin(th)
+                    w = np.column_stack([c * w[:, 0] + s * w[:, 1], -s * w[:, 0] + c * w[:, 1]])
+                    dw = np.stack([c[:, None] * dw[:, 0] + s[:, None] * dw[:, 1],
+                                   -s[:, None] * dw[:, 0] + c[:, None] * dw[:, 1]], axis=1)
+                pick = {"x": [0], "y": [1], "norm": [0, 1]}[t.component]
+                comps.append(w[:, pick].T)
+                dcomps.append(np.moveaxis(dw[:, pick, :], 1, 0))
+            cc = np.concatenate(comps)
+            v = np.sqrt(np.sum(cc * cc, axis=0))
+            vals.append(v)
+            if gradient:
+                num = np.einsum("kt,ktv->tv", cc, np.concatenate(dcomps))
+                grads.append(np.where(v[:, None] > 0, num / np.where(v > 0, v, 1.0)[:, None], 0.0))
+        return np.array(vals), (np.array(grads) if gradient else None)
+
+    def _stress(self, r, x, sol, nv, gradient):
+        """(1, nt) largest E (|eps| + c |kappa|) over the beams and (1, nt, nv)."""
+        mech = self.mech
+        cm = mech.model.compile()
+        vals, grads = [], []
+        for name in r.bodies:
+            u, du, b = sol[name]
+            ks = b.stiffness
+            body = mech.model.body(name)
+            E = float(mech.materials[mech._bodies[name].material].E)
+            c, dc = mech.half_depths(x, name)
+            # the body's nodes in its frame: reference X and the static displacement on it
+            aref = ks.ref_angle
+            xr, yr, pr = ks.q_ref[0::3], ks.q_ref[1::3], ks.q_ref[2::3]
+            o, _ = ks.frame.place(xr[None], yr[None], pr[None], ks.nodes)
+            cr, sr = np.cos(aref), np.sin(aref)
+            base = np.empty(len(ks.dofs))
+            base[0::3] = cr * (xr - o[0, 0]) + sr * (yr - o[0, 1])
+            base[1::3] = -sr * (xr - o[0, 0]) + cr * (yr - o[0, 1])
+            base[2::3] = pr - aref
+            ids = np.asarray(body.elements, int)
+            nen = int(cm.el_nen[ids[0]])
+            pos = {int(g): k for k, g in enumerate(ks.dofs)}
+            edofs = np.array([[pos[int(g) - 1] for g in cm.el_dofs[:3 * nen, e]] for e in ids])
+            xi = gauss_points(nen)
+            n, dn = shape(nen, xi)
+            jac = 0.5 * cm.el_len[ids]
+            r1, r2, rk = raw_strains(base[edofs], n, dn, jac)
+            qe = (base + u)[:, edofs]
+            e1, _, kap = raw_strains(qe, n, dn, jac)
+            eps, kap = e1 - r1, kap - rk
+            cc = c[None, :, None]
+            vals.append((E * (np.abs(eps) + cc * np.abs(kap))).reshape(self.nt, -1))
+            if gradient:
+                de1, _, dkap = raw_strain_derivatives(qe, du[:, edofs, :], n, dn, jac)
+                dn_ = E * (np.sign(eps)[..., None] * de1
+                           + np.sign(kap)[..., None] * cc[..., None] * dkap
+                           + np.abs(kap)[..., None] * dc[None, :, None, :])
+                grads.append(dn_.reshape(self.nt, -1, nv))
+        v = np.concatenate(vals, axis=1)
+        j = np.argmax(v, axis=1)
+        rows = np.arange(self.nt)
+        g = np.concatenate(grads, axis=1)[rows, j][None] if gradient else None
+        return v[rows, j][None], g
+
+    def responses_at(self, x, gradient=True):
+        """values[name] (nvar, nt) or a float, gradients[name] alike (or None)."""
+        nv = len(self.mech.variables)
+        sol = self._solutions(x, gradient)     # also sets the design (mass below)
+        values, grads = {}, {}
+        for r in self.responses:
+            if isinstance(r, Mass):
+                values[r.name], grads[r.name] = self.problem._response(r, x, None, gradient)
+            elif isinstance(r, Deviation):
+                values[r.name], grads[r.name] = self._deviation(r, sol, nv, gradient)
+            else:
+                values[r.name], grads[r.name] = self._stress(r, x, sol, nv, gradient)
+        return values, grads
+
+    def evaluate(self, x, gradient=True):
+        """(f, df, g, J, groups, names): objective and constraint rows g <= 0 of the static
+        model; a deviation with several chains gives each chain's rows (paper 34-35)."""
+        d = self.problem.description
+        t = self.mech.t
+        nv = len(self.mech.variables)
+        values, grads = self.responses_at(x, gradient)
+        f = df = None
+        if d.objective is not None:
+            v, dv = values[d.objective.response], grads[d.objective.response]
+            if np.ndim(v) == 2:
+                v, dv = v.max(axis=0), (None if dv is None else dv[np.argmax(v, axis=0),
+                                                                     np.arange(v.shape[1])])
+            f, df = _scalar(v, dv, d.objective.over, None, t)
+        g_all, j_all, groups, names = [], [], [], []
+        ngroup = 0
+        for c in d.constraints:
+            v, dv = values[c.response], grads[c.response]
+            for k in range(np.shape(v)[0] if np.ndim(v) == 2 else 1):
+                vv = v[k] if np.ndim(v) == 2 else v
+                dd = None if dv is None else (dv[k] if np.ndim(v) == 2 else dv)
+                g, J, nm, grp = constraint_rows(SimpleNamespace(constraints=[c]),
+                                                {c.response: vv}, {c.response: dd}, t, nv,
+                                                gradient)
+                g_all.append(g)
+                if gradient:
+                    j_all.append(J)
+                groups.append(grp + ngroup)
+                ngroup += (grp.max() + 1) if grp.size else 0
+                names += nm
+        g = np.concatenate(g_all) if g_all else np.zeros(0)
+        J = (np.vstack(j_all) if j_all else np.zeros((0, nv))) if gradient else None
+        return f, df, g, J, (np.concatenate(groups) if groups else np.zeros(0, int)), names
+
+
+# ---------------------------------------------------------------------------- static optimum
+def _optimize_static(static, x0, lower, upper, *, screen, ftol, maxiter, active_tol):
+    """Solve (23) with SLSQP on z = x / upper, objective f / |f(x0)|, screening the rows."""
+    scale = np.asarray(upper, float)
+    f0, _, _, _, _, _ = static.evaluate(x0, gradient=False)
+    fs = abs(f0) if f0 else 1.0
+    cache = {}
+
+    def ev(z):
+        key = z.tobytes()
+        if key not in cache:
+            cache.clear()
+            cache[key] = static.evaluate(z * scale, gradient=True)
+        return cache[key]
+
+    def select(g, groups, current):
+        level = g + 1.0
+        keep = current.copy()
+        for k in np.unique(groups):
+            m = groups == k
+            top = level[m].max()
+            keep[m] |= (level[m] >= screen * top) if top > 0 else True
+        return keep
+
+    z = np.clip(np.asarray(x0, float), lower, upper) / scale
+    zl, zu = lower / scale, upper / scale
+    _, _, g, _, groups, names = static.evaluate(z * scale, gradient=False)
+    keep = select(g, groups, np.zeros(g.size, bool))
+    nit, res = 0, None
+    for _ in range(20):
+        idx = np.flatnonzero(keep)
+        cons = [{"type": "ineq", "fun": lambda z, idx=idx: -ev(z)[2][idx],
+                 "jac": lambda z, idx=idx: -ev(z)[3][idx] * scale}] if idx.size else []
+        res = minimize(lambda z: (ev(z)[0] / fs, ev(z)[1] * scale / fs), z, jac=True,
+                       method="SLSQP", bounds=list(zip(zl, zu)), constraints=cons,
+                       options=dict(ftol=ftol, maxiter=maxiter))
+        nit += int(res.nit)
+        z = np.clip(res.x, zl, zu)
+        _, _, g, _, groups, names = static.evaluate(z * scale, gradient=False)
+        violated = (g > 1e-6) & ~keep
+        if not violated.any():
+            break
+        keep = select(g, groups, keep)
+    x = z * scale
+    f, _, g, _, groups, names = static.evaluate(x, gradient=False)
+    active = {}
+    for k in np.unique(groups):
+        rows = np.flatnonzero(groups == k)
+        hit = (np.flatnonzero(g[rows] >= -active_tol) + 1).tolist()
+        active[f"{names[rows[0]]}#{k + 1}"] = hit
+    return SimpleNamespace(x=x, objective=float(f), iterations=nit, success=bool(res.success),
+                           message=str(res.message),
+                           max_violation=float(g.max()) if g.size else -np.inf,
+                           active_steps=active, screened_rows=int(keep.sum()))
+
+
+# ---------------------------------------------------------------------------- cycles
+def _dynamic(problem, x, result):
+    """Dynamic responses of a simulated design: values, constraint rows, deviation history."""
+    values = {}
+    for r in problem.description.responses:
+        values[r.name], _ = problem._response(r, x, result, False)
+    g, _, names, _ = constraint_rows(problem.description, values, {}, problem.mechanism.t,
+                                     len(problem.variables), False)
+    constrained = {c.response for c in problem.description.constraints}
+    devs = [np.asarray(values[r.name]) for r in problem.description.responses
+            if isinstance(r, Deviation) and r.name in constrained]
+    return values, g, devs
+
+
+def optimize_problem_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles=1,
+                            move_limit=None, frames=None, frame_kind="tangent", screen=0.3,
+                            ftol=1e-8, max_inner=200, active_tol=1e-3, stop_on_oscillation=True,
+                            history=None, progress=None):
+    """Optimize a general-format problem with the weakly coupled method (paper 5.3).
+
+    Parameters
+    ----------
+    problem : flexmbs.problem.Problem, or a case path, name in cases/general, dict or Description
+    x0 : array, optional
+        Starting design in the variables' units; default the problem's start.
+    eps : float, default 1e-2
+        Tolerance of the relative ESL change, eq. (25) (the largest over the ESL bodies).
+    max_cycles : int, default 30
+        Maximum number of cycles (MBS analyses).
+    confirm_cycles : int, default 1
+        Eq. (25) must hold in 1 + confirm_cycles consecutive cycles (0: the paper's test).
+    move_limit : float, optional
+        Relative move limit per cycle (bounds clipped to x (1 -+ move_limit)).
+    frames : dict beam -> point, optional
+        Frame point of a beam (default: where the chains enter it; stress-only beams: `from`).
+    frame_kind : {'tangent', 'chord'}, default 'tangent'
+    screen, ftol, max_inner, active_tol, stop_on_oscillation, history, progress :
+        as `flexmbs.optimize.weakly.optimize_weakly`.
+
+    Returns
+    -------
+    OptimizationResult
+        method 'weakly'; design_mm holds the design in the variables' own units; mass_kg the
+        objective if it is a mass response, else the total beam mass; iterations = cycles;
+        details: predicted_max_violation (static model, normalised g of the final design),
+        max_violation (the full simulation's), esl_bodies, frames, paper_test_cycle, ...
+    """
+    t_start = time.perf_counter()
+    problem = load_problem(problem)
+    d = problem.description
+    mech = problem.mechanism
+    if not mech.variables:
+        raise CaseError("the weakly coupled method needs design variables ([[design]])")
+    if d.objective is None:
+        raise CaseError("the weakly coupled method needs an [objective]")
+    eps = real_number("eps", eps, positive=True)
+    max_cycles = whole_number("max_cycles", max_cycles, 1)
+    confirm_cycles = whole_number("confirm_cycles", confirm_cycles, 0)
+    max_inner = whole_number("max_inner", max_inner, 1)
+    ftol = real_number("ftol", ftol, positive=True)
+    active_tol = real_number("active_tol", active_tol, positive=True)
+    if move_limit is not None:
+        move_limit = real_number("move_limit (or None)", move_limit, positive=True)
+    if not (real_number("screen", screen) >= 0.0 and screen <= 1.0):
+        raise ModelError(f"screen must lie in [0, 1], got {screen!r}")
+    if not isinstance(frame_kind, str) or frame_kind not in ("tangent", "chord"):
+        raise ModelError(f"frame_kind must be 'tangent' or 'chord', got {frame_kind!r}")
+    if frames is not None and not isinstance(frames, dict):
+        raise ModelError(f"frames must be a dict beam -> point or None, got {frames!r}")
+    progress = _progress_callback(progress)
+    lower, upper = problem.lower, problem.upper
+    x = mech.start.copy() if x0 is None else mech.design_values(x0).copy()
+    if np.any(x < lower) or np.any(x > upper):
+        raise ModelError(f"x0 = {x.tolist()} lies outside the bounds [{lower.tolist()}, "
+                         f"{upper.tolist()}]")
+    static = StaticModel(problem, frames, frame_kind)
+    if not static.frames:
+        raise CaseError("the weakly coupled method: no constraint or objective depends on a "
+                        "beam's deformation (no deviation chain through a beam, no stress)")
+    mass_resp = [r for r in d.responses if isinstance(r, Mass)]
+    obj_is_mass = isinstance({r.name: r for r in d.responses}[d.objective.response], Mass)
+
+    def mass_of(values, xx):
+        if obj_is_mass:
+            return float(values[d.objective.response])
+        mech.set_design(xx)
+        return float(problem._response(Mass(name="m", type="mass"), xx, None, False)[0])
+
+    writer = history if isinstance(history, HistoryWriter) else HistoryWriter(history)
+    own_writer = not isinstance(history, HistoryWriter)
+    prev_loads, pending = None, None
+    designs, changes_hist = [], []
+    inner_total = n_static = consecutive = 0
+    paper_cycle = period = change = None
+    converged, reason = False, ""
+    values = g_dyn = devs = result = None
+    try:
+        for cycle in range(1, max_cycles + 1):
+            result = problem.simulate(x, store="all")
+            values, g_dyn, devs = _dynamic(problem, x, result)
+            model = mech.set_design(x)
+            loads = equivalent_static_loads(model, result, static.frames,
+                                            stiffness=static.stiffness,
+                                            props=model.element_properties())
+            changes = None if prev_loads is None else esl_change(loads, prev_loads)
+            change = None if changes is None else max(changes.values())
+            record = dict(
+                iteration=cycle, design_mm=x, mass_kg=mass_of(values, x),
+                objective=float(_scalar(values[d.objective.response], None, d.objective.over,
+                                        None, mech.t)[0]),
+                max_violation=float(g_dyn.max()) if g_dyn.size else None,
+                max_deviation_m=float(max(v.max() for v in devs)) if devs else None,
+                esl_change=change, esl_change_per_body=changes,
+                inner_iterations=None if pending is None else pending.iterations,
+                predicted_max_violation=None if pending is None else pending.max_violation,
+                active_steps=None if pending is None else pending.active_steps,
+                static_message=None if pending is None or pending.success else pending.message)
+            designs.append(x.copy())
+            changes_hist.append(change)
+            if change is not None and change < eps:
+                consecutive += 1
+                paper_cycle = cycle if paper_cycle is None else paper_cycle
+            else:
+                consecutive, paper_cycle = 0, None
+            if consecutive > confirm_cycles:
+                converged = True
+                reason = (f"relative ESL change (eq. 25) {change:.3g} < {eps:g} in "
+                          f"{consecutive} consecutive cycles")
+            elif change is not None:
+                period = _oscillation(designs, changes_hist)
+                if period is not None:
+                    record["oscillation_period"] = period
+            writer.write(record)
+            if progress is not None:
+                progress(writer.records[-1])
+            if converged:
+                break
+            if period is not None and stop_on_oscillation:
+                reason = (f"oscillation: the designs repeat with period {period} cycles "
+                          f"(eq. 25 change {change:.3g})")
+                break
+            if cycle == max_cycles:
+                reason = f"maximum number of cycles ({max_cycles}) reached"
+                break
+            lo, hi = lower.copy(), upper.copy()
+            if move_limit is not None:
+                lo = np.maximum(lower, x * (1 - move_limit))
+                hi = np.minimum(upper, x * (1 + move_limit))
+            static.set_loads(loads)
+            pending = _optimize_static(static, x, lo, hi, screen=screen, ftol=ftol,
+                                       maxiter=max_inner, active_tol=active_tol)
+            inner_total += pending.iterations
+            n_static += 1
+            prev_loads = loads
+            x = pending.x.copy()
+    finally:
+        if own_writer:
+            writer.close()
+    mech.set_design(x)
+    details = dict(
+        predicted_max_violation=None if pending is None else pending.max_violation,
+        max_violation=float(g_dyn.max()) if g_dyn.size else None,
+        max_deviation_responses=[r.name for r in d.responses if isinstance(r, Deviation)
+                                 and r.name in {c.response for c in d.constraints}],
+        paper_test_cycle=paper_cycle, static_optimizations=n_static,
+        oscillation_period=period, esl_change=change, eps=eps, confirm_cycles=confirm_cycles,
+        move_limit=move_limit, frame=frame_kind, frames=dict(static.entry),
+        esl_bodies=[n for n, _ in static.frames], variables=list(mech.variables),
+        objective=record["objective"], t_end=float(mech.t[-1]),
+        active_steps=None if pending is None else pending.active_steps,
+        mass_responses=[r.name for r in mass_resp])
+    return OptimizationResult(
+        method="weakly", case=d.case.name, design_mm=x.copy(), mass_kg=record["mass_kg"],
+        iterations=len(designs), inner_iterations=inner_total, simulations=len(designs),
+        converged=converged, reason=reason, history=list(writer.records),
+        max_deviation_m=record["max_deviation_m"] if devs else float("nan"),
+        wall_time_s=time.perf_counter() - t_start, start_mm=designs[0], details=details,
+        t=np.asarray(mech.t), deviation=devs[0] if devs else None)
