@@ -194,14 +194,26 @@ def general_problem(args, found):
 
 
 def run_general(args, problem):
-    """``flexmbs optimize CASE`` for a general-format case: the fully coupled method on its
-    objective and constraints (flexmbs.optimize.problem_fully)."""
+    """``flexmbs optimize CASE`` for a general-format case: the weakly coupled method
+    (flexmbs.optimize.problem_weakly) or the fully coupled one (flexmbs.optimize.problem_fully)
+    on its objective and constraints."""
     from flexmbs.optimize.problem_fully import optimize_problem
+    from flexmbs.optimize.problem_weakly import optimize_problem_weakly
 
-    if args.method != "fully":
-        raise CaseError(f"--method {args.method}: the weakly coupled method on general-format "
-                        f"cases is not yet available (weakly is the default method); use "
-                        f"--method fully for {problem.description.case.name!r}")
+    start = None
+    if args.start is not None:
+        from flexmbs.cli_evaluate import _design
+        try:
+            start = _design(args.start, problem)
+        except CaseError as exc:
+            raise CaseError(str(exc).replace("--design", "--start")) from None
+    if args.method == "weakly":
+        progress = None if args.json else _print_cycle
+        return optimize_problem_weakly(
+            problem, start, eps=1e-2 if args.eps is None else args.eps,
+            max_cycles=args.max_cycles, confirm_cycles=args.confirm_cycles,
+            move_limit=args.move_limit, frame_kind=args.frame, history=args.history,
+            progress=progress)
     defaults = dict(sensitivity="direct", aggregation="none", aggregation_parameter=None,
                     windows=1, constraint_form="linear")
     for opt, default in defaults.items():
@@ -210,13 +222,6 @@ def run_general(args, problem):
                             f"case sets its constraints (aggregation, form) in its "
                             f"[[constraints]] tables and is always differentiated directly; "
                             f"leave this option out")
-    start = None
-    if args.start is not None:
-        from flexmbs.cli_evaluate import _design
-        try:
-            start = _design(args.start, problem)
-        except CaseError as exc:
-            raise CaseError(str(exc).replace("--design", "--start")) from None
     progress = None if args.json else _print_general_iteration
     max_it = 100 if args.max_iterations is None else args.max_iterations
     return optimize_problem(problem, start, optimizer=args.optimizer, kkt_tol=args.kkt_tol,
