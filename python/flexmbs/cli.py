@@ -41,7 +41,7 @@ import numpy as np
 from flexmbs.errors import CaseError, FlexmbsError, ModelError
 
 __all__ = ["main", "build_parser", "COMMANDS", "add_case_arguments", "case_from_args",
-           "parse_design", "parse_set", "register_simulate", "register_demo", "positive_int",
+           "parse_design", "parse_values", "parse_set", "register_simulate", "register_demo", "positive_int",
            "output_file", "figure_file"]
 
 #: Subcommand registration functions, "module:function", in the order of the help text.
@@ -97,21 +97,27 @@ def case_from_args(args):
     return load_case(args.case, **overrides)
 
 
+def parse_values(text, names, owner, option="--design"):
+    """Design values from "X1,X2,..." for the variables `names` (one value applies to every
+    variable); CaseError naming the option and the case `owner` otherwise."""
+    try:
+        values = [float(v) for v in text.replace(" ", "").split(",") if v]
+    except ValueError:
+        raise CaseError(f"{option} {text!r}: expected comma-separated numbers") from None
+    n = len(names)
+    if len(values) == 1:
+        values = values * n
+    if len(values) != n:
+        raise CaseError(f"{option} {text!r}: case {owner!r} has {n} design variables "
+                        f"({', '.join(names)}), got {len(values)} values")
+    return np.array(values)
+
+
 def parse_design(text, case):
     """A design (mm) from "P1,P2,..." (one value applies to every variable); None: the start."""
     if text is None:
         return case.start_mm.copy()
-    try:
-        values = [float(v) for v in text.replace(" ", "").split(",") if v]
-    except ValueError:
-        raise CaseError(f"--design {text!r}: expected comma-separated numbers (mm)") from None
-    n = len(case.design_names)
-    if len(values) == 1:
-        values = values * n
-    if len(values) != n:
-        raise CaseError(f"--design {text!r}: case {case.name!r} has {n} design variables "
-                        f"({', '.join(case.design_names)}), got {len(values)} values")
-    return np.array(values)
+    return parse_values(text, case.design_names, case.name)
 
 
 def positive_int(text):

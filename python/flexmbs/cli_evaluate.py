@@ -7,9 +7,9 @@ import sys
 
 import numpy as np
 
-from flexmbs.errors import CaseError
+from flexmbs.cli import parse_values
 
-__all__ = ["register"]
+__all__ = ["register", "design_from_text"]
 
 
 def register(subparsers):
@@ -28,26 +28,17 @@ def register(subparsers):
     p.set_defaults(func=run)
 
 
-def _design(text, prob):
+def design_from_text(text, prob, option="--design"):
+    """The design of a --design/--start value for a Problem (None: its start)."""
     if text is None:
         return prob.start
-    try:
-        values = [float(v) for v in text.replace(" ", "").split(",") if v]
-    except ValueError:
-        raise CaseError(f"--design {text!r}: expected comma-separated numbers") from None
-    n = len(prob.variables)
-    if len(values) == 1:
-        values = values * n
-    if len(values) != n:
-        raise CaseError(f"--design {text!r}: the case has {n} design variables "
-                        f"({', '.join(prob.variables)}), got {len(values)} values")
-    return np.array(values)
+    return parse_values(text, prob.variables, prob.description.case.name, option)
 
 
 def run(args):
     from flexmbs.problem import Problem
     prob = Problem(args.case)
-    ev = prob.evaluate(_design(args.design, prob), gradient=args.gradient)
+    ev = prob.evaluate(design_from_text(args.design, prob), gradient=args.gradient)
     if args.json:
         json.dump(ev.to_json(), sys.stdout)
         sys.stdout.write("\n")

@@ -200,13 +200,8 @@ def run_general(args, problem):
     from flexmbs.optimize.problem_fully import optimize_problem
     from flexmbs.optimize.problem_weakly import optimize_problem_weakly
 
-    start = None
-    if args.start is not None:
-        from flexmbs.cli_evaluate import _design
-        try:
-            start = _design(args.start, problem)
-        except CaseError as exc:
-            raise CaseError(str(exc).replace("--design", "--start")) from None
+    from flexmbs.cli_evaluate import design_from_text
+    start = None if args.start is None else design_from_text(args.start, problem, "--start")
     if args.method == "weakly":
         progress = None if args.json else _print_cycle
         return optimize_problem_weakly(
