@@ -6,7 +6,6 @@ Sign convention (flexmbs.responses.forces): a torque response is the torque the 
 to its drive's body, counter-clockwise positive; a reaction is the force the joint exerts on
 its (first) body's node, ground frame.
 """
-import copy
 import math
 import tomllib
 from pathlib import Path

@@ -1,7 +1,6 @@
 """Validity checks of a converged result (issue 14, "nonsense reported as converged"):
 strains against the linear-elastic range, constraint drift, energy of a free system."""
 import dataclasses
-import math
 import warnings
 
 import numpy as np
@@ -86,7 +85,7 @@ def test_constraint_drift_of_a_normal_run_is_tiny_and_a_violation_is_named():
 
 def _free_beam():
     m = fx.Model("free beam")
-    b = m.add_beam("beam", (0.0, 0.0), (1.0, 0.0), 4, material=ALU,
+    m.add_beam("beam", (0.0, 0.0), (1.0, 0.0), 4, material=ALU,
                    section=fx.Tube.with_wall_ratio(0.02, 0.1))
     x = m.reference_coordinates()[0::3]
     qd0 = np.zeros(m.ndof)

@@ -50,7 +50,7 @@ import numpy as np
 
 from flexmbs.errors import ModelError, ResourceError, SimulationError
 
-__all__ = ["run_batch", "sweep_jobs", "max_deviation_job", "Progress", "atomic_open",
+__all__ = ["run_batch", "sweep_jobs", "max_deviation_job", "Progress", "atomic_open", "save_figure",
            "write_atomic", "read_stored", "check_writable", "check_disk_space"]
 
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
@@ -122,6 +122,15 @@ def write_atomic(path, data):
     """Write text or bytes to `path` through `atomic_open`."""
     with atomic_open(path, "wb" if isinstance(data, (bytes, bytearray)) else "w") as fh:
         fh.write(data)
+    return path
+
+
+def save_figure(fig, path, **savefig_kw):
+    """Save a matplotlib figure through a temporary file (`atomic_open`): a figure is either
+    whole or absent. The format comes from the extension (png without one)."""
+    fmt = os.path.splitext(os.fspath(path))[1][1:].lower() or "png"
+    with atomic_open(path, "wb") as fh:
+        fig.savefig(fh, format=fmt, **savefig_kw)
     return path
 
 

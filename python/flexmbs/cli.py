@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flexmbs.batch import save_figure
 from flexmbs.errors import CaseError, FlexmbsError, ModelError
 
 __all__ = ["main", "build_parser", "COMMANDS", "add_case_arguments", "case_from_args",
@@ -164,15 +165,6 @@ def figure_file(path, option):
         raise ModelError(f"{option} {path!r}: unknown figure format {ext!r}; matplotlib "
                          f"writes {', '.join('.' + k for k in sorted(formats))}")
     return output_file(path, option)
-
-
-def save_figure(fig, path, **kw):
-    """Save a matplotlib figure through a temporary file (see flexmbs.batch.atomic_open)."""
-    from flexmbs.batch import atomic_open
-
-    with atomic_open(path, "wb") as fh:
-        fig.savefig(fh, format=os.path.splitext(path)[1][1:].lower(), **kw)
-    return path
 
 
 def _json_default(obj):

@@ -31,7 +31,8 @@ _RIGID_COLOR = "0.55"
 
 def _save(fig, file):
     if file is not None:
-        fig.savefig(file, dpi=150, bbox_inches="tight")
+        from flexmbs.batch import save_figure
+        save_figure(fig, file, dpi=150, bbox_inches="tight")
     return fig
 
 

@@ -94,11 +94,8 @@ def _deviation_axes(ax, rows, labels, colors, styles, limit_m=1e-3):
 
 
 def _save(fig, folder, key):
-    from flexmbs.batch import atomic_open
-    path = Path(folder) / f"{key}.png"
-    with atomic_open(path, "wb") as fh:
-        fig.savefig(fh, dpi=130, bbox_inches="tight", format="png")
-    return path
+    from flexmbs.batch import save_figure
+    return save_figure(fig, Path(folder) / f"{key}.png", dpi=130, bbox_inches="tight")
 
 
 # ============================================================================ figures

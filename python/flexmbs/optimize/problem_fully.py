@@ -31,7 +31,6 @@ stops changing for 5 iterations ends as not converged.
 from __future__ import annotations
 
 import json
-import os
 import time
 from dataclasses import dataclass, field
 
@@ -266,14 +265,11 @@ class ProblemOptimizationResult:
         ax2.set_title("constraint violation")
         ax2.grid(True, alpha=0.3)
         fig.tight_layout()
-        from flexmbs.batch import atomic_open
-        fmt = os.path.splitext(os.fspath(path))[1][1:].lower() or None
+        from flexmbs.batch import save_figure
         try:
-            with atomic_open(path, "wb") as fh:
-                fig.savefig(fh, dpi=120, format=fmt)
+            return save_figure(fig, path, dpi=120)
         finally:
             plt.close(fig)
-        return path
 
 
 def optimize_problem(problem, x0=None, *, optimizer="mma", max_iterations=100,

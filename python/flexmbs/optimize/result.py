@@ -211,11 +211,8 @@ class OptimizationResult:
         ax2.set_title("final design: deviation in the full simulation")
         ax2.grid(True, alpha=0.3)
         fig.tight_layout()
-        from flexmbs.batch import atomic_open
-        fmt = os.path.splitext(os.fspath(path))[1][1:].lower() or None
+        from flexmbs.batch import save_figure
         try:
-            with atomic_open(path, "wb") as fh:
-                fig.savefig(fh, dpi=120, format=fmt)
+            return save_figure(fig, path, dpi=120)
         finally:
             plt.close(fig)
-        return path
