@@ -15,7 +15,11 @@ The static model of the responses (the generic form of the paper's eqs. 29, 31, 
   rotated to the ground; rigid bodies and point masses contribute nothing. The flexible
   deviation of the point is the sum of the contributions along its chain, exactly how (29), (31)
   and (35) sum the arms' deflections; a term `relative_to` another point takes the difference of
-  the two chains (a common start cancels: (29)'s second term is arm 2 alone). A frame other than
+  the two chains (a common start cancels: (29)'s second term is arm 2 alone). Where the next
+  beam's rotation is tied to the beam's (a rotation drive `relative_to` it, or a weld), the
+  beam's exit rotation relative to its entry, phi(Q) = u_n,rot(Q) - u_n,rot(P), turns the rest
+  of the chain rigidly: phi(Q) k x (r(point) - r(Q)), r of the rigid reference (a serial robot
+  with relative joint drives; the paper's robot drives its arms absolutely, no such term). A frame other than
   the ground rotates the sum by the rigid reference's angle of that body, as the dynamic response.
   A closed loop gives a point several chains (four-bar: A through the crank, and through the
   follower and the coupler): every chain becomes its own constraint, as (34) and (35) do. Sliders
@@ -31,6 +35,15 @@ The static model of the responses (the generic form of the paper's eqs. 29, 31, 
 The ESL bodies are the beams on a chain and the beams with a stress response (frame at the chain
 entry, else at the beam's `from` point, or as `frames` says); beams that enter no constraint need
 none. Component 'angle' has no static form here (CaseError).
+
+Responses with no static form: a motor torque or a joint reaction (`torque`, `reaction`) is a
+dynamic quantity (inertia of the whole mechanism, not a beam's deflection under fixed loads).
+The static optimization (23) cannot size against it: its constraints are left out of (23) and
+checked by the simulation only (`StaticModel.unmodelled`; the result's details
+`constraints_checked_by_simulation`). Every cycle simulates its design, so the final design is
+checked against ALL constraints by a simulation: details `max_violation` and `feasible`, and the
+result's reason says when that design violates a constraint. An objective without a static
+form is a CaseError.
 
 Example
 -------
@@ -138,6 +151,26 @@ def chains(description, body, point):
     return found
 
 
+def _couplings(description):
+    """{(body, point, next body)}: the next body's rotation at the point is tied to the body's
+    (a rotation drive `relative_to` it, or a weld), both orders."""
+    out = set()
+    for dr in description.drives:
+        if dr.type == "rotation" and dr.relative_to is not None:
+            out |= {(dr.relative_to, dr.at, dr.body), (dr.body, dr.at, dr.relative_to)}
+    for j in description.joints:
+        if j.type == "weld":
+            out |= {(j.bodies[0], j.at, j.bodies[1]), (j.bodies[1], j.at, j.bodies[0])}
+    return out
+
+
+def _rotations(chain, coupled, target, coef):
+    """[(beam, entry, exit, coefficient, target)]: the beams of a chain whose exit rotation
+    turns the rest of the chain rigidly (the next beam's rotation is tied to it)."""
+    return [(b, p, q, coef, target) for (b, p, q), (b2, p2, _) in zip(chain, chain[1:])
+            if p2 == q and (b, q, b2) in coupled]
+
+
 def _difference(chain, rel):
     """{(beam, entry, exit): coefficient} of chain(point) - chain(relative point)."""
     out = {}
@@ -177,7 +210,16 @@ class StaticModel:
             used.add(d.objective.response)
         used.update(c.response for c in d.constraints)
         resp = {r.name: r for r in d.responses}
-        self.responses = [resp[n] for n in resp if n in used]
+        static_types = (Mass, Deviation, Stress)
+        if d.objective is not None and not isinstance(resp[d.objective.response], static_types):
+            r = resp[d.objective.response]
+            raise CaseError(f"weakly coupled method: the objective {r.name!r} (type {r.type!r}) "
+                            "has no static form (only mass, deviation and stress have one)")
+        self.responses = [resp[n] for n in resp if n in used
+                          and isinstance(resp[n], static_types)]
+        #: constrained responses with no static form: left to the check by simulation
+        self.unmodelled = [n for n in resp if n in used and n not in
+                           {r.name for r in self.responses}]
         # chains of every deviation term, then the frame entry of every beam on them
         raw = {}
         for r in self.responses:
@@ -207,13 +249,18 @@ class StaticModel:
                 for b in r.bodies:
                     entry.setdefault(b, beams[b].start)
         # the deviation terms' variants: a chain combination each (loops give several)
-        self.variants = {}
+        self.variants, self.turns = {}, {}
+        coupled = _couplings(d)
         for r in self.responses:
             if not isinstance(r, Deviation):
                 continue
             per_term = []
             for k, t in enumerate(r.terms):
-                ok = [_difference(a, b) for a, b in raw[(r.name, k)]
+                rel = t.relative_to
+                ok = [(_difference(a, b),
+                       _rotations(a, coupled, (t.body, t.at), 1.0)
+                       + (_rotations(b, coupled, (rel.body, rel.at), -1.0) if b else []))
+                      for a, b in raw[(r.name, k)]
                       if all(entry[bm] == p for bm, p, _ in list(a) + list(b or ()))]
                 if not ok:
                     raise CaseError(f"response {r.name!r}, term {k + 1}: every chain to point "
@@ -226,7 +273,9 @@ class StaticModel:
             if len(combos) > MAX_VARIANTS:
                 raise CaseError(f"response {r.name!r}: {len(combos)} chain combinations (closed "
                                 f"loops); at most {MAX_VARIANTS}: choose frames to open the loops")
-            self.variants[r.name] = combos
+            self.variants[r.name] = [[diff for diff, _ in c] for c in combos]
+            #: per variant and term, the beams whose exit rotation turns the rest of the chain
+            self.turns[r.name] = [[turn for _, turn in c] for c in combos]
         # ESL bodies: frames and stiffness (the structure only: built once)
         model = mech.model
         self.frames, self.stiffness, self.exit = [], {}, {}
@@ -286,9 +335,9 @@ class StaticModel:
         """(nvar, nt) values and (nvar, nt, nv) gradients of a deviation's chain variants."""
         ref = self.mech.reference.q
         vals, grads = [], []
-        for combo in self.variants[r.name]:
+        for combo in zip(self.variants[r.name], self.turns[r.name]):
             comps, dcomps = [], []
-            for t, diff in zip(r.terms, combo):
+            for t, diff, turns in zip(r.terms, *combo):
                 w = np.zeros((self.nt, 2))
                 dw = np.zeros((self.nt, 2, nv))
                 for (beam, _, q), coef in diff.items():
@@ -296,6 +345,18 @@ class StaticModel:
                     w += coef * a
                     if gradient:
                         dw += coef * da
+                for beam, p, q, coef, target in turns:
+                    u, du, b = sol[beam]
+                    kq = b.stiffness.nodes.index(self.mech.node[(beam, q)])
+                    kp = b.stiffness.nodes.index(self.mech.node[(beam, p)])
+                    phi = u[:, 3 * kq + 2] - u[:, 3 * kp + 2]
+                    nq, nt_ = self.mech.node[(beam, q)], self.mech.node[target]
+                    lx = ref[:, 3 * nt_] - ref[:, 3 * nq]
+                    ly = ref[:, 3 * nt_ + 1] - ref[:, 3 * nq + 1]
+                    w += coef * np.column_stack([-phi * ly, phi * lx])
+                    if gradient:
+                        dphi = du[:, 3 * kq + 2, :] - du[:, 3 * kp + 2, :]
+                        dw += coef * np.stack([-dphi * ly[:, None], dphi * lx[:, None]], axis=1)
                 if t.frame != "ground":
                     th = ref[:, 3 * self.mech.model.body(t.frame).first + 2]
                     c, s = np.cos(th), np.sin(th)
@@ -389,6 +450,8 @@ class StaticModel:
         g_all, j_all, groups, names = [], [], [], []
         ngroup = 0
         for c in d.constraints:
+            if c.response not in values:          # no static form: checked by simulation
+                continue
             v, dv = values[c.response], grads[c.response]
             for k in range(np.shape(v)[0] if np.ndim(v) == 2 else 1):
                 vv = v[k] if np.ndim(v) == 2 else v
@@ -622,9 +685,21 @@ def optimize_problem_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confir
         if own_writer:
             writer.close()
     mech.set_design(x)
+    final_violation = float(g_dyn.max()) if g_dyn.size else None
+    feasible = final_violation is None or final_violation <= 1e-6
+    unmodelled = [c.response for c in d.constraints if c.response in static.unmodelled]
+    if unmodelled:
+        reason += (f"; constraints with no static form, left out of the static optimization "
+                   f"and checked by simulation only: {', '.join(dict.fromkeys(unmodelled))}")
+    if not feasible:
+        worst = int(np.argmax(g_dyn))
+        names = constraint_rows(d, values, {}, mech.t, len(problem.variables), False)[2]
+        reason += (f"; the final design violates {names[worst]!r} by {final_violation:.3g} "
+                   "(relative to its limit, simulated)")
     details = dict(
         predicted_max_violation=None if pending is None else pending.max_violation,
-        max_violation=float(g_dyn.max()) if g_dyn.size else None,
+        max_violation=final_violation, feasible=feasible,
+        constraints_checked_by_simulation=list(dict.fromkeys(unmodelled)),
         max_deviation_responses=[r.name for r in d.responses if isinstance(r, Deviation)
                                  and r.name in {c.response for c in d.constraints}],
         paper_test_cycle=paper_cycle, static_optimizations=n_static,
