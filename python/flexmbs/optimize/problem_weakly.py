@@ -60,12 +60,12 @@ from types import SimpleNamespace
 import numpy as np
 from scipy.optimize import minimize
 
-from flexmbs.description import Beam, Deviation, Mass, PointMass, Rigid, Stress, body_points
+from flexmbs.description import Beam, Deviation, Mass, PointMass, Stress, body_points
 from flexmbs.errors import CaseError, ModelError
 from flexmbs.esl import (BodyStiffness, ChordFrame, TangentFrame, equivalent_static_loads,
                          esl_change, solve_static)
 from flexmbs.optimize.result import HistoryWriter, OptimizationResult
-from flexmbs.optimize.weakly import _oscillation, _progress_callback
+from flexmbs.optimize.weakly import CycleControl, _progress_callback
 from flexmbs.problem import _scalar, constraint_rows, load_problem
 from flexmbs.responses.strain import raw_strain_derivatives, raw_strains, shape, gauss_points
 from flexmbs.sections import real_number, whole_number
@@ -617,10 +617,9 @@ def optimize_problem_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confir
     writer = history if isinstance(history, HistoryWriter) else HistoryWriter(history)
     own_writer = not isinstance(history, HistoryWriter)
     prev_loads, pending = None, None
-    designs, changes_hist = [], []
-    inner_total = n_static = consecutive = 0
-    paper_cycle = period = change = None
-    converged, reason = False, ""
+    control = CycleControl(eps, confirm_cycles, max_cycles, stop_on_oscillation)
+    inner_total = n_static = 0
+    change = None
     values = g_dyn = devs = result = None
     try:
         for cycle in range(1, max_cycles + 1):
@@ -643,32 +642,11 @@ def optimize_problem_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confir
                 predicted_max_violation=None if pending is None else pending.max_violation,
                 active_steps=None if pending is None else pending.active_steps,
                 static_message=None if pending is None or pending.success else pending.message)
-            designs.append(x.copy())
-            changes_hist.append(change)
-            if change is not None and change < eps:
-                consecutive += 1
-                paper_cycle = cycle if paper_cycle is None else paper_cycle
-            else:
-                consecutive, paper_cycle = 0, None
-            if consecutive > confirm_cycles:
-                converged = True
-                reason = (f"relative ESL change (eq. 25) {change:.3g} < {eps:g} in "
-                          f"{consecutive} consecutive cycles")
-            elif change is not None:
-                period = _oscillation(designs, changes_hist)
-                if period is not None:
-                    record["oscillation_period"] = period
+            control.observe(cycle, x, change, record)
             writer.write(record)
             if progress is not None:
                 progress(writer.records[-1])
-            if converged:
-                break
-            if period is not None and stop_on_oscillation:
-                reason = (f"oscillation: the designs repeat with period {period} cycles "
-                          f"(eq. 25 change {change:.3g})")
-                break
-            if cycle == max_cycles:
-                reason = f"maximum number of cycles ({max_cycles}) reached"
+            if control.stop(cycle):
                 break
             lo, hi = lower.copy(), upper.copy()
             if move_limit is not None:
@@ -687,6 +665,7 @@ def optimize_problem_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confir
     mech.set_design(x)
     final_violation = float(g_dyn.max()) if g_dyn.size else None
     feasible = final_violation is None or final_violation <= 1e-6
+    reason = control.reason
     unmodelled = [c.response for c in d.constraints if c.response in static.unmodelled]
     if unmodelled:
         reason += (f"; constraints with no static form, left out of the static optimization "
@@ -702,8 +681,9 @@ def optimize_problem_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confir
         constraints_checked_by_simulation=list(dict.fromkeys(unmodelled)),
         max_deviation_responses=[r.name for r in d.responses if isinstance(r, Deviation)
                                  and r.name in {c.response for c in d.constraints}],
-        paper_test_cycle=paper_cycle, static_optimizations=n_static,
-        oscillation_period=period, esl_change=change, eps=eps, confirm_cycles=confirm_cycles,
+        paper_test_cycle=control.paper_cycle, static_optimizations=n_static,
+        oscillation_period=control.period, esl_change=change, eps=eps,
+        confirm_cycles=confirm_cycles,
         move_limit=move_limit, frame=frame_kind, frames=dict(static.entry),
         esl_bodies=[n for n, _ in static.frames], variables=list(mech.variables),
         objective=record["objective"], t_end=float(mech.t[-1]),
@@ -711,8 +691,9 @@ def optimize_problem_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confir
         mass_responses=[r.name for r in mass_resp])
     return OptimizationResult(
         method="weakly", case=d.case.name, design_mm=x.copy(), mass_kg=record["mass_kg"],
-        iterations=len(designs), inner_iterations=inner_total, simulations=len(designs),
-        converged=converged, reason=reason, history=list(writer.records),
+        iterations=len(control.designs), inner_iterations=inner_total,
+        simulations=len(control.designs), converged=control.converged, reason=reason,
+        history=list(writer.records),
         max_deviation_m=record["max_deviation_m"] if devs else float("nan"),
-        wall_time_s=time.perf_counter() - t_start, start_mm=designs[0], details=details,
-        t=np.asarray(mech.t), deviation=devs[0] if devs else None)
+        wall_time_s=time.perf_counter() - t_start, start_mm=control.designs[0],
+        details=details, t=np.asarray(mech.t), deviation=devs[0] if devs else None)

@@ -271,6 +271,54 @@ def _oscillation(designs, changes, period_max=6, ratio=0.2):
     return None
 
 
+class CycleControl:
+    """The stopping decisions of the weakly coupled cycles: eq. (25) below eps in
+    1 + confirm_cycles consecutive cycles (converged), the designs repeating (oscillation,
+    see `_oscillation`), the cycle cap. Shared by the paper-case and the general-problem loops.
+
+    Attributes: designs, changes (one per cycle), converged, reason, period (oscillation
+    period or None), paper_cycle (first cycle of the current run of eq. (25) below eps)."""
+
+    def __init__(self, eps, confirm_cycles, max_cycles, stop_on_oscillation):
+        self.eps, self.confirm_cycles = eps, confirm_cycles
+        self.max_cycles, self.stop_on_oscillation = max_cycles, stop_on_oscillation
+        self.designs, self.changes = [], []
+        self.consecutive, self.paper_cycle = 0, None
+        self.converged, self.reason, self.period = False, "", None
+
+    def observe(self, cycle, design, change, record):
+        """Take a cycle's design and ESL change; an oscillation is noted in `record`."""
+        self.designs.append(np.array(design, float).copy())
+        self.changes.append(change)
+        if change is not None and change < self.eps:
+            self.consecutive += 1
+            if self.paper_cycle is None:
+                self.paper_cycle = cycle
+        else:
+            self.consecutive, self.paper_cycle = 0, None
+        if self.consecutive > self.confirm_cycles:
+            self.converged = True
+            self.reason = (f"relative ESL change (eq. 25) {change:.3g} < {self.eps:g} in "
+                           f"{self.consecutive} consecutive cycles")
+        elif change is not None:
+            self.period = _oscillation(self.designs, self.changes)
+            if self.period is not None:
+                record["oscillation_period"] = self.period
+
+    def stop(self, cycle):
+        """Whether the cycles end after this one (`reason` says why)."""
+        if self.converged:
+            return True
+        if self.period is not None and self.stop_on_oscillation:
+            self.reason = (f"oscillation: the designs repeat with period {self.period} cycles "
+                           f"(eq. 25 change {self.changes[-1]:.3g})")
+            return True
+        if cycle == self.max_cycles:
+            self.reason = f"maximum number of cycles ({self.max_cycles}) reached"
+            return True
+        return False
+
+
 def _progress_callback(progress):
     """None or False: no progress reports; else a callable taking one history record."""
     if progress is None or progress is False:
@@ -374,13 +422,10 @@ def optimize_weakly(case, start_mm=None, *, eps=1e-2, max_cycles=30, confirm_cyc
     constraints = component_constraints(case.formulation, [n for n, _ in frames])
 
     prev_loads = None
-    designs, changes_hist = [], []
+    control = CycleControl(eps, confirm_cycles, max_cycles, stop_on_oscillation)
     pending = None            # the static optimum that produced the current design
     inner_total = 0
     n_static = 0
-    consecutive = 0
-    paper_cycle = None
-    converged, reason, period = False, "", None
     cr = None
     change = None
     try:
@@ -402,34 +447,11 @@ def optimize_weakly(case, start_mm=None, *, eps=1e-2, max_cycles=30, confirm_cyc
                 static_message=None if pending is None or pending.success else pending.message,
                 simulation_active_steps=(np.flatnonzero(dev >= (1 - active_tol) * case.limit_m)
                                          + 1).tolist())
-            designs.append(p.copy())
-            changes_hist.append(change)
-            if change is not None and change < eps:
-                consecutive += 1
-                if paper_cycle is None:
-                    paper_cycle = cycle
-            else:
-                consecutive = 0
-                paper_cycle = None
-            if consecutive > confirm_cycles:
-                converged = True
-                reason = (f"relative ESL change (eq. 25) {change:.3g} < {eps:g} in "
-                          f"{consecutive} consecutive cycles")
-            elif change is not None:
-                period = _oscillation(designs, changes_hist)
-                if period is not None:
-                    record["oscillation_period"] = period
+            control.observe(cycle, p, change, record)
             writer.write(record)
             if progress is not None:
                 progress(writer.records[-1])
-            if converged:
-                break
-            if period is not None and stop_on_oscillation:
-                reason = (f"oscillation: the designs repeat with period {period} cycles "
-                          f"(eq. 25 change {change:.3g})")
-                break
-            if cycle == max_cycles:
-                reason = f"maximum number of cycles ({max_cycles}) reached"
+            if control.stop(cycle):
                 break
             lo, hi = lower.copy(), upper.copy()
             if move_limit is not None:
@@ -448,15 +470,17 @@ def optimize_weakly(case, start_mm=None, *, eps=1e-2, max_cycles=30, confirm_cyc
     dev = np.asarray(cr.deviation)
     details = dict(
         predicted_max_deviation_m=None if pending is None else pending.predicted_max_deviation_m,
-        paper_test_cycle=paper_cycle, static_optimizations=n_static,
-        oscillation_period=period, esl_change=change, eps=eps, confirm_cycles=confirm_cycles,
-        move_limit=move_limit, frame=frame, formulation=str(case.formulation),
+        paper_test_cycle=control.paper_cycle, static_optimizations=n_static,
+        oscillation_period=control.period, esl_change=change, eps=eps,
+        confirm_cycles=confirm_cycles, move_limit=move_limit, frame=frame,
+        formulation=str(case.formulation),
         t_end=float(cr.t[-1]), active_steps=None if pending is None else pending.active_steps,
         simulation_active_steps=writer.records[-1]["simulation_active_steps"])
     return OptimizationResult(
         method="weakly", case=getattr(case, "name", "case"), design_mm=p.copy(),
-        mass_kg=float(case.mass(p)), iterations=len(designs), inner_iterations=inner_total,
-        simulations=len(designs), converged=converged, reason=reason,
+        mass_kg=float(case.mass(p)), iterations=len(control.designs),
+        inner_iterations=inner_total, simulations=len(control.designs),
+        converged=control.converged, reason=control.reason,
         history=list(writer.records), max_deviation_m=float(dev.max()),
-        wall_time_s=time.perf_counter() - t_start, start_mm=designs[0], details=details,
-        t=np.asarray(cr.t), deviation=dev)
+        wall_time_s=time.perf_counter() - t_start, start_mm=control.designs[0],
+        details=details, t=np.asarray(cr.t), deviation=dev)
