@@ -65,10 +65,9 @@ from flexmbs.errors import CaseError, ModelError
 from flexmbs.esl import (BodyStiffness, ChordFrame, TangentFrame, equivalent_static_loads,
                          esl_change, solve_static)
 from flexmbs.optimize.result import HistoryWriter, OptimizationResult
-from flexmbs.optimize.weakly import CycleControl, _progress_callback
+from flexmbs.optimize.weakly import CycleControl, _progress_callback, check_cycle_options
 from flexmbs.problem import _scalar, constraint_rows, load_problem
 from flexmbs.responses.strain import raw_strain_derivatives, raw_strains, shape, gauss_points
-from flexmbs.sections import real_number, whole_number
 
 __all__ = ["optimize_problem_weakly", "chains", "StaticModel"]
 
@@ -581,16 +580,9 @@ def optimize_problem_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confir
         raise CaseError("the weakly coupled method needs design variables ([[design]])")
     if d.objective is None:
         raise CaseError("the weakly coupled method needs an [objective]")
-    eps = real_number("eps", eps, positive=True)
-    max_cycles = whole_number("max_cycles", max_cycles, 1)
-    confirm_cycles = whole_number("confirm_cycles", confirm_cycles, 0)
-    max_inner = whole_number("max_inner", max_inner, 1)
-    ftol = real_number("ftol", ftol, positive=True)
-    active_tol = real_number("active_tol", active_tol, positive=True)
-    if move_limit is not None:
-        move_limit = real_number("move_limit (or None)", move_limit, positive=True)
-    if not (real_number("screen", screen) >= 0.0 and screen <= 1.0):
-        raise ModelError(f"screen must lie in [0, 1], got {screen!r}")
+    eps, max_cycles, confirm_cycles, max_inner, ftol, active_tol, move_limit, screen = \
+        check_cycle_options(eps, max_cycles, confirm_cycles, max_inner, ftol, active_tol,
+                            move_limit, screen)
     if not isinstance(frame_kind, str) or frame_kind not in ("tangent", "chord"):
         raise ModelError(f"frame_kind must be 'tangent' or 'chord', got {frame_kind!r}")
     if frames is not None and not isinstance(frames, dict):

@@ -271,6 +271,22 @@ def _oscillation(designs, changes, period_max=6, ratio=0.2):
     return None
 
 
+def check_cycle_options(eps, max_cycles, confirm_cycles, max_inner, ftol, active_tol,
+                        move_limit, screen):
+    """The weakly coupled method's numeric options, checked (ModelError naming the option)."""
+    eps = real_number("eps", eps, positive=True)
+    max_cycles = whole_number("max_cycles", max_cycles, 1)
+    confirm_cycles = whole_number("confirm_cycles", confirm_cycles, 0)
+    max_inner = whole_number("max_inner", max_inner, 1)
+    ftol = real_number("ftol", ftol, positive=True)
+    active_tol = real_number("active_tol", active_tol, positive=True)
+    if move_limit is not None:
+        move_limit = real_number("move_limit (or None)", move_limit, positive=True)
+    if not (real_number("screen", screen) >= 0.0 and screen <= 1.0):
+        raise ModelError(f"screen must lie in [0, 1], got {screen!r}")
+    return eps, max_cycles, confirm_cycles, max_inner, ftol, active_tol, move_limit, screen
+
+
 class CycleControl:
     """The stopping decisions of the weakly coupled cycles: eq. (25) below eps in
     1 + confirm_cycles consecutive cycles (converged), the designs repeating (oscillation,
@@ -384,16 +400,9 @@ def optimize_weakly(case, start_mm=None, *, eps=1e-2, max_cycles=30, confirm_cyc
     lower = np.asarray(case.lower_mm, float)
     upper = np.asarray(case.upper_mm, float)
     p = case.start_design(start_mm).copy()
-    eps = real_number("eps", eps, positive=True)
-    max_cycles = whole_number("max_cycles", max_cycles, 1)
-    confirm_cycles = whole_number("confirm_cycles", confirm_cycles, 0)
-    max_inner = whole_number("max_inner", max_inner, 1)
-    ftol = real_number("ftol", ftol, positive=True)
-    active_tol = real_number("active_tol", active_tol, positive=True)
-    if move_limit is not None:
-        move_limit = real_number("move_limit (or None)", move_limit, positive=True)
-    if not (real_number("screen", screen) >= 0.0 and screen <= 1.0):
-        raise ModelError(f"screen must lie in [0, 1], got {screen!r}")
+    eps, max_cycles, confirm_cycles, max_inner, ftol, active_tol, move_limit, screen = \
+        check_cycle_options(eps, max_cycles, confirm_cycles, max_inner, ftol, active_tol,
+                            move_limit, screen)
     if not isinstance(frame, str) or frame not in ("tangent", "chord"):
         raise ModelError(f"frame must be 'tangent' or 'chord', got {frame!r}")
     progress = _progress_callback(progress)
