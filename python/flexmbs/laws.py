@@ -100,6 +100,21 @@ class TimeLaw:
             raise ModelError(f"time law {self.name!r}: {what} is not finite at t = {bad[0]:.6g} s")
         return out
 
+    def _value_rate(self, t):
+        v = self._eval(self.value, t, "value")
+        if self.rate is not None:
+            return v, self._eval(self.rate, t, "rate")
+        e = 1e-6
+        return v, (self._eval(self.value, t + e, "value")
+                   - self._eval(self.value, t - e, "value")) / (2 * e)
+
+    def _accel(self, t, v):
+        if self.accel is not None:
+            return self._eval(self.accel, t, "acceleration")
+        e = 1e-4
+        return (self._eval(self.value, t + e, "value") - 2 * v
+                + self._eval(self.value, t - e, "value")) / e ** 2
+
     def evaluate(self, t):
         """(theta, theta', theta'') on the grid t, each an array of t's shape.
 
@@ -107,37 +122,14 @@ class TimeLaw:
         rate, 1e-4 s for the acceleration), as in `tabulate`.
         """
         t = np.asarray(t, float)
-        v = self._eval(self.value, t, "value")
-        if self.rate is not None:
-            d = self._eval(self.rate, t, "rate")
-        else:
-            e = 1e-6
-            d = (self._eval(self.value, t + e, "value") - self._eval(self.value, t - e, "value")) / (2 * e)
-        if self.accel is not None:
-            dd = self._eval(self.accel, t, "acceleration")
-        else:
-            e = 1e-4
-            dd = (self._eval(self.value, t + e, "value") - 2 * v
-                  + self._eval(self.value, t - e, "value")) / e ** 2
-        return v, d, dd
+        v, d = self._value_rate(t)
+        return v, d, self._accel(t, v)
 
     def tabulate(self, t):
         """(theta, theta') on the grid t and theta''(t[0])."""
         t = np.asarray(t, float)
-        v = self._eval(self.value, t, "value")
-        if self.rate is not None:
-            d = self._eval(self.rate, t, "rate")
-        else:
-            e = 1e-6
-            d = (self._eval(self.value, t + e, "value") - self._eval(self.value, t - e, "value")) / (2 * e)
-        t0 = t[:1]
-        if self.accel is not None:
-            dd0 = self._eval(self.accel, t0, "acceleration")[0]
-        else:
-            e = 1e-4
-            dd0 = ((self._eval(self.value, t0 + e, "value") - 2 * self._eval(self.value, t0, "value")
-                    + self._eval(self.value, t0 - e, "value")) / e ** 2)[0]
-        return v, d, dd0
+        v, d = self._value_rate(t)
+        return v, d, self._accel(t[:1], v[:1])[0]
 
 
 def as_law(obj, name="law"):

@@ -65,7 +65,8 @@ from flexmbs.errors import CaseError, ModelError
 from flexmbs.esl import (BodyStiffness, ChordFrame, TangentFrame, equivalent_static_loads,
                          esl_change, solve_static)
 from flexmbs.optimize.result import HistoryWriter, OptimizationResult
-from flexmbs.optimize.weakly import CycleControl, _progress_callback, check_cycle_options
+from flexmbs.optimize.weakly import (CycleControl, _progress_callback, check_cycle_options,
+                                     move_limited_bounds)
 from flexmbs.problem import _scalar, constraint_rows, load_problem
 from flexmbs.responses.strain import raw_strain_derivatives, raw_strains, shape, gauss_points
 
@@ -640,10 +641,7 @@ def optimize_problem_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confir
                 progress(writer.records[-1])
             if control.stop(cycle):
                 break
-            lo, hi = lower.copy(), upper.copy()
-            if move_limit is not None:
-                lo = np.maximum(lower, x * (1 - move_limit))
-                hi = np.minimum(upper, x * (1 + move_limit))
+            lo, hi = move_limited_bounds(x, lower, upper, move_limit)
             static.set_loads(loads)
             pending = _optimize_static(static, x, lo, hi, screen=screen, ftol=ftol,
                                        maxiter=max_inner, active_tol=active_tol)

@@ -287,6 +287,14 @@ def check_cycle_options(eps, max_cycles, confirm_cycles, max_inner, ftol, active
     return eps, max_cycles, confirm_cycles, max_inner, ftol, active_tol, move_limit, screen
 
 
+def move_limited_bounds(x, lower, upper, move_limit):
+    """The bounds of the next static optimization: the variables' bounds, narrowed to
+    x (1 -/+ move_limit) when a relative move limit is given."""
+    if move_limit is None:
+        return lower.copy(), upper.copy()
+    return np.maximum(lower, x * (1 - move_limit)), np.minimum(upper, x * (1 + move_limit))
+
+
 class CycleControl:
     """The stopping decisions of the weakly coupled cycles: eq. (25) below eps in
     1 + confirm_cycles consecutive cycles (converged), the designs repeating (oscillation,
@@ -462,10 +470,7 @@ def optimize_weakly(case, start_mm=None, *, eps=1e-2, max_cycles=30, confirm_cyc
                 progress(writer.records[-1])
             if control.stop(cycle):
                 break
-            lo, hi = lower.copy(), upper.copy()
-            if move_limit is not None:
-                lo = np.maximum(lower, p * (1 - move_limit))
-                hi = np.minimum(upper, p * (1 + move_limit))
+            lo, hi = move_limited_bounds(p, lower, upper, move_limit)
             problem = StaticProblem(case, loads, constraints, end_nodes, case.limit_m)
             pending = _optimize_static(problem, case, p, lo, hi, screen=screen, ftol=ftol,
                                        maxiter=max_inner, active_tol=active_tol)
