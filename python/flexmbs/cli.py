@@ -42,16 +42,16 @@ from flexmbs.batch import save_figure
 from flexmbs.errors import CaseError, FlexmbsError, ModelError
 
 __all__ = ["main", "build_parser", "COMMANDS", "add_case_arguments", "case_from_args",
-           "parse_design", "parse_values", "parse_set", "register_simulate", "register_demo", "positive_int",
+           "parse_design", "parse_values", "parse_set", "register_simulate", "positive_int",
            "output_file", "figure_file"]
 
 #: Subcommand registration functions, "module:function", in the order of the help text.
 COMMANDS = [
     "flexmbs.cli:register_simulate",
-    "flexmbs.cli:register_demo",
+    "flexmbs.cli_reproduce:register_demo",
     "flexmbs.cli_evaluate:register",
     "flexmbs.optimize.cli:register",
-    "flexmbs.reproduce:register",
+    "flexmbs.cli_reproduce:register",
 ]
 
 
@@ -282,44 +282,6 @@ def _save_npz(path, case, r):
             fh, t=r.t, deviation=r.deviation, design_mm=r.design_mm, mass=r.mass,
             q=r.result.q, qd=r.result.qd, dofs=r.result.dofs, sensor_dofs=case.sensor_dofs,
             summary=json.dumps(r.summary()), case_config=json.dumps(case.config), **ref)
-
-
-# ----------------------------------------------------------------------------- demo
-def register_demo(subparsers):
-    p = subparsers.add_parser(
-        "demo", help="reproduce the paper's Table 1 with both methods (under a minute)",
-        description="The paper's 2-dof robot (section 6.2, deviation (28), 0.65 s): optimize "
-                    "it with the weakly and the fully coupled methods from the start design, "
-                    "print the results beside the paper's Table 1, draw Fig. 5 and write a "
-                    "report (DIR/README.md). `flexmbs reproduce` does the same for every table.")
-    p.add_argument("--out", default="reproduction/demo", metavar="DIR",
-                   help="output folder (default: reproduction/demo)")
-    p.add_argument("--workers", type=positive_int, default=2, metavar="N",
-                   help="local worker processes (default 2: one per method; 1: serial)")
-    p.set_defaults(func=run_demo)
-
-
-def run_demo(args):
-    from flexmbs.reproduce import print_report, reproduce
-
-    print("flexmbs demo: the paper's Table 1 (2-dof robot, deviation (28), 0.65 s), weakly and "
-          "fully coupled optimizations from p = [50, 50, 50, 50] mm", flush=True)
-    try:
-        report = reproduce([1], args.out, workers=args.workers, force=True,
-                           log=lambda s: print(s, flush=True))
-    except KeyboardInterrupt:
-        from flexmbs.reproduce import interrupted
-        interrupted(args.command, args.out, "the demo starts again from the beginning "
-                    "(`flexmbs reproduce --table 1` keeps finished jobs)")
-        return 130
-    print_report(report)
-    print()
-    for r in report.rows.get(1, []):
-        fmt = lambda p: "[" + ", ".join(f"{v:.2f}" for v in p) + "]"     # noqa: E731
-        print(f"Table 1, {r.method} coupled optimum: flexmbs {r.mass_kg:.4f} kg, "
-              f"p = {fmt(r.design_mm)} mm; paper {r.paper['mass']:.3f} kg, "
-              f"p = {fmt(r.paper['p'])} mm")
-    return 1 if report.failures else 0
 
 
 # ----------------------------------------------------------------------------- main

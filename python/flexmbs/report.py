@@ -22,6 +22,7 @@ from __future__ import annotations
 import datetime
 import json
 import platform
+import time
 from pathlib import Path
 
 import numpy as np
@@ -535,3 +536,19 @@ def write_report(report):
               for k, m in report.maps.items()})
     write_atomic(out / "comparison.json", json.dumps(jsonable(data), indent=1))
     return out / "README.md"
+
+
+def publish(report, figures=True, log=None):
+    """Draw the figures of a reproduction (figures/*.png) and write its README.md and
+    comparison.json: the second half of `flexmbs reproduce`, after
+    `flexmbs.reproduce.reproduce` has run the jobs."""
+    say = log or (lambda s: None)
+    if figures:
+        t0 = time.perf_counter()
+        say(f"figures in {report.out / 'figures'}")
+        report.figures = make_figures(report)
+        total = report.elapsed.pop("total", 0.0)
+        report.elapsed["figures"] = time.perf_counter() - t0
+        report.elapsed["total"] = total + report.elapsed["figures"]
+    write_report(report)
+    return report

@@ -3,11 +3,12 @@
 `reproduce(tables, out)` runs every optimization a table needs (each starting point x method
 is one job of `flexmbs.batch.run_batch`: local worker processes by default, a Dask cluster when
 an address is given), compares the results with the published numbers (the paper's tables,
-shipped with flexmbs as ``paper_tables.json``), draws the figures and writes ``out/README.md``,
-a report a reader can check without running anything. Every job's result is saved under
-``out/jobs/`` as soon as it finishes; running the same command again skips what is done.
+shipped with flexmbs as ``paper_tables.json``) and returns a `Report`;
+`flexmbs.report.publish(report)` draws the figures and writes ``out/README.md``, a report a
+reader can check without running anything. Every job's result is saved under ``out/jobs/``
+as soon as it finishes; running the same command again skips what is done.
 
-The command line is ``flexmbs reproduce`` (`register`).
+The command line is ``flexmbs reproduce`` (flexmbs/cli_reproduce.py).
 
 Tables and what they need
 -------------------------
@@ -25,7 +26,8 @@ Tables and what they need
 Example
 -------
 >>> from flexmbs.reproduce import reproduce
->>> report = reproduce([1], "reproduction", workers=2)            # doctest: +SKIP
+>>> from flexmbs.report import publish
+>>> report = publish(reproduce([1], "reproduction", workers=2))   # doctest: +SKIP
 >>> row = report.rows[1][0]                                       # doctest: +SKIP
 >>> row.method, row.mass_kg, row.paper["mass"], row.mass_difference   # doctest: +SKIP
 """
@@ -33,7 +35,6 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 import time
 from dataclasses import dataclass, field
 from importlib import resources
@@ -44,8 +45,8 @@ import numpy as np
 from flexmbs.errors import ModelError
 
 __all__ = ["reproduce", "Report", "Row", "TableSpec", "Run", "TABLES", "paper_tables",
-           "table_runs", "optimization_job", "map_jobs", "register", "run_reproduce",
-           "MAPS", "MapSpec", "MapResult", "REGIONS", "Check", "table_checks", "print_report",
+           "table_runs", "optimization_job", "map_jobs",
+           "MAPS", "MapSpec", "MapResult", "REGIONS", "Check", "table_checks",
            "STARTS", "WEAKLY_OPTIONS", "FULLY_OPTIONS", "CRITERIA", "paper_row", "build_rows",
            "design_spread", "table8_rows", "format_table", "format_table8",
            "simulate_paper_designs", "paper_design_text", "fourbar_p1_scan"]
@@ -784,8 +785,11 @@ def _resolve_dask(dask, workers):
 
 
 def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=41, maps=True,
-              figures=True, force=False, progress=None, log=None):
-    """Run the optimizations behind the paper's tables, compare, draw, and write a report.
+              force=False, progress=None, log=None):
+    """Run the optimizations behind the paper's tables and compare them with the paper.
+
+    The figures and the report (README.md, comparison.json) are drawn and written from the
+    returned Report by `flexmbs.report.publish` (as `flexmbs reproduce` does).
 
     Parameters
     ----------
@@ -803,8 +807,6 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
         Points per axis of the design-domain maps of Figs. 12 and 15 (41: 1 mm steps).
     maps : bool, default True
         Compute the maps when Table 6 (Fig. 12) or Table 7 (Fig. 15) is asked for.
-    figures : bool, default True
-        Draw the figures (PNG) and include them in the report.
     force : bool, default False
         Run the tables' optimizations again even when a stored result exists.
     progress : bool, optional
@@ -836,7 +838,7 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
     # bound: 0.5 MB per optimization, 2 KB per map point, 1 MB per figure)
     check_writable(out, f"output folder {str(out)!r}", create=True)
     n_map = sum(2 * grid * grid for spec in MAPS.values() if maps and spec.table in tables)
-    check_disk_space(out, 500e3 * len(runs) + 2e3 * n_map + (20e6 if figures else 0),
+    check_disk_space(out, 500e3 * len(runs) + 2e3 * n_map + 20e6,
                      f"output folder {str(out)!r}")
     store = out / "jobs" / "optimizations"
     if force:
@@ -911,91 +913,7 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
     finally:
         if cluster is not None:
             cluster.close()
-    if figures:
-        from flexmbs.report import make_figures
-        t0 = time.perf_counter()
-        say(f"figures in {out / 'figures'}")
-        report.figures = make_figures(report)
-        report.elapsed["figures"] = time.perf_counter() - t0
     report.elapsed["total"] = time.perf_counter() - t_start
     (out / "jobs").mkdir(parents=True, exist_ok=True)
     write_atomic(out / "jobs" / "timings.json", json.dumps(report.timings, indent=1))
-    from flexmbs.report import write_report
-    write_report(report)
     return report
-
-
-# ============================================================================ command line
-def register(subparsers):
-    """Add the ``reproduce`` subcommand (listed in flexmbs.cli.COMMANDS)."""
-    from flexmbs.cli import positive_int
-    p = subparsers.add_parser(
-        "reproduce", help="reproduce the paper's Tables 1-8 and Figures 5-15, with a report",
-        description="Run the optimizations behind the paper's tables (each starting point x "
-                    "method is one job, on local worker processes or a Dask cluster), print "
-                    "every row beside the published one, draw the figures and write "
-                    "DIR/README.md. Finished jobs are saved under DIR/jobs/ and not run again.")
-    p.add_argument("--table", type=int, nargs="+", action="extend", choices=sorted(TABLES),
-                   metavar="N", help="tables to reproduce, 1-8 (repeatable); default: all")
-    p.add_argument("--all", action="store_true", help="every table (the default)")
-    p.add_argument("--out", default="reproduction", metavar="DIR",
-                   help="output folder (default: reproduction)")
-    ex = p.add_mutually_exclusive_group()
-    ex.add_argument("--workers", type=positive_int, metavar="N",
-                    help="local worker processes (default: one per core; 1: serial)")
-    ex.add_argument("--dask", metavar="ADDRESS",
-                    help="run the jobs on a Dask cluster: a scheduler address (tcp://host:8786, "
-                         "e.g. from `dask scheduler` or dask-jobqueue) or 'local' (LocalCluster)")
-    p.add_argument("--quick", action="store_true",
-                   help="coarse design-domain maps (11 x 11 instead of 41 x 41 simulations)")
-    p.add_argument("--grid", type=int, metavar="N",
-                   help="points per axis of the maps of Figs. 12 and 15 (overrides --quick)")
-    p.add_argument("--force", action="store_true",
-                   help="run the optimizations again even when DIR/jobs/ holds their results")
-    p.add_argument("--no-figures", action="store_true", help="tables only, no PNG")
-    p.set_defaults(func=run_reproduce)
-
-
-def run_reproduce(args):
-    tables = None if (args.all or not args.table) else args.table
-    grid = args.grid if args.grid is not None else (11 if args.quick else 41)
-    if grid < 2:
-        raise ModelError(f"--grid must be an integer >= 2, got {grid}")
-    try:
-        report = reproduce(tables, args.out, workers=args.workers, dask=args.dask, grid=grid,
-                           figures=not args.no_figures, force=args.force,
-                           log=lambda s: print(s, flush=True))
-    except KeyboardInterrupt:
-        interrupted(args.command, args.out, "run the same command again to resume "
-                    "(finished jobs are not run again)")
-        return 130
-    print_report(report)
-    return 1 if report.failures else 0
-
-
-def interrupted(command, out, how):
-    """The one-line message of a reproduction stopped by Ctrl-C: where the finished jobs are
-    and how to resume (stderr)."""
-    store = Path(out) / "jobs"
-    n = sum(f.name != "timings.json" for f in store.rglob("*.json")) if store.is_dir() else 0
-    print(f"flexmbs {command}: interrupted; {n} finished job result(s) kept in {store}; "
-          f"{how}", file=sys.stderr, flush=True)
-
-
-def print_report(report):
-    """Print every table beside the paper, the checks and where the report is."""
-    for t in report.tables:
-        print()
-        print(report.text(t))
-    checks = [c for c in report.all_checks if c.ok is not None]
-    print()
-    if checks:
-        print(f"{sum(c.ok for c in checks)} of {len(checks)} findings of the paper reproduced"
-              + ("" if all(c.ok for c in checks) else "; differing: "
-                 + "; ".join(f"Table {c.table}: {c.what}" for c in checks if not c.ok)))
-    times = ", ".join(f"Table {t} {report.table_time(t):.1f} s" for t in report.tables if t != 8)
-    print(f"serial wall time of the runs: {times}")
-    print("elapsed: " + ", ".join(f"{k} {v:.1f} s" for k, v in report.elapsed.items()))
-    print(f"report: {report.out / 'README.md'}"
-          + (f" ({len(report.figures)} figures in {report.out / 'figures'})"
-             if report.figures else ""))

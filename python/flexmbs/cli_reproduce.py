@@ -1,0 +1,125 @@
+"""``flexmbs reproduce`` and ``flexmbs demo``: the paper's tables run as jobs
+(flexmbs.reproduce), then their figures and report (flexmbs.report.publish)."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from flexmbs.cli import positive_int
+from flexmbs.errors import ModelError
+from flexmbs.report import publish
+from flexmbs.reproduce import TABLES, reproduce
+
+__all__ = ["register", "run_reproduce", "register_demo", "run_demo", "interrupted",
+           "print_report"]
+
+
+def register(subparsers):
+    """Add the ``reproduce`` subcommand (listed in flexmbs.cli.COMMANDS)."""
+    p = subparsers.add_parser(
+        "reproduce", help="reproduce the paper's Tables 1-8 and Figures 5-15, with a report",
+        description="Run the optimizations behind the paper's tables (each starting point x "
+                    "method is one job, on local worker processes or a Dask cluster), print "
+                    "every row beside the published one, draw the figures and write "
+                    "DIR/README.md. Finished jobs are saved under DIR/jobs/ and not run again.")
+    p.add_argument("--table", type=int, nargs="+", action="extend", choices=sorted(TABLES),
+                   metavar="N", help="tables to reproduce, 1-8 (repeatable); default: all")
+    p.add_argument("--all", action="store_true", help="every table (the default)")
+    p.add_argument("--out", default="reproduction", metavar="DIR",
+                   help="output folder (default: reproduction)")
+    ex = p.add_mutually_exclusive_group()
+    ex.add_argument("--workers", type=positive_int, metavar="N",
+                    help="local worker processes (default: one per core; 1: serial)")
+    ex.add_argument("--dask", metavar="ADDRESS",
+                    help="run the jobs on a Dask cluster: a scheduler address (tcp://host:8786, "
+                         "e.g. from `dask scheduler` or dask-jobqueue) or 'local' (LocalCluster)")
+    p.add_argument("--quick", action="store_true",
+                   help="coarse design-domain maps (11 x 11 instead of 41 x 41 simulations)")
+    p.add_argument("--grid", type=int, metavar="N",
+                   help="points per axis of the maps of Figs. 12 and 15 (overrides --quick)")
+    p.add_argument("--force", action="store_true",
+                   help="run the optimizations again even when DIR/jobs/ holds their results")
+    p.add_argument("--no-figures", action="store_true", help="tables only, no PNG")
+    p.set_defaults(func=run_reproduce)
+
+
+def run_reproduce(args):
+    tables = None if (args.all or not args.table) else args.table
+    grid = args.grid if args.grid is not None else (11 if args.quick else 41)
+    if grid < 2:
+        raise ModelError(f"--grid must be an integer >= 2, got {grid}")
+    try:
+        log = lambda s: print(s, flush=True)        # noqa: E731
+        report = reproduce(tables, args.out, workers=args.workers, dask=args.dask, grid=grid,
+                           force=args.force, log=log)
+        publish(report, figures=not args.no_figures, log=log)
+    except KeyboardInterrupt:
+        interrupted(args.command, args.out, "run the same command again to resume "
+                    "(finished jobs are not run again)")
+        return 130
+    print_report(report)
+    return 1 if report.failures else 0
+
+
+def interrupted(command, out, how):
+    """The one-line message of a reproduction stopped by Ctrl-C: where the finished jobs are
+    and how to resume (stderr)."""
+    store = Path(out) / "jobs"
+    n = sum(f.name != "timings.json" for f in store.rglob("*.json")) if store.is_dir() else 0
+    print(f"flexmbs {command}: interrupted; {n} finished job result(s) kept in {store}; "
+          f"{how}", file=sys.stderr, flush=True)
+
+
+def print_report(report):
+    """Print every table beside the paper, the checks and where the report is."""
+    for t in report.tables:
+        print()
+        print(report.text(t))
+    checks = [c for c in report.all_checks if c.ok is not None]
+    print()
+    if checks:
+        print(f"{sum(c.ok for c in checks)} of {len(checks)} findings of the paper reproduced"
+              + ("" if all(c.ok for c in checks) else "; differing: "
+                 + "; ".join(f"Table {c.table}: {c.what}" for c in checks if not c.ok)))
+    times = ", ".join(f"Table {t} {report.table_time(t):.1f} s" for t in report.tables if t != 8)
+    print(f"serial wall time of the runs: {times}")
+    print("elapsed: " + ", ".join(f"{k} {v:.1f} s" for k, v in report.elapsed.items()))
+    print(f"report: {report.out / 'README.md'}"
+          + (f" ({len(report.figures)} figures in {report.out / 'figures'})"
+             if report.figures else ""))
+
+
+# ----------------------------------------------------------------------------- demo
+def register_demo(subparsers):
+    p = subparsers.add_parser(
+        "demo", help="reproduce the paper's Table 1 with both methods (under a minute)",
+        description="The paper's 2-dof robot (section 6.2, deviation (28), 0.65 s): optimize "
+                    "it with the weakly and the fully coupled methods from the start design, "
+                    "print the results beside the paper's Table 1, draw Fig. 5 and write a "
+                    "report (DIR/README.md). `flexmbs reproduce` does the same for every table.")
+    p.add_argument("--out", default="reproduction/demo", metavar="DIR",
+                   help="output folder (default: reproduction/demo)")
+    p.add_argument("--workers", type=positive_int, default=2, metavar="N",
+                   help="local worker processes (default 2: one per method; 1: serial)")
+    p.set_defaults(func=run_demo)
+
+
+def run_demo(args):
+    print("flexmbs demo: the paper's Table 1 (2-dof robot, deviation (28), 0.65 s), weakly and "
+          "fully coupled optimizations from p = [50, 50, 50, 50] mm", flush=True)
+    try:
+        log = lambda s: print(s, flush=True)        # noqa: E731
+        report = publish(reproduce([1], args.out, workers=args.workers, force=True, log=log),
+                         log=log)
+    except KeyboardInterrupt:
+        interrupted(args.command, args.out, "the demo starts again from the beginning "
+                    "(`flexmbs reproduce --table 1` keeps finished jobs)")
+        return 130
+    print_report(report)
+    print()
+    for r in report.rows.get(1, []):
+        fmt = lambda p: "[" + ", ".join(f"{v:.2f}" for v in p) + "]"     # noqa: E731
+        print(f"Table 1, {r.method} coupled optimum: flexmbs {r.mass_kg:.4f} kg, "
+              f"p = {fmt(r.design_mm)} mm; paper {r.paper['mass']:.3f} kg, "
+              f"p = {fmt(r.paper['p'])} mm")
+    return 1 if report.failures else 0
