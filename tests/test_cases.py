@@ -81,10 +81,9 @@ def test_mass_gradient_and_property_derivatives_match_finite_differences(name):
     """d(mass)/dp and d[EA, kGA, EI, rhoA, rhoI]/dp (p in mm) against central differences.
 
     Step 1e-5 p: the truncation error of a central difference of EI ~ p^4 is (h/p)^2 = 1e-10
-    relative and rounding about eps p/h = 2e-11 (measured 1.1e-10), four decades under the 1e-6
-    asserted (with
-    1e-3 p the truncation was exactly 1e-6, at the tolerance). The mass is quadratic in p:
-    its central difference is exact to rounding."""
+    relative and rounding about eps p/h = 2e-11 (measured 1.1e-10), four decades under the
+    1e-6 asserted (with 1e-3 p the truncation was exactly 1e-6, at the tolerance). The mass is
+    quadratic in p: its central difference is exact to rounding."""
     case = load_case(name)
     p = case.start_mm * np.linspace(0.7, 1.1, case.start_mm.size)
     g = case.mass_gradient(p)
