@@ -99,7 +99,9 @@ class Evaluation:
     def to_json(self):
         """A JSON-serialisable dict (histories as their maximum and time of maximum)."""
         out = {"design": self.x.tolist(), "objective": self.objective,
-               "feasible": self.feasible, "max_violation": self.max_violation, "responses": {}}
+               "feasible": self.feasible,
+               "max_violation": self.max_violation if self.constraints.size else None,
+               "responses": {}}
         for k, v in self.values.items():
             g = self.gradients.get(k)
             if np.ndim(v) == 0:
