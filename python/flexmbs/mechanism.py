@@ -150,6 +150,7 @@ class Mechanism:
         self._bodies = {b.name: b for b in d.bodies}
         self.model, self.node = self._structure(d.case.name)
         self._reference = None
+        self._initial = None
         # drives whose law is 'reference' follow the rigid reference: compute it first
         needs = any(dr.law.type == "reference" for dr in d.drives)
         self._add_constraints(self.model, reference=False,
@@ -289,10 +290,14 @@ class Mechanism:
 
     def initial_state(self):
         """(q0, qd0): the assembled initial configuration (loops closed by position analysis,
-        every beam straight) and the rigid velocity field the drives impose at t = 0."""
-        from flexmbs.kinematics import assemble, drive_velocities
-        a = assemble(self.model, 0.0)
-        return a.q, drive_velocities(self.model, a.q, 0.0)
+        every beam straight) and the rigid velocity field the drives impose at t = 0. Both are
+        rigid kinematics, independent of the design: computed once per mechanism."""
+        if self._initial is None:
+            from flexmbs.kinematics import assemble, drive_velocities
+            a = assemble(self.model, 0.0)
+            self._initial = (a.q, drive_velocities(self.model, a.q, 0.0))
+        q0, qd0 = self._initial
+        return q0.copy(), qd0.copy()
 
     # ------------------------------------------------------------------ design
     def design_values(self, x):
