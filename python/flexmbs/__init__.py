@@ -1,28 +1,33 @@
 """flexmbs: planar flexible multibody simulation and structural optimization of mechanisms.
 
 Public API (explicit):
-    Model, Body                  build a mechanism (model.py)
+    Problem, load_problem        a described mechanism with its design variables, responses,
+                                 objective and constraints (problem.py; case files: casefile.py,
+                                 docs/case-format.md)
+    optimize_weakly, optimize_fully, OptimizationResult   the two methods (optimize/)
+    Model, Body                  build a mechanism by hand (model.py)
     Material, Circle, Tube, Rectangle, GivenSection   sections (sections.py)
     TimeLaw                      motor and load laws with derivatives (laws.py)
     simulate, Result             generalized-alpha simulation (simulate.py)
     check_tangent, check_iteration_matrix, taylor_test   derivative checkers (checks.py)
-    load_case, Case              the paper's mechanisms from cases/*.toml (cases.py)
     FlexmbsError, ModelError, SimulationError, CaseError, ResourceError,
     InvalidResultError, ValidityWarning   exceptions and warnings (errors.py)
 """
-from flexmbs.cases import Case, load_case
 from flexmbs.checks import check_iteration_matrix, check_tangent, taylor_test
 from flexmbs.errors import (CaseError, FlexmbsError, InvalidResultError, ModelError,
                             ResourceError, SimulationError, ValidityWarning)
 from flexmbs.laws import TimeLaw
 from flexmbs.model import Body, Model
+from flexmbs.optimize import OptimizationResult, optimize_fully, optimize_weakly
+from flexmbs.problem import Problem, load_problem
 from flexmbs.sections import Circle, GivenSection, Material, Rectangle, Tube
 from flexmbs.simulate import Result, simulate
 
 __all__ = [
+    "Problem", "load_problem", "optimize_weakly", "optimize_fully", "OptimizationResult",
     "Model", "Body", "Material", "Circle", "Tube", "Rectangle", "GivenSection", "TimeLaw",
     "simulate", "Result", "check_tangent", "check_iteration_matrix", "taylor_test",
     "FlexmbsError", "ModelError", "SimulationError", "CaseError", "ResourceError",
-    "InvalidResultError", "ValidityWarning", "load_case", "Case",
+    "InvalidResultError", "ValidityWarning",
 ]
 __version__ = "0.1.0"

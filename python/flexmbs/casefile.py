@@ -1,12 +1,16 @@
 """Case files in the general format (TOML) -> Description, with errors that name the file,
 the key, the value and what is allowed. The format: docs/case-format.md.
 
-A file is in the general format when it has a ``[[bodies]]`` table array; the paper's older
-per-mechanism files (``[case] mechanism = ...``) are read by `flexmbs.cases.load_case`.
+Shipped cases (the repository's ``cases/`` folder, or the copy installed with the package in
+``flexmbs/cases_data``) are found by name: `case_path("fourbar")`. Any key can be replaced
+before validation with `overrides`, by a dotted path: ``{"time.t_end": 0.66}``; an item of a
+table array is addressed by its ``name`` or its index: ``{"bodies.arm1.elements": 8}``.
 """
 from __future__ import annotations
 
+import copy
 import tomllib
+from importlib import resources
 from pathlib import Path
 
 from pydantic import ValidationError
@@ -14,7 +18,8 @@ from pydantic import ValidationError
 from flexmbs.description import Description
 from flexmbs.errors import CaseError
 
-__all__ = ["read_description", "description_from_dict", "is_general_format"]
+__all__ = ["read_description", "description_from_dict", "is_general_format", "apply_overrides",
+           "parse_override", "case_path", "case_folders", "available_cases"]
 
 
 def _loc(loc):
@@ -47,10 +52,16 @@ def _friendly(err):
 _TAGS = ("beam", "rigid", "mass", "deviation", "stress", "torque", "reaction")
 
 
-def description_from_dict(data, source="<dict>"):
-    """Validate a parsed case (a dict) into a Description; CaseError naming source and keys."""
+def description_from_dict(data, source="<dict>", overrides=None):
+    """Validate a parsed case (a dict) into a Description; CaseError naming source and keys.
+
+    overrides : dict, optional
+        Keys to replace first (`apply_overrides`); `data` itself is not changed.
+    """
     if not isinstance(data, dict):
         raise CaseError(f"{source}: a case must be a table, got {type(data).__name__}")
+    if overrides:
+        data = apply_overrides(data, overrides, source)
     try:
         return Description.model_validate(data)
     except ValidationError as exc:
@@ -64,9 +75,10 @@ def is_general_format(data):
     return isinstance(data, dict) and "bodies" in data
 
 
-def read_description(path):
-    """Read and validate a case file in the general format."""
-    p = Path(path)
+def read_description(path, overrides=None):
+    """Read and validate a case file (a path, or the name of a shipped case, `case_path`);
+    `overrides` as in `description_from_dict`."""
+    p = case_path(path)
     try:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
@@ -78,6 +90,115 @@ def read_description(path):
     except tomllib.TOMLDecodeError as exc:
         raise CaseError(f"{p}: not valid TOML: {exc}") from None
     if not is_general_format(data):
-        raise CaseError(f"{p}: not a case in the general format (no [[bodies]]); the paper's "
-                        "per-mechanism files are read by flexmbs.load_case")
-    return description_from_dict(data, str(p))
+        raise CaseError(f"{p}: not a flexmbs case: it lists no [[bodies]] (docs/case-format.md)")
+    return description_from_dict(data, str(p), overrides)
+
+
+# ----------------------------------------------------------------------------- overrides
+def _override_target(node, parts, key, source):
+    """The container and leaf that a dotted override path names."""
+    for k, part in enumerate(parts[:-1]):
+        where = ".".join(parts[:k + 1])
+        if isinstance(node, dict):
+            if part not in node:
+                node[part] = {}
+            node = node[part]
+        elif isinstance(node, list):
+            hits = [it for it in node if isinstance(it, dict) and it.get("name") == part]
+            if not hits and part.lstrip("-").isdigit() and -len(node) <= int(part) < len(node):
+                hits = [node[int(part)]]
+            if len(hits) != 1:
+                names = [it.get("name") for it in node if isinstance(it, dict) and it.get("name")]
+                raise CaseError(f"{source}: override '{key}': no single item '{part}' in "
+                                f"'{'.'.join(parts[:k])}' (names: {', '.join(names) or 'none'}; "
+                                f"or an index 0..{len(node) - 1})")
+            node = hits[0]
+        else:
+            raise CaseError(f"{source}: override '{key}': '{where}' is not a table or an array "
+                            f"of tables (it is {node!r})")
+    if not isinstance(node, dict):
+        raise CaseError(f"{source}: override '{key}': '{'.'.join(parts[:-1])}' is not a table")
+    return node, parts[-1]
+
+
+def apply_overrides(data, overrides, source="<dict>"):
+    """A deep copy of the raw case `data` with `overrides` {dotted key: value} set.
+
+    The result is validated as a whole afterwards (an unknown leaf key or a bad value is then
+    named by `description_from_dict`)."""
+    if not isinstance(overrides, dict):
+        raise CaseError(f"{source}: overrides must be a dict {{dotted key: value}}, "
+                        f"got {type(overrides).__name__}")
+    out = copy.deepcopy(data)
+    for key, value in overrides.items():
+        if not isinstance(key, str) or not key or any(not p for p in key.split(".")):
+            raise CaseError(f"{source}: override keys are dotted paths such as 'time.t_end', "
+                            f"got {key!r}")
+        node, leaf = _override_target(out, key.split("."), key, source)
+        if hasattr(value, "tolist"):                     # numpy scalars and arrays
+            value = value.tolist()
+        node[leaf] = value
+    return out
+
+
+def parse_override(text):
+    """'time.t_end=0.66' -> ('time.t_end', 0.66): the value is read as a TOML value (number,
+    string in quotes, array, inline table, true/false); a bare word is a string."""
+    key, sep, raw = text.partition("=")
+    key, raw = key.strip(), raw.strip()
+    if not sep or not key or not raw:
+        raise CaseError(f"an override is KEY=VALUE, e.g. time.t_end=0.66, got {text!r}")
+    try:
+        return key, tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        return key, raw
+
+
+# ----------------------------------------------------------------------------- shipped cases
+def _repository_cases():
+    """The repository's cases/ folder when flexmbs runs from a source tree, else None."""
+    root = Path(__file__).resolve().parents[2]
+    folder = root / "cases"
+    if folder.is_dir() and (root / "python" / "flexmbs").is_dir():
+        return folder
+    return None
+
+
+def _installed_cases():
+    """The case files installed with the package (flexmbs/cases_data), or None."""
+    try:
+        folder = resources.files("flexmbs") / "cases_data"
+        return folder if folder.is_dir() else None
+    except (ModuleNotFoundError, FileNotFoundError, NotADirectoryError):
+        return None
+
+
+def case_folders():
+    """The folders that hold shipped case files: the repository's cases/ (source tree) and the
+    copy installed with the package (flexmbs/cases_data)."""
+    return [f for f in (_repository_cases(), _installed_cases()) if f is not None]
+
+
+def available_cases():
+    """Names of the shipped case files."""
+    return sorted({p.name[:-5] for folder in case_folders() for p in folder.iterdir()
+                   if p.name.endswith(".toml")})
+
+
+def case_path(name):
+    """An existing file path, or a shipped case by name (with or without .toml); CaseError
+    naming the shipped cases if neither."""
+    if not isinstance(name, (str, Path)):
+        raise CaseError(f"a case is a path to a .toml file or the name of a shipped case, "
+                        f"got {name!r} ({type(name).__name__})")
+    p = Path(name)
+    if p.is_file():
+        return p
+    if len(p.parts) == 1:
+        stem = p.name.removesuffix(".toml")
+        for folder in case_folders():
+            f = folder / f"{stem}.toml"
+            if f.is_file():
+                return f
+    raise CaseError(f"case {str(name)!r} not found: give a path to a .toml file or one of the "
+                    f"shipped cases: {', '.join(available_cases()) or 'none found'}")

@@ -34,33 +34,26 @@ from flexmbs.simulate import simulate
 __all__ = ["Problem", "Evaluation", "load_problem", "constraint_rows"]
 
 
-def load_problem(case):
-    """A Problem from a general-format case: a path, a name in cases/general, a dict or a
-    Description."""
-    return case if isinstance(case, Problem) else Problem(case)
-
-
-def _description(case):
-    if isinstance(case, Description):
+def load_problem(case, overrides=None):
+    """A Problem from a case: a path, the name of a shipped case (cases/), a dict or a
+    Description (a Problem is returned as it is when no overrides are given)."""
+    if isinstance(case, Problem) and not overrides:
         return case
+    return Problem(case, overrides=overrides)
+
+
+def _description(case, overrides=None):
+    if isinstance(case, Problem):
+        case = case.description
+    if isinstance(case, Description):
+        if overrides:
+            case = case.model_dump(by_alias=True, exclude_unset=True)
+        else:
+            return case
     if isinstance(case, dict):
-        return description_from_dict(case)
+        return description_from_dict(case, overrides=overrides)
     if isinstance(case, (str, Path)):
-        p = Path(case)
-        if p.is_file():
-            return read_description(p)
-        from flexmbs.cases import case_folders
-        stem = p.name.removesuffix(".toml")
-        known = set()
-        for folder in case_folders():
-            sub = folder / "general"
-            if sub.is_dir():
-                f = sub / f"{stem}.toml"
-                if len(p.parts) == 1 and f.is_file():
-                    return read_description(f)
-                known.update(x.name[:-5] for x in sub.iterdir() if x.name.endswith(".toml"))
-        raise CaseError(f"case {str(case)!r} not found: give a path to a general-format .toml "
-                        f"file or one of cases/general: {', '.join(sorted(known)) or 'none'}")
+        return read_description(case, overrides)
     raise CaseError(f"a problem needs a case file path, a case name, a dict or a Description, "
                     f"got {type(case).__name__}")
 
@@ -117,10 +110,20 @@ class Evaluation:
 
 
 class Problem:
-    """Design variables + responses + objective + constraints of a Description."""
+    """Design variables + responses + objective + constraints of a described mechanism.
 
-    def __init__(self, case):
-        self.description = _description(case)
+    Parameters
+    ----------
+    case : path, str, dict or Description
+        A case file, the name of a shipped case (``"fourbar"``, see
+        `flexmbs.casefile.available_cases`), a parsed case dict or a Description.
+    overrides : dict, optional
+        Case keys to replace before validation, by dotted path, e.g.
+        ``{"time.t_end": 0.66, "bodies.arm1.elements": 8}`` (`flexmbs.casefile.apply_overrides`).
+    """
+
+    def __init__(self, case, overrides=None):
+        self.description = _description(case, overrides)
         self.mechanism = Mechanism(self.description)
         self._resp = {r.name: r for r in self.description.responses}
 
@@ -276,6 +279,29 @@ class Problem:
                           jacobian=jac, constraint_names=names,
                           stats=result.stats if result is not None else {},
                           wall_time=_time.perf_counter() - t0)
+
+
+    # ------------------------------------------------------------------ summaries
+    def design_mass(self, x, values=None):
+        """Mass (kg) of design x: the objective's value when the objective is a mass response
+        (taken from `values` when given), else the mass of every beam."""
+        x = self.mechanism.design_values(x)
+        obj = self.description.objective
+        if obj is not None and isinstance(self._resp[obj.response], Mass):
+            if values is not None and obj.response in values:
+                return float(values[obj.response])
+            self.mechanism.set_design(x)
+            return float(self._response(self._resp[obj.response], x, None, False)[0])
+        self.mechanism.set_design(x)
+        return float(self._response(Mass(name="mass", type="mass"), x, None, False)[0])
+
+    def constrained_deviation(self, values):
+        """The step-by-step largest of the constrained deviation responses (m) in `values`
+        (an Evaluation's values), or None when no deviation is constrained."""
+        constrained = {c.response for c in self.description.constraints}
+        devs = [np.asarray(values[r.name], float) for r in self.description.responses
+                if isinstance(r, Deviation) and r.name in constrained and r.name in values]
+        return np.max(devs, axis=0) if devs else None
 
 
 def constraint_rows(description, values, gradients, t, nv, gradient=True):

@@ -8,16 +8,18 @@ crash or a full disk is the file's last one and has no newline; `read_history` s
 a warning instead of reading it back as a record.
 
 History records are plain dicts. Keys used by both methods (others may be added):
-    iteration        1-based cycle / iteration number (the paper's "Iter.")
-    design_mm        design analysed in this cycle / iteration (list, mm)
-    mass_kg          beam mass of that design
-    max_deviation_m  maximum deviation of that design in the full simulation
-    active_steps     {constraint name: [1-based time steps]} (the paper's Table 8)
+    iteration        cycle / iteration number (the paper's "Iter."; fully coupled: 0 = start)
+    design           design analysed in this cycle / iteration (list, the variables' units)
+    objective        its objective value; mass_kg its mass (None when no mass is defined)
+    max_violation    max g of that design in the full simulation (relative to the limits)
+    active_steps     {constraint response: [1-based rows, i.e. time steps for every_step
+                     constraints]} within active_tol of the limit (the paper's Table 8)
 Weakly coupled: esl_change (eq. 25, None in the first cycle; esl_change_per_body),
-inner_iterations and predicted_max_deviation_m of the static problem that produced the design,
-active_steps of that static problem, simulation_active_steps (steps where the full simulation
-is within 0.1 % of the limit), static_message (None when SLSQP succeeded), t_at_max_s,
-oscillation_period (when detected). Fully coupled: max_violation.
+inner_iterations and predicted_max_violation of the static problem that produced the design,
+whose active steps are active_steps, simulation_active_steps (rows where the cycle's full
+simulation is within active_tol of the limit), static_message (None when SLSQP succeeded).
+Fully coupled: responses (largest value of each), objective_rel_change, design_rel_change,
+kkt_residual, simulations, gradient_evaluations, wall_time_s.
 """
 from __future__ import annotations
 
@@ -119,52 +121,70 @@ def read_history(path):
 
 @dataclass
 class OptimizationResult:
-    """Outcome of an optimization of a case (weakly or fully coupled).
+    """Outcome of an optimization (weakly or fully coupled) of a problem.
 
     Attributes
     ----------
     method : 'weakly' or 'fully'.
-    case : case name.
-    design_mm : (nv,) final design (mm).
-    mass_kg : its beam mass.
+    case : the case name.
+    variables, units : names and units of the design variables.
+    design : (nv,) final design (the variables' own units).
+    start : (nv,) starting design.
+    objective : the objective's value at `design`; objective_name : its response.
+    mass_kg : mass of the design (the objective when it is a mass response, else the mass of
+        every beam), or None.
+    max_violation : max(0, max g) of the final design in a fresh full simulation (g relative
+        to the limits: 1e-3 is 0.1 % beyond a limit).
+    max_deviation_m : the largest value of the constrained deviation responses of the final
+        design, or None when no deviation is constrained.
     iterations : cycles (weakly: MBS analyses) or optimizer iterations (fully).
     inner_iterations : summed iterations of the static problems (weakly), None (fully).
-    simulations : full (dynamic) simulations run.
-    converged : whether the method's stopping test was met.
-    reason : why the run stopped, in words.
-    history : per cycle / iteration records (see the module docstring).
-    max_deviation_m : maximum deviation of the final design in the full simulation
-        (max over the case's deviation measures).
+    evaluations : distinct designs analysed; simulations : full simulations run.
+    converged, reason : the stopping test's verdict, in words.
+    history : one record per cycle / iteration (see the module docstring).
     wall_time_s : wall time of the whole run.
-    start_mm : starting design.
     details : method-specific values (also written to JSON at the top level).
-    t, deviation : time grid and deviation history (nt,) of the final design (not in JSON).
+    t, deviation : time grid and constrained deviation history (nt,) of the final design
+        (not in JSON); evaluation : the final `flexmbs.problem.Evaluation` (not in JSON).
     """
     method: str
     case: str
-    design_mm: np.ndarray
-    mass_kg: float
+    variables: list
+    units: list
+    design: np.ndarray
+    start: np.ndarray
+    objective: float
+    objective_name: str
+    mass_kg: float | None
+    max_violation: float | None
+    max_deviation_m: float | None
     iterations: int
     inner_iterations: int | None
+    evaluations: int
     simulations: int
     converged: bool
     reason: str
     history: list
-    max_deviation_m: float
     wall_time_s: float
-    start_mm: np.ndarray | None = None
     details: dict = field(default_factory=dict)
     t: np.ndarray | None = field(default=None, repr=False)
     deviation: np.ndarray | None = field(default=None, repr=False)
+    evaluation: object = field(default=None, repr=False)
+
+    @property
+    def feasible(self):
+        """All constraints of the final design hold within 1e-6 (relative)."""
+        return self.max_violation is None or self.max_violation < 1e-6
 
     def to_dict(self, history=True):
         """A JSON-ready dict: the fields above, `details` merged at the top level."""
-        d = dict(method=self.method, case=self.case, design_mm=self.design_mm,
-                 mass_kg=self.mass_kg, iterations=self.iterations,
-                 inner_iterations=self.inner_iterations, simulations=self.simulations,
-                 converged=self.converged, reason=self.reason,
-                 max_deviation_m=self.max_deviation_m, wall_time_s=self.wall_time_s,
-                 start_mm=self.start_mm)
+        d = dict(method=self.method, case=self.case, variables=self.variables, units=self.units,
+                 design=self.design, start=self.start, objective=self.objective,
+                 objective_name=self.objective_name, mass_kg=self.mass_kg,
+                 max_violation=self.max_violation, max_deviation_m=self.max_deviation_m,
+                 iterations=self.iterations, inner_iterations=self.inner_iterations,
+                 evaluations=self.evaluations, simulations=self.simulations,
+                 converged=self.converged, reason=self.reason, wall_time_s=self.wall_time_s)
         for k, v in self.details.items():
             d.setdefault(k, v)
         if history:
@@ -177,28 +197,37 @@ class OptimizationResult:
 
     def summary(self):
         """A few lines for people."""
-        p = ", ".join(f"{v:.2f}" for v in np.asarray(self.design_mm, float))
-        inner = "" if self.inner_iterations is None else f", {self.inner_iterations} inner iterations"
-        return (f"{self.method} coupled, case {self.case}: "
-                f"{'converged' if self.converged else 'NOT converged'} ({self.reason})\n"
-                f"  design [{p}] mm, mass {self.mass_kg:.4f} kg\n"
-                f"  {self.iterations} iterations{inner}, {self.simulations} simulations, "
-                f"{self.wall_time_s:.2f} s\n"
-                f"  max deviation in the full simulation {self.max_deviation_m * 1e3:.4f} mm")
+        p = ", ".join(f"{n} = {v:.5g}{' ' + u if u else ''}" for n, v, u in
+                      zip(self.variables, np.asarray(self.design, float), self.units))
+        inner = ("" if self.inner_iterations is None
+                 else f", {self.inner_iterations} inner iterations")
+        lines = [f"{self.method} coupled, case {self.case}: "
+                 f"{'converged' if self.converged else 'NOT converged'} ({self.reason})",
+                 f"  design {p}",
+                 f"  objective {self.objective_name} = {self.objective:.6g}"
+                 + ("" if self.max_violation is None else
+                    f", constraint violation {self.max_violation:.2e} (simulated)"),
+                 f"  {self.iterations} iterations{inner}, {self.simulations} simulations, "
+                 f"{self.wall_time_s:.2f} s"]
+        if self.max_deviation_m is not None:
+            lines.append(f"  max deviation in the full simulation "
+                         f"{self.max_deviation_m * 1e3:.4f} mm")
+        return "\n".join(lines)
 
     def plot(self, path, limit_m=None):
-        """Figure (PNG/PDF by extension): objective history per cycle/iteration and the
-        deviation history of the final design, as the paper's Figs. 5, 6, 8."""
+        """Figure (PNG/PDF by extension): objective per cycle/iteration and the constrained
+        deviation history of the final design (the paper's Figs. 5, 6, 8)."""
         import matplotlib
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
         fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
         its = [r.get("iteration", k + 1) for k, r in enumerate(self.history)]
-        mass = [r.get("mass_kg") for r in self.history]
-        ax1.plot(its, mass, "o-")
+        key = "mass_kg" if all(r.get("mass_kg") is not None for r in self.history) \
+            else "objective"
+        ax1.plot(its, [r.get(key) for r in self.history], "o-")
         ax1.set_xlabel("cycle" if self.method == "weakly" else "iteration")
-        ax1.set_ylabel("mass [kg]")
+        ax1.set_ylabel("mass [kg]" if key == "mass_kg" else self.objective_name)
         ax1.set_title(f"{self.method} coupled: objective history")
         ax1.grid(True, alpha=0.3)
         if self.t is not None and self.deviation is not None:
@@ -206,9 +235,15 @@ class OptimizationResult:
             if limit_m is not None:
                 ax2.axhline(limit_m * 1e3, color="k", ls="--", lw=0.8, label="limit")
                 ax2.legend(loc="best")
-        ax2.set_xlabel("time [s]")
-        ax2.set_ylabel("deviation [mm]")
-        ax2.set_title("final design: deviation in the full simulation")
+            ax2.set_xlabel("time [s]")
+            ax2.set_ylabel("deviation [mm]")
+            ax2.set_title("final design: deviation in the full simulation")
+        else:
+            ax2.semilogy(its, [max(r.get("max_violation") or 0.0, 1e-16)
+                               for r in self.history], "o-")
+            ax2.set_xlabel("cycle" if self.method == "weakly" else "iteration")
+            ax2.set_ylabel("max(0, max g)")
+            ax2.set_title("constraint violation")
         ax2.grid(True, alpha=0.3)
         fig.tight_layout()
         from flexmbs.batch import save_figure

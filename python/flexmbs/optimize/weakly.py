@@ -1,500 +1,709 @@
-"""The weakly coupled method: equivalent static loads and static optimization in cycles (paper 5.3).
+"""The weakly coupled method (paper 5.3) on any general-format problem (`flexmbs.problem.Problem`).
 
-One cycle: MBS analysis of the current design -> ESL of every body (paper 3.3,
-`flexmbs.esl`) -> test of eq. (25) -> static multi-load-case optimization (23) with the ESL
-held fixed -> next design. The static problem minimizes the beam mass subject to the
-component form of the case's deviation constraint at every time step:
+One cycle: MBS analysis of the current design -> equivalent static loads (ESL) of every beam the
+constraints need, through a corotational frame (`flexmbs.esl`) -> test of eq. (25) -> static
+multi-load-case optimization (23) with the ESL held fixed -> next design. The cycle loop, the
+oscillation detection and the confirmation cycles are those of `flexmbs.optimize.cycles`.
 
-* formulation (28) of the robot: eq. (29), ((R1 u1_A)_y)^2 + ((R2 u2_tip)_y)^2 <= limit^2;
-* formulation (30): eq. (31), |R1 u1_A + R2 u2_tip|^2 <= limit^2;
-* formulation (33) of the four-bar (loop opened at A): eq. (34) |R1 u1_A|^2 <= limit^2 and
-  eq. (35) |R2 u2_A + R3 u3_B|^2 <= limit^2, frames crank at O, coupler at B, follower at C,
+The static model of the responses (the generic form of the paper's eqs. 29, 31, 34-35):
 
-with u^b_n = K^b(p)^-1 g_eq,n^b, the displacement of the body's far end (the end opposite its
-frame node). The squared form avoids the kink of the square root where the deviation
-vanishes. Gradients are analytic, du/dp = -K^-1 (dK/dp) u, one factorization per body per
-design for all load cases. The optimizer is scipy's SLSQP; its iterations are the "inner
-iterations".
+* mass: exact (it does not depend on the loads);
+* deviation: a term's point is reached from the ground through a *chain* of bodies, found from
+  the joints: a path ground -(pin/clamp)- body -(hinge/weld, or a point mass `on` it)- body ...
+  ending at the term's point (or at a point joined to it). A beam traversed from point P to point
+  Q contributes R_0,n u_n(Q), the static displacement of Q in the beam's corotational frame at P,
+  rotated to the ground; rigid bodies and point masses contribute nothing. The flexible
+  deviation of the point is the sum of the contributions along its chain, exactly how (29), (31)
+  and (35) sum the arms' deflections; a term `relative_to` another point takes the difference of
+  the two chains (a common start cancels: (29)'s second term is arm 2 alone). Where the next
+  beam's rotation is tied to the beam's (a rotation drive `relative_to` it, or a weld), the
+  beam's exit rotation relative to its entry, phi(Q) = u_n,rot(Q) - u_n,rot(P), turns the rest
+  of the chain rigidly: phi(Q) k x (r(point) - r(Q)), r of the rigid reference (a serial robot
+  with relative joint drives; the paper's robot drives its arms absolutely, no such term). A frame other than
+  the ground rotates the sum by the rigid reference's angle of that body, as the dynamic response.
+  A closed loop gives a point several chains (four-bar: A through the crank, and through the
+  follower and the coupler): every chain becomes its own constraint, as (34) and (35) do. Sliders
+  do not fix a point along their axis and so never start a chain; springs are not links.
+  A beam needs one frame: its entry point in the chains (four-bar: crank at O, follower at C,
+  coupler at B). When chains enter the same beam from both ends, `frames={body: point}` chooses,
+  the chains entering elsewhere are dropped, and a term left with no chain is a CaseError;
+  without `frames` the conflict itself is a CaseError naming the beam.
+* stress: E (|eps| + c |kappa|) of the beam's static displacement under each load case, the
+  strain kinematics of `flexmbs.responses.strain` in the body frame; the largest over the
+  elements' stations and the listed beams, step by step (as `Problem` does dynamically).
 
-Beyond the paper's algorithm: convergence of eq. (25) is confirmed over `confirm_cycles`
-more cycles (the test can fire on an unstable fixed point), an oscillation between designs
-(the paper's Table 5) is detected and reported, optional move limits bound the design change
-per cycle, and the final design's deviation in the full dynamic simulation is reported beside
-the one the static model predicted.
+The ESL bodies are the beams on a chain and the beams with a stress response (frame at the chain
+entry, else at the beam's `from` point, or as `frames` says); beams that enter no constraint need
+none. Component 'angle' has no static form here (CaseError).
+
+Responses with no static form: a motor torque or a joint reaction (`torque`, `reaction`) is a
+dynamic quantity (inertia of the whole mechanism, not a beam's deflection under fixed loads).
+The static optimization (23) cannot size against it: its constraints are left out of (23) and
+checked by the simulation only (`StaticModel.unmodelled`; the result's details
+`constraints_checked_by_simulation`). Every cycle simulates its design, so the final design is
+checked against ALL constraints by a simulation: details `max_violation` and `feasible`, and the
+result's reason says when that design violates a constraint. An objective without a static
+form is a CaseError.
+
+Example
+-------
+>>> from flexmbs.optimize import optimize_weakly                            # doctest: +SKIP
+>>> r = optimize_weakly("robot_2dof")                                      # doctest: +SKIP
+>>> round(r.mass_kg, 3)                                                    # doctest: +SKIP
+0.959
 """
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 from scipy.optimize import minimize
 
-from flexmbs.cases import as_case
+from flexmbs.description import Beam, Deviation, Mass, PointMass, Stress, body_points
 from flexmbs.errors import CaseError, ModelError
-from flexmbs.sections import real_number, whole_number
 from flexmbs.esl import (BodyStiffness, ChordFrame, TangentFrame, equivalent_static_loads,
-                         esl_change, static_response)
+                         esl_change, solve_static)
 from flexmbs.optimize.result import HistoryWriter, OptimizationResult
+from flexmbs.optimize.cycles import (CycleControl, _progress_callback, check_cycle_options,
+                                     move_limited_bounds)
+from flexmbs.problem import _scalar, constraint_rows, load_problem
+from flexmbs.responses.strain import raw_strain_derivatives, raw_strains, shape, gauss_points
 
-__all__ = ["ComponentConstraint", "component_constraints", "StaticProblem", "StaticOptimum",
-           "optimize_weakly"]
+__all__ = ["optimize_weakly", "chains", "StaticModel"]
+
+#: at most this many chain combinations per deviation response (loops multiply them)
+MAX_VARIANTS = 16
 
 
-# ---------------------------------------------------------------------------- constraints
-@dataclass(frozen=True)
-class ComponentConstraint:
-    """A deviation constraint written with body-frame displacements.
+# ---------------------------------------------------------------------------- chains
+def _links(description):
+    """Joint graph: roots [(body, point)] fixed to the ground, and same-point links
+    {(body, point): [(body, point), ...]} (hinge, weld, point mass `on` a body)."""
+    roots, links = [], {}
 
-    dl_n^2 = sum over terms (bodies, components) of
-             sum_{c in components} ( sum_{b in bodies} (R_0,n^b u_n,end^b)_c )^2  <= limit^2,
+    def link(a, b):
+        links.setdefault(a, []).append(b)
+        links.setdefault(b, []).append(a)
+    for j in description.joints:
+        if j.type in ("pin", "clamp"):
+            roots.append((j.body, j.at))
+        elif j.type in ("hinge", "weld"):
+            link((j.bodies[0], j.at), (j.bodies[1], j.at))
+    for b in description.bodies:
+        if isinstance(b, PointMass) and b.on is not None:
+            link((b.name, b.at), (b.on, b.at))
+    return roots, links
 
-    where u_n,end^b is the local displacement of body b's far end and c = 0 (x), 1 (y).
 
-    Attributes
-    ----------
-    name : e.g. 'eq29'.
-    terms : tuple of (tuple of body names, tuple of components).
+def _same_point(vertex, links):
+    """The body-points joined to `vertex` at its point (itself included)."""
+    seen, todo = {vertex}, [vertex]
+    while todo:
+        for w in links.get(todo.pop(), []):
+            if w not in seen:
+                seen.add(w)
+                todo.append(w)
+    return seen
+
+
+def chains(description, body, point):
+    """Every chain from the ground to the point `point` of `body` (module docstring).
+
+    Returns a list of chains, each a tuple of (beam, entry point, exit point) traversals from
+    the ground outwards (an empty tuple: the point is held by rigid links only); chains that
+    differ only in rigid bodies are given once. CaseError when no chain reaches the point.
     """
-    name: str
-    terms: tuple
+    bodies = {b.name: b for b in description.bodies}
+    roots, links = _links(description)
+    target = _same_point((body, point), links)
+    found = []
+
+    def record(contrib):
+        if tuple(contrib) not in found:
+            found.append(tuple(contrib))
+
+    def leave(b, p, visited, contrib):
+        for nb, np_ in links.get((b, p), []):
+            if nb not in visited:
+                enter(nb, np_, visited | {nb}, contrib)
+
+    def enter(b, p, visited, contrib):
+        if (b, p) in target:
+            record(contrib)
+            return
+        leave(b, p, visited, contrib)
+        for q in body_points(bodies[b]):
+            if q == p:
+                continue
+            c = contrib + [(b, p, q)] if isinstance(bodies[b], Beam) else contrib
+            if (b, q) in target:
+                record(c)
+            else:
+                leave(b, q, visited, c)
+
+    for b, p in roots:
+        enter(b, p, {b}, [])
+    if not found:
+        raise CaseError(f"weakly coupled method: no chain of joints (pin/clamp to the ground, "
+                        f"hinges, welds) reaches point {point!r} of body {body!r}; a slider does "
+                        "not fix a point along its axis, so it cannot start a chain")
+    return found
 
 
-def component_constraints(formulation, body_names):
-    """The component constraints of a deviation formulation (paper eqs. 29, 31, 34-35).
+def _couplings(description):
+    """{(body, point, next body)}: the next body's rotation at the point is tied to the body's
+    (a rotation drive `relative_to` it, or a weld), both orders."""
+    out = set()
+    for dr in description.drives:
+        if dr.type == "rotation" and dr.relative_to is not None:
+            out |= {(dr.relative_to, dr.at, dr.body), (dr.body, dr.at, dr.relative_to)}
+    for j in description.joints:
+        if j.type == "weld":
+            out |= {(j.bodies[0], j.at, j.bodies[1]), (j.bodies[1], j.at, j.bodies[0])}
+    return out
+
+
+def _rotations(chain, coupled, target, coef):
+    """[(beam, entry, exit, coefficient, target)]: the beams of a chain whose exit rotation
+    turns the rest of the chain rigidly (the next beam's rotation is tied to it)."""
+    return [(b, p, q, coef, target) for (b, p, q), (b2, p2, _) in zip(chain, chain[1:])
+            if p2 == q and (b, q, b2) in coupled]
+
+
+def _difference(chain, rel):
+    """{(beam, entry, exit): coefficient} of chain(point) - chain(relative point)."""
+    out = {}
+    for key in chain:
+        out[key] = out.get(key, 0.0) + 1.0
+    for key in rel or ():
+        out[key] = out.get(key, 0.0) - 1.0
+    return {k: v for k, v in out.items() if v != 0.0}
+
+
+# ---------------------------------------------------------------------------- static model
+class StaticModel:
+    """The static responses of a problem for one set of ESL (see the module docstring).
 
     Parameters
     ----------
-    formulation : '28', '30' or '33' (the case's deviation measure).
-    body_names : the ESL bodies in the case's order (robot: arm 1, arm 2; four-bar: crank,
-        coupler, follower).
-    """
-    f = str(formulation)
-    names = list(body_names)
-    if f in ("28", "37"):
-        _need(names, 2, f)
-        return [ComponentConstraint("eq29", (((names[0],), (1,)), ((names[1],), (1,))))]
-    if f == "30":
-        _need(names, 2, f)
-        return [ComponentConstraint("eq31", (((names[0], names[1]), (0, 1)),))]
-    if f == "33":
-        _need(names, 3, f)
-        return [ComponentConstraint("eq34", (((names[0],), (0, 1)),)),
-                ComponentConstraint("eq35", (((names[1], names[2]), (0, 1)),))]
-    raise CaseError(f"the weakly coupled method has no component form of deviation formulation "
-                    f"{formulation!r} (known: '28', '30', '33')")
-
-
-def _need(names, n, f):
-    if len(names) != n:
-        raise CaseError(f"deviation formulation {f} needs {n} ESL bodies, the case gives "
-                        f"{len(names)}: {names}")
-
-
-def _far_end(body, frame_node):
-    """The body's end node opposite the frame node."""
-    return body.last if frame_node == body.first else body.first
-
-
-# ---------------------------------------------------------------------------- static problem
-class StaticProblem:
-    """The static multi-load-case problem (23) for one set of ESL.
-
-    Parameters
-    ----------
-    case : Case (design -> element properties and derivatives, mass).
-    loads : EquivalentStaticLoads of the cycle.
-    constraints : list of ComponentConstraint.
-    end_nodes : dict body name -> node whose displacement enters the constraints.
-    limit : deviation limit (m).
+    problem : Problem
+    frames : dict body -> point, optional (frame point of a beam).
+    frame_kind : 'tangent' (default) or 'chord' (from the frame point to the beam's other end).
     """
 
-    def __init__(self, case, loads, constraints, end_nodes, limit):
-        self.case = case
+    def __init__(self, problem, frames=None, frame_kind="tangent"):
+        self.problem = problem
+        d = problem.description
+        mech = problem.mechanism
+        self.mech = mech
+        beams = {b.name: b for b in d.bodies if isinstance(b, Beam)}
+        frames = dict(frames or {})
+        for name, pt in frames.items():
+            if name not in beams:
+                raise CaseError(f"frames: {name!r} is not a beam (beams: {', '.join(beams)})")
+            if pt not in (beams[name].start, beams[name].end):
+                raise CaseError(f"frames: beam {name!r} has no end point {pt!r} (its ends: "
+                                f"{beams[name].start}, {beams[name].end})")
+        used = set()
+        if d.objective is not None:
+            used.add(d.objective.response)
+        used.update(c.response for c in d.constraints)
+        resp = {r.name: r for r in d.responses}
+        static_types = (Mass, Deviation, Stress)
+        if d.objective is not None and not isinstance(resp[d.objective.response], static_types):
+            r = resp[d.objective.response]
+            raise CaseError(f"weakly coupled method: the objective {r.name!r} (type {r.type!r}) "
+                            "has no static form (only mass, deviation and stress have one)")
+        self.responses = [resp[n] for n in resp if n in used
+                          and isinstance(resp[n], static_types)]
+        #: constrained responses with no static form: left to the check by simulation
+        self.unmodelled = [n for n in resp if n in used and n not in
+                           {r.name for r in self.responses}]
+        # chains of every deviation term, then the frame entry of every beam on them
+        raw = {}
+        for r in self.responses:
+            if isinstance(r, Deviation):
+                for k, t in enumerate(r.terms):
+                    if t.component == "angle":
+                        raise CaseError(f"response {r.name!r}, term {k + 1}: component 'angle' "
+                                        "has no static form in the weakly coupled method")
+                    pc = chains(d, t.body, t.at)
+                    rc = chains(d, t.relative_to.body, t.relative_to.at) \
+                        if t.relative_to is not None else [None]
+                    raw[(r.name, k)] = [(a, b) for a in pc for b in rc]
+        entries = {}
+        for combos in raw.values():
+            for a, b in combos:
+                for beam, p, _ in list(a) + list(b or ()):
+                    entries.setdefault(beam, set()).add(p)
+        for beam, pts in entries.items():
+            if len(pts) > 1 and beam not in frames:
+                raise CaseError(f"weakly coupled method: chains enter beam {beam!r} from both "
+                                f"ends ({', '.join(sorted(pts))}); choose its frame point with "
+                                f"frames={{{beam!r}: point}}")
+        entry = {b: next(iter(p)) for b, p in entries.items()}
+        entry.update({b: p for b, p in frames.items()})
+        for r in self.responses:
+            if isinstance(r, Stress):
+                for b in r.bodies:
+                    entry.setdefault(b, beams[b].start)
+        # the deviation terms' variants: a chain combination each (loops give several)
+        self.variants, self.turns = {}, {}
+        coupled = _couplings(d)
+        for r in self.responses:
+            if not isinstance(r, Deviation):
+                continue
+            per_term = []
+            for k, t in enumerate(r.terms):
+                rel = t.relative_to
+                ok = [(_difference(a, b),
+                       _rotations(a, coupled, (t.body, t.at), 1.0)
+                       + (_rotations(b, coupled, (rel.body, rel.at), -1.0) if b else []))
+                      for a, b in raw[(r.name, k)]
+                      if all(entry[bm] == p for bm, p, _ in list(a) + list(b or ()))]
+                if not ok:
+                    raise CaseError(f"response {r.name!r}, term {k + 1}: every chain to point "
+                                    f"{t.at!r} of {t.body!r} enters a beam away from its frame "
+                                    f"point ({entry})")
+                per_term.append(ok)
+            combos = [[]]
+            for opts in per_term:
+                combos = [c + [o] for c in combos for o in opts]
+            if len(combos) > MAX_VARIANTS:
+                raise CaseError(f"response {r.name!r}: {len(combos)} chain combinations (closed "
+                                f"loops); at most {MAX_VARIANTS}: choose frames to open the loops")
+            self.variants[r.name] = [[diff for diff, _ in c] for c in combos]
+            #: per variant and term, the beams whose exit rotation turns the rest of the chain
+            self.turns[r.name] = [[turn for _, turn in c] for c in combos]
+        # ESL bodies: frames and stiffness (the structure only: built once)
+        model = mech.model
+        self.frames, self.stiffness, self.exit = [], {}, {}
+        for name in beams:
+            if name not in entry:
+                continue
+            body = model.body(name)
+            node = mech.node[(name, entry[name])]
+            far = body.last if node == body.first else body.first
+            fr = TangentFrame(node) if frame_kind == "tangent" else ChordFrame(node, far)
+            self.frames.append((name, fr))
+            self.stiffness[name] = BodyStiffness(model, body, fr)
+        self.entry = entry
+        self.loads = None
+
+    # ------------------------------------------------------------------ loads
+    def set_loads(self, loads):
+        """The cycle's EquivalentStaticLoads."""
         self.loads = loads
-        self.constraints = list(constraints)
-        self.limit = float(limit)
         self.nt = len(loads.bodies[0].t)
-        self._body = {}
-        for b in loads:
-            ks = b.stiffness
-            k = ks.nodes.index(end_nodes[b.name])
-            cols = []
-            for d in (3 * k, 3 * k + 1):
-                hit = np.flatnonzero(ks.free == d)
-                cols.append(int(hit[0]) if hit.size else -1)   # -1: held by the frame (zero)
-            self._body[b.name] = dict(ks=ks, g=b.g_eq, c=np.cos(b.angle), s=np.sin(b.angle),
-                                      cols=cols)
 
-    def _props(self, p):
-        model = self.case.build_model(np.asarray(p, float))
-        return model.element_properties(), self.case.element_property_derivatives(p)
-
-    def end_displacements(self, p, gradient=False):
-        """Inertial components R_0,n u_n,end of every body: dict name -> (w (nt, 2),
-        dw (nv, nt, 2) or None)."""
-        props, dprops = self._props(p)
+    # ------------------------------------------------------------------ responses
+    def _solutions(self, x, gradient):
+        mech = self.mech
+        model = mech.set_design(x)
+        props = model.element_properties()
+        dprops = mech.element_property_derivatives(x)
         out = {}
-        for name, d in self._body.items():
-            cols = [c for c in d["cols"] if c >= 0]
-            u, du = static_response(d["ks"], d["g"], props, cols, dprops if gradient else None)
-            loc = np.zeros((self.nt, 2))
-            dloc = np.zeros((dprops.shape[2], self.nt, 2)) if gradient else None
-            k = 0
-            for j, col in enumerate(d["cols"]):
-                if col >= 0:
-                    loc[:, j] = u[:, k]
-                    if gradient:
-                        dloc[:, :, j] = du[:, :, k]
-                    k += 1
-            c, s = d["c"], d["s"]
-            w = np.column_stack([c * loc[:, 0] - s * loc[:, 1], s * loc[:, 0] + c * loc[:, 1]])
-            dw = None
+        for b in self.loads:
+            sol = solve_static(b.stiffness, b.g_eq, props, dprops if gradient else None)
+            ks = b.stiffness
+            nd = len(ks.dofs)
+            u = np.zeros((self.nt, nd))
+            u[:, ks.free] = sol.u
+            du = None
             if gradient:
-                dw = np.stack([c * dloc[:, :, 0] - s * dloc[:, :, 1],
-                               s * dloc[:, :, 0] + c * dloc[:, :, 1]], axis=-1)
-            out[name] = (w, dw)
+                du = np.zeros((self.nt, nd, dprops.shape[2]))
+                du[:, ks.free, :] = np.transpose(sol.du, (1, 2, 0))
+            out[b.name] = (u, du, b)
         return out
 
-    def squared_deviations(self, p, gradient=False):
-        """dl_n^2 of every constraint: (ncon, nt), and d(dl^2)/dp (ncon, nt, nv) if asked."""
-        ends = self.end_displacements(p, gradient)
-        ncon = len(self.constraints)
-        nv = len(np.atleast_1d(p))
-        val = np.zeros((ncon, self.nt))
-        grad = np.zeros((ncon, self.nt, nv)) if gradient else None
-        for i, con in enumerate(self.constraints):
-            for bodies, comps in con.terms:
-                v = sum(ends[b][0] for b in bodies)
-                for cc in comps:
-                    val[i] += v[:, cc] ** 2
+    def _point(self, sol, beam, point, gradient):
+        """R_0,n u_n of a beam's point: (nt, 2) and (nt, 2, nv) or None."""
+        u, du, b = sol[beam]
+        k = b.stiffness.nodes.index(self.mech.node[(beam, point)])
+        c, s = np.cos(b.angle)[:, None], np.sin(b.angle)[:, None]
+        loc = u[:, 3 * k:3 * k + 2]
+        w = np.column_stack([c[:, 0] * loc[:, 0] - s[:, 0] * loc[:, 1],
+                             s[:, 0] * loc[:, 0] + c[:, 0] * loc[:, 1]])
+        dw = None
+        if gradient:
+            dl = du[:, 3 * k:3 * k + 2, :]
+            dw = np.stack([c * dl[:, 0] - s * dl[:, 1], s * dl[:, 0] + c * dl[:, 1]], axis=1)
+        return w, dw
+
+    def _deviation(self, r, sol, nv, gradient):
+        """(nvar, nt) values and (nvar, nt, nv) gradients of a deviation's chain variants."""
+        ref = self.mech.reference.q
+        vals, grads = [], []
+        for combo in zip(self.variants[r.name], self.turns[r.name]):
+            comps, dcomps = [], []
+            for t, diff, turns in zip(r.terms, *combo):
+                w = np.zeros((self.nt, 2))
+                dw = np.zeros((self.nt, 2, nv))
+                for (beam, _, q), coef in diff.items():
+                    a, da = self._point(sol, beam, q, gradient)
+                    w += coef * a
                     if gradient:
-                        dv = sum(ends[b][1][:, :, cc] for b in bodies)      # (nv, nt)
-                        grad[i] += 2.0 * v[:, cc][:, None] * dv.T
-        return val, grad
+                        dw += coef * da
+                for beam, p, q, coef, target in turns:
+                    u, du, b = sol[beam]
+                    kq = b.stiffness.nodes.index(self.mech.node[(beam, q)])
+                    kp = b.stiffness.nodes.index(self.mech.node[(beam, p)])
+                    phi = u[:, 3 * kq + 2] - u[:, 3 * kp + 2]
+                    nq, nt_ = self.mech.node[(beam, q)], self.mech.node[target]
+                    lx = ref[:, 3 * nt_] - ref[:, 3 * nq]
+                    ly = ref[:, 3 * nt_ + 1] - ref[:, 3 * nq + 1]
+                    w += coef * np.column_stack([-phi * ly, phi * lx])
+                    if gradient:
+                        dphi = du[:, 3 * kq + 2, :] - du[:, 3 * kp + 2, :]
+                        dw += coef * np.stack([-dphi * ly[:, None], dphi * lx[:, None]], axis=1)
+                if t.frame != "ground":
+                    th = ref[:, 3 * self.mech.model.body(t.frame).first + 2]
+                    c, s = np.cos(th), np.sin(th)
+                    w = np.column_stack([c * w[:, 0] + s * w[:, 1], -s * w[:, 0] + c * w[:, 1]])
+                    dw = np.stack([c[:, None] * dw[:, 0] + s[:, None] * dw[:, 1],
+                                   -s[:, None] * dw[:, 0] + c[:, None] * dw[:, 1]], axis=1)
+                pick = {"x": [0], "y": [1], "norm": [0, 1]}[t.component]
+                comps.append(w[:, pick].T)
+                dcomps.append(np.moveaxis(dw[:, pick, :], 1, 0))
+            cc = np.concatenate(comps)
+            v = np.sqrt(np.sum(cc * cc, axis=0))
+            vals.append(v)
+            if gradient:
+                num = np.einsum("kt,ktv->tv", cc, np.concatenate(dcomps))
+                grads.append(np.where(v[:, None] > 0, num / np.where(v > 0, v, 1.0)[:, None], 0.0))
+        return np.array(vals), (np.array(grads) if gradient else None)
+
+    def _stress(self, r, x, sol, nv, gradient):
+        """(1, nt) largest E (|eps| + c |kappa|) over the beams and (1, nt, nv)."""
+        mech = self.mech
+        cm = mech.model.compile()
+        vals, grads = [], []
+        for name in r.bodies:
+            u, du, b = sol[name]
+            ks = b.stiffness
+            body = mech.model.body(name)
+            E = float(mech.materials[mech._bodies[name].material].E)
+            c, dc = mech.half_depths(x, name)
+            # the body's nodes in its frame: reference X and the static displacement on it
+            aref = ks.ref_angle
+            xr, yr, pr = ks.q_ref[0::3], ks.q_ref[1::3], ks.q_ref[2::3]
+            o, _ = ks.frame.place(xr[None], yr[None], pr[None], ks.nodes)
+            cr, sr = np.cos(aref), np.sin(aref)
+            base = np.empty(len(ks.dofs))
+            base[0::3] = cr * (xr - o[0, 0]) + sr * (yr - o[0, 1])
+            base[1::3] = -sr * (xr - o[0, 0]) + cr * (yr - o[0, 1])
+            base[2::3] = pr - aref
+            ids = np.asarray(body.elements, int)
+            nen = int(cm.el_nen[ids[0]])
+            pos = {int(g): k for k, g in enumerate(ks.dofs)}
+            edofs = np.array([[pos[int(g) - 1] for g in cm.el_dofs[:3 * nen, e]] for e in ids])
+            xi = gauss_points(nen)
+            n, dn = shape(nen, xi)
+            jac = 0.5 * cm.el_len[ids]
+            r1, r2, rk = raw_strains(base[edofs], n, dn, jac)
+            qe = (base + u)[:, edofs]
+            e1, _, kap = raw_strains(qe, n, dn, jac)
+            eps, kap = e1 - r1, kap - rk
+            cc = c[None, :, None]
+            vals.append((E * (np.abs(eps) + cc * np.abs(kap))).reshape(self.nt, -1))
+            if gradient:
+                de1, _, dkap = raw_strain_derivatives(qe, du[:, edofs, :], n, dn, jac)
+                dn_ = E * (np.sign(eps)[..., None] * de1
+                           + np.sign(kap)[..., None] * cc[..., None] * dkap
+                           + np.abs(kap)[..., None] * dc[None, :, None, :])
+                grads.append(dn_.reshape(self.nt, -1, nv))
+        v = np.concatenate(vals, axis=1)
+        j = np.argmax(v, axis=1)
+        rows = np.arange(self.nt)
+        g = np.concatenate(grads, axis=1)[rows, j][None] if gradient else None
+        return v[rows, j][None], g
+
+    def responses_at(self, x, gradient=True):
+        """values[name] (nvar, nt) or a float, gradients[name] alike (or None)."""
+        nv = len(self.mech.variables)
+        sol = self._solutions(x, gradient)     # also sets the design (mass below)
+        values, grads = {}, {}
+        for r in self.responses:
+            if isinstance(r, Mass):
+                values[r.name], grads[r.name] = self.problem._response(r, x, None, gradient)
+            elif isinstance(r, Deviation):
+                values[r.name], grads[r.name] = self._deviation(r, sol, nv, gradient)
+            else:
+                values[r.name], grads[r.name] = self._stress(r, x, sol, nv, gradient)
+        return values, grads
+
+    def evaluate(self, x, gradient=True):
+        """(f, df, g, J, groups, names): objective and constraint rows g <= 0 of the static
+        model; a deviation with several chains gives each chain's rows (paper 34-35)."""
+        d = self.problem.description
+        t = self.mech.t
+        nv = len(self.mech.variables)
+        values, grads = self.responses_at(x, gradient)
+        f = df = None
+        if d.objective is not None:
+            v, dv = values[d.objective.response], grads[d.objective.response]
+            if np.ndim(v) == 2:
+                v, dv = v.max(axis=0), (None if dv is None else dv[np.argmax(v, axis=0),
+                                                                     np.arange(v.shape[1])])
+            f, df = _scalar(v, dv, d.objective.over, None, t)
+        g_all, j_all, groups, names = [], [], [], []
+        ngroup = 0
+        for c in d.constraints:
+            if c.response not in values:          # no static form: checked by simulation
+                continue
+            v, dv = values[c.response], grads[c.response]
+            for k in range(np.shape(v)[0] if np.ndim(v) == 2 else 1):
+                vv = v[k] if np.ndim(v) == 2 else v
+                dd = None if dv is None else (dv[k] if np.ndim(v) == 2 else dv)
+                g, J, nm, grp = constraint_rows(SimpleNamespace(constraints=[c]),
+                                                {c.response: vv}, {c.response: dd}, t, nv,
+                                                gradient)
+                g_all.append(g)
+                if gradient:
+                    j_all.append(J)
+                groups.append(grp + ngroup)
+                ngroup += (grp.max() + 1) if grp.size else 0
+                names += nm
+        g = np.concatenate(g_all) if g_all else np.zeros(0)
+        J = (np.vstack(j_all) if j_all else np.zeros((0, nv))) if gradient else None
+        return f, df, g, J, (np.concatenate(groups) if groups else np.zeros(0, int)), names
 
 
-@dataclass
-class StaticOptimum:
-    """Outcome of one static optimization (23)."""
-    design_mm: np.ndarray
-    mass_kg: float
-    iterations: int
-    success: bool
-    message: str
-    predicted_max_deviation_m: float
-    active_steps: dict
-    screened_steps: int
-
-
-def _optimize_static(problem, case, p0, lower, upper, *, screen, ftol, maxiter, active_tol):
-    """Solve (23) with SLSQP on x = p / upper (mm / mm), objective m / m(p0)."""
-    scale = np.asarray(case.upper_mm, float)
-    m0 = float(case.mass(p0))
-    lim2 = problem.limit ** 2
+# ---------------------------------------------------------------------------- static optimum
+def _optimize_static(static, x0, lower, upper, *, screen, ftol, maxiter, active_tol):
+    """Solve (23) with SLSQP on z = x / upper, objective f / |f(x0)|, screening the rows."""
+    scale = np.asarray(upper, float)
+    f0, _, _, _, _, _ = static.evaluate(x0, gradient=False)
+    fs = abs(f0) if f0 else 1.0
     cache = {}
 
-    def evaluate(x):
-        key = x.tobytes()
+    def ev(z):
+        key = z.tobytes()
         if key not in cache:
             cache.clear()
-            cache[key] = problem.squared_deviations(x * scale, gradient=True)
+            cache[key] = static.evaluate(z * scale, gradient=True)
         return cache[key]
 
-    def objective(x):
-        p = x * scale
-        return float(case.mass(p)) / m0, np.asarray(case.mass_gradient(p), float) * scale / m0
+    def select(g, groups, current):
+        level = g + 1.0
+        keep = current.copy()
+        for k in np.unique(groups):
+            m = groups == k
+            top = level[m].max()
+            keep[m] |= (level[m] >= screen * top) if top > 0 else True
+        return keep
 
-    def select(val, current):
-        dl = np.sqrt(np.maximum(val, 0.0))
-        mx = dl.max(axis=1, keepdims=True)
-        keep = dl >= screen * mx
-        return keep | current
-
-    x = np.clip(np.asarray(p0, float), lower, upper) / scale
-    bounds = list(zip(lower / scale, upper / scale))
-    val0, _ = problem.squared_deviations(x * scale)
-    keep = select(val0, np.zeros_like(val0, bool))
-    nit = 0
-    res = None
+    z = np.clip(np.asarray(x0, float), lower, upper) / scale
+    zl, zu = lower / scale, upper / scale
+    _, _, g, _, groups, names = static.evaluate(z * scale, gradient=False)
+    keep = select(g, groups, np.zeros(g.size, bool))
+    nit, res = 0, None
     for _ in range(20):
-        idx = np.nonzero(keep)
-
-        def cons(x, idx=idx):
-            return 1.0 - evaluate(x)[0][idx] / lim2
-
-        def cons_jac(x, idx=idx):
-            return -(evaluate(x)[1][idx[0], idx[1], :] * scale) / lim2
-
-        res = minimize(objective, x, jac=True, method="SLSQP", bounds=bounds,
-                       constraints=[{"type": "ineq", "fun": cons, "jac": cons_jac}],
+        idx = np.flatnonzero(keep)
+        cons = [{"type": "ineq", "fun": lambda z, idx=idx: -ev(z)[2][idx],
+                 "jac": lambda z, idx=idx: -ev(z)[3][idx] * scale}] if idx.size else []
+        res = minimize(lambda z: (ev(z)[0] / fs, ev(z)[1] * scale / fs), z, jac=True,
+                       method="SLSQP", bounds=list(zip(zl, zu)), constraints=cons,
                        options=dict(ftol=ftol, maxiter=maxiter))
         nit += int(res.nit)
-        x = np.clip(res.x, [b[0] for b in bounds], [b[1] for b in bounds])
-        val, _ = problem.squared_deviations(x * scale)
-        violated = (val > lim2 * (1 + 1e-6)) & ~keep
+        z = np.clip(res.x, zl, zu)
+        _, _, g, _, groups, names = static.evaluate(z * scale, gradient=False)
+        violated = (g > 1e-6) & ~keep
         if not violated.any():
             break
-        keep = select(val, keep)
-    p = x * scale
-    val, _ = problem.squared_deviations(p)
-    dl = np.sqrt(np.maximum(val, 0.0))
-    active = {c.name: (np.flatnonzero(dl[i] >= (1 - active_tol) * problem.limit) + 1).tolist()
-              for i, c in enumerate(problem.constraints)}
-    return StaticOptimum(design_mm=p, mass_kg=float(case.mass(p)), iterations=nit,
-                         success=bool(res.success), message=str(res.message),
-                         predicted_max_deviation_m=float(dl.max()), active_steps=active,
-                         screened_steps=int(keep.sum()))
+        keep = select(g, groups, keep)
+    x = z * scale
+    f, _, g, _, groups, names = static.evaluate(x, gradient=False)
+    active = {}
+    for k in np.unique(groups):
+        rows = np.flatnonzero(groups == k)
+        hit = (np.flatnonzero(g[rows] >= -active_tol) + 1).tolist()
+        active[f"{names[rows[0]]}#{k + 1}"] = hit
+    return SimpleNamespace(x=x, objective=float(f), iterations=nit, success=bool(res.success),
+                           message=str(res.message),
+                           max_violation=float(g.max()) if g.size else -np.inf,
+                           active_steps=active, screened_rows=int(keep.sum()))
 
 
 # ---------------------------------------------------------------------------- cycles
-def _oscillation(designs, changes, period_max=6, ratio=0.2):
-    """Period of a repeating pattern in the last designs (2..period_max) or None.
-
-    A period P is reported when each of the last two designs is much closer to the design P
-    cycles before it than to its predecessor (distance ratio < `ratio`) and the ESL change
-    of eq. (25) has not decreased over the period (a slowly converging alternation is not
-    reported).
-    """
-    for P in range(2, period_max + 1):
-        if len(designs) < P + 2 or changes[-1 - P] is None:
-            continue
-        ok = changes[-1] >= 0.5 * changes[-1 - P]
-        for k in (len(designs) - 1, len(designs) - 2):
-            back = np.linalg.norm(designs[k] - designs[k - P])
-            step = np.linalg.norm(designs[k] - designs[k - 1])
-            if step == 0 or back >= ratio * step:
-                ok = False
-                break
-        if ok:
-            return P
-    return None
+def _dynamic(problem, x, result):
+    """Dynamic responses of a simulated design: values, constraint rows, deviation history."""
+    values = {}
+    for r in problem.description.responses:
+        values[r.name], _ = problem._response(r, x, result, False)
+    g, _, names, _ = constraint_rows(problem.description, values, {}, problem.mechanism.t,
+                                     len(problem.variables), False)
+    return values, g, names
 
 
-def check_cycle_options(eps, max_cycles, confirm_cycles, max_inner, ftol, active_tol,
-                        move_limit, screen):
-    """The weakly coupled method's numeric options, checked (ModelError naming the option)."""
-    eps = real_number("eps", eps, positive=True)
-    max_cycles = whole_number("max_cycles", max_cycles, 1)
-    confirm_cycles = whole_number("confirm_cycles", confirm_cycles, 0)
-    max_inner = whole_number("max_inner", max_inner, 1)
-    ftol = real_number("ftol", ftol, positive=True)
-    active_tol = real_number("active_tol", active_tol, positive=True)
-    if move_limit is not None:
-        move_limit = real_number("move_limit (or None)", move_limit, positive=True)
-    if not (real_number("screen", screen) >= 0.0 and screen <= 1.0):
-        raise ModelError(f"screen must lie in [0, 1], got {screen!r}")
-    return eps, max_cycles, confirm_cycles, max_inner, ftol, active_tol, move_limit, screen
+def _active_rows(g, names, active_tol):
+    """{response: 1-based rows of its constraint block with g >= -active_tol}."""
+    rows = {}
+    for j, name in enumerate(names):
+        rows.setdefault(name, []).append(j)
+    return {n: (np.flatnonzero(g[idx] >= -active_tol) + 1).tolist() for n, idx in rows.items()}
 
 
-def move_limited_bounds(x, lower, upper, move_limit):
-    """The bounds of the next static optimization: the variables' bounds, narrowed to
-    x (1 -/+ move_limit) when a relative move limit is given."""
-    if move_limit is None:
-        return lower.copy(), upper.copy()
-    return np.maximum(lower, x * (1 - move_limit)), np.minimum(upper, x * (1 + move_limit))
-
-
-class CycleControl:
-    """The stopping decisions of the weakly coupled cycles: eq. (25) below eps in
-    1 + confirm_cycles consecutive cycles (converged), the designs repeating (oscillation,
-    see `_oscillation`), the cycle cap. Shared by the paper-case and the general-problem loops.
-
-    Attributes: designs, changes (one per cycle), converged, reason, period (oscillation
-    period or None), paper_cycle (first cycle of the current run of eq. (25) below eps)."""
-
-    def __init__(self, eps, confirm_cycles, max_cycles, stop_on_oscillation):
-        self.eps, self.confirm_cycles = eps, confirm_cycles
-        self.max_cycles, self.stop_on_oscillation = max_cycles, stop_on_oscillation
-        self.designs, self.changes = [], []
-        self.consecutive, self.paper_cycle = 0, None
-        self.converged, self.reason, self.period = False, "", None
-
-    def observe(self, cycle, design, change, record):
-        """Take a cycle's design and ESL change; an oscillation is noted in `record`."""
-        self.designs.append(np.array(design, float).copy())
-        self.changes.append(change)
-        if change is not None and change < self.eps:
-            self.consecutive += 1
-            if self.paper_cycle is None:
-                self.paper_cycle = cycle
-        else:
-            self.consecutive, self.paper_cycle = 0, None
-        if self.consecutive > self.confirm_cycles:
-            self.converged = True
-            self.reason = (f"relative ESL change (eq. 25) {change:.3g} < {self.eps:g} in "
-                           f"{self.consecutive} consecutive cycles")
-        elif change is not None:
-            self.period = _oscillation(self.designs, self.changes)
-            if self.period is not None:
-                record["oscillation_period"] = self.period
-
-    def stop(self, cycle):
-        """Whether the cycles end after this one (`reason` says why)."""
-        if self.converged:
-            return True
-        if self.period is not None and self.stop_on_oscillation:
-            self.reason = (f"oscillation: the designs repeat with period {self.period} cycles "
-                           f"(eq. 25 change {self.changes[-1]:.3g})")
-            return True
-        if cycle == self.max_cycles:
-            self.reason = f"maximum number of cycles ({self.max_cycles}) reached"
-            return True
-        return False
-
-
-def _progress_callback(progress):
-    """None or False: no progress reports; else a callable taking one history record."""
-    if progress is None or progress is False:
-        return None
-    if not callable(progress):
-        raise ModelError(f"progress must be a callable taking one history record, or None/False, "
-                         f"got {progress!r}")
-    return progress
-
-
-def optimize_weakly(case, start_mm=None, *, eps=1e-2, max_cycles=30, confirm_cycles=1,
-                    move_limit=None, frame="tangent", screen=0.3, ftol=1e-8, max_inner=200,
-                    active_tol=1e-3, stop_on_oscillation=True, history=None, progress=None,
-                    simulate_kw=None):
-    """Optimize a case with the weakly coupled method (paper 5.3).
+def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles=1,
+                    move_limit=None, frames=None, frame_kind="tangent", screen=0.3,
+                    ftol=1e-8, max_inner=200, active_tol=1e-3, stop_on_oscillation=True,
+                    history=None, progress=None):
+    """Optimize a problem with the weakly coupled method (paper 5.3).
 
     Parameters
     ----------
-    case : flexmbs.cases.Case, or a case name, path or dict (then loaded with load_case)
-    start_mm : array, optional
-        Starting design (mm); default `case.start_mm`.
+    problem : flexmbs.problem.Problem, or a case path, the name of a shipped case, a dict or a
+        Description
+    x0 : array, optional
+        Starting design in the variables' units; default the problem's start.
     eps : float, default 1e-2
-        Tolerance of the relative ESL change, eq. (25) (the largest over the bodies).
+        Tolerance of the relative ESL change, eq. (25) (the largest over the ESL bodies).
     max_cycles : int, default 30
         Maximum number of cycles (MBS analyses).
     confirm_cycles : int, default 1
         Eq. (25) must hold in 1 + confirm_cycles consecutive cycles (0: the paper's test).
     move_limit : float, optional
-        Relative move limit per cycle: the static problem's bounds are clipped to
-        p (1 -+ move_limit). Default: none.
-    frame : {'tangent', 'chord'}, default 'tangent'
-        Corotational frame of every body, at the case's frame node (`case.esl_bodies`);
-        'chord' runs from that node to the body's far end.
+        Relative move limit per cycle (bounds clipped to x (1 -+ move_limit)).
+    frames : dict beam -> point, optional
+        Frame point of a beam (default: where the chains enter it; stress-only beams: `from`).
+    frame_kind : {'tangent', 'chord'}, default 'tangent'
+        Corotational frame of every ESL beam at its frame point: tangent to the beam there,
+        or 'chord', from that point to the beam's other end.
     screen : float in [0, 1], default 0.3
-        The static problem starts with the time steps whose deviation is at least `screen`
-        times the current maximum of its constraint (0: all steps); steps found violated
-        at its solution are added and the problem solved again.
+        The static problem starts with the rows (time steps) whose value is at least
+        `screen` times the current maximum of its constraint (0: all rows); rows found
+        violated at its solution are added and the problem solved again.
     ftol : float, default 1e-8
-        SLSQP's tolerance (objective normalized by the cycle's starting mass).
+        SLSQP's tolerance (objective normalized by the cycle's starting value).
     max_inner : int, default 200
         SLSQP iterations per static problem.
     active_tol : float, default 1e-3
-        A time step counts as active when its deviation is >= (1 - active_tol) limit.
+        A row counts as active when g >= -active_tol (history's active_steps).
     stop_on_oscillation : bool, default True
         Stop when the designs repeat with a period of 2 to 6 cycles (reason 'oscillation').
     history : str, path or HistoryWriter, optional
         File receiving one JSON line per cycle as the run goes.
     progress : callable, optional
         Called with each history record.
-    simulate_kw : dict, optional
-        Extra keyword arguments of `case.simulate`.
 
     Returns
     -------
-    OptimizationResult
+    flexmbs.optimize.OptimizationResult
         method 'weakly'; iterations = cycles (MBS analyses); inner_iterations = SLSQP
-        iterations summed; details: predicted_max_deviation_m (the static model's maximum
-        deviation of the final design), paper_test_cycle (the cycle at which eq. (25) first
-        held), static_optimizations, oscillation_period, esl_change.
+        iterations summed; details: predicted_max_violation (static model, normalised g of
+        the final design), feasible, paper_test_cycle (the cycle at which eq. (25) first
+        held), static_optimizations, oscillation_period, esl_change, esl_bodies, frames.
     """
     t_start = time.perf_counter()
-    case = as_case(case, "optimize_weakly: case")
-    lower = np.asarray(case.lower_mm, float)
-    upper = np.asarray(case.upper_mm, float)
-    p = case.start_design(start_mm).copy()
+    problem = load_problem(problem)
+    d = problem.description
+    mech = problem.mechanism
+    if not mech.variables:
+        raise CaseError("the weakly coupled method needs design variables ([[design]])")
+    if d.objective is None:
+        raise CaseError("the weakly coupled method needs an [objective]")
     eps, max_cycles, confirm_cycles, max_inner, ftol, active_tol, move_limit, screen = \
         check_cycle_options(eps, max_cycles, confirm_cycles, max_inner, ftol, active_tol,
                             move_limit, screen)
-    if not isinstance(frame, str) or frame not in ("tangent", "chord"):
-        raise ModelError(f"frame must be 'tangent' or 'chord', got {frame!r}")
+    if not isinstance(frame_kind, str) or frame_kind not in ("tangent", "chord"):
+        raise ModelError(f"frame_kind must be 'tangent' or 'chord', got {frame_kind!r}")
+    if frames is not None and not isinstance(frames, dict):
+        raise ModelError(f"frames must be a dict beam -> point or None, got {frames!r}")
     progress = _progress_callback(progress)
-    if simulate_kw is not None and not isinstance(simulate_kw, dict):
-        raise ModelError(f"simulate_kw must be a dict of simulate's keyword arguments or None, "
-                         f"got {simulate_kw!r}")
-    sim_kw = dict(simulate_kw or {})
-    sim_kw.setdefault("store", "all")
+    lower, upper = problem.lower, problem.upper
+    x = mech.start.copy() if x0 is None else mech.design_values(x0).copy()
+    if np.any(x < lower) or np.any(x > upper):
+        raise ModelError(f"x0 = {x.tolist()} lies outside the bounds [{lower.tolist()}, "
+                         f"{upper.tolist()}]")
+    static = StaticModel(problem, frames, frame_kind)
+    if not static.frames:
+        raise CaseError("the weakly coupled method: no constraint or objective depends on a "
+                        "beam's deformation (no deviation chain through a beam, no stress)")
+    mass_resp = [r for r in d.responses if isinstance(r, Mass)]
 
     writer = history if isinstance(history, HistoryWriter) else HistoryWriter(history)
     own_writer = not isinstance(history, HistoryWriter)
-
-    model = case.build_model(p)
-    bodies = getattr(case, "esl_bodies", None)
-    if not bodies:
-        raise CaseError(f"case {getattr(case, 'name', case)!r} defines no ESL bodies (esl_bodies): "
-                        "the weakly coupled method needs the bodies and their frame nodes")
-    frames, stiffness, end_nodes = [], {}, {}
-    for name, node in bodies:
-        body = model.body(name)
-        end = _far_end(body, node)
-        fr = TangentFrame(node) if frame == "tangent" else ChordFrame(node, end)
-        frames.append((name, fr))
-        stiffness[name] = BodyStiffness(model, body, fr)
-        end_nodes[name] = end
-    constraints = component_constraints(case.formulation, [n for n, _ in frames])
-
-    prev_loads = None
+    prev_loads, pending = None, None
     control = CycleControl(eps, confirm_cycles, max_cycles, stop_on_oscillation)
-    pending = None            # the static optimum that produced the current design
-    inner_total = 0
-    n_static = 0
-    cr = None
+    inner_total = n_static = 0
     change = None
+    values = g_dyn = names = result = None
     try:
         for cycle in range(1, max_cycles + 1):
-            cr = case.simulate(p, **sim_kw)
-            model = case.build_model(p)
-            loads = equivalent_static_loads(model, cr.result, frames, stiffness=stiffness,
+            result = problem.simulate(x, store="all")
+            values, g_dyn, names = _dynamic(problem, x, result)
+            dev = problem.constrained_deviation(values)
+            model = mech.set_design(x)
+            loads = equivalent_static_loads(model, result, static.frames,
+                                            stiffness=static.stiffness,
                                             props=model.element_properties())
             changes = None if prev_loads is None else esl_change(loads, prev_loads)
             change = None if changes is None else max(changes.values())
-            dev = np.asarray(cr.deviation)
             record = dict(
-                iteration=cycle, design_mm=p, mass_kg=float(case.mass(p)),
-                max_deviation_m=float(dev.max()), t_at_max_s=float(cr.t[int(np.argmax(dev))]),
+                iteration=cycle, design=x, mass_kg=problem.design_mass(x, values),
+                objective=float(_scalar(values[d.objective.response], None, d.objective.over,
+                                        None, mech.t)[0]),
+                max_violation=float(g_dyn.max()) if g_dyn.size else None,
+                max_deviation_m=None if dev is None else float(dev.max()),
                 esl_change=change, esl_change_per_body=changes,
                 inner_iterations=None if pending is None else pending.iterations,
-                predicted_max_deviation_m=None if pending is None else pending.predicted_max_deviation_m,
+                predicted_max_violation=None if pending is None else pending.max_violation,
                 active_steps=None if pending is None else pending.active_steps,
-                static_message=None if pending is None or pending.success else pending.message,
-                simulation_active_steps=(np.flatnonzero(dev >= (1 - active_tol) * case.limit_m)
-                                         + 1).tolist())
-            control.observe(cycle, p, change, record)
+                simulation_active_steps=_active_rows(g_dyn, names, active_tol),
+                static_message=None if pending is None or pending.success else pending.message)
+            control.observe(cycle, x, change, record)
             writer.write(record)
             if progress is not None:
                 progress(writer.records[-1])
             if control.stop(cycle):
                 break
-            lo, hi = move_limited_bounds(p, lower, upper, move_limit)
-            problem = StaticProblem(case, loads, constraints, end_nodes, case.limit_m)
-            pending = _optimize_static(problem, case, p, lo, hi, screen=screen, ftol=ftol,
+            lo, hi = move_limited_bounds(x, lower, upper, move_limit)
+            static.set_loads(loads)
+            pending = _optimize_static(static, x, lo, hi, screen=screen, ftol=ftol,
                                        maxiter=max_inner, active_tol=active_tol)
             inner_total += pending.iterations
             n_static += 1
             prev_loads = loads
-            p = pending.design_mm.copy()
+            x = pending.x.copy()
     finally:
         if own_writer:
             writer.close()
-    dev = np.asarray(cr.deviation)
+    mech.set_design(x)
+    final_violation = float(g_dyn.max()) if g_dyn.size else None
+    feasible = final_violation is None or final_violation <= 1e-6
+    reason = control.reason
+    unmodelled = [c.response for c in d.constraints if c.response in static.unmodelled]
+    if unmodelled:
+        reason += (f"; constraints with no static form, left out of the static optimization "
+                   f"and checked by simulation only: {', '.join(dict.fromkeys(unmodelled))}")
+    if not feasible:
+        worst = int(np.argmax(g_dyn))
+        names = constraint_rows(d, values, {}, mech.t, len(problem.variables), False)[2]
+        reason += (f"; the final design violates {names[worst]!r} by {final_violation:.3g} "
+                   "(relative to its limit, simulated)")
     details = dict(
-        predicted_max_deviation_m=None if pending is None else pending.predicted_max_deviation_m,
+        predicted_max_violation=None if pending is None else pending.max_violation,
+        feasible=feasible,
+        constraints_checked_by_simulation=list(dict.fromkeys(unmodelled)),
+        max_deviation_responses=[r.name for r in d.responses if isinstance(r, Deviation)
+                                 and r.name in {c.response for c in d.constraints}],
         paper_test_cycle=control.paper_cycle, static_optimizations=n_static,
         oscillation_period=control.period, esl_change=change, eps=eps,
-        confirm_cycles=confirm_cycles, move_limit=move_limit, frame=frame,
-        formulation=str(case.formulation),
-        t_end=float(cr.t[-1]), active_steps=None if pending is None else pending.active_steps,
-        simulation_active_steps=writer.records[-1]["simulation_active_steps"])
+        confirm_cycles=confirm_cycles,
+        move_limit=move_limit, frame=frame_kind, frames=dict(static.entry),
+        esl_bodies=[n for n, _ in static.frames], variables=list(mech.variables),
+        t_end=float(mech.t[-1]),
+        active_steps=None if pending is None else pending.active_steps,
+        mass_responses=[r.name for r in mass_resp])
     return OptimizationResult(
-        method="weakly", case=getattr(case, "name", "case"), design_mm=p.copy(),
-        mass_kg=float(case.mass(p)), iterations=len(control.designs),
-        inner_iterations=inner_total, simulations=len(control.designs),
-        converged=control.converged, reason=control.reason,
-        history=list(writer.records), max_deviation_m=float(dev.max()),
-        wall_time_s=time.perf_counter() - t_start, start_mm=control.designs[0],
-        details=details, t=np.asarray(cr.t), deviation=dev)
+        method="weakly", case=d.case.name, variables=list(mech.variables),
+        units=[v.unit for v in d.design], design=x.copy(), start=control.designs[0],
+        objective=record["objective"], objective_name=d.objective.response,
+        mass_kg=record["mass_kg"],
+        max_violation=None if final_violation is None else max(0.0, final_violation),
+        max_deviation_m=record["max_deviation_m"], iterations=len(control.designs),
+        inner_iterations=inner_total, evaluations=len(control.designs),
+        simulations=len(control.designs), converged=control.converged, reason=reason,
+        history=list(writer.records), wall_time_s=time.perf_counter() - t_start,
+        details=details, t=np.asarray(mech.t), deviation=dev)
