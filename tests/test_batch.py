@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from flexmbs.batch import max_deviation_job, run_batch, sweep_jobs, write_atomic
-from flexmbs.errors import CaseError, ModelError, SimulationError
+from flexmbs.errors import ModelError, SimulationError
 
 #: Three robot designs: the paper's Table 1 fully coupled optimum, a design between it and the
 #: start, and the start (50 mm). Each is one ~50 ms simulation.
@@ -53,7 +53,7 @@ def test_serial_results_against_published_numbers(serial):
     for name, p in zip(sorted(serial), DESIGNS):
         mass = sum(2700.0 * 0.36 * math.pi / 4 * (v * 1e-3) ** 2 * 0.3 for v in p)
         assert serial[name]["mass_kg"] == pytest.approx(mass, rel=1e-9), name
-        assert serial[name]["design_mm"] == p
+        assert serial[name]["design"] == p
     assert serial["d0000"]["max_deviation_m"] == pytest.approx(1.0e-3, rel=0.03)
     assert serial["d0002"]["max_deviation_m"] < 0.5e-3
     assert max(serial["d0000"]["deviation_at_steps_m"]) <= serial["d0000"]["max_deviation_m"]
@@ -109,14 +109,14 @@ def test_rerun_skips_stored_jobs(tmp_path):
 @pytest.mark.parametrize("workers", [1, 2])
 def test_error_is_raised_after_the_other_jobs_are_stored(tmp_path, workers):
     """A job with an invalid design (a negative diameter) fails; the batch raises its
-    CaseError after the two valid jobs have finished and been stored."""
+    ModelError after the two valid jobs have finished and been stored."""
     jobs = sweep_jobs("robot_2dof", [DESIGNS[0], [-1.0, 30.0, 35.0, 25.0], DESIGNS[2]])
-    with pytest.raises(CaseError):
+    with pytest.raises(ModelError, match="positive"):
         run_batch(max_deviation_job, jobs, workers=workers, store=tmp_path, progress=False)
     assert sorted(p.name for p in tmp_path.glob("*.json")) == ["d0000.json", "d0002.json"]
     # the rerun runs only the failed job again (and fails again)
     before = {p.name: p.stat().st_mtime_ns for p in tmp_path.glob("*.json")}
-    with pytest.raises(CaseError):
+    with pytest.raises(ModelError, match="positive"):
         run_batch(max_deviation_job, jobs, workers=workers, store=tmp_path, progress=False)
     assert {p.name: p.stat().st_mtime_ns for p in tmp_path.glob("*.json")} == before
 

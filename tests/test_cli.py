@@ -18,11 +18,12 @@ from flexmbs.optimize.result import HistoryWriter, read_history
 
 def _no_simulation(monkeypatch):
     """Make any simulation fail the test: the error must come before the run."""
-    from flexmbs.cases import Case
+    from flexmbs.problem import Problem
 
     def forbidden(self, *a, **k):
         raise AssertionError("simulation started although an argument was bad")
-    monkeypatch.setattr(Case, "simulate", forbidden)
+    monkeypatch.setattr(Problem, "simulate", forbidden)
+    monkeypatch.setattr(Problem, "evaluate", forbidden)
 
 
 def _one_error_line(capsys):
@@ -132,7 +133,8 @@ def test_reported_names_are_the_files_written(tmp_path, capsys, monkeypatch):
     assert out["out"] == "result.npz" and out["plot"] == "fig.png"
     assert sorted(os.listdir(tmp_path)) == ["fig.png", "result.npz"]
     with np.load(tmp_path / out["out"]) as d:
-        assert d["deviation"].max() == out["max_deviation_m"] and d["t"].size == 101
+        dev = out["responses"]["deviation_28"]
+        assert d["response_deviation_28"].max() == dev["max"] and d["t"].size == 101
     assert (tmp_path / out["plot"]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
@@ -205,8 +207,8 @@ def test_ctrl_c_during_optimize(tmp_path):
     lines = err.strip().splitlines()
     assert len(lines) == 1 and str(h) in lines[0], err
     recs = read_history(h)
-    assert recs and all(len(r["design_mm"]) == 4 for r in recs)
-    last = ",".join(f"{v:.6g}" for v in recs[-1]["design_mm"])
+    assert recs and all(len(r["design"]) == 4 for r in recs)
+    last = ",".join(f"{v:.6g}" for v in recs[-1]["design"])
     assert f"--start={last}" in lines[0]
     # every cycle reported on the terminal is in the history (a Ctrl-C may fall between a
     # record's write and its printed line, so the history may hold one more)

@@ -379,23 +379,30 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
     return {name: results[name] for name in jobs}
 
 
-def sweep_jobs(case, designs, **overrides):
+def sweep_jobs(case, designs, overrides=None):
     """Jobs {name: kwargs} for `max_deviation_job`, one per design (names d0000, d0001, ...)."""
     designs = np.atleast_2d(np.asarray(designs, float))
-    return {f"d{k:04d}": dict(case=case, design_mm=d.tolist(), overrides=overrides)
+    return {f"d{k:04d}": dict(case=case, design=d.tolist(), overrides=overrides)
             for k, d in enumerate(designs)}
 
 
-def max_deviation_job(case, design_mm, overrides=None, steps=None):
-    """Simulate one design of a case (by name or path): mass, max deviation, and the
-    deviation at the given 0-based steps (all steps if `steps` is 'all')."""
-    from flexmbs.cases import load_case
-    c = load_case(case, **(overrides or {}))
-    res = c.simulate(np.asarray(design_mm, float))
-    out = dict(design_mm=list(map(float, design_mm)), mass_kg=float(res.mass),
-               max_deviation_m=float(res.max_deviation), t_at_max_s=float(res.t_at_max))
+def max_deviation_job(case, design, overrides=None, steps=None):
+    """Simulate one design of a case (a shipped case's name or a path; `overrides` as
+    `flexmbs.problem.Problem`): its mass, the largest constrained deviation (the step-by-step
+    maximum of the deviation responses under a constraint) and its maximum, and that history
+    at the given 0-based steps (every step if `steps` is 'all')."""
+    from flexmbs.problem import Problem
+    prob = Problem(case, overrides=overrides or None)
+    ev = prob.evaluate(np.asarray(design, float), gradient=False)
+    dev = prob.constrained_deviation(ev.values)
+    if dev is None:
+        raise ModelError(f"case {case!r} constrains no deviation response")
+    j = int(np.argmax(dev))
+    out = dict(design=list(map(float, design)), mass_kg=prob.design_mass(ev.x, ev.values),
+               max_deviation_m=float(dev[j]), t_at_max_s=float(ev.t[j]), step_at_max=j + 1,
+               max_violation=ev.max_violation)
     if steps == "all":
-        out["deviation_m"] = res.deviation.tolist()
+        out["deviation_m"] = dev.tolist()
     elif steps is not None:
-        out["deviation_at_steps_m"] = [float(res.deviation[s]) for s in steps]
+        out["deviation_at_steps_m"] = [float(dev[s]) for s in steps]
     return out

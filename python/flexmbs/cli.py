@@ -7,8 +7,8 @@ Usage::
     flexmbs demo [--out DIR] [--workers N]
     flexmbs reproduce [--table N ...|--all] [--out DIR] [--workers N | --dask ADDRESS] [--quick]
 
-CASE is a case name (``robot_2dof``, ``robot_2dof_tracking``, ``fourbar``, ``fourbar_no_masses``)
-or a path to a TOML case file. Errors in the input or in the simulation, and files that cannot be
+CASE is the name of a shipped case (``flexmbs.casefile.available_cases()``: the files of cases/)
+or a path to a TOML case file (docs/case-format.md). Errors in the input or in the simulation, and files that cannot be
 written, print one line on stderr and exit with status 2 (``--debug`` before or after the
 subcommand, or the environment variable ``FLEXMBS_DEBUG=1``, also prints the traceback). Output
 paths (--out, --plot, --history) are checked before the run: the folder must be writable, a
@@ -20,8 +20,8 @@ Adding a subcommand
 Each subcommand is registered by a function ``register(subparsers)`` that adds its parser and
 sets its handler with ``set_defaults(func=handler)``; a handler takes the parsed arguments and
 returns an exit status. List the function in `COMMANDS` as ``"module:function"`` (imported when
-the parser is built). `add_case_arguments` and `case_from_args` give every subcommand the same
-CASE, --set, --t-end, --h and --rho-inf options; `parse_design` reads a --design value.
+the parser is built). `add_case_arguments` and `problem_from_args` give every subcommand the same
+CASE, --set, --t-end, --h and --rho-inf options; `design_from_text` reads a --design value.
 """
 from __future__ import annotations
 
@@ -31,7 +31,6 @@ import json
 import os
 import re
 import sys
-import tomllib
 import traceback
 import warnings
 from pathlib import Path
@@ -41,9 +40,9 @@ import numpy as np
 from flexmbs.batch import save_figure
 from flexmbs.errors import CaseError, FlexmbsError, ModelError
 
-__all__ = ["main", "build_parser", "COMMANDS", "add_case_arguments", "case_from_args",
-           "parse_design", "parse_values", "parse_set", "register_simulate", "positive_int",
-           "output_file", "figure_file"]
+__all__ = ["main", "build_parser", "COMMANDS", "add_case_arguments", "problem_from_args",
+           "design_from_text", "parse_values", "parse_set", "register_simulate", "positive_int",
+           "output_file", "figure_file", "print_evaluation"]
 
 #: Subcommand registration functions, "module:function", in the order of the help text.
 COMMANDS = [
@@ -59,43 +58,43 @@ COMMANDS = [
 def add_case_arguments(parser):
     """CASE plus the options that override its settings (--t-end, --h, --rho-inf, --set)."""
     parser.add_argument("case", metavar="CASE",
-                        help="case name (robot_2dof, robot_2dof_tracking, fourbar, "
-                             "fourbar_no_masses) or path to a .toml case file")
-    parser.add_argument("--t-end", type=float, metavar="T", help="end time (s); default: the case's")
-    parser.add_argument("--h", type=float, metavar="H", help="time step (s); default: the case's")
+                        help="name of a shipped case (e.g. robot_2dof, fourbar, "
+                             "slider_crank_press) or path to a .toml case file")
+    parser.add_argument("--t-end", type=float, metavar="T",
+                        help="end time (s), i.e. --set time.t_end=T; default: the case's")
+    parser.add_argument("--h", type=float, metavar="H",
+                        help="time step (s), i.e. --set time.h=H; default: the case's")
     parser.add_argument("--rho-inf", type=float, metavar="R",
                         help="spectral radius at infinite frequency; default: the case's")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="override any key of the case file (repeatable), e.g. "
-                             "--set drive=relative, --set theta0_deg=0, --set mechanism.mass_tip_kg=0.5")
+                        help="override any key of the case file (repeatable) by its dotted "
+                             "path, items of a table array by name: --set time.h=2e-4, "
+                             "--set bodies.arm1.elements=4")
 
 
 def parse_set(items):
-    """Overrides from ``KEY=VALUE`` strings; VALUE is read as a TOML value (number, "string",
-    [array], true/false), a bare word as a string."""
+    """Overrides {dotted key: value} from ``KEY=VALUE`` strings (`casefile.parse_override`)."""
+    from flexmbs.casefile import parse_override
+
     out = {}
     for item in items:
-        key, sep, text = item.partition("=")
-        key, text = key.strip(), text.strip()
-        if not sep or not key:
-            raise CaseError(f"--set {item!r}: expected KEY=VALUE")
         try:
-            value = tomllib.loads(f"v = {text}")["v"]
-        except tomllib.TOMLDecodeError:
-            value = text
+            key, value = parse_override(item)
+        except CaseError as exc:
+            raise CaseError(f"--set {item!r}: {exc}") from None
         out[key] = value
     return out
 
 
-def case_from_args(args):
-    """The Case named by the arguments of `add_case_arguments`, with their overrides."""
-    from flexmbs.cases import load_case
+def problem_from_args(args):
+    """The Problem named by the arguments of `add_case_arguments`, with their overrides."""
+    from flexmbs.problem import Problem
 
     overrides = parse_set(args.set)
     for key, value in (("t_end", args.t_end), ("h", args.h), ("rho_inf", args.rho_inf)):
         if value is not None:
-            overrides[key] = value
-    return load_case(args.case, **overrides)
+            overrides[f"time.{key}"] = value
+    return Problem(args.case, overrides=overrides or None)
 
 
 def parse_values(text, names, owner, option="--design"):
@@ -114,11 +113,16 @@ def parse_values(text, names, owner, option="--design"):
     return np.array(values)
 
 
-def parse_design(text, case):
-    """A design (mm) from "P1,P2,..." (one value applies to every variable); None: the start."""
+def design_from_text(text, problem, option="--design"):
+    """The design of a --design/--start value for a Problem (None: its start), checked
+    against the variables' bounds."""
     if text is None:
-        return case.start_mm.copy()
-    return parse_values(text, case.design_names, case.name)
+        return problem.start
+    x = parse_values(text, problem.variables, problem.description.case.name, option)
+    try:
+        return problem.mechanism.design_values(x)
+    except ModelError as exc:
+        raise CaseError(f"{option} {text!r}: {exc}") from None
 
 
 def positive_int(text):
@@ -183,105 +187,104 @@ def print_json(obj):
 # ----------------------------------------------------------------------------- simulate
 def register_simulate(subparsers):
     p = subparsers.add_parser(
-        "simulate", help="simulate a case at a design and report mass and maximum deviation",
-        description="Simulate a case at a design: beam mass, deviation history and its maximum.")
+        "simulate", help="simulate a case at a design: every response, the constraints",
+        description="Simulate a case at a design and report every response (maximum over "
+                    "time), the objective and the constraints; optionally their exact design "
+                    "gradients, the results (.npz) and an overview figure.")
     add_case_arguments(p)
-    p.add_argument("--design", metavar="P1,P2,...",
-                   help="design variables in mm (one value: all of them); default: the case's start")
+    p.add_argument("--design", metavar="X1,X2,...",
+                   help="design variables in their units (one value: all of them); default: "
+                        "the case's start")
     p.add_argument("--out", metavar="FILE.npz",
-                   help="save time, deviation, coordinates, reference (.npz is added to a "
-                        "name without it)")
+                   help="save time, coordinates, rigid reference and response histories "
+                        "(.npz is added to a name without it)")
     p.add_argument("--plot", metavar="FILE.png",
-                   help="save an overview figure: motion (deflection magnified) and deviation "
-                        "(format from the extension: png, pdf, svg, ...)")
+                   help="save an overview figure: motion (deflection magnified) and the "
+                        "constrained responses (format from the extension: png, pdf, svg, ...)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a summary")
-    p.add_argument("--gradient", nargs="?", const="direct", choices=("direct", "fd"),
-                   help="also compute design derivatives of the mass and of the deviation at its "
-                        "maximum: direct differentiation (default) or forward finite differences "
-                        "(the paper's method, relative step 1e-6)")
+    p.add_argument("--gradient", action="store_true",
+                   help="also compute the design gradients (direct differentiation, exact)")
     p.set_defaults(func=run_simulate)
 
 
-def _summary_lines(case, r):
-    s = r.summary()
-    design = ", ".join(f"{n} = {v:.4g}" for n, v in zip(case.design_names, r.design_mm))
-    status = "within the limit" if r.feasible else "ABOVE the limit"
-    return [
-        f"{case.name}: {case.description}",
-        f"  case file       {case.source}",
-        f"  design          {design} mm",
-        f"  beam mass       {r.mass:.4f} kg",
-        f"  max deviation   {r.max_deviation * 1e3:.4f} mm ({r.formulation}) at t = {r.t_at_max:.4f} s "
-        f"(step {r.step_at_max} of {r.t.size}), limit {r.limit_m * 1e3:g} mm: {status}",
-        f"  simulation      {s['steps']} steps of {s['h_s']:g} s, rho_inf {s['rho_inf']:g}, "
-        f"{s['newton_iterations']} Newton iterations, {s['wall_time_s']:.3f} s",
-    ]
+def print_evaluation(prob, ev, source=None):
+    """The summary of an Evaluation for people: design, every response, the constraints."""
+    d = prob.description
+    units = [v.unit for v in d.design]
+    print(f"{d.case.name}: {d.case.description or ''}")
+    if source:
+        print(f"  case file       {source}")
+    if prob.variables:
+        print("  design          " + ", ".join(f"{n} = {v:.5g} {u}" for n, v, u in
+                                               zip(prob.variables, ev.x, units)))
+    for name, v in ev.values.items():
+        g = ev.gradients.get(name)
+        if np.ndim(v) == 0:
+            line = f"  {name:15s} {float(v):.6g}"
+            if g is not None:
+                line += "   gradient " + ", ".join(f"{x:.4g}" for x in g)
+        else:
+            j = int(np.argmax(v))
+            line = f"  {name:15s} max {v[j]:.6g} at t = {ev.t[j]:.4f} s (step {j + 1} of {v.size})"
+            if g is not None:
+                line += "   gradient of the max " + ", ".join(f"{x:.4g}" for x in g[j])
+        print(line)
+    if ev.constraints.size:
+        state = "feasible" if ev.feasible else "INFEASIBLE"
+        print(f"  constraints     {state}: largest g = {ev.max_violation:.4g} "
+              f"({ev.constraints.size} rows, g <= 0, relative to the limits)")
+    s = ev.stats or {}
+    if s:
+        print(f"  simulation      {ev.t.size} steps of {prob.description.time.h:g} s, "
+              f"{s.get('newton_iterations', '?')} Newton iterations, {ev.wall_time:.3f} s")
+    else:
+        print(f"  wall time       {ev.wall_time:.3f} s")
 
 
-def _npz_estimate(case):
-    """Rough upper bound (bytes) of the --out file: q and qd at every step."""
-    try:
-        ndof = int(case.model.ndof)
-        nt = int(round(float(case.t_end) / float(case.h))) + 1
-    except (AttributeError, TypeError, ValueError, ZeroDivisionError):
-        return 0.0
-    return 8.0 * nt * (2 * ndof + 16)
+def _npz_estimate(prob):
+    """Rough upper bound (bytes) of the --out file: q, qd and the rigid reference per step."""
+    return 8.0 * prob.mechanism.t.size * (3 * prob.mechanism.model.ndof + 16)
 
 
 def run_simulate(args):
-    case = case_from_args(args)
-    design = parse_design(args.design, case)
+    prob = problem_from_args(args)
+    x = design_from_text(args.design, prob)
     # output paths are checked before the run, not after it
     if args.out:
-        args.out = output_file(args.out, "--out", suffix=".npz", required=_npz_estimate(case))
+        args.out = output_file(args.out, "--out", suffix=".npz", required=_npz_estimate(prob))
     if args.plot:
         args.plot = figure_file(args.plot, "--plot")
-    r = case.simulate(design)
-    grad = None
-    if args.gradient:
-        from flexmbs.sensitivity import case_gradients
-        grad = case_gradients(case, design, method="direct" if args.gradient == "direct" else "forward")
+    ev = prob.evaluate(x, gradient=args.gradient)
+    result = prob.simulate(x, store="all") if (args.out or args.plot) else None
     if args.out:
-        _save_npz(args.out, case, r)
+        _save_npz(args.out, prob, ev, result)
     if args.plot:
-        from flexmbs.plots import plot_case
-        save_figure(plot_case(r), args.plot, dpi=150, bbox_inches="tight")
+        from flexmbs.plots import plot_overview
+        save_figure(plot_overview(prob, result, ev), args.plot, dpi=150, bbox_inches="tight")
     if args.json:
-        out = r.summary()
-        out["case_file"] = case.source
-        if args.out:
-            out["out"] = args.out
-        if args.plot:
-            out["plot"] = args.plot
-        if grad is not None:
-            out["gradient_method"] = grad.method
-            out["gradient_simulations"] = grad.simulations
-            out["gradient_wall_time_s"] = grad.wall_time
-            out["d_mass_d_design_kg_per_mm"] = grad.d_mass.tolist()
-            out["d_max_deviation_d_design_m_per_mm"] = grad.d_max_deviation.tolist()
+        out = ev.to_json()
+        out["case"] = prob.description.case.name
+        for key in ("out", "plot"):
+            if getattr(args, key):
+                out[key] = getattr(args, key)
         print_json(out)
     else:
-        print("\n".join(_summary_lines(case, r)))
-        if grad is not None:
-            fmt = ", ".join
-            print(f"  d mass / dp     [{fmt(f'{v:.4g}' for v in grad.d_mass)}] kg/mm")
-            print(f"  d max dev / dp  [{fmt(f'{v:.4g}' for v in grad.d_max_deviation)}] m/mm "
-                  f"({grad.method}, {grad.simulations} simulation(s), {grad.wall_time:.3f} s)")
+        print_evaluation(prob, ev)
         for what, f in (("results", args.out), ("figure", args.plot)):
             if f:
                 print(f"  {what:<15s} {f}")
     return 0
 
 
-def _save_npz(path, case, r):
+def _save_npz(path, prob, ev, result):
     from flexmbs.batch import atomic_open
 
-    ref = {f"reference_{k}": v for k, v in r.reference.items() if k != "t"}
+    hist = {f"response_{k}": np.asarray(v) for k, v in ev.values.items()}
     with atomic_open(path, "wb") as fh:       # a file object: numpy adds no suffix
         np.savez_compressed(
-            fh, t=r.t, deviation=r.deviation, design_mm=r.design_mm, mass=r.mass,
-            q=r.result.q, qd=r.result.qd, dofs=r.result.dofs, sensor_dofs=case.sensor_dofs,
-            summary=json.dumps(r.summary()), case_config=json.dumps(case.config), **ref)
+            fh, t=result.t, q=result.q, qd=result.qd, dofs=result.dofs, design=ev.x,
+            variables=np.array(prob.variables), reference_q=prob.mechanism.reference.q,
+            constraints=ev.constraints, summary=json.dumps(ev.to_json()), **hist)
 
 
 # ----------------------------------------------------------------------------- main
@@ -323,7 +326,8 @@ def build_parser():
     parser = _Parser(
         prog="flexmbs",
         description="Planar flexible multibody simulation and structural optimization of "
-                    "mechanism components (the paper's cases live in cases/*.toml).")
+                    "mechanism components (shipped cases: cases/*.toml, format: "
+                    "docs/case-format.md).")
     parser.add_argument("--debug", action="store_true",
                         help="print the traceback of an error (also: FLEXMBS_DEBUG=1); "
                              "accepted after the subcommand too")

@@ -1,19 +1,23 @@
-"""Figures of simulated cases, written to files with matplotlib's Agg canvas.
+"""Figures of simulated problems, written to files with matplotlib's Agg canvas.
 
 No pyplot and no global backend change: every function builds its own `Figure` (or draws
 into a given Axes) and, if `file` is given, saves it there. The figures:
 
-- `plot_deviation`: deviation history with its limit line, as the paper's Figs. 5(b), 6(b), 8(b);
-- `plot_motion`: a few postures of the flexible mechanism over the rigid reference one, with
-  the deflection magnified, the points named and the reference paths drawn;
-- `plot_case`: both side by side, the overview that `flexmbs simulate --plot` writes.
+- `plot_histories`: response histories (e.g. deviations) with their limit line, as the paper's
+  Figs. 5(b), 6(b), 8(b);
+- `plot_motion`: a few postures of the flexible mechanism over its rigid reference, with the
+  deflection magnified, the named points marked and the rigid paths of the points that a
+  deviation response follows;
+- `plot_overview`: both side by side, the figure that ``flexmbs simulate --plot`` writes.
 
 Example
 -------
->>> from flexmbs.cases import load_case
->>> from flexmbs.plots import plot_case
->>> r = load_case("robot_2dof").simulate([39.29, 28.33, 34.94, 25.19])
->>> fig = plot_case(r, "robot_table1.png")
+>>> from flexmbs.problem import Problem
+>>> from flexmbs.plots import plot_overview
+>>> prob = Problem("robot_2dof")
+>>> x = [39.29, 28.33, 34.94, 25.19]
+>>> fig = plot_overview(prob, prob.simulate(x, store="all"), prob.evaluate(x, gradient=False),
+...                     "robot_table1.png")                                # doctest: +SKIP
 """
 from __future__ import annotations
 
@@ -22,8 +26,10 @@ import math
 import numpy as np
 from matplotlib.figure import Figure
 
-__all__ = ["plot_deviation", "plot_motion", "plot_case", "magnified_postures",
-           "nice_magnification"]
+from flexmbs.description import Deviation
+
+__all__ = ["plot_histories", "plot_motion", "plot_overview", "magnified_postures",
+           "nice_magnification", "constrained_histories"]
 
 _LIMIT_COLOR = "#c0392b"
 _RIGID_COLOR = "0.55"
@@ -36,60 +42,62 @@ def _save(fig, file):
     return fig
 
 
-def plot_deviation(results, file=None, *, labels=None, ax=None, title=None, limit_m=None):
-    """Deviation history (mm) of one or several CaseResults, with the limit line.
+def constrained_histories(problem, values):
+    """[(name, history, upper limit or None)] of the constrained time-history responses of an
+    Evaluation's values (deviations first)."""
+    resp = {r.name: r for r in problem.description.responses}
+    out = {}
+    for c in problem.description.constraints:
+        v = values.get(c.response)
+        if v is None or np.ndim(v) == 0:
+            continue
+        lim = out.get(c.response, (None, None, None))[2]
+        if c.upper is not None:
+            lim = c.upper if lim is None else min(lim, c.upper)
+        out[c.response] = (c.response, np.asarray(v, float), lim)
+    return sorted(out.values(), key=lambda e: not isinstance(resp[e[0]], Deviation))
+
+
+def plot_histories(t, histories, file=None, *, ax=None, title=None, scale=1e3, unit="mm"):
+    """Histories of responses with their limit lines and maxima.
 
     Parameters
     ----------
-    results : CaseResult or list of CaseResult
-        E.g. the weakly and the fully coupled optima, drawn as the paper's Figs. 5(b)-8(b).
-    file : path, optional
-        Where to save the figure (format from the suffix).
-    labels : list of str, optional
-        Legend entries (default: the designs in mm).
-    ax : matplotlib Axes, optional
-        Draw there instead of a new figure.
-    title : str, optional
-    limit_m : float, optional
-        The limit line (default: the first result's limit).
-
-    Returns
-    -------
-    matplotlib.figure.Figure
+    t : (nt,) time
+    histories : list of (label, (nt,) values, limit or None)
+    scale, unit : the values are drawn as value * scale in `unit` (default m -> mm)
     """
-    if not isinstance(results, (list, tuple)):
-        results = [results]
     if ax is None:
         fig = Figure(figsize=(6.4, 3.8))
         ax = fig.add_subplot()
     else:
         fig = ax.figure
-    limit = results[0].limit_m if limit_m is None else limit_m
-    top = max(r.max_deviation for r in results)
     colors = ["#1f4e9c", "#e08a00", "#2a9d4b", "#7b3fa0", "#555555"]
-    for k, r in enumerate(results):
-        lab = labels[k] if labels else "p = [" + ", ".join(f"{v:.4g}" for v in r.design_mm) + "] mm"
-        lab += f": max {r.max_deviation * 1e3:.4f} mm at {r.t_at_max:.4f} s"
+    top = 0.0
+    for k, (label, v, limit) in enumerate(histories):
         c = colors[k % len(colors)]
-        ax.plot(r.t, r.deviation * 1e3, color=c, lw=1.3, label=lab, ls=("-", "--", ":", "-.")[k % 4])
-        ax.plot([r.t_at_max], [r.max_deviation * 1e3], "o", color=c, ms=5, zorder=4)
-    if top >= 0.3 * limit:
-        ax.axhline(limit * 1e3, color=_LIMIT_COLOR, ls="--", lw=1.2,
-                   label=f"limit {limit * 1e3:g} mm")
-        ax.set_ylim(0, (1.2 + 0.08 * len(results)) * max(top, limit) * 1e3)   # room for the legend
-    else:
-        # the limit is far above: keep the history readable and say where the limit is
-        ax.set_ylim(0, (1.3 + 0.08 * len(results)) * top * 1e3)
-        ax.plot([], [], ls="--", color=_LIMIT_COLOR,
-                label=f"limit {limit * 1e3:g} mm (off scale, {limit / top:.0f} x the maximum)")
-    ax.set_xlim(0, max(r.t[-1] for r in results))
+        j = int(np.argmax(v))
+        top = max(top, float(v[j]))
+        ax.plot(t, v * scale, color=c, lw=1.3, ls=("-", "--", ":", "-.")[k % 4],
+                label=f"{label}: max {v[j] * scale:.4g} {unit} at {t[j]:.4f} s")
+        ax.plot([t[j]], [v[j] * scale], "o", color=c, ms=5, zorder=4)
+        if limit is not None and limit > 0:
+            if top >= 0.3 * limit:
+                ax.axhline(limit * scale, color=_LIMIT_COLOR, ls="--", lw=1.2,
+                           label=f"limit of {label} {limit * scale:g} {unit}")
+                top = max(top, limit)
+            else:
+                ax.plot([], [], ls="--", color=_LIMIT_COLOR,
+                        label=f"limit of {label} {limit * scale:g} {unit} (off scale, "
+                              f"{limit / v[j]:.0f} x the maximum)")
+    ax.set_ylim(0, (1.25 + 0.08 * len(histories)) * max(top, 1e-300) * scale)
+    ax.set_xlim(0, float(t[-1]))
     ax.set_xlabel("time (s)")
-    ax.set_ylabel(f"deviation ({results[0].formulation}) (mm)")
+    ax.set_ylabel(f"({unit})")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper left", framealpha=0.9)
-    if title is None:
-        title = f"{results[0].case_name}: deviation ({results[0].formulation}) at every time step"
-    ax.set_title(title, fontsize=10)
+    if title:
+        ax.set_title(title, fontsize=10)
     return _save(fig, file)
 
 
@@ -104,68 +112,86 @@ def nice_magnification(value):
     return float(10 ** e)  # pragma: no cover
 
 
-def magnified_postures(result, steps, magnification):
+def _positions(q, nodes, steps=None):
+    """(k, len(nodes), 2) node positions from coordinates q (nt, ndof)."""
+    qq = q if steps is None else q[steps]
+    return np.stack([qq[:, 3 * n:3 * n + 2] for n in nodes], axis=1)
+
+
+def magnified_postures(problem, result, steps, magnification):
     """Node positions of every beam at some steps, flexible (deflection magnified) and rigid.
 
-    The magnified position of a node is rigid + magnification * (flexible - rigid), where
-    rigid is the node's place in the rigid reference mechanism at the same time.
+    The magnified position of a node is rigid + magnification * (flexible - rigid), rigid being
+    the node's place in the rigid reference mechanism at the same time.
 
     Parameters
     ----------
-    result : CaseResult (simulated with store='all')
-    steps : list of int
-        0-based indices into result.t.
+    problem : flexmbs.problem.Problem
+    result : flexmbs.simulate.Result of the problem, simulated with store='all'
+    steps : list of int (0-based)
     magnification : float
 
     Returns
     -------
-    dict body -> (flexible (k, nnodes, 2), rigid (k, nnodes, 2))
+    dict beam -> (flexible (k, nnodes, 2), rigid (k, nnodes, 2))
     """
-    case = result.case
+    mech = problem.mechanism
     steps = np.asarray(steps, int)
-    ref = {k: (v[steps] if isinstance(v, np.ndarray) else v) for k, v in result.reference.items()}
     out = {}
-    for b in case.beams:
-        body = case.model.body(b)
-        rigid = case.rigid_node_positions(ref, b)
-        flex = np.stack([result.result.position(n)[steps] for n in body.nodes], axis=1)
+    for b in mech.beams:
+        nodes = mech.model.body(b).nodes
+        rigid = _positions(mech.reference.q, nodes, steps)
+        flex = np.stack([result.position(n)[steps] for n in nodes], axis=1)
         out[b] = (rigid + magnification * (flex - rigid), rigid)
     return out
 
 
-def _max_deflection(result):
-    case = result.case
+def _max_deflection(problem, result):
+    mech = problem.mechanism
     d = 0.0
-    for b in case.beams:
-        body = case.model.body(b)
-        rigid = case.rigid_node_positions(result.reference, b)
-        flex = np.stack([result.result.position(n) for n in body.nodes], axis=1)
+    for b in mech.beams:
+        nodes = mech.model.body(b).nodes
+        rigid = _positions(mech.reference.q, nodes)
+        flex = np.stack([result.position(n) for n in nodes], axis=1)
         d = max(d, float(np.max(np.hypot(*(flex - rigid).transpose(2, 0, 1)))))
     return d
 
 
-def plot_motion(result, file=None, *, ax=None, postures=6, magnification=None, title=None):
+def _followed_points(problem):
+    """(body, point) of every deviation term, in order, without repeats."""
+    out = []
+    for r in problem.description.responses:
+        if isinstance(r, Deviation):
+            for term in r.terms:
+                if (term.body, term.at) not in out:
+                    out.append((term.body, term.at))
+    return out
+
+
+def plot_motion(problem, result, file=None, *, ax=None, postures=6, magnification=None,
+                title=None, highlight=None):
     """Postures of the flexible mechanism over the rigid one, deflection magnified.
 
     Parameters
     ----------
-    result : CaseResult
-        Simulated with store='all' (the default of Case.simulate).
+    problem : flexmbs.problem.Problem
+    result : flexmbs.simulate.Result of the problem, simulated with store='all'
     file : path, optional
     ax : matplotlib Axes, optional
     postures : int, default 6
-        Number of instants, evenly spread over the simulation; the instant of the maximum
-        deviation is added and drawn in red.
+        Number of instants, evenly spread over the simulation.
     magnification : float, optional
         Deflection scale; default: a round number that makes the largest deflection about 6 %
         of the mechanism's size.
     title : str, optional
+    highlight : int, optional
+        A 0-based step added and drawn in red (e.g. the step of the largest deviation).
 
     Returns
     -------
     matplotlib.figure.Figure
     """
-    case = result.case
+    mech = problem.mechanism
     if ax is None:
         fig = Figure(figsize=(6.4, 5.6))
         ax = fig.add_subplot()
@@ -173,64 +199,64 @@ def plot_motion(result, file=None, *, ax=None, postures=6, magnification=None, t
         fig = ax.figure
     nt = result.t.size
     steps = sorted(set(np.linspace(0, nt - 1, postures).round().astype(int).tolist()))
-    kmax = int(result.step_at_max - 1)
-    # the instant of the maximum replaces an evenly spread one that is too close to it
-    near = [k for k in steps if abs(k - kmax) < 0.4 * (nt - 1) / max(postures - 1, 1)]
-    steps = sorted([k for k in steps if k not in near or k == 0] + [kmax])
-    steps = sorted(set(steps))
-    q = case.model.reference_coordinates().reshape(-1, 3)
-    size = float(np.ptp(q[:, 0]) + np.ptp(q[:, 1])) / 2
-    if case.mechanism == "robot_2dof":
-        size = float(sum(case.parameters["arm_lengths_m"]))
+    if highlight is not None:
+        near = [k for k in steps if abs(k - highlight) < 0.4 * (nt - 1) / max(postures - 1, 1)]
+        steps = sorted(set([k for k in steps if k not in near or k == 0] + [int(highlight)]))
+    ref = mech.reference.q
+    allnodes = sorted({n for b in mech.beams for n in mech.model.body(b).nodes})
+    pts0 = _positions(ref[:1], allnodes)[0]
+    size = max(float(np.ptp(pts0[:, 0]) + np.ptp(pts0[:, 1])) / 2, 1e-9)
     if magnification is None:
-        dmax = _max_deflection(result)
+        dmax = _max_deflection(problem, result)
         magnification = nice_magnification(0.06 * size / dmax) if dmax > 0 else 1.0
     # drop instants whose rigid posture nearly repeats an earlier one (a crank turning more
-    # than once), keeping the instant of the maximum
-    rig = magnified_postures(result, steps, 1.0)
-    allpts = np.concatenate([r for _, r in rig.values()], axis=1)      # (k, nodes, 2)
+    # than once), keeping the highlighted instant
+    rig = magnified_postures(problem, result, steps, 1.0)
+    allpts = np.concatenate([r for _, r in rig.values()], axis=1)
     keep = []
-    for j in sorted(range(len(steps)), key=lambda j: steps[j] != kmax):
+    for j in sorted(range(len(steps)), key=lambda j: steps[j] != highlight):
         if all(np.max(np.hypot(*(allpts[j] - allpts[i]).T)) > 0.05 * size for i in keep):
             keep.append(j)
     steps = [steps[j] for j in sorted(keep)]
-    post = magnified_postures(result, steps, magnification)
-    ref = result.reference
-
-    # reference paths of the named points
-    if case.mechanism == "robot_2dof":
-        ax.plot(ref["x_tip"], ref["y_tip"], ":", color=_RIGID_COLOR, lw=1, label="ideal tip path")
-        ax.plot(ref["x_A"], ref["y_A"], ":", color="0.75", lw=1)
-    else:
-        ax.plot(ref["x_A"], ref["y_A"], ":", color=_RIGID_COLOR, lw=1, label="rigid paths of A, B")
-        ax.plot(ref["x_B"], ref["y_B"], ":", color=_RIGID_COLOR, lw=1)
-        ax.plot([0, case.parameters["ground_length_m"]], [0, 0], color="0.3", lw=3,
-                solid_capstyle="butt", alpha=0.35)
+    post = magnified_postures(problem, result, steps, magnification)
+    # rigid paths of the points that deviation responses follow
+    followed = _followed_points(problem)
+    for k, (body, point) in enumerate(followed):
+        n = mech.node[(body, point)]
+        ax.plot(ref[:, 3 * n], ref[:, 3 * n + 1], ":", color=_RIGID_COLOR, lw=1,
+                label="rigid paths of " + ", ".join(p for _, p in followed) if k == 0 else None)
     cmap = _colormap()
+    label_node = mech.node[followed[0]] if followed else None
     for j, k in enumerate(steps):
-        is_max = k == kmax
-        color = _LIMIT_COLOR if is_max else cmap(j / max(len(steps) - 1, 1))
+        is_hi = k == highlight
+        color = _LIMIT_COLOR if is_hi else cmap(j / max(len(steps) - 1, 1))
         for b, (flex, rigid) in post.items():
             ax.plot(rigid[j, :, 0], rigid[j, :, 1], "--", color=_RIGID_COLOR, lw=1.0, zorder=2)
-            ax.plot(flex[j, :, 0], flex[j, :, 1], "-", color=color, lw=2.2 if is_max else 1.6,
+            ax.plot(flex[j, :, 0], flex[j, :, 1], "-", color=color, lw=2.2 if is_hi else 1.6,
                     zorder=3, solid_capstyle="round")
-        # label each posture at the end of its last beam
-        last = post[case.beams[-1]][0][j]
-        tip = last[-1] if case.mechanism == "robot_2dof" else post["crank"][0][j][-1]
-        ax.annotate(f"{result.t[k]:.2f} s" + (" (max)" if is_max else ""), tip,
-                    textcoords="offset points", xytext=(5, 4), fontsize=7, color=color, zorder=5)
-    # joints at t = 0 and ground pivots
-    pts = case.points
-    for name, node in pts.items():
-        x, y = q[node, :2]
-        ground = name in ("O", "C")
+        if label_node is not None:
+            at = result.position(label_node)[k]
+            ax.annotate(f"{result.t[k]:.2f} s" + (" (max)" if is_hi else ""), at,
+                        textcoords="offset points", xytext=(5, 4), fontsize=7, color=color,
+                        zorder=5)
+    # named points at t = 0; ground pivots as triangles
+    grounded = {j.at for j in problem.description.joints if j.type in ("pin", "clamp")}
+    drawn = set()
+    for (body, name), node in mech.node.items():
+        if name in drawn:
+            continue
+        drawn.add(name)
+        x, y = ref[0, 3 * node:3 * node + 2]
+        ground = name in grounded
         ax.plot([x], [y], "^" if ground else "o", color="k" if ground else "w", mec="k",
                 ms=8 if ground else 5, zorder=6)
-        ax.annotate(name, (x, y), textcoords="offset points", xytext=(-12, -12) if ground else (-12, 6),
-                    fontsize=9, weight="bold", zorder=6)
+        ax.annotate(name, (x, y), textcoords="offset points",
+                    xytext=(-12, -12) if ground else (-12, 6), fontsize=9, weight="bold",
+                    zorder=6)
     ax.plot([], [], "--", color=_RIGID_COLOR, label="rigid reference")
     ax.plot([], [], "-", color=cmap(0.5), label=f"flexible, deflection x {magnification:g}")
-    ax.plot([], [], "-", color=_LIMIT_COLOR, lw=2.2, label="at the maximum deviation")
+    if highlight is not None:
+        ax.plot([], [], "-", color=_LIMIT_COLOR, lw=2.2, label="at the largest deviation")
     ax.margins(0.07)
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x (m)")
@@ -238,7 +264,8 @@ def plot_motion(result, file=None, *, ax=None, postures=6, magnification=None, t
     ax.grid(alpha=0.25)
     ax.legend(fontsize=7, loc="best", framealpha=0.85)
     if title is None:
-        title = f"{case.name}: motion, deflection magnified {magnification:g} times"
+        title = (f"{problem.description.case.name}: motion, deflection magnified "
+                 f"{magnification:g} times")
     ax.set_title(title, fontsize=10)
     return _save(fig, file)
 
@@ -249,15 +276,31 @@ def _colormap():
     return lambda x: base(0.05 + 0.8 * float(x))
 
 
-def plot_case(result, file=None, *, magnification=None):
-    """Overview of a simulated case: motion (left) and deviation history (right)."""
+def plot_overview(problem, result, evaluation, file=None, *, magnification=None):
+    """Overview of a simulated design: motion (left) and the constrained histories (right).
+
+    result: `Problem.simulate(x, store='all')`; evaluation: `Problem.evaluate(x)` of the
+    same design."""
     fig = Figure(figsize=(12.5, 5.2))
     ax1, ax2 = fig.subplots(1, 2, gridspec_kw=dict(width_ratios=[1.05, 1]))
-    plot_motion(result, ax=ax1, magnification=magnification)
-    plot_deviation(result, ax=ax2)
-    design = ", ".join(f"{n} = {v:.4g}" for n, v in zip(result.case.design_names, result.design_mm))
-    fig.suptitle(f"{result.case_name}: {design} mm, beam mass {result.mass:.4g} kg, "
-                 f"max deviation {result.max_deviation * 1e3:.4g} mm "
-                 f"(limit {result.limit_m * 1e3:g} mm)", fontsize=11)
+    hist = constrained_histories(problem, evaluation.values)
+    devs = [h for h in hist if isinstance(
+        {r.name: r for r in problem.description.responses}[h[0]], Deviation)]
+    highlight = int(np.argmax(devs[0][1])) if devs else None
+    plot_motion(problem, result, ax=ax1, magnification=magnification, highlight=highlight)
+    if devs:
+        plot_histories(evaluation.t, devs, ax=ax2, title="deviation at every time step")
+        ax2.set_ylabel("deviation (mm)")
+    elif hist:
+        plot_histories(evaluation.t, hist[:3], ax=ax2, scale=1.0, unit="",
+                       title="constrained responses")
+    d = problem.description
+    design = ", ".join(f"{n} = {v:.4g} {v_.unit}" for n, v, v_ in
+                       zip(problem.variables, evaluation.x, d.design))
+    obj = "" if evaluation.objective is None else \
+        f", {d.objective.response} {evaluation.objective:.4g}"
+    state = ("" if not evaluation.constraints.size else
+             ", feasible" if evaluation.feasible else ", INFEASIBLE")
+    fig.suptitle(f"{d.case.name}: {design}{obj}{state}", fontsize=11)
     fig.tight_layout()
     return _save(fig, file)

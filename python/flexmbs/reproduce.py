@@ -49,7 +49,7 @@ __all__ = ["reproduce", "Report", "Row", "TableSpec", "Run", "TABLES", "paper_ta
            "MAPS", "MapSpec", "MapResult", "REGIONS", "Check", "table_checks",
            "STARTS", "WEAKLY_OPTIONS", "FULLY_OPTIONS", "CRITERIA", "paper_row", "build_rows",
            "design_spread", "table8_rows", "format_table", "format_table8",
-           "simulate_paper_designs", "paper_design_text", "fourbar_p1_scan"]
+           "simulate_paper_designs", "paper_design_text", "first_variable_scan"]
 
 #: Starting points of Tables 6 and 7 (mm).
 STARTS = ((50.0, 50.0, 50.0, 50.0), (55.0, 55.0, 55.0, 55.0), (55.0, 45.0, 35.0, 25.0),
@@ -60,8 +60,11 @@ STARTS = ((50.0, 50.0, 50.0, 50.0), (55.0, 55.0, 55.0, 55.0), (55.0, 45.0, 35.0,
 #: iterations (about twice the paper's 21) for the four-bar's fully coupled runs. On the
 #: four-bar the weakly coupled cycles never meet test (25) (the paper needed 73 cycles): they
 #: wander around one design, and 100 cycles instead of 30 change its mass by under 1 %.
-WEAKLY_OPTIONS = {"robot": dict(max_cycles=30), "fourbar": dict(max_cycles=30)}
-FULLY_OPTIONS = {"robot": dict(), "fourbar": dict(max_iterations=40)}
+WEAKLY_OPTIONS = {"robot_2dof": dict(max_cycles=30), "robot_2dof_tracking": dict(max_cycles=30),
+                  "fourbar": dict(max_cycles=30), "fourbar_no_masses": dict(max_cycles=30)}
+FULLY_OPTIONS = {"robot_2dof": dict(), "robot_2dof_tracking": dict(),
+                 "fourbar": dict(max_iterations=40, design_rel_change=1e-3),
+                 "fourbar_no_masses": dict(max_iterations=40, design_rel_change=1e-3)}
 
 
 # ============================================================================ published numbers
@@ -100,7 +103,7 @@ class Run:
         """The job name: case, end time, method and start, e.g.
         ``robot_2dof-t0.65-weakly-50-50-50-50``."""
         ov = dict(self.overrides)
-        t_end = ov.pop("t_end", None)
+        t_end = ov.pop("time.t_end", None)
         parts = [self.case]
         if t_end is not None:
             parts.append(f"t{t_end:g}")
@@ -111,9 +114,8 @@ class Run:
 
     def job(self):
         """Keyword arguments of `optimization_job`."""
-        family = "fourbar" if self.case.startswith("fourbar") else "robot"
-        opts = (WEAKLY_OPTIONS if self.method == "weakly" else FULLY_OPTIONS)[family]
-        return dict(case=self.case, method=self.method, start_mm=list(self.start_mm),
+        opts = (WEAKLY_OPTIONS if self.method == "weakly" else FULLY_OPTIONS)[self.case]
+        return dict(case=self.case, method=self.method, start=list(self.start_mm),
                     overrides=dict(self.overrides), options=dict(opts))
 
 
@@ -139,10 +141,10 @@ _R50 = (STARTS[0],)
 _F250 = ((250.0, 250.0, 250.0),)
 TABLES = {
     1: TableSpec(1, "2-dof robot, deviation (28), 0.65 s (1301 steps)", "robot_2dof",
-                 (("t_end", 0.65),), "robot_2dof", "table1_formulation28_tend0.65", _R50,
+                 (("time.t_end", 0.65),), "robot_2dof", "table1_formulation28_tend0.65", _R50,
                  figures=("fig05",)),
     2: TableSpec(2, "2-dof robot, tracking deviation (30), 0.65 s (1301 steps)",
-                 "robot_2dof_tracking", (("t_end", 0.65),), "robot_2dof",
+                 "robot_2dof_tracking", (("time.t_end", 0.65),), "robot_2dof",
                  "table2_formulation30_tend0.65", _R50, figures=("fig06",)),
     3: TableSpec(3, "four-bar mechanism with 5 kg at A and B, deviation (33) of A, 0.5 s",
                  "fourbar", (), "four_bar", "table3_with_lumped_masses", _F250,
@@ -151,17 +153,17 @@ TABLES = {
                  "fourbar_no_masses", (), "four_bar", "table4_without_lumped_masses", _F250,
                  figures=("fig09",)),
     5: TableSpec(5, "2-dof robot, deviation (28), 0.66 s (1321 steps)", "robot_2dof",
-                 (("t_end", 0.66),), "robot_2dof", "table5_formulation28_tend0.66", _R50,
+                 (("time.t_end", 0.66),), "robot_2dof", "table5_formulation28_tend0.66", _R50,
                  figures=("fig10", "fig11")),
     6: TableSpec(6, "2-dof robot, deviation (28), 0.65 s: four starting points", "robot_2dof",
-                 (("t_end", 0.65),), "robot_2dof", "table6_formulation28_tend0.65_initial_points",
+                 (("time.t_end", 0.65),), "robot_2dof", "table6_formulation28_tend0.65_initial_points",
                  STARTS, figures=("fig12",)),
     7: TableSpec(7, "2-dof robot, deviation (28), 0.6685 s (1338 steps): four starting points",
-                 "robot_2dof", (("t_end", 0.6685),), "robot_2dof",
+                 "robot_2dof", (("time.t_end", 0.6685),), "robot_2dof",
                  "table7_formulation28_tend0.6687_initial_points", STARTS,
                  figures=("fig13", "fig14", "fig15")),
     8: TableSpec(8, "active time steps per cycle / iteration, Table 7's problem from "
-                    "[55, 55, 55, 55]", "robot_2dof", (("t_end", 0.6685),), "robot_2dof",
+                    "[55, 55, 55, 55]", "robot_2dof", (("time.t_end", 0.6685),), "robot_2dof",
                  "table8_active_constraints_start55", (STARTS[1],)),
 }
 
@@ -172,43 +174,42 @@ def table_runs(numbers):
     for n in numbers:
         for r in TABLES[n].runs():
             seen.setdefault(r.name, r)
-    def cost(r):
-        return (0 if r.case.startswith("fourbar") else 1, 0 if r.method == "fully" else 1)
+    def cost(r):                # the longest runs first: the four-bar's, then fully coupled
+        return (0 if "max_iterations" in FULLY_OPTIONS[r.case] else 1,
+                0 if r.method == "fully" else 1)
     return sorted(seen.values(), key=cost)
 
 
-def optimization_job(case, method, start_mm, overrides=None, options=None):
+def optimization_job(case, method, start, overrides=None, options=None):
     """Run one optimization; return its result as a JSON-ready dict.
 
     A top-level function, so that `run_batch` can send it to worker processes or a Dask
     cluster. The dict is `OptimizationResult.to_dict()` plus ``deviation_m`` (the final
-    design's deviation at every time step), ``h_s`` and ``case_overrides``.
+    design's constrained deviation at every time step), ``h_s`` and ``case_overrides``.
 
     Parameters
     ----------
     case : str
-        A case name or a path to a case file.
+        The name of a shipped case or a path to a case file.
     method : {'weakly', 'fully'}
-    start_mm : list of float
+    start : list of float
+        Starting design (the variables' units).
     overrides : dict, optional
-        Case-file keys to replace (`load_case`), e.g. {'t_end': 0.66}.
+        Case keys to replace (`flexmbs.problem.Problem`), e.g. {'time.t_end': 0.66}.
     options : dict, optional
         Keyword arguments of `optimize_weakly` / `optimize_fully`.
     """
-    from flexmbs.cases import load_case
+    from flexmbs.optimize import optimize_fully, optimize_weakly
+    from flexmbs.problem import Problem
 
-    c = load_case(case, **(overrides or {}))
-    if method == "weakly":
-        from flexmbs.optimize.weakly import optimize_weakly
-        r = optimize_weakly(c, np.asarray(start_mm, float), **(options or {}))
-    elif method == "fully":
-        from flexmbs.optimize.fully import optimize_fully
-        r = optimize_fully(c, np.asarray(start_mm, float), **(options or {}))
-    else:
+    prob = Problem(case, overrides=overrides or None)
+    if method not in ("weakly", "fully"):
         raise ModelError(f"method must be 'weakly' or 'fully', got {method!r}")
+    run = optimize_weakly if method == "weakly" else optimize_fully
+    r = run(prob, np.asarray(start, float), **(options or {}))
     d = r.to_dict()
-    d["deviation_m"] = [float(v) for v in np.asarray(r.deviation)]
-    d["h_s"] = float(c.h)
+    d["deviation_m"] = None if r.deviation is None else [float(v) for v in r.deviation]
+    d["h_s"] = float(prob.description.time.h)
     d["case_overrides"] = dict(overrides or {})
     d["case_name"] = case
     return d
@@ -249,9 +250,9 @@ class MapSpec:
 
 
 MAPS = {
-    "fig12": MapSpec("fig12", 12, 6, "robot_2dof", (("t_end", 0.65),), 200,
+    "fig12": MapSpec("fig12", 12, 6, "robot_2dof", (("time.t_end", 0.65),), 200,
                      ((0, 39.35), (2, 35.0)), ((24.0, 32.0), (21.0, 29.0))),
-    "fig15": MapSpec("fig15", 15, 7, "robot_2dof", (("t_end", 0.6685),), 1338,
+    "fig15": MapSpec("fig15", 15, 7, "robot_2dof", (("time.t_end", 0.6685),), 1338,
                      ((0, 52.49), (2, 33.24)), ((33.0, 41.0), (21.5, 29.5))),
 }
 
@@ -265,19 +266,20 @@ def map_jobs(spec, n, region="full"):
     Names carry the design (``p2-30.000-p4-25.000``), so grids of different resolutions or
     regions share the points they have in common in a store.
     """
-    from flexmbs.cases import load_case
-    c = load_case(spec.case, **dict(spec.overrides))
-    a, b = spec.grid(n, c.lower_mm, c.upper_mm, region)
+    from flexmbs.problem import Problem
+    c = Problem(spec.case, overrides=dict(spec.overrides))
+    a, b = spec.grid(n, c.lower, c.upper, region)
     i, j = spec.axes
+    names = c.variables
     jobs = {}
     for va in a:
         for vb in b:
-            p = np.array(c.start_mm, float)
+            p = np.array(c.start, float)
             for k, v in spec.fixed:
                 p[k] = v
             p[i], p[j] = va, vb
-            name = f"{c.design_names[i]}-{va:.3f}-{c.design_names[j]}-{vb:.3f}"
-            jobs[name] = dict(case=spec.case, design_mm=[float(v) for v in p],
+            name = f"{names[i]}-{va:.3f}-{names[j]}-{vb:.3f}"
+            jobs[name] = dict(case=spec.case, design=[float(v) for v in p],
                               overrides=dict(spec.overrides), steps=[spec.step - 1])
     return jobs
 
@@ -304,14 +306,14 @@ class MapResult:
 
 
 def _collect_map(spec, n, results, region):
-    from flexmbs.cases import load_case
-    c = load_case(spec.case, **dict(spec.overrides))
-    a, b = spec.grid(n, c.lower_mm, c.upper_mm, region)
+    from flexmbs.problem import Problem
+    c = Problem(spec.case, overrides=dict(spec.overrides))
+    a, b = spec.grid(n, c.lower, c.upper, region)
     names = list(map_jobs(spec, n, region))
     at = np.array([results[k]["deviation_at_steps_m"][0] for k in names]).reshape(n, n)
     mx = np.array([results[k]["max_deviation_m"] for k in names]).reshape(n, n)
     i, j = spec.axes
-    return (a, b, at, mx), (c.design_names[i], c.design_names[j])
+    return (a, b, at, mx), (c.variables[i], c.variables[j])
 
 
 # ============================================================================ comparison
@@ -341,7 +343,7 @@ class Row:
     method = property(lambda self: self.run.method)
     start_mm = property(lambda self: list(self.run.start_mm))
     mass_kg = property(lambda self: float(self.result["mass_kg"]))
-    design_mm = property(lambda self: np.asarray(self.result["design_mm"], float))
+    design_mm = property(lambda self: np.asarray(self.result["design"], float))
     iterations = property(lambda self: self.result["iterations"])
     inner_iterations = property(lambda self: self.result["inner_iterations"])
     converged = property(lambda self: bool(self.result["converged"]))
@@ -386,20 +388,21 @@ def simulate_paper_designs(rows):
     """Simulate every published design of the rows with flexmbs (one simulation each) and set
     `Row.paper_design`: does the paper's optimum sit on its 1 mm constraint in flexmbs's model?
     """
-    from flexmbs.cases import load_case
-    cases, done = {}, {}
+    from flexmbs.batch import max_deviation_job
+    from flexmbs.optimize.cli import _deviation_limit
+    from flexmbs.problem import Problem
+    done, limits = {}, {}
     for r in rows:
         p = r.paper.get("p")
         if p is None or any(v is None for v in p):
             continue
         key = (r.run.case, r.run.overrides, tuple(p))
         if key not in done:
-            if key[:2] not in cases:
-                cases[key[:2]] = load_case(r.run.case, **dict(r.run.overrides))
-            res = cases[key[:2]].simulate(np.asarray(p, float), store=[])
-            done[key] = dict(mass_kg=float(res.mass), max_deviation_m=float(res.max_deviation),
-                             t_at_max_s=float(res.t_at_max), step_at_max=int(res.step_at_max),
-                             limit_m=float(res.limit_m))
+            if key[:2] not in limits:
+                limits[key[:2]] = _deviation_limit(Problem(r.run.case, dict(r.run.overrides)))
+            out = max_deviation_job(r.run.case, list(p), dict(r.run.overrides))
+            out["limit_m"] = limits[key[:2]]
+            done[key] = out
         r.paper_design = done[key]
 
 
@@ -417,26 +420,26 @@ def paper_design_text(row):
             f"{d['max_deviation_m'] * 1e3:.3f} mm at {d['t_at_max_s']:.4f} s ({state})")
 
 
-#: Crank diameters (mm) of the Table 3 diagnostic scan (`fourbar_p1_scan`).
+#: Crank diameters (mm) of the Table 3 diagnostic scan (`first_variable_scan`).
 SCAN_P1_MM = (50.0, 54.0, 56.15, 58.0, 60.0, 62.0, 65.0, 68.0, 72.0, 76.0)
 
 
-def fourbar_p1_scan(case="fourbar", p1_mm=SCAN_P1_MM, tails=((15.0, 15.0), (15.10, 16.24))):
-    """Maximum deviation of the four-bar over the crank diameter p1 for slender coupler and
-    follower: (p2, p3) on the 15 mm bound and at the paper's Table 3 fully coupled values.
+def first_variable_scan(case="fourbar", p1=SCAN_P1_MM, tails=((15.0, 15.0), (15.10, 16.24))):
+    """Maximum constrained deviation over the first design variable, the others held at each
+    of `tails` (Table 3: the four-bar's crank diameter with a slender coupler and follower, on
+    the 15 mm bound and at the paper's fully coupled values).
 
     Shows how strongly (and not monotonically) the peak deviation depends on the design near
     the paper's fully coupled optimum. Returns a list of dicts
     {p1_mm, p2_mm, p3_mm, mass_kg, max_deviation_m, t_at_max_s}.
     """
-    from flexmbs.cases import load_case
-    c = load_case(case)
+    from flexmbs.batch import max_deviation_job
     out = []
-    for p2, p3 in tails:
-        for p1 in p1_mm:
-            r = c.simulate([p1, p2, p3], store=[])
-            out.append(dict(p1_mm=p1, p2_mm=p2, p3_mm=p3, mass_kg=float(r.mass),
-                            max_deviation_m=float(r.max_deviation), t_at_max_s=float(r.t_at_max)))
+    for rest in tails:
+        for v in p1:
+            r = max_deviation_job(case, [v, *rest])
+            out.append(dict(p1_mm=v, p2_mm=rest[0], p3_mm=rest[1], mass_kg=r["mass_kg"],
+                            max_deviation_m=r["max_deviation_m"], t_at_max_s=r["t_at_max_s"]))
     return out
 
 
@@ -725,7 +728,7 @@ class Report:
         'figures', 'total'
     timings : dict phase -> {elapsed_s, jobs_computed, executor, date}: the last call that
         computed jobs of that phase (kept in ``out/jobs/timings.json``)
-    extra : dict of diagnostics, e.g. 'table3_p1_scan' (`fourbar_p1_scan`)
+    extra : dict of diagnostics, e.g. 'table3_p1_scan' (`first_variable_scan`)
     settings : dict (executor, grid, tables, stored_runs)
     """
     out: Path
@@ -884,7 +887,7 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
             report.rows[t] = rows
             report.checks[t] = table_checks(t, rows)
         if 3 in tables:
-            report.extra["table3_p1_scan"] = fourbar_p1_scan()
+            report.extra["table3_p1_scan"] = first_variable_scan()
         if 8 in tables:
             w, f = (Run("robot_2dof", m, STARTS[1], TABLES[8].overrides).name
                     for m in ("weakly", "fully"))

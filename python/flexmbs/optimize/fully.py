@@ -185,12 +185,17 @@ class ScaledProblem:
             out[name] = (np.flatnonzero(g >= -active_tol) + 1).tolist()
         return out
 
+    def _max_deviation(self, values):
+        dev = self.problem.constrained_deviation(values)
+        return None if dev is None else float(dev.max())
+
     def record_fields(self, ev, active_tol):
         """The problem's part of a history record: design, objective, violation, largest
         value of every response, active constraints."""
         e = ev.evaluation
         return dict(design=ev.design, objective=float(e.objective),
                     mass_kg=self.problem.design_mass(ev.design, e.values),
+                    max_deviation_m=self._max_deviation(e.values),
                     max_violation=ev.violation,
                     responses={k: float(np.max(v)) for k, v in e.values.items()},
                     active_steps=self.active_constraints(ev, active_tol))

@@ -646,6 +646,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
                                         None, mech.t)[0]),
                 max_violation=float(g_dyn.max()) if g_dyn.size else None,
                 max_deviation_m=None if dev is None else float(dev.max()),
+                t_at_max_s=None if dev is None else float(mech.t[int(np.argmax(dev))]),
                 esl_change=change, esl_change_per_body=changes,
                 inner_iterations=None if pending is None else pending.iterations,
                 predicted_max_violation=None if pending is None else pending.max_violation,
