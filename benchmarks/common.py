@@ -153,10 +153,13 @@ def pyplot():
 
 # ----------------------------------------------------------------------------- robot
 def tip_path(t):
-    """Ideal tip path of eq. (26): (x, y) arrays."""
-    from flexmbs.laws import robot_tip_path
-    x, y, *_ = robot_tip_path(np.asarray(t, float), TIP0, TIP0)
-    return x, y
+    """Ideal tip path of eq. (26): (x, y) arrays, x = x0 + D(t), y = y0 + D(t),
+    D = (stroke/T)(t - T/(2 pi) sin(2 pi t/T)), T = 0.5 s, stroke 0.5 m."""
+    t = np.asarray(t, float)
+    period, stroke = 0.5, 0.5
+    w = 2 * np.pi / period
+    d = stroke / period * (t - np.sin(w * t) / w)
+    return TIP0 + d, TIP0 + d
 
 
 def deviation30(t, tip_xy):

@@ -10,8 +10,7 @@ import time
 
 import numpy as np
 
-from flexmbs.cases import load_case
-from flexmbs.sensitivity import case_gradients
+from flexmbs.problem import Problem
 
 
 def best_time(fn, repeat):
@@ -36,14 +35,22 @@ def main(argv=None):
 
 
 def measure(repeat, log):
-    case = load_case("robot_2dof")
     p = np.array([39.29, 28.33, 34.94, 25.19])
     rows = []
     for reuse in (False, True):
-        opts = dict(reuse_jacobian=reuse)
-        t_sim = best_time(lambda: case.simulate(p, **opts), repeat)
-        t_dir = best_time(lambda: case_gradients(case, p, method="direct", **opts), repeat)
-        t_fd = best_time(lambda: case_gradients(case, p, method="forward", **opts), repeat)
+        prob = Problem("robot_2dof", overrides={"time.reuse_jacobian": reuse})
+
+        def forward_differences():
+            base = prob.evaluate(p, gradient=False)
+            for k in range(p.size):
+                q = p.copy()
+                q[k] *= 1 + 1e-6
+                prob.evaluate(q, gradient=False)
+            return base
+
+        t_sim = best_time(lambda: prob.evaluate(p, gradient=False), repeat)
+        t_dir = best_time(lambda: prob.evaluate(p, gradient=True), repeat)
+        t_fd = best_time(forward_differences, repeat)
         rows.append(("modified" if reuse else "full", t_sim, t_dir, t_fd))
     log("robot_2dof, Table 1 design, 1301 steps, 4 design variables (best of %d)" % repeat)
     log(f"{'Newton':>9} {'simulation':>11} {'+direct':>9} {'forward FD':>11} "
