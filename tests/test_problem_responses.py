@@ -1,6 +1,6 @@
 """Motor torques and joint reactions in the general description (flexmbs.problem), the
-gradients of every response type, and the two examples cases/general/three_arm_robot.toml and
-cases/general/fourbar_tubes.toml.
+gradients of every response type, and the two examples cases/three_arm_robot.toml and
+cases/fourbar_tubes.toml.
 
 Sign convention (flexmbs.responses.forces): a torque response is the torque the motor applies
 to its drive's body, counter-clockwise positive; a reaction is the force the joint exerts on
@@ -17,7 +17,7 @@ from flexmbs.checks import taylor_test
 from flexmbs.errors import CaseError
 from flexmbs.problem import Problem
 
-GENERAL = Path(__file__).resolve().parents[1] / "cases" / "general"
+GENERAL = Path(__file__).resolve().parents[1] / "cases"
 G = 9.81
 
 
