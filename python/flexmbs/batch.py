@@ -386,13 +386,31 @@ def sweep_jobs(case, designs, overrides=None):
             for k, d in enumerate(designs)}
 
 
+_local = threading.local()
+
+
+def _problem(case, overrides):
+    """The Problem of (case, overrides), built once per worker thread: a batch of many designs
+    of one case (a design-domain map) pays the model and its rigid reference once, not per job.
+    Thread-local, so that jobs running in threads of one process never share a Problem."""
+    from flexmbs.problem import Problem
+    key = (str(case), json.dumps(overrides or {}, sort_keys=True))
+    cache = getattr(_local, "problems", None)
+    if cache is None:
+        cache = _local.problems = {}
+    if key not in cache:
+        if len(cache) >= 4:
+            cache.pop(next(iter(cache)))
+        cache[key] = Problem(case, overrides=overrides or None)
+    return cache[key]
+
+
 def max_deviation_job(case, design, overrides=None, steps=None):
     """Simulate one design of a case (a shipped case's name or a path; `overrides` as
     `flexmbs.problem.Problem`): its mass, the largest constrained deviation (the step-by-step
     maximum of the deviation responses under a constraint) and its maximum, and that history
     at the given 0-based steps (every step if `steps` is 'all')."""
-    from flexmbs.problem import Problem
-    prob = Problem(case, overrides=overrides or None)
+    prob = _problem(case, overrides)
     ev = prob.evaluate(np.asarray(design, float), gradient=False)
     dev = prob.constrained_deviation(ev.values)
     if dev is None:
