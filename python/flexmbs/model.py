@@ -371,7 +371,8 @@ class Model:
         direction `axis` (any length). Two linear rows: n . (x - point) = 0 with n the unit
         normal of the axis, and phi = its reference value. The node must lie on the line in
         the reference configuration. Combine with `drive_translation` to prescribe the
-        motion along the line, or leave it free (a slider block).
+        motion along the line, or leave it free (a slider block). For a line fixed in another
+        body, use `prismatic`.
         """
         node = self._check_node(node, "slider")
         ax = self._axis(axis, "slider")
