@@ -129,11 +129,11 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     real(c_double), intent(in) :: el_len(nela), el_prop(5, nela)
     integer(c_int), intent(in) :: ld_dof(nlda), ld_law(nlda)
     real(c_double), intent(in) :: ld_amp(nlda)
-    integer(c_int), intent(in) :: c_kind(nca), c_dofs(4, nca), c_law(nca)
-    real(c_double), intent(in) :: c_coef(4, nca), c_c0(nca), c_lawcoef(nca)
+    integer(c_int), intent(in) :: c_kind(nca), c_dofs(5, nca), c_law(nca)
+    real(c_double), intent(in) :: c_coef(5, nca), c_c0(nca), c_lawcoef(nca)
     real(c_double), intent(in) :: law_h, law_val(nlawa, npts), law_der(nlawa, npts), law_dd0(nlawa)
     integer(c_int), intent(in) :: map_el(81, nela), map_diag(ndof)
-    integer(c_int), intent(in) :: map_cq(4, nca), map_qc(4, nca), map_qq(16, nca)
+    integer(c_int), intent(in) :: map_cq(5, nca), map_qc(5, nca), map_qq(25, nca)
     integer(c_int), intent(in) :: nap, nai
     integer(c_int), intent(in) :: ap(nap), ai(nai)
     real(c_double), intent(in) :: h, rho_inf, tol, kscale, penalty
@@ -246,11 +246,11 @@ subroutine system_matrices(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nla
     real(c_double), intent(in) :: el_len(nela), el_prop(5, nela)
     integer(c_int), intent(in) :: ld_dof(nlda), ld_law(nlda)
     real(c_double), intent(in) :: ld_amp(nlda)
-    integer(c_int), intent(in) :: c_kind(nca), c_dofs(4, nca), c_law(nca)
-    real(c_double), intent(in) :: c_coef(4, nca), c_c0(nca), c_lawcoef(nca)
+    integer(c_int), intent(in) :: c_kind(nca), c_dofs(5, nca), c_law(nca)
+    real(c_double), intent(in) :: c_coef(5, nca), c_c0(nca), c_lawcoef(nca)
     real(c_double), intent(in) :: law_h, law_val(nlawa, npts), law_der(nlawa, npts), law_dd0(nlawa)
     integer(c_int), intent(in) :: map_el(81, nela), map_diag(ndof)
-    integer(c_int), intent(in) :: map_cq(4, nca), map_qc(4, nca), map_qq(16, nca)
+    integer(c_int), intent(in) :: map_cq(5, nca), map_qc(5, nca), map_qq(25, nca)
     real(c_double), intent(in) :: q(ndof), qdd(ndof), mu(nca), t   !! state
     real(c_double), intent(in) :: cm, ck, kscale, pen                !! coefficients (see assembly.f90)
     real(c_double), intent(out) :: r(ndof + nc)                      !! residual

@@ -10,7 +10,12 @@ kind 2, rigid link x (node j held in the frame of node i, offset (a, b) = coef[0
 kind 3, rigid link y
     Phi = y_j - y_i - (sin(phi_i) a + cos(phi_i) b) - c0 - lawcoef law(t)
 
-with dofs d = (x_i, x_j, phi_i) for kind 2 and (y_i, y_j, phi_i) for kind 3. Every function
+kind 4, prismatic (the component of x_b - x_a along a vector fixed in node a's frame,
+e0 = coef[0:2] at phi_a = 0)
+    Phi = (R(phi_a) e0) . (x_b - x_a) - c0 - lawcoef law(t)
+
+with dofs d = (x_i, x_j, phi_i) for kind 2, (y_i, y_j, phi_i) for kind 3 and
+(x_a, y_a, x_b, y_b, phi_a) for kind 4. Every function
 takes states with any leading shape (..., ndof) and returns (..., nc), so a whole time history
 is evaluated at once. The acceleration right-hand side is
 
@@ -18,7 +23,8 @@ is evaluated at once. The acceleration right-hand side is
 
 (Phi_qt = 0 here: laws enter additively): a linear row gives gamma = lawcoef law''(t); a rigid
 link x row gives -(cos a - sin b) phid_i^2 + lawcoef law'', a y row -(sin a + cos b) phid_i^2
-+ lawcoef law''.
++ lawcoef law''; a prismatic row, with e = R(phi_a) e0, e' = R(pi/2) e, d = x_b - x_a,
+-(-e.d phid_a^2 + 2 phid_a e'.(xd_b - xd_a)) + lawcoef law''.
 
 Example
 -------
@@ -44,15 +50,17 @@ from flexmbs.errors import ModelError
 __all__ = ["RowTable", "row_table", "law_tables", "drive_terms", "constraint_values",
            "jacobian_entries", "constraint_jacobian", "constraint_rate", "acceleration_rhs"]
 
-KIND_LINEAR, KIND_RIGID_X, KIND_RIGID_Y = 1, 2, 3
-_KINDS = (KIND_LINEAR, KIND_RIGID_X, KIND_RIGID_Y)
+KIND_LINEAR, KIND_RIGID_X, KIND_RIGID_Y, KIND_PRISMATIC = 1, 2, 3, 4
+_KINDS = (KIND_LINEAR, KIND_RIGID_X, KIND_RIGID_Y, KIND_PRISMATIC)
+#: coordinates per row at most (MAX_CDOF of fortran/constraints.f90)
+MAX_CDOF = 5
 
 
 @dataclass(frozen=True)
 class RowTable:
     """The constraint rows of a compiled model as 0-based arrays.
 
-    kind (nc,); dofs (nc, 4) 0-based, -1 where unused; coef (nc, 4); c0 (nc,);
+    kind (nc,); dofs (nc, MAX_CDOF) 0-based, -1 where unused; coef (nc, MAX_CDOF); c0 (nc,);
     law (nc,) 0-based law index, -1 for none; lawcoef (nc,); ndof.
     """
     kind: np.ndarray
@@ -108,17 +116,21 @@ def drive_terms(cm, law_table):
     if law_table is None or np.size(law_table) == 0:
         if np.any(has):
             raise ModelError("constraint rows are driven by time laws, but no law values were given")
-        return 0.0
+        if law_table is None:
+            return 0.0
+        return np.zeros(np.shape(law_table)[1:] + (rows.nc,))      # no laws: (..., nc) zeros
     lt = np.asarray(law_table, float)
     vals = np.moveaxis(lt[np.where(has, rows.law, 0)], 0, -1)       # (..., nc)
     return np.where(has, rows.lawcoef, 0.0) * vals
 
 
 def _angle_terms(rows, q):
-    """cos(phi_i) a - sin(phi_i) b and sin(phi_i) a + cos(phi_i) b for every row, (..., nc)
+    """cos(phi) a - sin(phi) b and sin(phi) a + cos(phi) b for every row, (..., nc), with phi
+    the row's angle (phi_i of a rigid link, phi_a of a prismatic row) and (a, b) = coef[0:2]
     (zero on linear rows)."""
     rigid = rows.kind != KIND_LINEAR
-    ph = q[..., np.where(rigid, rows.dofs[:, 2], 0)]
+    col = np.where(rows.kind == KIND_PRISMATIC, 4, 2)
+    ph = q[..., np.where(rigid, rows.dofs[np.arange(rows.nc), col], 0)]
     c, s = np.cos(ph), np.sin(ph)
     a = np.where(rigid, rows.coef[:, 0], 0.0)
     b = np.where(rigid, rows.coef[:, 1], 0.0)
@@ -136,7 +148,9 @@ def constraint_values(cm, q, law_val):
     linear = np.sum(np.where(rows.dofs >= 0, rows.coef, 0.0) * qd, axis=-1)
     rx, ry = _angle_terms(rows, q)
     rigid = qd[..., 1] - qd[..., 0] - np.where(rows.kind == KIND_RIGID_X, rx, ry)
-    return np.where(lin, linear, rigid) - rows.c0 - drive_terms(rows, law_val)
+    prism = rx * (qd[..., 2] - qd[..., 0]) + ry * (qd[..., 3] - qd[..., 1])
+    val = np.where(lin, linear, np.where(rows.kind == KIND_PRISMATIC, prism, rigid))
+    return val - rows.c0 - drive_terms(rows, law_val)
 
 
 def jacobian_entries(cm, q):
@@ -146,11 +160,21 @@ def jacobian_entries(cm, q):
     rows = _rows(cm)
     q = np.asarray(q, float)
     lin = rows.kind == KIND_LINEAR
-    base = np.where(lin[:, None], rows.coef, np.array([-1.0, 1.0, 0.0, 0.0]))
+    prism = rows.kind == KIND_PRISMATIC
+    link = np.zeros(rows.dofs.shape[1])
+    link[:2] = -1.0, 1.0
+    base = np.where(lin[:, None], rows.coef, link)
     rx, ry = _angle_terms(rows, q)
     dphi = np.where(rows.kind == KIND_RIGID_X, ry, -rx)             # dPhi/dphi_i, (..., nc)
     vals = np.broadcast_to(base, q.shape[:-1] + base.shape).copy()
     vals[..., 2] = np.where(lin, vals[..., 2], dphi)
+    if np.any(prism):
+        # (-e, e, e'.d), e = (rx, ry), e' = (-ry, rx), d = x_b - x_a
+        d = np.where(rows.dofs >= 0, rows.dofs, 0)
+        qd = q[..., d]
+        dx, dy = qd[..., 2] - qd[..., 0], qd[..., 3] - qd[..., 1]
+        for k, v in enumerate((-rx, -ry, rx, ry, -ry * dx + rx * dy)):
+            vals[..., k] = np.where(prism, v, vals[..., k])
     valid = rows.dofs >= 0
     r_idx, k_idx = np.nonzero(valid)
     return r_idx, rows.dofs[r_idx, k_idx], vals[..., r_idx, k_idx]
@@ -183,7 +207,16 @@ def acceleration_rhs(cm, q, qd, law_acc):
     q = np.asarray(q, float)
     qd = np.asarray(qd, float)
     rigid = rows.kind != KIND_LINEAR
+    prism = rows.kind == KIND_PRISMATIC
     rx, ry = _angle_terms(rows, q)
-    w = qd[..., np.where(rigid, rows.dofs[:, 2], 0)]
+    col = np.where(prism, 4, 2)
+    w = qd[..., np.where(rigid, rows.dofs[np.arange(rows.nc), col], 0)]
     quad = np.where(rows.kind == KIND_RIGID_X, rx, ry) * w * w
+    if np.any(prism):
+        # qd^T Phi_qq qd = -e.d w^2 + 2 w e'.(v_b - v_a)
+        d = np.where(rows.dofs >= 0, rows.dofs, 0)
+        qv, vv = q[..., d], qd[..., d]
+        ed = rx * (qv[..., 2] - qv[..., 0]) + ry * (qv[..., 3] - qv[..., 1])
+        epv = -ry * (vv[..., 2] - vv[..., 0]) + rx * (vv[..., 3] - vv[..., 1])
+        quad = np.where(prism, -ed * w * w + 2.0 * w * epv, quad)
     return np.where(rigid, -quad, 0.0) + drive_terms(rows, law_acc)

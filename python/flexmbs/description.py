@@ -34,13 +34,15 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 __all__ = ["Description", "Law", "Beam", "Rigid", "PointMass", "Joint", "Drive", "Load",
            "SpringDamper", "DesignVariable", "Deviation", "Mass", "Stress", "Torque", "Reaction",
            "Constraint",
-           "TimeSettings", "Section", "MaterialSpec", "Term", "PointRef"]
+           "TimeSettings", "Section", "MaterialSpec", "Term", "PointRef", "GROUND"]
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 Name = Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z_][A-Za-z0-9_.\-]*$")]
 Pair = Annotated[list[Finite], Field(min_length=2, max_length=2)]
+#: the name that stands for the ground in a prismatic joint's bodies and a deviation's frame
+GROUND = "ground"
 #: a section dimension: a number (m), a design variable's name, or one of them per element
 Dimension = Union[Positive, Name, list[Union[Positive, Name]]]
 
@@ -218,8 +220,11 @@ class Joint(_Strict):
       weld    two bodies share the point and keep their relative rotation
       slider  body's point moves on the ground line through the point along `axis`; the
               body does not rotate (a prismatic joint on the ground)
+      prismatic  bodies = [a, b]: b's point slides along the line through the point with
+              direction `axis` (in the initial configuration) fixed in body a, and b keeps
+              its rotation relative to a; a = "ground" (or b = "ground") is a slider
     """
-    type: Literal["pin", "clamp", "hinge", "weld", "slider"]
+    type: Literal["pin", "clamp", "hinge", "weld", "slider", "prismatic"]
     at: Name
     body: Name | None = None
     bodies: Annotated[list[Name], Field(min_length=2, max_length=2)] | None = None
@@ -228,7 +233,7 @@ class Joint(_Strict):
 
     @model_validator(mode="after")
     def _who(self):
-        two = self.type in ("hinge", "weld")
+        two = self.type in ("hinge", "weld", "prismatic")
         if two and self.bodies is None:
             raise ValueError(f"joint type {self.type!r} needs bodies = [a, b]")
         if not two and self.body is None:
@@ -236,10 +241,17 @@ class Joint(_Strict):
         if two and self.body is not None or not two and self.bodies is not None:
             raise ValueError(f"joint type {self.type!r} takes "
                              f"{'bodies' if two else 'body'}, not {'body' if two else 'bodies'}")
-        if self.type == "slider":
+        if self.type in ("slider", "prismatic"):
             if self.axis is None or math.hypot(*self.axis) == 0.0:
-                raise ValueError("joint type 'slider' needs a non-zero axis = [ax, ay]")
-        elif self.axis is not None:
+                raise ValueError(f"joint type {self.type!r} needs a non-zero axis = [ax, ay], "
+                                 f"got axis = {self.axis}")
+        if self.type == "prismatic":
+            a, b = self.bodies
+            if a == b:
+                raise ValueError(f"joint type 'prismatic': bodies = {self.bodies} names body "
+                                 f"{a!r} twice; give two different bodies (or \"ground\" and a "
+                                 f"body)")
+        if self.type not in ("slider", "prismatic") and self.axis is not None:
             raise ValueError(f"joint type {self.type!r} takes no axis")
         return self
 
@@ -378,7 +390,8 @@ class Reaction(_Strict):
     """The reaction force (N) of the joint named `joint` over time: the force the joint exerts
     on the node of its (first) body at its point, in the ground frame, component `x`, `y` or
     `magnitude` (of a pin, hinge, clamp and weld: both components; of a slider: the normal
-    force, along the normal of its axis)."""
+    force, along the normal of its axis; of a prismatic joint between two bodies: only the
+    magnitude of its normal force, whose direction turns with the first body)."""
     name: Name
     type: Literal["reaction"]
     joint: Name
@@ -467,6 +480,9 @@ class Description(_Strict):
             return seen
         bodies = {b.name: b for b in self.bodies}
         unique("bodies", [b.name for b in self.bodies])
+        if GROUND in bodies:
+            raise ValueError(f"body name {GROUND!r} is reserved for the ground (joints and "
+                             f"frames name it); rename the body")
         dvars = unique("design variables", [v.name for v in self.design])
         responses = unique("responses", [r.name for r in self.responses])
         joints = unique("joints", [j.name for j in self.joints if j.name is not None])
@@ -519,6 +535,9 @@ class Description(_Strict):
         for k, j in enumerate(self.joints):
             where = f"joint {j.name or k + 1} ({j.type})"
             for b in (j.bodies or [j.body]):
+                if j.type == "prismatic" and b == GROUND:
+                    point(where, j.at)
+                    continue
                 body_point(where, b, j.at)
         for k, d in enumerate(self.drives):
             where = f"drive {d.name or k + 1}"
@@ -551,6 +570,12 @@ class Description(_Strict):
                 if r.joint not in joints:
                     raise ValueError(f"{where}: unknown joint {r.joint!r} (named joints: "
                                      f"{', '.join(sorted(joints)) or 'none'})")
+                j = next(j for j in self.joints if j.name == r.joint)
+                if j.type == "prismatic" and GROUND not in j.bodies and r.component != "magnitude":
+                    raise ValueError(f"{where}: component = {r.component!r} of the reaction of "
+                                     f"prismatic joint {r.joint!r} between two bodies is not "
+                                     f"available (its normal turns with body {j.bodies[0]!r}); "
+                                     f"use component = 'magnitude' (the normal force)")
             else:
                 for b in (r.bodies or []):
                     if b not in bodies or not isinstance(bodies[b], Beam):

@@ -18,7 +18,8 @@ import warnings
 
 import numpy as np
 
-from flexmbs.description import (Beam, Description, PointMass, Rigid, Section, body_points)
+from flexmbs.description import (GROUND, Beam, Description, PointMass, Rigid, Section,
+                                 body_points)
 from flexmbs.errors import ModelError
 from flexmbs.laws import TimeLaw
 from flexmbs.model import Model
@@ -218,6 +219,15 @@ class Mechanism:
                     m.clamp(n)
                 else:
                     m.slider(n, j.axis)
+            elif j.type == "prismatic":
+                if GROUND in j.bodies:              # on the ground: a slider
+                    other = j.bodies[1] if j.bodies[0] == GROUND else j.bodies[0]
+                    m.slider(node[(other, j.at)], j.axis)
+                else:
+                    a, b = (node[(bb, j.at)] for bb in j.bodies)
+                    if a == b:
+                        raise ModelError(f"joint {j.name or k + 1}: bodies {j.bodies} share one node")
+                    m.prismatic(a, b, j.axis)
             else:
                 a, b = (node[(bb, j.at)] for bb in j.bodies)
                 if a == b:

@@ -32,8 +32,8 @@ from flexmbs.sections import Material, Section, real_number, section_properties
 
 __all__ = ["Model", "Body", "CompiledModel"]
 
-CON_LINEAR, CON_RIGID_X, CON_RIGID_Y = 1, 2, 3
-MAX_EDOF, MAX_CDOF = 9, 4
+CON_LINEAR, CON_RIGID_X, CON_RIGID_Y, CON_PRISMATIC = 1, 2, 3, 4
+MAX_EDOF, MAX_CDOF = 9, 5
 
 
 @dataclass
@@ -371,7 +371,8 @@ class Model:
         direction `axis` (any length). Two linear rows: n . (x - point) = 0 with n the unit
         normal of the axis, and phi = its reference value. The node must lie on the line in
         the reference configuration. Combine with `drive_translation` to prescribe the
-        motion along the line, or leave it free (a slider block).
+        motion along the line, or leave it free (a slider block). For a line fixed in another
+        body, use `prismatic`.
         """
         node = self._check_node(node, "slider")
         ax = self._axis(axis, "slider")
@@ -388,6 +389,45 @@ class Model:
                   label=f"slider node {node} normal")
         self._row(CON_LINEAR, [3 * node + 2], [1.0], self._nodes[node][2],
                   label=f"slider node {node} phi")
+
+    def prismatic(self, node_a, node_b, axis, point=None):
+        """A prismatic joint between two bodies: `node_b` slides along an axis fixed in the
+        frame of `node_a` (its body), and keeps its rotation relative to `node_a`.
+
+        `axis` (any length) is the direction in the reference configuration; the line passes
+        through `point` (default: node b's reference position). Two rows:
+
+        - n . (x_b - x_a) = c0, with n = R(phi_a - phi_a0) n0 the unit normal of the axis
+          turning with node a and c0 = n0 . (point - x_a0) (0 when node b starts at node a):
+          a nonlinear row (kind CON_PRISMATIC, fortran/constraints.f90);
+        - phi_b - phi_a = its reference value (linear).
+
+        Node b must lie on the line in the reference configuration. For a line fixed in the
+        ground use `slider`.
+        """
+        a = self._check_node(node_a, "prismatic node_a")
+        b = self._check_node(node_b, "prismatic node_b")
+        if a == b:
+            raise ModelError(f"prismatic: node_a and node_b are both node {a}; give the nodes "
+                             "of two different bodies")
+        ax = self._axis(axis, "prismatic")
+        pt = self._line_point(b, point, "prismatic")
+        nrm = np.array([-ax[1], ax[0]])
+        xa = np.array(self._nodes[a][:2])
+        xb = np.array(self._nodes[b][:2])
+        off = float(nrm @ (xb - pt))
+        scale = max(1.0, max(abs(v) for n in self._nodes for v in n[:2]))
+        if abs(off) > 1e-9 * scale:
+            raise ModelError(f"prismatic: node {b} at ({xb[0]:.6g}, {xb[1]:.6g}) is {abs(off):.3g} m "
+                             f"off the line through point=({pt[0]:.6g}, {pt[1]:.6g}) along "
+                             f"axis=({ax[0]:.6g}, {ax[1]:.6g}); node_b must lie on the line")
+        pa, pb = self._nodes[a][2], self._nodes[b][2]
+        c, s = math.cos(pa), math.sin(pa)
+        n0 = (c * nrm[0] + s * nrm[1], -s * nrm[0] + c * nrm[1])     # R(-phi_a0) n
+        self._row(CON_PRISMATIC, [3 * a, 3 * a + 1, 3 * b, 3 * b + 1, 3 * a + 2], n0,
+                  float(nrm @ (pt - xa)), label=f"prismatic {a}-{b} normal")
+        self._row(CON_LINEAR, [3 * b + 2, 3 * a + 2], [1.0, -1.0], pb - pa,
+                  label=f"prismatic {a}-{b} angle")
 
     def drive_translation(self, node, law, axis, point=None):
         """A linear motor: prescribe the position of `node` along `axis`.
@@ -604,7 +644,7 @@ class Model:
         rows.append(np.arange(ndof))
         cols.append(np.arange(ndof))
         # constraints
-        cd = cm.c_dofs.astype(np.int64) - 1                   # (4, nca)
+        cd = cm.c_dofs.astype(np.int64) - 1                   # (MAX_CDOF, nca)
         cvalid = cd >= 0
         cd0 = np.where(cvalid, cd, 0)
         rr = ndof + np.arange(nca)[None, :].repeat(MAX_CDOF, 0)

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from flexmbs.casefile import description_from_dict, read_description
-from flexmbs.description import Deviation, Description, Mass, Reaction, Stress, Torque
+from flexmbs.description import GROUND, Deviation, Description, Mass, Reaction, Stress, Torque
 from flexmbs.errors import CaseError, ModelError
 from flexmbs.mechanism import Mechanism
 from flexmbs.responses.aggregate import aggregate
@@ -243,7 +243,12 @@ class Problem:
         """Reaction of a joint on its first body's node, ground frame (see Reaction)."""
         m = self.mechanism.model
         dmu = result.dmu if gradient else None
-        if joint.type == "slider":
+        if joint.type == "prismatic" and GROUND not in joint.bodies:
+            # row 0: n(phi_a) . (x_b - x_a) = c0: the normal force F (F = -mu, forces.py) on
+            # b's node, -F n on a's (n turns with a: only the magnitude, description.Reaction)
+            f, df = constraint_force(m, result, rows[0], dmu)
+            return np.abs(f), None if df is None else np.sign(f)[:, None] * df
+        if joint.type in ("slider", "prismatic"):
             # row 0: n . x = c, so the force on the node is F n (F = -mu, forces.py)
             f, df = constraint_force(m, result, rows[0], dmu)
             row = m._rows[rows[0]]

@@ -165,13 +165,14 @@ def estimate_memory(*, n, ndof, nc, nel, nt, nout, solver, nlaw=0, nv=0, nsens=0
     p["time grid and laws"] = 2 * f8 * nt + 4 * f8 * nlaw * nt
     # model arrays: compiled arrays in Python (~120 B/element), value maps (81 int32 per element
     # in Python and in the core), element mass matrices and strains in the core (3 x 81 + 6 doubles)
-    p["model arrays"] = nela * (120 + 2 * 4 * 81 + f8 * (3 * 81 + 6)) + nca * (2 * 4 * 24 + 100) \
+    p["model arrays"] = nela * (120 + 2 * 4 * 81 + f8 * (3 * 81 + 6)) + nca * (2 * 4 * 35 + 100) \
         + ndof * 8 * 8
     if solver == "dense":
         # values n^2 (core) and LU factors n^2 (core)
         p["dense matrix and LU factors"] = 2 * f8 * n * n + 4.0 * n
     else:
-        nnz = 81 * nela + ndof + 24 * nca     # upper bound of the stored values
+        # upper bound of the stored values (a row: 2 x 5 coupling and 5 x 5 Hessian entries)
+        nnz = 81 * nela + ndof + 35 * nca
         # pattern build in Python (int64 row/col/key arrays and sorts, transient), CSC pattern,
         # values, and the KLU factors (fill of a banded beam matrix: a few times nnz)
         p["sparse matrix, pattern and KLU factors"] = nnz * (6 * 8 + 4 + f8) + 4 * nnz * (f8 + 4)

@@ -146,8 +146,9 @@ def chains(description, body, point):
         enter(b, p, {b}, [])
     if not found:
         raise CaseError(f"weakly coupled method: no chain of joints (pin/clamp to the ground, "
-                        f"hinges, welds) reaches point {point!r} of body {body!r}; a slider does "
-                        "not fix a point along its axis, so it cannot start a chain")
+                        f"hinges, welds) reaches point {point!r} of body {body!r}; a slider or "
+                        "prismatic joint does not fix a point along its axis, so it cannot "
+                        "start a chain")
     return found
 
 
