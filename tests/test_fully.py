@@ -275,7 +275,8 @@ def test_bad_input(robot):
         optimize_fully(robot, optimizer="newton")
     with pytest.raises(ModelError, match=r"x0: p1 = 10.0 lies outside its bounds \[20, 60\]"):
         optimize_fully(robot, [10, 50, 50, 50])
-    with pytest.raises(ModelError, match="design must be 4 numbers"):
+    with pytest.raises(ModelError,
+                       match=r"design must be 4 finite numbers \(p1, p2, p3, p4\), got \[50, 50, 50\]"):
         optimize_fully(robot, [50, 50, 50])
     with pytest.raises(TypeError):
         optimize_fully(robot, sensitivity="fd")     # finite differences are not an option
