@@ -6,27 +6,32 @@ import numpy as np
 import pytest
 
 import flexmbs as fx
-from flexmbs.cases import load_case
 from flexmbs.esl import (BodyStiffness, ChordFrame, TangentFrame, equivalent_static_loads,
                          esl_change, local_displacements, solve_static,
                          static_response)
 from flexmbs.checks import taylor_test
 from flexmbs.errors import ModelError
-from flexmbs.optimize.weakly import StaticProblem, component_constraints
+from flexmbs.optimize.weakly import StaticModel
+from flexmbs.problem import Problem
 from flexmbs.simulate import system_matrices
 
 TABLE1_WEAKLY = [39.29, 28.33, 34.94, 25.19]   # paper Table 1, weakly coupled optimum (mm)
+#: the paper's ESL frames of the robot (section 6.3): arm 1 at O, arm 2 at A
+ROBOT_FRAMES = (("arm1", "O"), ("arm2", "A"))
 
 
 @pytest.fixture(scope="module")
 def robot():
-    """The robot (formulation 28) simulated at the paper's Table 1 optimum, with its ESL."""
-    case = load_case("robot_2dof")
-    cr = case.simulate(TABLE1_WEAKLY)
-    model = case.build_model(TABLE1_WEAKLY)
-    frames = [(name, TangentFrame(node)) for name, node in case.esl_bodies]
-    loads = equivalent_static_loads(model, cr.result, frames)
-    return case, cr, model, loads
+    """The robot (cases/robot_2dof.toml) simulated at the paper's Table 1 optimum, its
+    responses (deviations 28 and 30) and its ESL in tangent frames at O and A."""
+    prob = Problem("robot_2dof")
+    res = prob.simulate(TABLE1_WEAKLY, store="all")
+    values = prob.evaluate(TABLE1_WEAKLY, gradient=False).values
+    model = prob.mechanism.set_design(TABLE1_WEAKLY)
+    esl = [(name, prob.mechanism.node[(name, pt)]) for name, pt in ROBOT_FRAMES]
+    frames = [(name, TangentFrame(node)) for name, node in esl]
+    loads = equivalent_static_loads(model, res, frames)
+    return prob, res, values, model, loads, esl
 
 
 def _isolated_stiffness(model, body):
@@ -50,11 +55,11 @@ def test_esl_applied_to_isolated_body_reproduces_local_displacements(robot, fram
     frame), gives back u_n^b at every time step. The body is rebuilt independently in its own
     frame, so this checks the extraction of K_t^b from the global matrix and its rotation to
     the body frame; the only error is round-off (cond(K) ~ 1e8, hence rtol 1e-7)."""
-    case, cr, model, _ = robot
-    for name, node in case.esl_bodies:
+    _, res, _, model, _, esl = robot
+    for name, node in esl:
         b = model.body(name)
         fr = TangentFrame(node) if frame == "tangent" else ChordFrame(b.first, b.last)
-        loads = equivalent_static_loads(model, cr.result, [(name, fr)])[name]
+        loads = equivalent_static_loads(model, res, [(name, fr)])[name]
         K = _isolated_stiffness(model, name)
         free = loads.stiffness.free
         u = np.linalg.solve(K[np.ix_(free, free)], loads.g_eq.T).T
@@ -69,17 +74,15 @@ def test_component_forms_equal_inertial_deviations(robot):
     """With the absolute motors of the calibrated robot (CASES.md) the frames' angles are the
     rigid ones, so eq. (29) from the local displacements equals deviation (28) of the full
     simulation, and eq. (31) equals (30), to round-off (paper 6.2-6.3)."""
-    case, cr, model, loads = robot
+    _, _, values, model, loads, _ = robot
     a1, a2 = model.body("arm1"), model.body("arm2")
     dA = loads["arm1"].node_displacement(a1.last)
     dT = loads["arm2"].node_displacement(a2.last)
-    np.testing.assert_allclose(np.hypot(dA[:, 1], dT[:, 1]), cr.deviation, rtol=0, atol=1e-12)
-    case30 = load_case("robot_2dof_tracking")
-    cr30 = case30.simulate(TABLE1_WEAKLY)
-    frames = [(n, TangentFrame(k)) for n, k in case30.esl_bodies]
-    l30 = equivalent_static_loads(case30.build_model(TABLE1_WEAKLY), cr30.result, frames)
-    w = l30["arm1"].node_displacement(a1.last) + l30["arm2"].node_displacement(a2.last)
-    np.testing.assert_allclose(np.hypot(w[:, 0], w[:, 1]), cr30.deviation, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.hypot(dA[:, 1], dT[:, 1]), values["deviation_28"],
+                               rtol=0, atol=1e-12)
+    w = dA + dT
+    np.testing.assert_allclose(np.hypot(w[:, 0], w[:, 1]), values["deviation_30"],
+                               rtol=0, atol=1e-12)
 
 
 def _stiff_arm(scale):
@@ -151,7 +154,7 @@ def test_local_displacements_of_rigid_motion_vanish():
 
 def test_esl_change_is_relative_load_change(robot):
     """Eq. (25): loads scaled by (1 + s) change by exactly |s| relative to the old ones."""
-    _, _, _, loads = robot
+    loads = robot[4]
     scaled = copy.deepcopy(loads)
     for b in scaled:
         b.g_eq = 1.03 * b.g_eq
@@ -174,15 +177,16 @@ def test_static_displacement_gradient_passes_the_taylor_test(robot):
     Measured: order 2.00; remainders 1e-10 .. 5e-14 m, 50x above the rounding floor
     (1e3 eps max|u| = 1.2e-15 m; the remainder levels off at 3e-16 m, cond(K) ~ 1e8); the
     1e-3 error dominates the remainder below s ~ 2e-3 mm."""
-    case, _, _, loads = robot
+    loads = robot[4]
+    mech = Problem("robot_2dof").mechanism        # its own model: the fixture's keeps its design
     p = np.array([41.0, 30.0, 36.0, 27.0])
     body = loads["arm1"]
-    props = case.build_model(p).element_properties()
-    sol = solve_static(body.stiffness, body.g_eq, props, case.element_property_derivatives(p))
+    props = mech.set_design(p).element_properties().copy()
+    sol = solve_static(body.stiffness, body.g_eq, props, mech.element_property_derivatives(p))
     J = np.transpose(sol.du, (1, 2, 0))                        # (nt, nf, nv)
 
     def u_of(q):
-        u = solve_static(body.stiffness, body.g_eq, case.build_model(q).element_properties()).u
+        u = solve_static(body.stiffness, body.g_eq, mech.set_design(q).element_properties()).u
         return {"u": u, "u perturbed": u}
 
     rng = np.random.default_rng(5)
@@ -198,65 +202,61 @@ def test_static_displacement_gradient_passes_the_taylor_test(robot):
     # the adjoint form used by the optimizer gives the same selected coordinates
     cols = [body.stiffness.nfree - 3, body.stiffness.nfree - 2]
     u, du = static_response(body.stiffness, body.g_eq, props, cols,
-                            case.element_property_derivatives(p))
+                            mech.element_property_derivatives(p))
     np.testing.assert_allclose(u, sol.u[:, cols], rtol=0, atol=1e-9 * np.abs(sol.u).max())
     np.testing.assert_allclose(du, sol.du[:, :, cols], rtol=0, atol=1e-9 * np.abs(sol.du).max())
 
 
-@pytest.mark.parametrize("name,t_end,step", [("robot_2dof", 0.65, 2.0 ** -6),
-                                             ("robot_2dof_tracking", 0.65, 2.0 ** -6),
-                                             ("fourbar", 0.1, 2.0 ** -4)])
-def test_static_constraint_gradients_pass_the_taylor_test(name, t_end, step):
-    """Gradients of the squared component deviations (29), (31), (34)-(35) of problem (23),
-    Taylor test along each design variable and a random direction: the remainder (max over
-    constraints and time steps) is second order (> 1.8) over 5 halvings from `step` mm, and
-    order < 1.3 with a 1e-3 error in one component. Measured: order 2.00 down to s ~ 2^-12 mm
-    (robots) / 2^-12 (four-bar), where the remainders level off at the noise of the static
-    solves (~1e-19 m^2 robots, ~1e-21 m^2 four-bar; the smallest remainders used are >= 80x
-    above it); the 1e-3 error dominates below s ~ 2^-8 mm (robots), 2^-4 (four-bar)."""
-    case = load_case(name, t_end=t_end)
-    p0 = np.asarray(case.start_mm, float) * 0.85
-    cr = case.simulate(p0)
-    model = case.build_model(p0)
-    frames, ends = [], {}
-    for body, node in case.esl_bodies:
-        b = model.body(body)
-        frames.append((body, TangentFrame(node)))
-        ends[body] = b.last if node == b.first else b.first
-    loads = equivalent_static_loads(model, cr.result, frames)
-    prob = StaticProblem(case, loads, component_constraints(case.formulation, [f for f, _ in frames]),
-                         ends, case.limit_m)
+@pytest.mark.parametrize("name,response,t_end,step", [
+    ("robot_2dof", "deviation_28", 0.65, 2.0 ** -6),
+    ("robot_2dof_tracking", "deviation_30", 0.65, 2.0 ** -6),
+    ("fourbar", "deviation_A", 0.1, 2.0 ** -4)])
+def test_static_deviation_gradients_pass_the_taylor_test(name, response, t_end, step):
+    """Gradients of the static component deviations (29), (31), (34)-(35) of problem (23)
+    (flexmbs.optimize.weakly.StaticModel, ESL of one simulation at 0.85 x the start), Taylor
+    test along each design variable and a random direction: the remainder (max over chain
+    variants and time steps) is second order (> 1.8) over 5 halvings from `step` mm, and
+    order < 1.3 with a 1e-3 error in one component. At the design of the loads the static
+    model returns the simulated deviation (eq. 19): (29) = (28), (31) = (30), and one of the
+    four-bar's two chains, (34) through the crank (its frame angle is the motor's, its origin
+    the fixed pivot O), = (33), to 1e-12 m."""
+    prob = Problem(name, overrides={"time.t_end": t_end})
+    p0 = prob.start * 0.85
+    res = prob.simulate(p0, store="all")
+    dyn = prob.evaluate(p0, gradient=False).values[response]
+    static = StaticModel(prob)
+    model = prob.mechanism.set_design(p0)
+    static.set_loads(equivalent_static_loads(model, res, static.frames,
+                                             stiffness=static.stiffness))
     p = p0 * np.linspace(0.9, 1.1, p0.size)
-    val, grad = prob.squared_deviations(p, gradient=True)       # (ncon, nt), (ncon, nt, nv)
+    values, grads = static.responses_at(p, gradient=True)
+    val, grad = values[response], grads[response]                # (nvar, nt), (nvar, nt, nv)
 
     def fun(q):
-        v = prob.squared_deviations(q)[0]
-        return {"dl2": v, "dl2 perturbed": v}
+        v = static.responses_at(q, gradient=False)[0][response]
+        return {"dl": v, "dl perturbed": v}
 
     rng = np.random.default_rng(3)
     dirs = list(np.eye(p.size)) + [rng.normal(size=p.size)]
     for d in dirs:
         d = d / np.linalg.norm(d)
-        jac = {"dl2": grad, "dl2 perturbed": _perturbed(grad, int(np.argmax(np.abs(d))))}
+        jac = {"dl": grad, "dl perturbed": _perturbed(grad, int(np.argmax(np.abs(d))))}
         chk = taylor_test(fun, p, jac, d, step=step, halvings=5,
-                          value={"dl2": val, "dl2 perturbed": val})
-        assert chk["dl2"].ok, chk["dl2"].table()
-        assert not chk["dl2 perturbed"].ok and chk["dl2 perturbed"].order < 1.3, \
-            chk["dl2 perturbed"].table()
-    # at the design of the loads the static model returns the simulated deviation (eq. 19);
-    # the first component constraint equals the case's deviation: (29) = (28), (31) = (30),
-    # (34) = (33) (the crank's frame angle is the motor's, its origin the fixed pivot O)
-    val0, _ = prob.squared_deviations(p0)
-    np.testing.assert_allclose(np.sqrt(val0[0]), cr.deviation, rtol=0, atol=1e-12)
+                          value={"dl": val, "dl perturbed": val})
+        assert chk["dl"].ok, chk["dl"].table()
+        assert not chk["dl perturbed"].ok and chk["dl perturbed"].order < 1.3, \
+            chk["dl perturbed"].table()
+    val0 = static.responses_at(p0, gradient=False)[0][response]
+    assert min(np.abs(v - dyn).max() for v in val0) < 1e-12
 
 
 def test_bad_input_errors(robot):
     """Clear errors for a frame node outside the body and for a rigid/unknown body."""
-    case, cr, model, _ = robot
+    model, res = robot[3], robot[1]
     with pytest.raises(ModelError, match="not a node of the body"):
         BodyStiffness(model, "arm1", TangentFrame(model.body("arm2").last))
     with pytest.raises(ModelError, match="unknown body"):
-        equivalent_static_loads(model, cr.result, [("arm3", "tangent")])
+        equivalent_static_loads(model, res, [("arm3", "tangent")])
     store = fx.simulate(model, 0.01, start="static", store=[model.body("arm1")])
     with pytest.raises(ModelError, match="arm2"):
         equivalent_static_loads(model, store, [("arm2", "tangent")])
