@@ -51,7 +51,7 @@ def _report(table, method, start, res, paper):
           f"mass {res['mass_kg']:.4f} kg (paper {paper.get('mass')}), "
           f"iterations {res['iterations']} (paper {paper.get('iter')}), "
           f"inner iterations {res['inner_iterations']} (paper {paper.get('inner_iter')}), "
-          f"p = {fmt(res['design_mm'])} (paper {fmt(paper.get('p') or [])}) mm; "
+          f"p = {fmt(res['design'])} (paper {fmt(paper.get('p') or [])}) mm; "
           f"{'converged' if res['converged'] else 'NOT converged'}: {res['reason']}; "
           f"{res['wall_time_s']:.1f} s")
 
@@ -64,7 +64,7 @@ def _check_row(optimized, table, method, start=None, mass_tol=0.01, design_tol=0
     assert res["converged"], res["reason"]
     assert res["mass_kg"] == pytest.approx(paper["mass"], rel=mass_tol)
     if design_tol is not None:
-        np.testing.assert_allclose(res["design_mm"], paper["p"], rtol=design_tol)
+        np.testing.assert_allclose(res["design"], paper["p"], rtol=design_tol)
     return res
 
 
@@ -151,8 +151,8 @@ def test_table7_finding(optimized):
     """Paper 8.2: the weakly coupled method is insensitive to the start (its four designs agree
     within 1 %; the paper's spread 0.3 %), the fully coupled one is not (its four designs differ
     by more; the paper's spread 13 %, p3 from 33.29 to 38.07 mm)."""
-    weak = [optimized(_run(7, "weakly", s))["design_mm"] for s in STARTS]
-    full = [optimized(_run(7, "fully", s))["design_mm"] for s in STARTS]
+    weak = [optimized(_run(7, "weakly", s))["design"] for s in STARTS]
+    full = [optimized(_run(7, "fully", s))["design"] for s in STARTS]
     sw, sf = design_spread(weak), design_spread(full)
     print(f"\nTable 7 spread of the designs over the four starts: weakly {100 * sw:.2f} % "
           f"(paper 0.32 %), fully {100 * sf:.2f} % (paper 13.4 %)")
@@ -235,7 +235,7 @@ def test_table4_fully_removes_links_2_and_3(optimized):
     f = optimized(_run(4, "fully"))
     _report(4, "fully", _F250, f, paper_row(4, "fully", _F250, _PAPER))
     assert f["converged"], f["reason"]
-    assert np.all(np.asarray(f["design_mm"][1:]) <= 15.0 * 1.01)
+    assert np.all(np.asarray(f["design"][1:]) <= 15.0 * 1.01)
     assert f["max_deviation_m"] == pytest.approx(1e-3, rel=0.01)
 
 
@@ -248,7 +248,7 @@ def test_table4_weakly_keeps_links_2_and_3(optimized):
     w = optimized(_run(4, "weakly"))
     f = optimized(_run(4, "fully"))
     _report(4, "weakly", _F250, w, paper_row(4, "weakly", _F250, _PAPER))
-    assert np.all(np.asarray(w["design_mm"][1:]) >= 15.0 * 1.1)
+    assert np.all(np.asarray(w["design"][1:]) >= 15.0 * 1.1)
     assert w["mass_kg"] > f["mass_kg"]
 
 

@@ -2,7 +2,7 @@
 mechanism; `Problem.evaluate(x)` gives every value and its gradient for a design.
 
 >>> from flexmbs.problem import Problem
->>> prob = Problem("cases/general/fourbar.toml")             # or a Description, or a dict
+>>> prob = Problem("fourbar")              # cases/fourbar.toml; or a path, a dict, a Description
 >>> ev = prob.evaluate([69.85, 87.61, 37.22])                 # Table 3, weakly coupled design
 >>> round(ev.values["mass"], 2), round(ev.values["deviation_A"].max() * 1e3, 2)   # kg, mm
 (20.7, 0.98)
