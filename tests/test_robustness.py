@@ -19,7 +19,7 @@ import pytest
 from hypothesis import example, given, settings, strategies as st
 
 import flexmbs as fx
-from flexmbs.laws import planar_2r_inverse, robot_joint_laws, robot_tip_path
+from robot_kinematics import planar_2r_inverse, robot_joint_laws, robot_tip_path
 from flexmbs.simulate import system_matrices
 from flexmbs.validity import ValidityLimits
 

@@ -15,7 +15,7 @@ from scipy.optimize import brentq
 import flexmbs as fx
 from flexmbs.checks import check_iteration_matrix, check_tangent, generalized_alpha_beta_prime
 from flexmbs.errors import ModelError, SimulationError
-from flexmbs.laws import planar_2r_inverse, robot_joint_laws, robot_tip_path
+from robot_kinematics import planar_2r_inverse, robot_joint_laws, robot_tip_path
 from flexmbs.simulate import system_matrices
 from flexmbs.validity import ValidityLimits
 
