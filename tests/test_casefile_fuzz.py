@@ -1,15 +1,17 @@
 """Fuzzing of the case files (issue 14): only documented errors come out of a damaged case file.
 
 For every shipped case file (cases/*.toml) hypothesis draws a few mutations -- a key or a
-whole table deleted, a value's type changed (number -> string, list, bool, table), a value
-replaced by a negative, zero, NaN, infinite or huge number, an unknown key added -- writes the
-result to a temporary TOML file and loads it with `load_case(path)`. When loading succeeds the
-model is built for the start design and, if small (up to CHEAP_DOFS coordinates), simulated for
-three time steps.
+whole table or an item of an array of tables ([[bodies]], [[design]], ...) deleted, a value's
+type changed (number -> string, list, bool, table), a value replaced by a negative, zero, NaN,
+infinite or huge number, an unknown key added -- writes the result to a temporary TOML file and
+reads it with `flexmbs.casefile.read_description(path)`. When reading succeeds the Problem
+(mechanism, rigid reference) is built and, if small (up to CHEAP_DOFS coordinates), evaluated
+at its start design (gradient=False). The unmutated file's horizon is cut to three time steps
+first (time.t_end = 3 h), so that an evaluation is three steps unless a mutation changes it.
 
-What is checked (the contract of flexmbs.errors and of `load_case`'s docstring): loading either
-succeeds or raises CaseError whose message names the file; building and the short simulation
-either succeed or raise a FlexmbsError subclass. Never KeyError, TypeError, AttributeError,
+What is checked (the contract of flexmbs.errors and of docs/case-format.md): reading either
+succeeds or raises CaseError whose message names the file; building the Problem and the short
+evaluation either succeed or raise a FlexmbsError subclass. Never KeyError, TypeError, AttributeError,
 IndexError, ZeroDivisionError, OverflowError or a raw ValueError/MemoryError, and no hang (each
 example has a deadline). The examples are derandomized so that CI is reproducible; set
 FLEXMBS_FUZZ_EXAMPLES to run more (random) examples locally.
@@ -23,12 +25,14 @@ import os
 import tomllib
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import flexmbs as fx
+from flexmbs.casefile import read_description
 from flexmbs.errors import CaseError, FlexmbsError
+from flexmbs.problem import Problem
 
 CASES_DIR = Path(__file__).resolve().parents[1] / "cases"
 CASE_FILES = sorted(CASES_DIR.glob("*.toml"))
@@ -62,7 +66,8 @@ def _value(v):
 
 
 def to_toml(data):
-    """TOML text of a nested dict: scalars first, then [tables] and [table.sub] tables."""
+    """TOML text of a nested dict: scalars first (arrays of tables as inline arrays of inline
+    tables), then [tables] and [table.sub] tables."""
     lines = [f"{k} = {_value(v)}" for k, v in data.items() if not isinstance(v, dict)]
 
     def table(prefix, tab):
@@ -85,14 +90,31 @@ def to_toml(data):
 
 
 def leaf_paths(data, prefix=()):
-    """Paths (tuples of keys) of every value that is not a table, and of every table."""
+    """Paths (tuples of keys, list indices for the items of an array of tables) of every value
+    that is not a table, of every table and of every item of an array of tables."""
     out = []
-    for k, v in data.items():
+    items = data.items() if isinstance(data, dict) else enumerate(data)
+    for k, v in items:
         p = prefix + (k,)
         out.append(p)
-        if isinstance(v, dict):
+        if isinstance(v, dict) or (isinstance(v, list) and v and all(isinstance(x, dict) for x in v)):
             out += leaf_paths(v, p)
     return out
+
+
+def override_keys(data):
+    """Dotted override keys of every path of leaf_paths, items of arrays named by their name
+    (as `Problem(name, overrides=...)` takes them) or else by their index."""
+    keys = set()
+    for path in leaf_paths(data):
+        node, parts = data, []
+        for k in path:
+            item = node[k]
+            parts.append(item["name"] if isinstance(k, int) and isinstance(item, dict)
+                         and isinstance(item.get("name"), str) else str(k))
+            node = item
+        keys.add(".".join(parts))
+    return keys
 
 
 # --------------------------------------------------------------------------- mutations
@@ -152,9 +174,11 @@ def mutate(data, mutations):
 # --------------------------------------------------------------------------- the test
 @pytest.mark.parametrize("case_file", CASE_FILES, ids=[p.stem for p in CASE_FILES])
 def test_damaged_case_file_gives_only_documented_errors(case_file, tmp_path_factory):
-    """Mutated case files: load_case raises only CaseError naming the file, and building and a
-    three-step simulation of a loaded case raise only FlexmbsError subclasses (issue 14)."""
+    """Mutated case files: read_description raises only CaseError naming the file, and
+    building the Problem and a three-step evaluation raise only FlexmbsError subclasses
+    (issue 14)."""
     original = tomllib.loads(case_file.read_text(encoding="utf-8"))
+    original["time"]["t_end"] = 3 * original["time"]["h"]
     folder = tmp_path_factory.mktemp(case_file.stem)
     counter = {"n": 0, "loaded": 0}
 
@@ -168,15 +192,15 @@ def test_damaged_case_file_gives_only_documented_errors(case_file, tmp_path_fact
         path = folder / f"fuzz_{counter['n']}.toml"
         path.write_text(to_toml(data), encoding="utf-8")
         try:
-            case = fx.load_case(path)
+            description = read_description(path)
         except CaseError as exc:
             assert str(path) in str(exc), f"CaseError does not name the file: {exc}"
             return
         counter["loaded"] += 1
         try:
-            model = case.build_model(case.start_mm)
-            if model.ndof <= CHEAP_DOFS:
-                case.simulate(case.start_mm, t_end=3 * case.h)
+            prob = Problem(description)
+            if prob.mechanism.model.ndof <= CHEAP_DOFS:
+                prob.evaluate(gradient=False)
         except FlexmbsError:
             pass
 
@@ -186,11 +210,30 @@ def test_damaged_case_file_gives_only_documented_errors(case_file, tmp_path_fact
     assert counter["n"] >= min(EXAMPLES, 10)
 
 
+@pytest.mark.xfail(strict=True, raises=np.linalg.LinAlgError,
+                   reason="found by this fuzzer (400 examples): with no time law in the model, "
+                          "constraints.drive_terms (constraints.py:108-111) returns the scalar 0.0, "
+                          "and kinematics.drive_velocities (kinematics.py:570) hands the 0-d rate "
+                          "to numpy.linalg.lstsq, which raises LinAlgError (not a FlexmbsError)")
+def test_case_without_drives_gives_only_documented_errors():
+    """The fuzzer's first finding, kept as a fixed example: the four-bar with its [[drives]]
+    deleted (start = "rest", so the rest start's drive velocity field is computed) either
+    evaluates three steps or raises a FlexmbsError subclass (flexmbs.errors' contract)."""
+    data = tomllib.loads((CASES_DIR / "fourbar.toml").read_text(encoding="utf-8"))
+    del data["drives"]
+    data["time"]["t_end"] = 3 * data["time"]["h"]
+    try:
+        Problem(data).evaluate(gradient=False)
+    except FlexmbsError:
+        pass
+
+
 OVERRIDE_KEYS = st.one_of(
-    st.sampled_from(sorted({".".join(p) for f in CASE_FILES
-                            for p in leaf_paths(tomllib.loads(f.read_text(encoding="utf-8")))}
+    st.sampled_from(sorted(set().union(*(override_keys(tomllib.loads(f.read_text(encoding="utf-8")))
+                                         for f in CASE_FILES))
                            | {p[-1] for f in CASE_FILES
-                              for p in leaf_paths(tomllib.loads(f.read_text(encoding="utf-8")))})),
+                              for p in leaf_paths(tomllib.loads(f.read_text(encoding="utf-8")))
+                              if isinstance(p[-1], str)})),
     st.text(max_size=8))
 
 
@@ -199,11 +242,17 @@ OVERRIDE_KEYS = st.one_of(
 @given(st.sampled_from([p.stem for p in CASE_FILES]),
        st.dictionaries(OVERRIDE_KEYS, ODD_VALUES, min_size=1, max_size=2))
 def test_random_overrides_give_only_case_errors(name, overrides):
-    """load_case(name, **overrides) with random keys (by leaf name, dotted path or nonsense) and
-    values of any type either loads or raises CaseError (issue 14: `--set` and Python overrides)."""
+    """read_description(name, overrides) with random keys (dotted paths with items by name,
+    leaf names, nonsense) and values of any type either reads or raises CaseError (issue 14:
+    `--set` and Python overrides); building the Problem of what was read raises only
+    FlexmbsError subclasses."""
     try:
-        fx.load_case(name, **overrides)
+        description = read_description(name, overrides)
     except CaseError:
+        return
+    try:
+        Problem(description)
+    except FlexmbsError:
         pass
 
 

@@ -1,8 +1,8 @@
 """Assembly and rigid reference by position analysis (flexmbs.kinematics, flexmbs.constraints).
 
 Every reference value is independent of the Newton iteration under test: the four-bar's closed
-form (`cases.fourbar_positions`, loop closure solved by circle intersection), the robot's
-eq. (26) of the paper and its inverse kinematics (`laws.planar_2r_inverse`), and the
+form (tests/fourbar_kinematics.py, loop closure solved by circle intersection), the robot's
+eq. (26) of the paper and its inverse kinematics (tests/robot_kinematics.py), and the
 slider-crank's textbook formula x_B = r cos(theta) + sqrt(l^2 - r^2 sin^2(theta)).
 """
 import math
@@ -11,12 +11,13 @@ import numpy as np
 import pytest
 
 from flexmbs import Circle, Material, Model, ModelError, TimeLaw
-from flexmbs.cases import fourbar_positions, load_case
 from flexmbs.constraints import (acceleration_rhs, constraint_jacobian, constraint_rate,
                                  constraint_values, law_tables)
 from flexmbs.kinematics import (assemble, drive_velocities, free_degrees_of_freedom,
                                 rigid_groups, rigid_reference)
-from flexmbs.laws import planar_2r_inverse, robot_tip_path
+from flexmbs.problem import Problem
+from fourbar_kinematics import fourbar_positions
+from robot_kinematics import planar_2r_inverse, robot_tip_path
 
 MAT = Material(E=7e10, nu=0.3, rho=2700)
 SEC = Circle(0.02)
@@ -58,23 +59,41 @@ def slider_exact(t):
 
 
 # --------------------------------------------------------------------------- four-bar
+class FourBar:
+    """The paper's four-bar (cases/fourbar.toml): its model, time grid, nodes of A and B,
+    and the closed form's parameters (link lengths from the case's points, upper branch)."""
+
+    def __init__(self):
+        prob = Problem("fourbar")
+        mech = prob.mechanism
+        pts = {k: np.array(v) for k, v in prob.description.points.items()}
+        self.model, self.t, self.beams = mech.model, mech.t, mech.beams
+        self.points = {"A": mech.node[("crank", "A")], "B": mech.node[("coupler", "B")]}
+        self.lengths = (np.linalg.norm(pts["A"] - pts["O"]), np.linalg.norm(pts["B"] - pts["A"]),
+                        np.linalg.norm(pts["B"] - pts["C"]))
+        self.ground = float(pts["C"][0])
+        assert pts["O"].tolist() == [0.0, 0.0] and pts["C"][1] == 0.0
+        self.branch = "upper"
+
+    def closed_form(self, th, rate=None, accel=None):
+        return fourbar_positions(th, self.lengths, self.ground, self.branch, rate, accel)
+
+
 @pytest.fixture(scope="module")
 def fourbar():
-    case = load_case("fourbar")
-    model = case.build_model()
-    return case, model, rigid_reference(model, case.t)
+    case = FourBar()
+    return case, case.model, rigid_reference(case.model, case.t)
 
 
 def test_fourbar_matches_closed_form(fourbar):
     """Rigid reference of the paper's four-bar (CASES.md section 7, 1001 steps): positions,
     velocities and accelerations of A and B equal the closed-form loop closure
-    (cases.fourbar_positions) to 1e-10 relative to their largest magnitude."""
+    (tests/fourbar_kinematics.py) to 1e-10 relative to their largest magnitude."""
     case, model, ref = fourbar
-    P = case.parameters
-    l1, l2, l3 = P["link_lengths_m"]
+    l1, l2, l3 = case.lengths
     law = model.laws()[0]
     th, w, al = law.evaluate(case.t)
-    k = fourbar_positions(th, (l1, l2, l3), P["ground_length_m"], P["branch"], w, al)
+    k = case.closed_form(th, w, al)
     A, B = case.points["A"], case.points["B"]
 
     def e(p):
@@ -128,20 +147,29 @@ def test_groups_are_bodies(fourbar):
 
 # --------------------------------------------------------------------------- robot
 def test_robot_tip_follows_eq26():
-    """Robot (CASES.md section 6, 1301 steps): the rigid tip path, velocity and acceleration
-    equal eq. (26) within 1e-10 (relative to the largest value), the joint angles equal
-    planar_2r_inverse, and at t = 0.5 s the tip is at the published (0.71962, 0.71962) m."""
-    case = load_case("robot_2dof")
-    model = case.build_model()
-    t = case.t
-    ref = rigid_reference(model, t)
-    P = case.parameters
-    l1, l2 = P["arm_lengths_m"]
-    t10, t20 = math.radians(P["theta1_0_deg"]), math.radians(P["theta2_0_deg"])
+    """Robot (CASES.md section 6, cases/robot_2dof.toml, 1301 steps): the rigid reference that
+    flexmbs computes by position analysis from the case's [[paths]] (Mechanism.reference):
+    tip path, velocity and acceleration equal eq. (26) within 1e-10 (relative to the largest
+    value), arm 2's angle equals planar_2r_inverse (tests/robot_kinematics.py), and at
+    t = 0.5 s the tip is at the published (0.71962, 0.71962) m. The rigid reference of the
+    flexible model driven by the motor laws it gives (law "reference") follows the same
+    path."""
+    mech = Problem("robot_2dof").mechanism
+    model = mech.model
+    t = mech.t
+    # CASES.md: arms of 0.6 m at 120 deg and -30 deg (absolute) at t = 0; T = 0.5 s, D = 0.5 m
+    l1 = l2 = 0.6
+    t10, t20 = math.radians(120.0), math.radians(-150.0)
     x0 = l1 * math.cos(t10) + l2 * math.cos(t10 + t20)
     y0 = l1 * math.sin(t10) + l2 * math.sin(t10 + t20)
-    path = robot_tip_path(t, x0, y0, P["path_period_s"], P["path_stroke_m"])
-    tip = case.points["tip"]
+    path = robot_tip_path(t, x0, y0, 0.5, 0.5)
+    tip = mech.node[("arm2", "tip")]
+    ref = mech.reference
+    for order, arr in enumerate((ref.q, ref.qd, ref.qdd)):
+        for c in (0, 1):
+            want = path[2 * order + c]
+            assert np.abs(arr[:, 3 * tip + c] - want).max() <= 1e-10 * max(1.0, np.abs(want).max())
+    ref = rigid_reference(model, t)
     for order, arr in enumerate((ref.q, ref.qd, ref.qdd)):
         for c in (0, 1):
             want = path[2 * order + c]
@@ -216,9 +244,8 @@ def test_assemble_from_perturbed_positions(fourbar):
     asm = assemble(model, t, q)
     val, _, _ = law_tables(model, [t])
     assert np.abs(constraint_values(model.compile(), asm.q, val[:, 0])).max() <= 1e-12
-    P = case.parameters
     th = model.laws()[0].evaluate(np.array([t]))[0]
-    k = fourbar_positions(th, P["link_lengths_m"], P["ground_length_m"], P["branch"])
+    k = case.closed_form(th)
     A, B = case.points["A"], case.points["B"]
     assert np.abs(asm.q[3 * A:3 * A + 2] - k["A"][0]).max() <= 1e-10
     assert np.abs(asm.q[3 * B:3 * B + 2] - k["B"][0]).max() <= 1e-10
@@ -260,14 +287,13 @@ def test_assemble_correction_is_nearest():
 def test_redundant_pin_is_harmless():
     """A four-bar loop with its B hinge given twice (consistent redundant rows): the rigid
     reference still matches the closed form (A and B to 1e-10)."""
-    case = load_case("fourbar")
-    model = case.build_model()
-    P = case.parameters
+    case = FourBar()
+    model = case.model
     model.hinge(model.body("coupler").last, model.body("follower").last)
     t = case.t[:201]
     ref = rigid_reference(model, t)
     th = model.laws()[0].evaluate(t)[0]
-    k = fourbar_positions(th, P["link_lengths_m"], P["ground_length_m"], P["branch"])
+    k = case.closed_form(th)
     B = case.points["B"]
     assert np.abs(ref.q[:, 3 * B:3 * B + 2] - k["B"]).max() <= 1e-10
 

@@ -19,9 +19,9 @@ import pytest
 from hypothesis import example, given, settings, strategies as st
 
 import flexmbs as fx
-from flexmbs.laws import planar_2r_inverse, robot_joint_laws, robot_tip_path
 from flexmbs.simulate import system_matrices
 from flexmbs.validity import ValidityLimits
+from robot_kinematics import planar_2r_inverse, robot_joint_laws, robot_tip_path
 
 CONSTRAINT_TOL = 1e-9
 ARM = 0.6

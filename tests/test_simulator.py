@@ -15,9 +15,9 @@ from scipy.optimize import brentq
 import flexmbs as fx
 from flexmbs.checks import check_iteration_matrix, check_tangent, generalized_alpha_beta_prime
 from flexmbs.errors import ModelError, SimulationError
-from flexmbs.laws import planar_2r_inverse, robot_joint_laws, robot_tip_path
 from flexmbs.simulate import system_matrices
 from flexmbs.validity import ValidityLimits
+from robot_kinematics import planar_2r_inverse, robot_joint_laws, robot_tip_path
 
 STEEL = fx.Material(E=210e9, nu=0.3, rho=7800)
 NEWTON_TOL = 1e-10          # simulate()'s default tolerance on max|dq| / qscale
