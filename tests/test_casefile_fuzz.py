@@ -25,7 +25,6 @@ import os
 import tomllib
 from pathlib import Path
 
-import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -210,11 +209,6 @@ def test_damaged_case_file_gives_only_documented_errors(case_file, tmp_path_fact
     assert counter["n"] >= min(EXAMPLES, 10)
 
 
-@pytest.mark.xfail(strict=True, raises=np.linalg.LinAlgError,
-                   reason="found by this fuzzer (400 examples): with no time law in the model, "
-                          "constraints.drive_terms (constraints.py:108-111) returns the scalar 0.0, "
-                          "and kinematics.drive_velocities (kinematics.py:570) hands the 0-d rate "
-                          "to numpy.linalg.lstsq, which raises LinAlgError (not a FlexmbsError)")
 def test_case_without_drives_gives_only_documented_errors():
     """The fuzzer's first finding, kept as a fixed example: the four-bar with its [[drives]]
     deleted (start = "rest", so the rest start's drive velocity field is computed) either

@@ -287,10 +287,6 @@ def test_design_derivative_at_the_maximum_is_consistent():
     assert np.all(ev.gradients["deviation_28"][k] < 0)
 
 
-@pytest.mark.xfail(strict=True, raises=subprocess.CalledProcessError,
-                   reason="branch port: flexmbs/optimize/cli.py:35 imports AGGREGATIONS from "
-                          "optimize.fully, which no longer has it (the command line is being "
-                          "ported): `python -m flexmbs` fails before any command")
 def test_cli_gradient_json_reports_the_library_derivatives():
     """`flexmbs evaluate CASE --design ... --gradient --json` (issue 15) reports the direct
     derivatives of Problem.evaluate (Taylor-tested above): the gradient of each history at its
