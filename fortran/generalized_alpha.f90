@@ -4,8 +4,11 @@
 !!
 !! Also: the static equilibrium that starts a simulation under its loads at
 !! the initial drive positions, the consistent initial velocities and
-!! accelerations (never assumed zero), step cuts on Newton failure, and
-!! optional Jacobian reuse (modified Newton) with a fall-back to full Newton.
+!! accelerations (never assumed zero), step cuts on Newton failure, and three
+!! Newton strategies (ga_settings%newton): full Newton, modified Newton with the
+!! legacy refresh rule, and the automatic strategy (the default from Python): the
+!! iteration matrix is kept across iterations and steps while the contraction
+!! rate is good and refreshed when it is not, with the same stopping tolerance.
 !! Everything a call needs lives in its own variables: no module state.
 module generalized_alpha
     use flexmbs_kinds, only: wp
@@ -21,6 +24,7 @@ module generalized_alpha
     implicit none
     private
     public :: ga_settings, ga_stats, ga_simulate, ga_coefficients
+    public :: NEWTON_FULL, NEWTON_REUSE, NEWTON_AUTO
     public :: GA_OK, GA_NEWTON_FAILED, GA_SINGULAR, GA_STATIC_FAILED, GA_INITIAL_SINGULAR, &
               GA_INCONSISTENT_INITIAL, GA_NONFINITE, GA_BAD_INPUT, GA_LINEAR_SOLVER, GA_NO_MEMORY
     public :: MEM_MATRIX, MEM_DENSE_LU, MEM_SPARSE_LU, MEM_STATE, MEM_SENSITIVITY, MEM_MODEL
@@ -36,6 +40,20 @@ module generalized_alpha
     integer, parameter :: GA_LINEAR_SOLVER = 8        !! linear solver set-up failed
     !> an allocation failed; info = [time, bytes asked for (-1: unknown), 0, MEM_* what]
     integer, parameter :: GA_NO_MEMORY = 9
+
+    ! Newton strategies (ga_settings%newton)
+    integer, parameter :: NEWTON_FULL = 0   !! iteration matrix assembled and factored every iteration
+    !> modified Newton: the factorization is kept while the scaled increment shrinks by
+    !! at least 4x per iteration (the rule of the former reuse_jacobian=True)
+    integer, parameter :: NEWTON_REUSE = 1
+    !> automatic: modified Newton whose factorization is refreshed when the contraction
+    !! rate exceeds auto_rate or a step needs more than auto_iter iterations, and whose
+    !! last increment is accepted only when the contraction bounds the remaining error
+    !! by the increment itself (rate <= 1/2), as full Newton's quadratic convergence does
+    integer, parameter :: NEWTON_AUTO = 2
+    real(wp), parameter :: reuse_rate = 0.25_wp   !! refresh threshold of NEWTON_REUSE
+    real(wp), parameter :: auto_rate = 0.3_wp     !! refresh threshold of NEWTON_AUTO
+    integer, parameter :: auto_iter = 4           !! iterations after which a step refreshes
 
     ! what was being allocated when GA_NO_MEMORY is returned (info(4))
     integer, parameter :: MEM_MATRIX = 1       !! iteration matrix values (nnz) and load vector
@@ -54,7 +72,7 @@ module generalized_alpha
         integer :: max_iter = 20         !! Newton iterations per step
         integer :: max_cuts = 6          !! step halvings before giving up
         integer :: solver = SOLVER_DENSE !! SOLVER_DENSE or SOLVER_KLU
-        logical :: reuse = .false.       !! modified Newton (reuse the factorization)
+        integer :: newton = NEWTON_FULL  !! NEWTON_FULL, NEWTON_REUSE or NEWTON_AUTO
         logical :: static_start = .false.!! start from static equilibrium at t = 0
         real(wp) :: kscale = 0           !! scaling k of eq. (1); <= 0: automatic
         real(wp) :: penalty = 0          !! penalty p of eq. (1); <= 0: automatic (= k)
@@ -68,6 +86,9 @@ module generalized_alpha
         integer :: step_cuts = 0             !! steps that needed cutting
         integer :: static_iterations = 0     !! Newton iterations of the static start
         integer :: steps = 0                 !! grid steps completed
+        !> of the factorizations, those made for the sensitivities (modified Newton: the
+        !! tangent of a step's last iteration, then kept for the next step's iterations)
+        integer :: sensitivity_factorizations = 0
     end type ga_stats
 
     !> Integration state at one instant, with its design derivatives when asked:
@@ -177,12 +198,17 @@ contains
         real(wp), allocatable :: ap_(:, :), qhat(:, :), vhat(:, :), rhs(:, :)
         real(wp) :: alpha_m, alpha_f, gamma, beta, kdyn, pdyn, t, hs, fact_h, ks, ps
         integer :: j, nsub, icut, isub, st, nv, ierr
-        logical :: fact_valid
+        !> fact_valid: a factorization of the step's iteration matrix is held (for step fact_h);
+        !! fact_exact: it was taken in the last Newton iteration of the step just converged,
+        !! i.e. within the Newton tolerance of the converged state, as full Newton's is;
+        !! vals_exact: `vals` holds the iteration matrix of that last iteration
+        logical :: fact_valid, fact_exact, vals_exact, modified
 
         status = GA_OK
         info = 0
         q_out = 0; qd_out = 0; qdd_out = 0; mu_out = 0
-        if (.not. (s%h > 0) .or. s%rho_inf < 0 .or. s%rho_inf > 1 .or. s%nsteps < 0) then
+        if (.not. (s%h > 0) .or. s%rho_inf < 0 .or. s%rho_inf > 1 .or. s%nsteps < 0 .or. &
+            s%newton < NEWTON_FULL .or. s%newton > NEWTON_AUTO) then
             status = GA_BAD_INPUT
             return
         end if
@@ -267,7 +293,10 @@ contains
         if (.not. (kdyn > 0)) kdyn = diagonal_scale(m, x%q, (1 - alpha_m) / (beta * s%h**2 * (1 - alpha_f)), vals)
         pdyn = s%penalty
         if (.not. (pdyn > 0)) pdyn = kdyn
+        modified = s%newton /= NEWTON_FULL
         fact_valid = .false.
+        fact_exact = .false.
+        vals_exact = .false.
         fact_h = 0
         call copy_state(x, xsave)
         do j = 1, s%nsteps
@@ -337,10 +366,10 @@ contains
         subroutine ga_step(tn, hh, stat)
             real(wp), intent(in) :: tn, hh
             integer, intent(out) :: stat
-            real(wp) :: betap, gammap, r(m%n), z(m%n, 1), err, err_prev, phimax, tnew
+            real(wp) :: betap, gammap, r(m%n), z(m%n, 1), err, err_prev, rate, phimax, tnew
             real(wp) :: a_new(m%ndof), a_part(m%ndof), qdd_pred(m%ndof)
             integer :: it, lst
-            logical :: refresh
+            logical :: refresh, fresh, assemble
             betap = (1 - alpha_m) / (beta * hh**2 * (1 - alpha_f))
             gammap = gamma / (beta * hh)
             tnew = tn + hh
@@ -350,7 +379,7 @@ contains
             ! (-25 % iterations on the robot; full Newton gains nothing from it)
             a_part = (alpha_f * x%qdd - alpha_m * x%a) / (1 - alpha_m)
             qdd_pred = x%qdd
-            if (s%reuse .and. x%h_prev > 0) qdd_pred = x%qdd + (hh / x%h_prev) * (x%qdd - x%qdd_prev)
+            if (modified .and. x%h_prev > 0) qdd_pred = x%qdd + (hh / x%h_prev) * (x%qdd - x%qdd_prev)
             a_new = a_part + (1 - alpha_f) / (1 - alpha_m) * qdd_pred
             x%qdd_prev = x%qdd
             x%h_prev = hh
@@ -359,20 +388,32 @@ contains
             x%qdd = qdd_pred
             ! keep the part of a_{n+1} that does not depend on qdd_{n+1} (eq. 3)
             x%a = a_part
-            refresh = .not. s%reuse
+            refresh = .not. modified
+            fact_exact = .false.
+            vals_exact = .false.
             err_prev = huge(1.0_wp)
             stat = GA_NEWTON_FAILED
             do it = 1, s%max_iter
-                call residual(m, x%q, x%qd, x%qdd, x%mu, tnew, fgrav, 1.0_wp, kdyn, pdyn, r, phimax)
+                fresh = refresh .or. .not. fact_valid .or. fact_h /= hh
+                ! the iteration matrix is assembled with the residual, in one pass over the
+                ! elements, when it is factored now, and in modified Newton with
+                ! sensitivities from the second iteration on: the matrix of the last
+                ! iteration, within the tolerance of the converged state, is the one the
+                ! derivative solve needs (sens_step)
+                assemble = fresh .or. (nv > 0 .and. modified .and. it >= 2)
+                if (assemble) then
+                    call residual(m, x%q, x%qd, x%qdd, x%mu, tnew, fgrav, 1.0_wp, kdyn, pdyn, r, &
+                                  phimax, vals=vals, cmat=betap, cc=gammap)
+                else
+                    call residual(m, x%q, x%qd, x%qdd, x%mu, tnew, fgrav, 1.0_wp, kdyn, pdyn, r, phimax)
+                end if
                 stats%residual_evaluations = stats%residual_evaluations + 1
                 if (.not. all(abs(r) <= huge(1.0_wp))) then
                     stat = GA_NONFINITE
                     info = [tnew, huge(1.0_wp), real(it, wp), 0.0_wp]
                     return
                 end if
-                if (refresh .or. .not. fact_valid .or. fact_h /= hh) then
-                    call iteration_matrix(m, x%q, x%qd, x%mu, tnew, betap, 1.0_wp, gammap, kdyn, &
-                                          pdyn, vals)
+                if (fresh) then
                     call ls_factor(ls, vals, lst)
                     if (lst == LS_NO_MEMORY) then
                         fact_valid = .false.
@@ -387,8 +428,8 @@ contains
                     end if
                     fact_valid = .true.
                     fact_h = hh
-                    refresh = .not. s%reuse
                 end if
+                refresh = .not. modified
                 z(:, 1) = -r
                 call ls_solve(ls, z, lst)
                 stats%newton_iterations = stats%newton_iterations + 1
@@ -403,12 +444,24 @@ contains
                 if (m%nc > 0) x%mu = x%mu + kdyn * z(m%ndof + 1:, 1)
                 err = maxval(abs(z(1:m%ndof, 1))) / m%qscale
                 info = [tnew, err, real(it, wp), phimax]
+                ! observed contraction rate of the iteration (0 on the first one)
+                rate = err / err_prev
                 if (err <= s%tol) then
-                    stat = GA_OK
-                    exit
+                    ! automatic: the remaining error is at most rate / (1 - rate) times the
+                    ! last increment; accepted when that is <= the increment (rate <= 1/2),
+                    ! otherwise one more iteration with a fresh matrix
+                    if (s%newton /= NEWTON_AUTO .or. rate <= 0.5_wp) then
+                        stat = GA_OK
+                        fact_exact = fresh
+                        vals_exact = assemble
+                        exit
+                    end if
+                    refresh = .true.
                 end if
                 ! modified Newton: refactor when the contraction is poor
-                if (s%reuse .and. err > 0.25_wp * err_prev) refresh = .true.
+                if (s%newton == NEWTON_REUSE .and. rate > reuse_rate) refresh = .true.
+                if (s%newton == NEWTON_AUTO .and. (rate > auto_rate .or. it + 1 >= auto_iter)) &
+                    refresh = .true.
                 if (err > 1.0e6_wp .or. .not. (err == err)) exit
                 err_prev = err
             end do
@@ -425,23 +478,36 @@ contains
         !! known derivatives of step n, the derivative of the residual gives
         !!   S [q'; lambda'] = [ -dr/dp + beta' M Qhat + C_t (gamma' Qhat - Vhat) ; 0 ],
         !! mu' = k lambda' (k: the scaling of the iteration matrix S, constant over the run),
-        !! with S the iteration matrix of eq. (7) at the converged state: the
-        !! factorization Newton already holds (full Newton: taken within `tol` of
-        !! the solution), or a fresh one in modified Newton.
+        !! with S the iteration matrix of eq. (7) at the converged state, as exact as full
+        !! Newton's: taken in the step's last Newton iteration (within the Newton tolerance
+        !! of the converged state).
+        !!
+        !! Full Newton, or a factorization taken in that iteration: the held factorization,
+        !! one multi-right-hand-side solve. Modified Newton: the matrix assembled with the
+        !! last iteration's residual (ga_step) is factored once, and that factorization
+        !! serves the next step's Newton iterations too (no second factorization there).
+        !! Iterative refinement with the held, older factorization was measured slower
+        !! than this one factorization (each sweep costs a product with S and a solve,
+        !! about a triangular solve each, and the derivatives, unlike the Newton
+        !! corrections, start from O(1): 3 sweeps for 1e-10, benchmarks/newton.py).
         subroutine sens_step(hh, tnew, betap, gammap, stat)
             real(wp), intent(in) :: hh, tnew, betap, gammap
             integer, intent(out) :: stat
             integer :: lst, v
             real(wp) :: cv(m%ndof)
             stat = GA_OK
-            if (s%reuse) then
-                call iteration_matrix(m, x%q, x%qd, x%mu, tnew, betap, 1.0_wp, gammap, kdyn, pdyn, vals)
+            if (modified .and. .not. fact_exact) then
+                if (.not. vals_exact) call iteration_matrix(m, x%q, x%qd, x%mu, tnew, betap, 1.0_wp, &
+                                                            gammap, kdyn, pdyn, vals)
                 call ls_factor(ls, vals, lst)
+                stats%sensitivity_factorizations = stats%sensitivity_factorizations + 1
                 if (lst == LS_NO_MEMORY) then
+                    fact_valid = .false.
                     stat = GA_NO_MEMORY
                     info = [tnew, -1.0_wp, 0.0_wp, real(MEM_SPARSE_LU, wp)]
                     return
                 else if (lst /= LS_OK) then
+                    fact_valid = .false.
                     stat = GA_SINGULAR
                     info = [tnew, 0.0_wp, 0.0_wp, real(lst, wp)]
                     return
