@@ -40,7 +40,7 @@ def measure(repeat, log):
     p = np.array([39.29, 28.33, 34.94, 25.19])
     rows = []
     for reuse in (False, True):
-        opts = dict(reuse_jacobian=reuse)
+        opts = dict(newton="reuse" if reuse else "full")
         t_sim = best_time(lambda: case.simulate(p, **opts), repeat)
         t_dir = best_time(lambda: case_gradients(case, p, method="direct", **opts), repeat)
         t_fd = best_time(lambda: case_gradients(case, p, method="forward", **opts), repeat)
