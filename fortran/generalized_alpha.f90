@@ -547,14 +547,16 @@ contains
         !! Newton's: taken in the step's last Newton iteration (within the Newton tolerance
         !! of the converged state).
         !!
-        !! Full Newton, or a factorization taken in that iteration: the held factorization,
-        !! one multi-right-hand-side solve. Modified Newton: the matrix assembled with the
-        !! last iteration's residual (ga_step) is factored once, and that factorization
-        !! serves the next step's Newton iterations too (no second factorization there).
-        !! Iterative refinement with the held, older factorization was measured slower
-        !! than this one factorization (each sweep costs a product with S and a solve,
-        !! about a triangular solve each, and the derivatives, unlike the Newton
-        !! corrections, start from O(1): 3 sweeps for 1e-10, benchmarks/newton.py).
+        !! Full Newton, and modified Newton with sensitivities, whose iterations from the
+        !! second on are full Newton steps (ga_step): the factorization of the last
+        !! iteration, one multi-right-hand-side solve; in modified Newton it then serves the
+        !! next step's first iteration too. A step that converged in its first, modified,
+        !! iteration: S assembled and factored here, and kept for the next step.
+        !! Iterative refinement of the solve with an older factorization was measured
+        !! slower than one factorization (issue 16, robot with 2 and 32 elements per arm:
+        !! each sweep costs a product with S and a solve, each about a triangular solve,
+        !! and the derivatives, unlike Newton's corrections, start from O(1): 3 sweeps did
+        !! not reach 1e-10 on most steps).
         subroutine sens_step(hh, tnew, betap, gammap, stat)
             real(wp), intent(in) :: hh, tnew, betap, gammap
             integer, intent(out) :: stat
