@@ -154,3 +154,16 @@ def test_reuse_jacobian_is_a_deprecated_alias():
     with pytest.raises(ModelError, match="reuse_jacobian=True .* contradicts newton='full'"):
         fx.simulate(m, 2e-3, 1e-3, reuse_jacobian=True, newton="full")
     assert set(NEWTON_MODES) == {"auto", "full", "reuse"}
+
+
+def test_case_file_newton_key_is_validated():
+    """[time] newton outside 'auto', 'full', 'reuse', or contradicted by the deprecated
+    reuse_jacobian: CaseError naming the key, the value and what is allowed."""
+    from flexmbs.errors import CaseError
+    raw = tomllib.loads((CASES / "robot_2dof.toml").read_text())
+    raw["time"]["newton"] = "fast"
+    with pytest.raises(CaseError, match=r"time\.newton.*'auto', 'full' or 'reuse', got 'fast'"):
+        Problem(raw)
+    raw["time"].update(newton="full", reuse_jacobian=True)
+    with pytest.raises(CaseError, match="time.*reuse_jacobian = true .* contradicts newton = 'full'"):
+        Problem(raw)

@@ -424,6 +424,16 @@ class TimeSettings(_Strict):
     newton: Literal["auto", "full", "reuse"] = "auto"
     reuse_jacobian: bool | None = None      # deprecated: true is newton = "reuse", false "full"
 
+    @model_validator(mode="after")
+    def _newton_alias(self):
+        if self.reuse_jacobian is not None:
+            alias = "reuse" if self.reuse_jacobian else "full"
+            if self.newton not in ("auto", alias):
+                raise ValueError(f"reuse_jacobian = {str(self.reuse_jacobian).lower()} (deprecated: "
+                                 f"newton = {alias!r}) contradicts newton = {self.newton!r}: "
+                                 "give newton alone")
+        return self
+
 
 class CaseInfo(_Strict):
     name: Name = "mechanism"
