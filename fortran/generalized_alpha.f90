@@ -515,7 +515,7 @@ contains
                     if (stat == GA_OK) then
                         fact_exact = fresh
                         vals_exact = assemble
-                        stale = auto_step .and. it >= auto_stale
+                        stale = auto_step .and. it >= auto_stale .and. .not. fresh
                         exit
                     end if
                 end if
