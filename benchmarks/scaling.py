@@ -88,7 +88,7 @@ def _child(cfg):
         for _ in range(cfg["repeats"]):
             c0 = time.process_time()
             res = fx.simulate(m, steps * h, h, start="static", store=[arm.last],
-                              solver=cfg["solver"], reuse_jacobian=cfg["reuse"])
+                              solver=cfg["solver"], newton="reuse" if cfg["reuse"] else "full")
             best = min(best, time.process_time() - c0)
             if best * cfg["repeats"] > 4 * cfg["budget"]:
                 break

@@ -37,8 +37,8 @@ def main(argv=None):
 def measure(repeat, log):
     p = np.array([39.29, 28.33, 34.94, 25.19])
     rows = []
-    for reuse in (False, True):
-        prob = Problem("robot_2dof", overrides={"time.reuse_jacobian": reuse})
+    for mode in ("full", "reuse", "auto"):
+        prob = Problem("robot_2dof", overrides={"time.newton": mode})
 
         def forward_differences():
             base = prob.evaluate(p, gradient=False)
@@ -51,7 +51,7 @@ def measure(repeat, log):
         t_sim = best_time(lambda: prob.evaluate(p, gradient=False), repeat)
         t_dir = best_time(lambda: prob.evaluate(p, gradient=True), repeat)
         t_fd = best_time(forward_differences, repeat)
-        rows.append(("modified" if reuse else "full", t_sim, t_dir, t_fd))
+        rows.append((mode, t_sim, t_dir, t_fd))
     log("robot_2dof, Table 1 design, 1301 steps, 4 design variables (best of %d)" % repeat)
     log(f"{'Newton':>9} {'simulation':>11} {'+direct':>9} {'forward FD':>11} "
           f"{'direct/sim':>11} {'FD/sim':>8} {'FD/direct':>10}")

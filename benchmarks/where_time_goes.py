@@ -92,7 +92,7 @@ def measure(model, tip, solver, reuse, repeats=5, budget=3.0, h=H, t_end=T_END):
             n0 = len(ct.calls)
             c0, w0 = time.process_time(), time.perf_counter()
             res = fx.simulate(model, t_end, h, start="static", store=[tip], solver=solver,
-                              reuse_jacobian=reuse)
+                              newton="reuse" if reuse else "full")
             cpu = time.process_time() - c0
             spent += time.perf_counter() - w0
             core = sum(c for _, c in ct.calls[n0:])
@@ -248,7 +248,7 @@ import flexmbs as fx
 from common import robot_flexmbs
 m, a1, a2 = robot_flexmbs(cfg["nel"])
 run = lambda: fx.simulate(m, cfg["t_end"], cfg["h"], start="static", store=[a2.last],
-                          solver=cfg["solver"], reuse_jacobian=cfg["reuse"])
+                          solver=cfg["solver"], newton="reuse" if cfg["reuse"] else "full")
 run()
 ctl = open(cfg["ctl"], "w"); ack = open(cfg["ack"], "r")
 ctl.write("enable\n"); ctl.flush(); ack.readline()

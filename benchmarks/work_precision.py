@@ -60,7 +60,7 @@ def run_flexmbs(model, tip_node, h, solver, reuse, repeats=3, budget=2.0):
 
     def call():
         return fx.simulate(model, n * h, h, start="static", store=[tip_node], solver=solver,
-                           reuse_jacobian=reuse)
+                           newton="reuse" if reuse else "full")
     res, timing = time_call(call, repeats=repeats, budget=budget)
     return res.t, deviation30(res.t, res.position(tip_node)), timing, res.stats
 

@@ -118,17 +118,25 @@ contains
 
     !> Residual of eq. (1): r_q = cm M qdd + f_int + f_sd - f_ext + Phi_q^T (mu + p Phi),
     !! r_c = k Phi. `cm` = 0 and qd = 0 give the static residual. Returns also max |Phi|.
-    subroutine residual(m, q, qd, qdd, mu, t, fgrav, cm, kscale, pen, r, phimax, lf)
+    !! With `vals` (and `cmat`, `cc`), the iteration matrix of eq. (7) at the same state
+    !! (iteration_matrix with cm = cmat, ck = 1) is assembled in the same pass over the elements.
+    subroutine residual(m, q, qd, qdd, mu, t, fgrav, cm, kscale, pen, r, phimax, lf, vals, cmat, cc)
         type(mbs_model), intent(in) :: m
         real(wp), intent(in) :: q(m%ndof), qd(m%ndof), qdd(m%ndof), mu(m%nc), t, fgrav(m%ndof)
         real(wp), intent(in) :: cm, kscale, pen
         real(wp), intent(in), optional :: lf    !! load factor on f_ext (static load stepping)
         real(wp), intent(out) :: r(m%n)
         real(wp), intent(out) :: phimax
+        real(wp), intent(out), optional :: vals(:)   !! iteration matrix values
+        real(wp), intent(in), optional :: cmat, cc   !! coefficients of M and C_t in the matrix
         real(wp) :: fint(m%ndof), fext(m%ndof), mq(m%ndof)
         real(wp) :: phi, grad(MAX_CDOF), hess(MAX_CDOF, MAX_CDOF)
         integer :: i, a
-        call internal_forces(m, q, fint)
+        if (present(vals)) then
+            call iteration_matrix(m, q, qd, mu, t, cmat, 1.0_wp, cc, kscale, pen, vals, fint)
+        else
+            call internal_forces(m, q, fint)
+        end if
         call external_forces(m, fgrav, t, fext)
         if (present(lf)) fext = lf * fext
         r(1:m%ndof) = fint - fext
@@ -149,7 +157,8 @@ contains
     end subroutine residual
 
     !> Iteration matrix of eq. (7) (see the module header) into `vals`.
-    subroutine iteration_matrix(m, q, qd, mu, t, cm, ck, cc, kscale, pen, vals)
+    !! With `fint_out` (and ck = 1): also the internal forces f_int(q) of the same pass.
+    subroutine iteration_matrix(m, q, qd, mu, t, cm, ck, cc, kscale, pen, vals, fint_out)
         type(mbs_model), intent(in) :: m
         real(wp), intent(in) :: q(m%ndof), qd(m%ndof), mu(m%nc), t
         real(wp), intent(in) :: cm      !! coefficient of M (beta' in dynamics, 0 in statics)
@@ -158,11 +167,13 @@ contains
         real(wp), intent(in) :: cc      !! coefficient of C_t (gamma' in dynamics, 0 in statics)
         real(wp), intent(in) :: kscale, pen
         real(wp), intent(out) :: vals(:)
+        real(wp), intent(out), optional :: fint_out(m%ndof)
         real(wp) :: fint(m%ndof)
         real(wp) :: phi, grad(MAX_CDOF), hess(MAX_CDOF, MAX_CDOF), w
         integer :: e, ne, a, b, i
         vals = 0
         if (ck /= 0) call internal_forces(m, q, fint, vals, ck)
+        if (present(fint_out)) fint_out = fint
         if (m%nsd > 0 .and. (ck /= 0 .or. cc /= 0)) then
             fint = 0
             call spring_forces(m, q, qd, fint, vals, ck, cc)

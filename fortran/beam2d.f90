@@ -159,10 +159,16 @@ contains
             end if
             if (present(ke)) then
                 ! material part B^T D B
+                ! (explicit loops: matmul(transpose(b), db) made a temporary per Gauss point)
                 do j = 1, 3
-                    db(j, :) = stiff(j) * b(j, :)
+                    db(j, :) = w * stiff(j) * b(j, :)
                 end do
-                ke = ke + w * matmul(transpose(b), db)
+                do ib = 1, 3 * nen
+                    do ia = 1, 3 * nen
+                        ke(ia, ib) = ke(ia, ib) + b(1, ia) * db(1, ib) + b(2, ia) * db(2, ib) &
+                                     + b(3, ia) * db(3, ib)
+                    end do
+                end do
                 ! geometric part N d2Gamma_1 + Q d2Gamma_2
                 do a = 1, nen
                     ia = 3 * (a - 1)

@@ -106,13 +106,14 @@ end subroutine sparse_solve
 !! 2 dense LU factors, 3 KLU factorization, 4 state vectors, 5 sensitivity work
 !! arrays, 6 model arrays).
 !! stats: newton iterations, factorizations, residual evaluations, step cuts,
-!! static iterations, steps completed.
+!! static iterations, steps completed, factorizations made for the sensitivities
+!! (included in the factorizations).
 subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npts, nout, nsteps, &
                     qref, q0, qd0, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
                     ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, c_c0, c_law, c_lawcoef, &
                     law_h, law_val, law_der, law_dd0, &
                     map_el, map_diag, map_cq, map_qc, map_qq, nap, nai, ap, ai, &
-                    h, rho_inf, tol, max_iter, max_cuts, solver, reuse, static_start, &
+                    h, rho_inf, tol, max_iter, max_cuts, solver, newton, static_start, &
                     kscale, penalty, out_dofs, q_out, qd_out, qdd_out, mu_out, stats, status, info, &
                     nv, nva, nsens, dprop, sens_dofs, dq_out, &
                     nsd, nsda, sd_dofs, sd_prop, map_sd, want_dmu, ndmu, dmu_out)
@@ -137,11 +138,12 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     integer(c_int), intent(in) :: nap, nai
     integer(c_int), intent(in) :: ap(nap), ai(nai)
     real(c_double), intent(in) :: h, rho_inf, tol, kscale, penalty
-    integer(c_int), intent(in) :: max_iter, max_cuts, solver, reuse, static_start
+    integer(c_int), intent(in) :: max_iter, max_cuts, solver, static_start
+    integer(c_int), intent(in) :: newton       !! 0 full Newton, 1 modified (reuse), 2 automatic
     integer(c_int), intent(in) :: out_dofs(nout)
     real(c_double), intent(out) :: q_out(nout, nsteps + 1), qd_out(nout, nsteps + 1)
     real(c_double), intent(out) :: qdd_out(nout, nsteps + 1), mu_out(nca, nsteps + 1)
-    integer(c_int), intent(out) :: stats(6), status
+    integer(c_int), intent(out) :: stats(7), status
     real(c_double), intent(out) :: info(4)
     integer(c_int), intent(in) :: nv                        !! design variables (0: no sensitivities)
     integer(c_int), intent(in) :: nva, nsens                !! extents (>= 1)
@@ -179,7 +181,7 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     s%max_iter = max_iter
     s%max_cuts = max_cuts
     s%solver = solver
-    s%reuse = reuse /= 0
+    s%newton = newton
     s%static_start = static_start /= 0
     s%kscale = kscale
     s%penalty = penalty
@@ -197,7 +199,8 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     end if
     status = int(stat, c_int)
     stats = int([st%newton_iterations, st%factorizations, st%residual_evaluations, &
-                 st%step_cuts, st%static_iterations, st%steps], c_int)
+                 st%step_cuts, st%static_iterations, st%steps, st%sensitivity_factorizations], &
+                c_int)
 end subroutine simulate
 
 !> Element internal forces and tangent of one beam (for the tangent checker).

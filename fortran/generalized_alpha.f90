@@ -4,8 +4,11 @@
 !!
 !! Also: the static equilibrium that starts a simulation under its loads at
 !! the initial drive positions, the consistent initial velocities and
-!! accelerations (never assumed zero), step cuts on Newton failure, and
-!! optional Jacobian reuse (modified Newton) with a fall-back to full Newton.
+!! accelerations (never assumed zero), step cuts on Newton failure, and three
+!! Newton strategies (ga_settings%newton): full Newton, modified Newton with the
+!! legacy refresh rule, and the automatic strategy (the default from Python): the
+!! iteration matrix is kept across iterations and steps while the contraction
+!! rate is good and refreshed when it is not, with the same stopping tolerance.
 !! Everything a call needs lives in its own variables: no module state.
 module generalized_alpha
     use flexmbs_kinds, only: wp
@@ -21,6 +24,7 @@ module generalized_alpha
     implicit none
     private
     public :: ga_settings, ga_stats, ga_simulate, ga_coefficients
+    public :: NEWTON_FULL, NEWTON_REUSE, NEWTON_AUTO
     public :: GA_OK, GA_NEWTON_FAILED, GA_SINGULAR, GA_STATIC_FAILED, GA_INITIAL_SINGULAR, &
               GA_INCONSISTENT_INITIAL, GA_NONFINITE, GA_BAD_INPUT, GA_LINEAR_SOLVER, GA_NO_MEMORY
     public :: MEM_MATRIX, MEM_DENSE_LU, MEM_SPARSE_LU, MEM_STATE, MEM_SENSITIVITY, MEM_MODEL
@@ -36,6 +40,37 @@ module generalized_alpha
     integer, parameter :: GA_LINEAR_SOLVER = 8        !! linear solver set-up failed
     !> an allocation failed; info = [time, bytes asked for (-1: unknown), 0, MEM_* what]
     integer, parameter :: GA_NO_MEMORY = 9
+
+    ! Newton strategies (ga_settings%newton)
+    integer, parameter :: NEWTON_FULL = 0   !! iteration matrix assembled and factored every iteration
+    !> modified Newton: the factorization is kept while the scaled increment shrinks by
+    !! at least 4x per iteration (the rule of the former reuse_jacobian=True)
+    integer, parameter :: NEWTON_REUSE = 1
+    !> automatic: modified Newton whose factorization is refreshed when the contraction
+    !! rate exceeds auto_rate, when a step needs auto_iter iterations, and at the start of
+    !! the step after one that needed auto_stale; an increment <= tol (full Newton's test)
+    !! is accepted only when the contraction bounds the remaining error by what full
+    !! Newton's quadratic convergence leaves (auto_floor)
+    integer, parameter :: NEWTON_AUTO = 2
+    real(wp), parameter :: reuse_rate = 0.25_wp   !! refresh threshold of NEWTON_REUSE
+    real(wp), parameter :: auto_rate = 0.3_wp     !! refresh threshold of NEWTON_AUTO
+    integer, parameter :: auto_iter = 4           !! iterations to tol after which a step refreshes
+    !> automatic: a step that needed this many iterations (to tol and below) makes the next
+    !! step start with a fresh matrix: the contraction of an aged matrix had become slow
+    integer, parameter :: auto_stale = 3
+    !> automatic: an increment below tol is accepted when the estimated remaining error,
+    !! rate / (1 - rate) times the increment, is below max(tol^2, auto_floor): what full
+    !! Newton's quadratic convergence leaves, or the rounding level of the scaled
+    !! coordinates. Modified Newton's remaining error has the same sign step after step and
+    !! the velocities (gamma' e, gamma' = gamma / (beta h), 3750/s at h = 5e-4) integrate
+    !! it: on the robot of the paper (1300 steps) accepting at rate * increment <= tol left
+    !! 5e-8 m = 250 tol qscale between auto and full Newton, and responses not smooth in
+    !! the design at the 1e-11 level (Taylor tests fail); at the rounding level the errors
+    !! are random, as full Newton's, and the difference is 1e-11 m
+    real(wp), parameter :: auto_floor = 1.0e-16_wp
+    !> scaled increment at the rounding level of the coordinates (~45 epsilon): accepted
+    !! whatever the contraction, whose estimate is noise there
+    real(wp), parameter :: round_floor = 1.0e-14_wp
 
     ! what was being allocated when GA_NO_MEMORY is returned (info(4))
     integer, parameter :: MEM_MATRIX = 1       !! iteration matrix values (nnz) and load vector
@@ -54,7 +89,7 @@ module generalized_alpha
         integer :: max_iter = 20         !! Newton iterations per step
         integer :: max_cuts = 6          !! step halvings before giving up
         integer :: solver = SOLVER_DENSE !! SOLVER_DENSE or SOLVER_KLU
-        logical :: reuse = .false.       !! modified Newton (reuse the factorization)
+        integer :: newton = NEWTON_FULL  !! NEWTON_FULL, NEWTON_REUSE or NEWTON_AUTO
         logical :: static_start = .false.!! start from static equilibrium at t = 0
         real(wp) :: kscale = 0           !! scaling k of eq. (1); <= 0: automatic
         real(wp) :: penalty = 0          !! penalty p of eq. (1); <= 0: automatic (= k)
@@ -68,6 +103,9 @@ module generalized_alpha
         integer :: step_cuts = 0             !! steps that needed cutting
         integer :: static_iterations = 0     !! Newton iterations of the static start
         integer :: steps = 0                 !! grid steps completed
+        !> of the factorizations, those made for the sensitivities (modified Newton: the
+        !! tangent of a step's last iteration, then kept for the next step's iterations)
+        integer :: sensitivity_factorizations = 0
     end type ga_stats
 
     !> Integration state at one instant, with its design derivatives when asked:
@@ -177,12 +215,21 @@ contains
         real(wp), allocatable :: ap_(:, :), qhat(:, :), vhat(:, :), rhs(:, :)
         real(wp) :: alpha_m, alpha_f, gamma, beta, kdyn, pdyn, t, hs, fact_h, ks, ps
         integer :: j, nsub, icut, isub, st, nv, ierr
-        logical :: fact_valid
+        !> fact_valid: a factorization of the step's iteration matrix is held (for step fact_h);
+        !! fact_exact: it was taken in the last Newton iteration of the step just converged,
+        !! i.e. within the Newton tolerance of the converged state, as full Newton's is;
+        !! vals_exact: `vals` holds the iteration matrix of that last iteration
+        logical :: fact_valid, fact_exact, vals_exact, modified, stale
+        !> full_step: the step is done with full Newton (always in NEWTON_FULL; in
+        !! NEWTON_AUTO, the retry of a step that modified Newton did not converge)
+        logical :: full_step
+
 
         status = GA_OK
         info = 0
         q_out = 0; qd_out = 0; qdd_out = 0; mu_out = 0
-        if (.not. (s%h > 0) .or. s%rho_inf < 0 .or. s%rho_inf > 1 .or. s%nsteps < 0) then
+        if (.not. (s%h > 0) .or. s%rho_inf < 0 .or. s%rho_inf > 1 .or. s%nsteps < 0 .or. &
+            s%newton < NEWTON_FULL .or. s%newton > NEWTON_AUTO) then
             status = GA_BAD_INPUT
             return
         end if
@@ -267,27 +314,40 @@ contains
         if (.not. (kdyn > 0)) kdyn = diagonal_scale(m, x%q, (1 - alpha_m) / (beta * s%h**2 * (1 - alpha_f)), vals)
         pdyn = s%penalty
         if (.not. (pdyn > 0)) pdyn = kdyn
+        modified = s%newton /= NEWTON_FULL
+        full_step = .not. modified
+        stale = .false.
         fact_valid = .false.
+        fact_exact = .false.
+        vals_exact = .false.
         fact_h = 0
         call copy_state(x, xsave)
         do j = 1, s%nsteps
             t = (j - 1) * s%h
             nsub = 1
-            do icut = 0, s%max_cuts
+            icut = 0
+            full_step = .not. modified
+            do
                 hs = s%h / nsub
                 do isub = 1, nsub
                     call ga_step(t + (isub - 1) * hs, hs, st)
                     if (st /= GA_OK) exit
                 end do
                 if (st == GA_OK .or. st == GA_NO_MEMORY) exit
-                ! failure: restore the state at t_j and cut the step
+                ! failure: restore the state at t_j; automatic: retry the step with full
+                ! Newton (its predictor and path) before cutting it; then cut the step
                 call copy_state(xsave, x)
                 fact_valid = .false.
-                if (icut < s%max_cuts) then
-                    stats%step_cuts = stats%step_cuts + 1
-                    nsub = 2 * nsub
+                if (.not. full_step .and. s%newton == NEWTON_AUTO) then
+                    full_step = .true.
+                    cycle
                 end if
+                if (icut >= s%max_cuts) exit
+                icut = icut + 1
+                stats%step_cuts = stats%step_cuts + 1
+                nsub = 2 * nsub
             end do
+            full_step = .not. modified
             if (st /= GA_OK) then
                 status = st
                 goto 900
@@ -337,10 +397,14 @@ contains
         subroutine ga_step(tn, hh, stat)
             real(wp), intent(in) :: tn, hh
             integer, intent(out) :: stat
-            real(wp) :: betap, gammap, r(m%n), z(m%n, 1), err, err_prev, phimax, tnew
+            real(wp) :: betap, gammap, r(m%n), z(m%n, 1), err, err_prev, rate, phimax, tnew
             real(wp) :: a_new(m%ndof), a_part(m%ndof), qdd_pred(m%ndof)
             integer :: it, lst
-            logical :: refresh
+            logical :: refresh, fresh, assemble, mod_step, auto_step, reuse_step
+            ! this step's strategy: modified Newton (reuse or automatic) unless full_step
+            mod_step = .not. full_step
+            auto_step = mod_step .and. s%newton == NEWTON_AUTO
+            reuse_step = mod_step .and. s%newton == NEWTON_REUSE
             betap = (1 - alpha_m) / (beta * hh**2 * (1 - alpha_f))
             gammap = gamma / (beta * hh)
             tnew = tn + hh
@@ -350,7 +414,7 @@ contains
             ! (-25 % iterations on the robot; full Newton gains nothing from it)
             a_part = (alpha_f * x%qdd - alpha_m * x%a) / (1 - alpha_m)
             qdd_pred = x%qdd
-            if (s%reuse .and. x%h_prev > 0) qdd_pred = x%qdd + (hh / x%h_prev) * (x%qdd - x%qdd_prev)
+            if (mod_step .and. x%h_prev > 0) qdd_pred = x%qdd + (hh / x%h_prev) * (x%qdd - x%qdd_prev)
             a_new = a_part + (1 - alpha_f) / (1 - alpha_m) * qdd_pred
             x%qdd_prev = x%qdd
             x%h_prev = hh
@@ -359,20 +423,35 @@ contains
             x%qdd = qdd_pred
             ! keep the part of a_{n+1} that does not depend on qdd_{n+1} (eq. 3)
             x%a = a_part
-            refresh = .not. s%reuse
+            refresh = .not. mod_step .or. stale
+            stale = .false.
+            fact_exact = .false.
+            vals_exact = .false.
             err_prev = huge(1.0_wp)
             stat = GA_NEWTON_FAILED
             do it = 1, s%max_iter
-                call residual(m, x%q, x%qd, x%qdd, x%mu, tnew, fgrav, 1.0_wp, kdyn, pdyn, r, phimax)
+                ! modified Newton with sensitivities: from the second iteration on, a fresh
+                ! matrix (full Newton steps): the derivative solve needs the factored
+                ! tangent within the tolerance of the converged state anyway (sens_step),
+                ! and the step then converges like full Newton, in one factorization
+                if (nv > 0 .and. mod_step .and. it >= 2) refresh = .true.
+                fresh = refresh .or. .not. fact_valid .or. fact_h /= hh
+                ! the iteration matrix is assembled with the residual, in one pass over the
+                ! elements, whenever it is factored
+                assemble = fresh
+                if (assemble) then
+                    call residual(m, x%q, x%qd, x%qdd, x%mu, tnew, fgrav, 1.0_wp, kdyn, pdyn, r, &
+                                  phimax, vals=vals, cmat=betap, cc=gammap)
+                else
+                    call residual(m, x%q, x%qd, x%qdd, x%mu, tnew, fgrav, 1.0_wp, kdyn, pdyn, r, phimax)
+                end if
                 stats%residual_evaluations = stats%residual_evaluations + 1
                 if (.not. all(abs(r) <= huge(1.0_wp))) then
                     stat = GA_NONFINITE
                     info = [tnew, huge(1.0_wp), real(it, wp), 0.0_wp]
                     return
                 end if
-                if (refresh .or. .not. fact_valid .or. fact_h /= hh) then
-                    call iteration_matrix(m, x%q, x%qd, x%mu, tnew, betap, 1.0_wp, gammap, kdyn, &
-                                          pdyn, vals)
+                if (fresh) then
                     call ls_factor(ls, vals, lst)
                     if (lst == LS_NO_MEMORY) then
                         fact_valid = .false.
@@ -387,8 +466,8 @@ contains
                     end if
                     fact_valid = .true.
                     fact_h = hh
-                    refresh = .not. s%reuse
                 end if
+                refresh = .not. mod_step
                 z(:, 1) = -r
                 call ls_solve(ls, z, lst)
                 stats%newton_iterations = stats%newton_iterations + 1
@@ -403,12 +482,51 @@ contains
                 if (m%nc > 0) x%mu = x%mu + kdyn * z(m%ndof + 1:, 1)
                 err = maxval(abs(z(1:m%ndof, 1))) / m%qscale
                 info = [tnew, err, real(it, wp), phimax]
-                if (err <= s%tol) then
-                    stat = GA_OK
-                    exit
+                ! observed contraction rate of the iteration (0 on the first one)
+                rate = err / err_prev
+                if (auto_step .and. .not. fresh .and. rate > 1) then
+                    ! automatic: a held matrix that makes the increment grow is not kept,
+                    ! nor its increment: back to the previous iterate, with a fresh matrix
+                    ! (the path of full Newton from there)
+                    x%q = x%q - z(1:m%ndof, 1)
+                    x%qd = x%qd - gammap * z(1:m%ndof, 1)
+                    x%qdd = x%qdd - betap * z(1:m%ndof, 1)
+                    if (m%nc > 0) x%mu = x%mu - kdyn * z(m%ndof + 1:, 1)
+                    refresh = .true.
+                    cycle
                 end if
-                ! modified Newton: refactor when the contraction is poor
-                if (s%reuse .and. err > 0.25_wp * err_prev) refresh = .true.
+                if (err <= s%tol) then
+                    ! full and reuse: converged. Automatic: the remaining error of a modified
+                    ! Newton iterate is about rate / (1 - rate) times the increment (rate
+                    ! observed from the previous iteration; none on the first one, unless its
+                    ! matrix was fresh: a full Newton step); accepted when that is at most
+                    ! what full Newton's quadratic convergence leaves, tol^2, or the rounding
+                    ! level; else one more iteration with the same factorization (cheap)
+                    if (.not. auto_step .or. err <= round_floor) then
+                        stat = GA_OK
+                    else if (it == 1) then
+                        if (fresh) stat = GA_OK
+                    else if (fresh) then
+                        ! a full Newton step: quadratic, remaining error ~ rate^2 increment
+                        if (rate**2 * err <= max(s%tol**2, auto_floor)) stat = GA_OK
+                    else if (rate < 1) then
+                        if (rate / (1 - rate) * err <= max(s%tol**2, auto_floor)) stat = GA_OK
+                    end if
+                    if (stat == GA_OK) then
+                        fact_exact = fresh
+                        vals_exact = assemble
+                        stale = auto_step .and. it >= auto_stale .and. .not. fresh
+                        exit
+                    end if
+                end if
+                ! modified Newton: refactor when the contraction is poor; automatic: also
+                ! when a step needs auto_iter iterations to reach tol, and while polishing
+                ! below tol only when the increment stops shrinking (rate > 1/2)
+                if (reuse_step .and. rate > reuse_rate) refresh = .true.
+                if (auto_step) then
+                    if (err > s%tol .and. (rate > auto_rate .or. it + 1 >= auto_iter)) refresh = .true.
+                    if (err <= s%tol .and. rate > 0.5_wp) refresh = .true.
+                end if
                 if (err > 1.0e6_wp .or. .not. (err == err)) exit
                 err_prev = err
             end do
@@ -425,29 +543,45 @@ contains
         !! known derivatives of step n, the derivative of the residual gives
         !!   S [q'; lambda'] = [ -dr/dp + beta' M Qhat + C_t (gamma' Qhat - Vhat) ; 0 ],
         !! mu' = k lambda' (k: the scaling of the iteration matrix S, constant over the run),
-        !! with S the iteration matrix of eq. (7) at the converged state: the
-        !! factorization Newton already holds (full Newton: taken within `tol` of
-        !! the solution), or a fresh one in modified Newton.
+        !! with S the iteration matrix of eq. (7) at the converged state, as exact as full
+        !! Newton's: taken in the step's last Newton iteration (within the Newton tolerance
+        !! of the converged state).
+        !!
+        !! Full Newton, and modified Newton with sensitivities, whose iterations from the
+        !! second on are full Newton steps (ga_step): the factorization of the last
+        !! iteration, one multi-right-hand-side solve; in modified Newton it then serves the
+        !! next step's first iteration too. A step that converged in its first, modified,
+        !! iteration: S assembled and factored here, and kept for the next step.
+        !! Iterative refinement of the solve with an older factorization was measured
+        !! slower than one factorization (issue 16, robot with 2 and 32 elements per arm:
+        !! each sweep costs a product with S and a solve, each about a triangular solve,
+        !! and the derivatives, unlike Newton's corrections, start from O(1): 3 sweeps did
+        !! not reach 1e-10 on most steps).
         subroutine sens_step(hh, tnew, betap, gammap, stat)
             real(wp), intent(in) :: hh, tnew, betap, gammap
             integer, intent(out) :: stat
             integer :: lst, v
             real(wp) :: cv(m%ndof)
             stat = GA_OK
-            if (s%reuse) then
-                call iteration_matrix(m, x%q, x%qd, x%mu, tnew, betap, 1.0_wp, gammap, kdyn, pdyn, vals)
+            if (modified .and. .not. fact_exact) then
+                if (.not. vals_exact) call iteration_matrix(m, x%q, x%qd, x%mu, tnew, betap, 1.0_wp, &
+                                                            gammap, kdyn, pdyn, vals)
                 call ls_factor(ls, vals, lst)
+                stats%sensitivity_factorizations = stats%sensitivity_factorizations + 1
                 if (lst == LS_NO_MEMORY) then
+                    fact_valid = .false.
                     stat = GA_NO_MEMORY
                     info = [tnew, -1.0_wp, 0.0_wp, real(MEM_SPARSE_LU, wp)]
                     return
                 else if (lst /= LS_OK) then
+                    fact_valid = .false.
                     stat = GA_SINGULAR
                     info = [tnew, 0.0_wp, 0.0_wp, real(lst, wp)]
                     return
                 end if
                 fact_valid = .true.
                 fact_h = hh
+                stale = .false.
             end if
             ap_ = (alpha_f * x%dqdd - alpha_m * x%da) / (1 - alpha_m)
             qhat = x%dq + hh * x%dqd + hh**2 * ((0.5_wp - beta) * x%da + beta * ap_)

@@ -30,7 +30,7 @@ contains
         real(wp), intent(out) :: rhs(:, :)         !! (ndof, nv) (rows of the coordinates only)
         real(wp) :: fe(MAX_EDOF), parts(MAX_EDOF, 3), qe(MAX_EDOF), qr(MAX_EDOF), acce(MAX_EDOF)
         real(wp) :: ya(MAX_EDOF), yi(MAX_EDOF), qh(MAX_EDOF), mq(MAX_EDOF)
-        integer :: e, ne, a, v, d, nv
+        integer :: e, ne, a, b, v, d, nv
         logical :: has_stiff, has_mass
         nv = size(dprop, 3)
         do v = 1, nv
@@ -54,9 +54,15 @@ contains
             end if
             do v = 1, nv
                 do a = 1, ne
-                    qh(a) = qhat(m%el_dofs(a, e), v)
+                    qh(a) = betap * qhat(m%el_dofs(a, e), v)
                 end do
-                mq(1:ne) = betap * matmul(m%el_mass(1:ne, 1:ne, e), qh(1:ne))
+                ! betap M_e qhat_e (explicit loops: no temporary of the array sections)
+                mq(1:ne) = 0
+                do b = 1, ne
+                    do a = 1, ne
+                        mq(a) = mq(a) + m%el_mass(a, b, e) * qh(b)
+                    end do
+                end do
                 if (has_stiff) then
                     do a = 1, ne
                         mq(a) = mq(a) - dot_product(dprop(1:3, e, v), parts(a, :))

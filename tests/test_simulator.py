@@ -56,8 +56,9 @@ def simulate_robot(p_mm=(50, 50, 50, 50), **kw):
 
 @pytest.fixture(scope="module")
 def robot50():
-    """The robot at p = [50, 50, 50, 50] mm, paper settings (h = 5e-4 s, rho_inf = 0.5)."""
-    return simulate_robot()
+    """The robot at p = [50, 50, 50, 50] mm, paper settings (h = 5e-4 s, rho_inf = 0.5),
+    full Newton (the reference of the Newton-strategy tests; simulate's default is 'auto')."""
+    return simulate_robot(newton="full")
 
 
 def cantilever(section, elements, order=2, length=1.0, material=STEEL):

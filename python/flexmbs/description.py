@@ -428,12 +428,24 @@ class Objective(_Strict):
 class TimeSettings(_Strict):
     """Generalized-alpha settings: step h (s), horizon t_end (s; rounded to a whole number of
     steps, the change reported), spectral radius rho_inf, start 'rest' (the rigid velocity
-    field the drives impose) or 'static' (static equilibrium at t = 0, at rest)."""
+    field the drives impose) or 'static' (static equilibrium at t = 0, at rest), Newton
+    strategy newton ('auto', 'full', 'reuse': see flexmbs.simulate)."""
     t_end: Positive
     h: Positive = 5e-4
     rho_inf: Annotated[float, Field(ge=0.0, le=1.0)] = 0.5
     start: Literal["rest", "static"] = "rest"
-    reuse_jacobian: bool = False
+    newton: Literal["auto", "full", "reuse"] = "auto"
+    reuse_jacobian: bool | None = None      # deprecated: true is newton = "reuse", false "full"
+
+    @model_validator(mode="after")
+    def _newton_alias(self):
+        if self.reuse_jacobian is not None:
+            alias = "reuse" if self.reuse_jacobian else "full"
+            if self.newton not in ("auto", alias):
+                raise ValueError(f"reuse_jacobian = {str(self.reuse_jacobian).lower()} (deprecated: "
+                                 f"newton = {alias!r}) contradicts newton = {self.newton!r}: "
+                                 "give newton alone")
+        return self
 
 
 class CaseInfo(_Strict):

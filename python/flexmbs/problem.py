@@ -174,7 +174,8 @@ class Problem:
         nodes = self._nodes_needed(names)
         ts = self.description.time
         q0, qd0 = mech.initial_state()
-        kw = dict(rho_inf=ts.rho_inf, start=ts.start, reuse_jacobian=ts.reuse_jacobian, q0=q0,
+        kw = dict(rho_inf=ts.rho_inf, start=ts.start, newton=ts.newton,
+                  reuse_jacobian=ts.reuse_jacobian, q0=q0,
                   qd0=None if ts.start == "static" else qd0)
         if store is None:
             store = nodes if nodes else "all"

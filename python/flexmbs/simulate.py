@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -16,8 +17,8 @@ from flexmbs.resources import (call_with_stack, check_memory, estimate_memory, f
 from flexmbs.resources import memory_limit as _memory_limit
 from flexmbs.validity import ValidityLimits, apply_validity, check_result, diagnose_failure
 
-__all__ = ["simulate", "Result", "DENSE_MAX_UNKNOWNS", "time_grid", "time_steps", "system_matrices",
-           "core_model_args"]
+__all__ = ["simulate", "Result", "DENSE_MAX_UNKNOWNS", "NEWTON_MODES", "time_grid", "time_steps",
+           "system_matrices", "core_model_args", "newton_mode"]
 
 #: Largest system solved with dense LU when solver="auto" (KLU above). benchmarks/scaling.py
 #: measured KLU faster than LAPACK's dense LU at every size from 18 unknowns up (1.5x at 18,
@@ -25,6 +26,9 @@ __all__ = ["simulate", "Result", "DENSE_MAX_UNKNOWNS", "time_grid", "time_steps"
 DENSE_MAX_UNKNOWNS = 0
 
 _SOLVERS = {"dense": 1, "klu": 2}
+
+#: Newton strategies of `simulate` (codes of the core, generalized_alpha.f90 NEWTON_*).
+NEWTON_MODES = {"full": 0, "reuse": 1, "auto": 2}
 
 
 #: Most time steps the core counts (32-bit integers).
@@ -82,7 +86,8 @@ class Result:
     mu : (nt, nc) constraint forces (physical multipliers k*lambda of eq. 1), row order of the model.
     dofs : (nout,) stored coordinates (0-based indices of q).
     stats : newton_iterations, factorizations, residual_evaluations, step_cuts,
-        static_iterations, steps, solver, unknowns.
+        static_iterations, steps, sensitivity_factorizations (of the factorizations, those
+        made for the derivative solves), solver, unknowns, newton (the strategy).
     wall_time : seconds spent in the simulation (including the set-up in Python).
     validity : flexmbs.validity.Validity, the checks run after the simulation (strains of the
         beams, constraint drift, energy of a free system); see simulate(validity=...).
@@ -249,6 +254,26 @@ def _check_flag(name, value):
         raise ModelError(f"{name} must be True or False, got {value!r}")
 
 
+def newton_mode(newton="auto", reuse_jacobian=None):
+    """The Newton strategy of `simulate` from its `newton` and deprecated `reuse_jacobian`
+    arguments: 'auto', 'full' or 'reuse'. reuse_jacobian=True means 'reuse', False 'full'
+    (a DeprecationWarning says so); given together with a different `newton`, ModelError."""
+    if not isinstance(newton, str) or newton not in NEWTON_MODES:
+        raise ModelError(f"newton must be one of {', '.join(map(repr, NEWTON_MODES))}, "
+                         f"got {newton!r}")
+    if reuse_jacobian is None:
+        return newton
+    _check_flag("reuse_jacobian", reuse_jacobian)
+    alias = "reuse" if reuse_jacobian else "full"
+    if newton not in ("auto", alias):
+        raise ModelError(f"reuse_jacobian={bool(reuse_jacobian)} (deprecated: newton={alias!r}) "
+                         f"contradicts newton={newton!r}: give newton alone")
+    warnings.warn(f"simulate(reuse_jacobian={bool(reuse_jacobian)}) is deprecated: use "
+                  f"newton={alias!r} (the default newton='auto' reuses the iteration matrix while "
+                  "Newton contracts well)", DeprecationWarning, stacklevel=3)
+    return alias
+
+
 def _drives_move_at_start(cm, margs):
     """Whether a driven constraint row has a non-zero rate at t = 0."""
     rows = cm.c_law[:cm.nc]
@@ -257,7 +282,7 @@ def _drives_move_at_start(cm, margs):
 
 
 def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="all",
-             solver="auto", reuse_jacobian=False, tol=1e-10, max_iter=20, max_cuts=6,
+             solver="auto", newton="auto", reuse_jacobian=None, tol=1e-10, max_iter=20, max_cuts=6,
              kscale=None, penalty=None, q0=None, qd0=None, design_derivatives=None,
              sensitivity_dofs=None, constraint_force_derivatives=False, memory_limit=None,
              validity="warn"):
@@ -282,8 +307,24 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     solver : {'auto', 'dense', 'klu'}, default 'auto'
         Dense LAPACK LU up to DENSE_MAX_UNKNOWNS unknowns (currently none: KLU was faster at
         every size measured), SuiteSparse KLU above.
-    reuse_jacobian : bool, default False
-        Modified Newton: keep the factorization while convergence is fast.
+    newton : {'auto', 'full', 'reuse'}, default 'auto'
+        Newton strategy. 'full': the iteration matrix of eq. (7) assembled and factored at
+        every iteration. 'auto': the factorization is kept across iterations and steps while
+        the scaled increment contracts by at least 0.3 per iteration, and refreshed when it does
+        not, when a step needs a 4th iteration, or after a step that needed 3; an increment
+        below `tol` (full Newton's test) is accepted once the estimated remaining error
+        (contraction / (1 - contraction) x increment) is at the level full Newton's quadratic
+        convergence leaves (tol^2, or the rounding of the coordinates), because modified
+        Newton's errors have the same sign from step to step and the velocities integrate them;
+        a step it cannot converge is retried with full Newton before being cut. Same responses
+        as 'full' (tests/test_newton.py: 1e-11 m on the robot), 2x faster on the robot.
+        'reuse': the former modified Newton, fewest factorizations, accepted at `tol` (its
+        responses differ from full Newton's by ~250 tol qscale on the robot). With
+        design_derivatives, 'auto' and 'reuse' take full Newton steps from a step's second
+        iteration: the derivative solve needs that factorization (the tangent within `tol` of
+        the converged state) anyway, and it serves the next step's first iteration too.
+    reuse_jacobian : bool, optional
+        Deprecated alias: True is newton='reuse', False newton='full'.
     tol : float, default 1e-10
         Newton tolerance on max|dq| / max(1, max|q_ref|, element length).
     max_iter, max_cuts : int
@@ -338,7 +379,7 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     nsteps = time_steps(t_end, h, memory_limit)
     limits = ValidityLimits.coerce(validity)
     _check_newton_settings(rho_inf, tol, max_iter, max_cuts)
-    _check_flag("reuse_jacobian", reuse_jacobian)
+    newton = newton_mode(newton, reuse_jacobian)
     if not isinstance(start, str) or start not in ("rest", "static"):
         raise ModelError(f"start must be 'rest' or 'static', got {start!r}")
     for name, v in (("kscale", kscale), ("penalty", penalty)):
@@ -432,7 +473,7 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
             _core.simulate, est.stack, **margs, nsteps=nsteps, q0=q_init, qd0=qd_init,
             ap=pat["ap"], ai=pat["ai"], h=float(h),
             rho_inf=float(rho_inf), tol=float(tol), max_iter=int(max_iter),
-            max_cuts=int(max_cuts), solver=_SOLVERS[solver], reuse=int(bool(reuse_jacobian)),
+            max_cuts=int(max_cuts), solver=_SOLVERS[solver], newton=NEWTON_MODES[newton],
             static_start=int(start == "static"), kscale=float(kscale or 0.0),
             penalty=float(penalty or 0.0), out_dofs=(out + 1).astype(np.int32),
             nv=nv, dprop=dprop_f, sens_dofs=(sdofs + 1).astype(np.int32),
@@ -445,7 +486,9 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
                             "store fewer outputs (store=[...]), use a coarser step h or a shorter "
                             "t_end", required=est.total) from exc
     st = dict(zip(("newton_iterations", "factorizations", "residual_evaluations", "step_cuts",
-                   "static_iterations", "steps"), (int(v) for v in stats)))
+                   "static_iterations", "steps", "sensitivity_factorizations"),
+                  (int(v) for v in stats)))
+    st["newton"] = newton
     st["solver"] = solver
     st["unknowns"] = cm.n
     if status == _NO_MEMORY:
@@ -462,7 +505,7 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     res = Result(t=t, q=q_out.T, qd=qd_out.T, qdd=qdd_out.T, mu=mu_out[:cm.nc].T, dofs=out,
                   stats=st, wall_time=time.perf_counter() - t_start,
                   settings=dict(h=h, t_end=t_end, rho_inf=rho_inf, start=start, solver=solver,
-                                reuse_jacobian=reuse_jacobian),
+                                newton=newton),
                   sens_dofs=sdofs if nv else None,
                   dq=np.transpose(dq_out[:, :nv, :], (2, 0, 1)) if nv else None,
                   dmu=np.transpose(dmu_out[:cm.nc, :nv, :], (2, 0, 1)) if want_dmu else None)
