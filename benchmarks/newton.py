@@ -1,5 +1,5 @@
 """Newton strategies side by side (issue 16): full / reuse / auto, simulation and simulation with
-direct design sensitivities, on the paper's robot (cases/general/robot_2dof.toml: 2 elements per
+direct design sensitivities, on the paper's robot (cases/robot_2dof.toml: 2 elements per
 arm, 1300 steps, 4 design variables) and the same robot with 32 and 128 elements per arm (a dict
 override of `elements`).
 
@@ -34,12 +34,12 @@ from common import format_table, machine_summary  # noqa: E402
 from where_time_goes import core_timer  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-CASE = ROOT / "cases" / "general" / "robot_2dof.toml"
+CASE = ROOT / "cases" / "robot_2dof.toml"
 MODES = ("full", "reuse", "auto")
 
 
 def robot_problem(elements, newton):
-    """The robot of cases/general/robot_2dof.toml with `elements` per arm and a Newton strategy."""
+    """The robot of cases/robot_2dof.toml with `elements` per arm and a Newton strategy."""
     from flexmbs.problem import Problem
     raw = tomllib.loads(CASE.read_text())
     for body in raw["bodies"]:

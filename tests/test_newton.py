@@ -18,7 +18,7 @@ from flexmbs.errors import ModelError
 from flexmbs.problem import Problem
 from flexmbs.simulate import NEWTON_MODES
 
-CASES = Path(__file__).resolve().parents[1] / "cases" / "general"
+CASES = Path(__file__).resolve().parents[1] / "cases"
 TOL = 1e-10                       # simulate's default Newton tolerance
 ACCEPT = 1e-16                    # auto's acceptance level of the remaining error (relative)
 
@@ -50,7 +50,7 @@ def _propagation_bound(prob, result, e):
 
 @pytest.mark.parametrize("case", ["robot_2dof", "fourbar", "slider_crank_press"])
 def test_auto_gives_the_responses_and_sensitivities_of_full_newton(case):
-    """'auto' and 'full' Newton on three cases of cases/general, at the start design, give the
+    """'auto' and 'full' Newton on three cases of cases/, at the start design, give the
     same coordinates, deviation responses and design derivatives within a bound derived from
     the Newton tolerance.
 
