@@ -51,7 +51,7 @@ DESIGNS = {
 #: the constrained deviation response of each case (its [[constraints]] item 0)
 DEVIATION = {"robot_2dof": "deviation_28", "robot_2dof_tracking": "deviation_30",
              "fourbar": "deviation_A"}
-MODES = {"full Newton": {}, "modified Newton": {"time.reuse_jacobian": True}}
+MODES = {"full Newton": {"time.newton": "full"}, "modified Newton": {"time.newton": "reuse"}}
 NOISE_DL = 2e-15          # m, noise of a simulated deviation (measured ~1e-15, see above)
 HALVINGS = 5
 PERTURBATION = 1e-3       # relative error put into one gradient component
@@ -108,7 +108,7 @@ def _history_taylor(name, nsteps, overrides, step, direction=None):
     noise = {k: 2 * ev.values[k].max() * NOISE_DL for k in names}
     noise[dev + " perturbed"] = noise[dev]
     noise["ks"] = NOISE_DL / lim                     # g = KS(dl / lim) - 1; weights sum to 1
-    # gradient=True at every point: with modified Newton (time.reuse_jacobian) a run with
+    # gradient=True at every point: with modified Newton (time.newton = "reuse") a run with
     # gradients factorizes at every step for the sensitivity solve and so takes other Newton
     # iterates than one without (measured: deviation_28 differs by 2.6e-9 m, 1307 against 29
     # factorizations), a constant offset that would hide the remainder
@@ -328,7 +328,7 @@ def test_constraint_force_derivatives_pass_the_taylor_test(mode):
     prob = _robot_with_torques()
     if mode == "modified Newton":
         data = prob.description.model_dump(by_alias=True, exclude_unset=True)
-        data["time"]["reuse_jacobian"] = True
+        data["time"]["newton"] = "reuse"
         prob = Problem(data)
     torques = ["torque_shoulder", "torque_elbow"]
     p = np.asarray(DESIGNS["robot_2dof"], float)

@@ -655,12 +655,12 @@ def test_robot_runs_1301_steps_with_few_newton_iterations(robot50):
 
 # ---------------------------------------------------------------------------- Jacobian reuse
 def test_jacobian_reuse_gives_the_same_trajectory_with_fewer_factorizations(robot50):
-    """Modified Newton (reuse_jacobian=True) converges to the same discrete solution up to
+    """Modified Newton (newton="reuse") converges to the same discrete solution up to
     the Newton tolerance at each step: a per-step difference <= tol qscale, carried by the
     (stable) dynamics over 1300 steps, bounds the trajectory difference by 1300 tol qscale
-    = 1.3e-7 m (measured 8e-9). It must factor far less often (measured 31 vs 2604)."""
+    = 1.3e-7 m (measured 5.3e-8). It must factor far less often (measured 22 vs 2604)."""
     r_full = robot50[0]
-    r_reuse = simulate_robot(reuse_jacobian=True)[0]
+    r_reuse = simulate_robot(newton="reuse")[0]
     assert np.abs(r_reuse.q - r_full.q).max() <= r_full.stats["steps"] * NEWTON_TOL
     assert r_reuse.stats["factorizations"] < 0.1 * r_full.stats["factorizations"]
 

@@ -377,18 +377,24 @@ class Model:
         node = self._check_node(node, "slider")
         ax = self._axis(axis, "slider")
         pt = self._line_point(node, point, "slider")
+        nrm = self._on_line(node, pt, ax, "slider", "the node")
+        self._row(CON_LINEAR, [3 * node, 3 * node + 1], [nrm[0], nrm[1]], float(nrm @ pt),
+                  label=f"slider node {node} normal")
+        self._row(CON_LINEAR, [3 * node + 2], [1.0], self._nodes[node][2],
+                  label=f"slider node {node} phi")
+
+    def _on_line(self, node, pt, ax, what, who):
+        """The unit normal of the line through pt along ax; ModelError if `node` (its
+        reference position) is not on that line."""
         nrm = np.array([-ax[1], ax[0]])
         x = np.array(self._nodes[node][:2])
         off = float(nrm @ (x - pt))
         scale = max(1.0, max(abs(v) for n in self._nodes for v in n[:2]))
         if abs(off) > 1e-9 * scale:
-            raise ModelError(f"slider: node {node} at ({x[0]:.6g}, {x[1]:.6g}) is {abs(off):.3g} m "
+            raise ModelError(f"{what}: node {node} at ({x[0]:.6g}, {x[1]:.6g}) is {abs(off):.3g} m "
                              f"off the line through point=({pt[0]:.6g}, {pt[1]:.6g}) along "
-                             f"axis=({ax[0]:.6g}, {ax[1]:.6g}); the node must lie on the line")
-        self._row(CON_LINEAR, [3 * node, 3 * node + 1], [nrm[0], nrm[1]], float(nrm @ pt),
-                  label=f"slider node {node} normal")
-        self._row(CON_LINEAR, [3 * node + 2], [1.0], self._nodes[node][2],
-                  label=f"slider node {node} phi")
+                             f"axis=({ax[0]:.6g}, {ax[1]:.6g}); {who} must lie on the line")
+        return nrm
 
     def prismatic(self, node_a, node_b, axis, point=None):
         """A prismatic joint between two bodies: `node_b` slides along an axis fixed in the
@@ -412,15 +418,8 @@ class Model:
                              "of two different bodies")
         ax = self._axis(axis, "prismatic")
         pt = self._line_point(b, point, "prismatic")
-        nrm = np.array([-ax[1], ax[0]])
+        nrm = self._on_line(b, pt, ax, "prismatic", "node_b")
         xa = np.array(self._nodes[a][:2])
-        xb = np.array(self._nodes[b][:2])
-        off = float(nrm @ (xb - pt))
-        scale = max(1.0, max(abs(v) for n in self._nodes for v in n[:2]))
-        if abs(off) > 1e-9 * scale:
-            raise ModelError(f"prismatic: node {b} at ({xb[0]:.6g}, {xb[1]:.6g}) is {abs(off):.3g} m "
-                             f"off the line through point=({pt[0]:.6g}, {pt[1]:.6g}) along "
-                             f"axis=({ax[0]:.6g}, {ax[1]:.6g}); node_b must lie on the line")
         pa, pb = self._nodes[a][2], self._nodes[b][2]
         c, s = math.cos(pa), math.sin(pa)
         n0 = (c * nrm[0] + s * nrm[1], -s * nrm[0] + c * nrm[1])     # R(-phi_a0) n

@@ -174,8 +174,10 @@ class Problem:
         nodes = self._nodes_needed(names)
         ts = self.description.time
         q0, qd0 = mech.initial_state()
-        kw = dict(rho_inf=ts.rho_inf, start=ts.start, newton=ts.newton,
-                  reuse_jacobian=ts.reuse_jacobian, q0=q0,
+        newton = ts.newton
+        if ts.reuse_jacobian is not None and newton == "auto":    # the deprecated spelling
+            newton = "reuse" if ts.reuse_jacobian else "full"
+        kw = dict(rho_inf=ts.rho_inf, start=ts.start, newton=newton, q0=q0,
                   qd0=None if ts.start == "static" else qd0)
         if store is None:
             store = nodes if nodes else "all"
