@@ -649,9 +649,9 @@ def _steps_text(steps):
     return ", ".join(parts)
 
 
-def _active(rec):
+def _active(rec, key="active_steps"):
     """The active steps of a history record (the union over its constraint names), or None."""
-    act = rec.get("active_steps")
+    act = rec.get(key)
     if act is None:
         return None
     if isinstance(act, dict):
@@ -686,7 +686,7 @@ def table8_rows(weakly, fully, data=None):
         f = fh.get(i)
         out.append((i, _steps_text(pw.get(str(i))) if str(i) in pw else "",
                     "" if w is None else _steps_text(_active(w)),
-                    "" if w is None else _steps_text(w.get("simulation_active_steps")),
+                    "" if w is None else _steps_text(_active(w, "simulation_active_steps")),
                     _steps_text(pf[i]) if i in pf else "",
                     "" if f is None else _steps_text(_active(f))))
     if weakly is not None and weakly.get("converged"):
