@@ -45,8 +45,9 @@ from flexmbs.optimize.weakly import _progress_callback
 
 __all__ = ["optimize_problem", "ScaledProblem", "ProblemOptimizationResult", "OPTIMIZERS"]
 
-#: Optimizers of general-format problems: GCMMA (default) and plain scipy SLSQP.
-OPTIMIZERS = ("mma", "slsqp")
+#: Optimizers of general-format problems: GCMMA (hand-written, default), plain scipy SLSQP,
+#: and NLopt's MMA, CCSAQ and SLSQP (flexmbs.optimize.library, docs/optimizers.md).
+OPTIMIZERS = ("mma", "slsqp", "nlopt-mma", "nlopt-ccsaq", "nlopt-slsqp")
 
 
 @dataclass
@@ -97,6 +98,7 @@ class ScaledProblem:
         self.lower = problem.lower / self.scale
         self.upper = problem.upper / self.scale
         self.simulations = 0
+        self.evaluate_time_s = 0.0          # wall time spent in Problem.evaluate
         self.gradient_evaluations = 0
         self.evaluations = 0
         self._cache = {}
@@ -136,7 +138,11 @@ class ScaledProblem:
     def _analyse(self, x, gradient):
         p = self.design(x)
         self.simulations += 1
-        ev = self.problem.evaluate(p, gradient=gradient)
+        t0 = time.perf_counter()
+        try:
+            ev = self.problem.evaluate(p, gradient=gradient)
+        finally:
+            self.evaluate_time_s += time.perf_counter() - t0
         if gradient:
             self.gradient_evaluations += 1
         df = (None if ev.d_objective is None else
@@ -275,7 +281,7 @@ class ProblemOptimizationResult:
 def optimize_problem(problem, x0=None, *, optimizer="mma", max_iterations=100,
                      max_simulations=1000, objective_rel_change=1e-3, constraint_violation=1e-6,
                      design_rel_change=None, kkt_tol=1e-3, active_tol=1e-3, scale=None,
-                     mma_options=None, history=None, progress=None):
+                     mma_options=None, screen=-0.3, history=None, progress=None):
     """Minimize a general-format problem's objective under its constraints, fully coupled.
 
     Parameters
@@ -284,10 +290,13 @@ def optimize_problem(problem, x0=None, *, optimizer="mma", max_iterations=100,
         Description (then loaded with flexmbs.problem.load_problem).
     x0 : array, optional
         Starting design (user units, within the bounds); default the case's start.
-    optimizer : {'mma', 'slsqp'}, default 'mma'
+    optimizer : {'mma', 'slsqp', 'nlopt-mma', 'nlopt-ccsaq', 'nlopt-slsqp'}, default 'mma'
         Svanberg's globally convergent MMA (`flexmbs.optimize.mma`, with fully.py's inner
-        iterations) or plain scipy SLSQP (no move limits).
+        iterations), plain scipy SLSQP (no move limits), or NLopt's MMA, CCSAQ or SLSQP on the
+        design mapped to [0, 1] with the constraints as one vector constraint
+        (`flexmbs.optimize.library`; docs/optimizers.md compares them).
     max_iterations : int, default 100
+        (NLopt: every new design simulated counts as an iteration.)
     max_simulations : int, default 1000
     objective_rel_change : float, default 1e-3
         The paper's test: relative objective change between two iterations below this ...
@@ -303,6 +312,11 @@ def optimize_problem(problem, x0=None, *, optimizer="mma", max_iterations=100,
         Design scale, x = p / scale; default the start.
     mma_options : dict, optional
         Keyword arguments of `flexmbs.optimize.mma.MMA` and max_inner (default 20).
+    screen : float or None, default -0.3
+        NLopt optimizers only: the rows given to the optimizer are those with g > screen and
+        the local maxima of each constraint's history, enlarged (with a restart) whenever the
+        most violated row of a simulated design was left out; None gives every row.
+        Every design is still checked on all rows.
     history : str, path or HistoryWriter, optional
         One JSON line per iteration written as the run goes (iteration 0: the start); keys
         iteration, design, objective, max_violation, responses (largest value of each),
@@ -326,8 +340,11 @@ def optimize_problem(problem, x0=None, *, optimizer="mma", max_iterations=100,
 
     t0 = time.perf_counter()
     if not isinstance(optimizer, str) or optimizer not in OPTIMIZERS:
-        raise ModelError(f"optimizer must be one of {OPTIMIZERS} for a general-format problem, "
-                         f"got {optimizer!r}")
+        raise ModelError(f"optimizer must be one of {', '.join(OPTIMIZERS)} for a "
+                         f"general-format problem, got {optimizer!r}")
+    if screen is not None and (isinstance(screen, bool) or not isinstance(screen, (int, float))
+                               or not -np.inf < screen <= 0):
+        raise ModelError(f"screen must be a number <= 0 (e.g. -0.3) or None, got {screen!r}")
     max_iterations, max_simulations = _check_stopping(
         objective_rel_change, constraint_violation, design_rel_change, kkt_tol, active_tol,
         max_iterations, max_simulations)
@@ -350,19 +367,29 @@ def optimize_problem(problem, x0=None, *, optimizer="mma", max_iterations=100,
                    constraint_violation=constraint_violation,
                    design_rel_change=design_rel_change, kkt_tol=kkt_tol, active_tol=active_tol,
                    max_iterations=max_iterations, max_simulations=max_simulations, t0=t0)
+    lib_details = {}
     try:
         if optimizer == "mma":
             _run_mma(P, mon, P.to_x(p0), opt, max_inner=max_inner)
-        else:
+        elif optimizer == "slsqp":
             _run_slsqp(P, mon, P.to_x(p0))
+        else:
+            from flexmbs.optimize.library import run_nlopt
+            _, lib_details = run_nlopt(P, mon, P.to_x(p0), optimizer, screen=screen)
     finally:
         if own_writer:
             writer.close()
     if not mon.iterates:
         raise ModelError("the optimization recorded no iterate")
-    last = mon.iterates[-1]
+    if optimizer.startswith("nlopt"):
+        from flexmbs.optimize.library import _choose
+        last = _choose(mon)
+    else:
+        last = mon.iterates[-1]
     # the constraints of the final design re-checked by a fresh simulation (no cache)
+    t_fresh = time.perf_counter()
     fresh = problem.evaluate(last.design, gradient=False)
+    P.evaluate_time_s += time.perf_counter() - t_fresh
     P.simulations += 1
     desc = problem.description
     details = dict(optimizer=optimizer, kkt_residual=mon.last_kkt,
@@ -372,15 +399,23 @@ def optimize_problem(problem, x0=None, *, optimizer="mma", max_iterations=100,
                                  constraint_violation=constraint_violation,
                                  design_rel_change=design_rel_change, kkt_tol=kkt_tol,
                                  active_tol=active_tol))
+    details.update(lib_details)
     if optimizer == "mma":
         details["mma_inner_iterations"] = sum(r.get("mma_inner_iterations") or 0
                                               for r in writer.records)
     viol = float(max(0.0, fresh.constraints.max())) if fresh.constraints.size else 0.0
+    wall = time.perf_counter() - t0
+    details["evaluate_time_s"] = P.evaluate_time_s
+    details["optimizer_share"] = max(0.0, 1.0 - P.evaluate_time_s / wall) if wall > 0 else 0.0
+    converged = mon.converged and viol < constraint_violation
+    reason = mon.reason or "stopped"
+    if mon.converged and not converged:
+        reason += f"; but the re-simulated final design violates a constraint by {viol:.1e}"
     return ProblemOptimizationResult(
         method="fully", case=desc.case.name, variables=problem.variables,
         units=[v.unit for v in desc.design], design=last.design.copy(), start=p0.copy(),
         objective=float(fresh.objective), objective_name=desc.objective.response,
         max_violation=viol, iterations=mon.iteration, evaluations=P.evaluations,
-        simulations=P.simulations, converged=mon.converged, reason=mon.reason or "stopped",
-        history=list(writer.records), wall_time_s=time.perf_counter() - t0, details=details,
+        simulations=P.simulations, converged=converged, reason=reason,
+        history=list(writer.records), wall_time_s=wall, details=details,
         evaluation=fresh)
