@@ -34,10 +34,17 @@ from flexmbs.simulate import simulate
 __all__ = ["Problem", "Evaluation", "load_problem", "constraint_rows"]
 
 
+#: what an object needs to stand for a Problem in the optimizers (e.g. an analytic test problem)
+PROBLEM_INTERFACE = ("evaluate", "variables", "lower", "upper", "start", "description",
+                     "mechanism")
+
+
 def load_problem(case):
     """A Problem from a general-format case: a path, a name in cases/general, a dict or a
-    Description."""
-    return case if isinstance(case, Problem) else Problem(case)
+    Description; a Problem, or an object with its interface (PROBLEM_INTERFACE), as it is."""
+    if isinstance(case, Problem) or all(hasattr(case, a) for a in PROBLEM_INTERFACE):
+        return case
+    return Problem(case)
 
 
 def _description(case):

@@ -34,6 +34,7 @@ from flexmbs.cli import (add_case_arguments, case_from_args, figure_file, output
 from flexmbs.errors import CaseError
 from flexmbs.optimize.fully import (AGGREGATIONS, CONSTRAINT_FORMS, OPTIMIZERS,
                                     optimize_fully)
+from flexmbs.optimize.problem_fully import OPTIMIZERS as GENERAL_OPTIMIZERS
 from flexmbs.optimize.result import HistoryWriter
 
 __all__ = ["register", "run_optimize", "run_weakly", "add_weakly_options", "start_from_args",
@@ -202,6 +203,8 @@ def run_general(args, problem):
 
     from flexmbs.cli_evaluate import design_from_text
     start = None if args.start is None else design_from_text(args.start, problem, "--start")
+    if getattr(args, "starts", None) is not None:
+        return _run_multistart(args, problem, start)
     if args.method == "weakly":
         progress = None if args.json else _print_cycle
         return optimize_problem_weakly(
@@ -223,6 +226,27 @@ def run_general(args, problem):
                             max_iterations=max_it, history=args.history, progress=progress)
 
 
+def _run_multistart(args, problem, start):
+    """``flexmbs optimize CASE --starts N``: the fully coupled method from N starts."""
+    from flexmbs.optimize.multistart import multistart
+
+    if args.method != "fully":
+        raise CaseError(f"--starts {args.starts}: multi-start runs the fully coupled method; "
+                        f"add --method fully (got --method {args.method})")
+    if start is not None:
+        raise CaseError("--starts draws the starting designs; leave --start out")
+    if args.starts < 1:
+        raise CaseError(f"--starts must be a positive integer, got {args.starts}")
+    if args.history.path is not None:
+        raise CaseError("--history is written by one run; with --starts give --store FOLDER "
+                        "(one result file per start)")
+    max_it = 100 if args.max_iterations is None else args.max_iterations
+    return multistart(problem, args.starts, optimizer=args.optimizer,
+                      sampler=args.sampler, seed=args.seed, workers=args.workers,
+                      dask=args.dask, store=args.store, progress=False if args.json else None,
+                      kkt_tol=args.kkt_tol, max_iterations=max_it)
+
+
 def _print_general_iteration(rec):
     p = ", ".join(f"{v:.5g}" for v in rec["design"])
     print(f"iteration {rec['iteration']:3d}  x = [{p}]  objective {rec['objective']:.6g}  "
@@ -237,6 +261,9 @@ def run_optimize(args):
         case = None
         run = run_general
     else:
+        if getattr(args, "starts", None) is not None:
+            raise CaseError(f"--starts: multi-start is for general-format cases "
+                            f"(docs/case-format.md); {args.case!r} is a paper-format case")
         problem = None
         case = case_from_args(args)
         run = _load(METHODS[args.method])
@@ -288,9 +315,12 @@ def add_fully_options(parser):
                         "finite differences (the paper's, relative step --fd-step)")
     g.add_argument("--fd-step", type=float, default=1e-6, metavar="S",
                    help="relative finite-difference step, default 1e-6")
-    g.add_argument("--optimizer", choices=OPTIMIZERS, default="mma",
+    g.add_argument("--optimizer", choices=tuple(dict.fromkeys(OPTIMIZERS + GENERAL_OPTIMIZERS)),
+                   default="mma",
                    help="mma: Svanberg's globally convergent MMA (default); sqp: trust-region "
-                        "SQP; slsqp: plain scipy SLSQP (no move limits, fails from some starts)")
+                        "SQP (paper-format cases); slsqp: plain scipy SLSQP (no move limits, "
+                        "fails from some starts); nlopt-mma, nlopt-ccsaq, nlopt-slsqp: NLopt's "
+                        "(general-format cases, docs/optimizers.md)")
     g.add_argument("--aggregation", choices=AGGREGATIONS, default="none",
                    help="none: one constraint per time step (the paper's, default); ks / pnorm: "
                         "aggregated constraints, eq. (22)")
@@ -304,6 +334,21 @@ def add_fully_options(parser):
                    help="first-order test added to the paper's stopping test, default 1e-3")
     g.add_argument("--max-iterations", type=int, default=None, metavar="N",
                    help="maximum optimizer iterations; default: the case file's, else 100")
+    m = parser.add_argument_group("multi-start (general-format cases, --method fully)")
+    m.add_argument("--starts", type=int, default=None, metavar="N",
+                   help="run the fully coupled method from N quasi-random starting designs "
+                        "(log-scaled where the bounds span a decade) and report the best "
+                        "feasible design, re-simulated, and the spread of the local optima")
+    m.add_argument("--sampler", choices=("sobol", "lhs"), default="sobol",
+                   help="sampler of the starts: scrambled Sobol (default) or Latin hypercube")
+    m.add_argument("--seed", type=int, default=0, metavar="S",
+                   help="seed of the sampler (default 0: the same starts every run)")
+    m.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="local worker processes for the starts (default: the number of cores)")
+    m.add_argument("--dask", metavar="ADDRESS",
+                   help="run the starts on a Dask scheduler (tcp://host:8786, or 'local')")
+    m.add_argument("--store", metavar="FOLDER",
+                   help="save each start's result as it finishes; a rerun skips those stored")
 
 
 def run_fully(args, case):

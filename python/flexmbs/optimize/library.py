@@ -83,7 +83,7 @@ class _Finished(Exception):
 
 
 def run_nlopt(P, mon, x0, optimizer, *, screen=-0.3, max_restarts=20, xtol_rel=1e-8,
-              ftol_rel=1e-10, params=None):
+              ftol_rel=1e-10, params=None, initial_step=None, log_scale=True):
     """Run an NLopt algorithm on the scaled problem P from x0, recording every new design
     simulated with `mon` (a fully._Monitor), which applies the stopping test.
 
@@ -101,10 +101,21 @@ def run_nlopt(P, mon, x0, optimizer, *, screen=-0.3, max_restarts=20, xtol_rel=1
         raise ModelError(f"screen must be a number <= 0 (e.g. -0.3) or None, got {screen!r}")
     algorithm = getattr(nlopt, NLOPT_ALGORITHMS[optimizer])
     lo, hi = np.asarray(P.lower, float), np.asarray(P.upper, float)
-    width = np.where(hi > lo, hi - lo, 1.0)
+    # z in [0, 1]: linear, or logarithmic for variables whose bounds span a decade or more
+    log = np.zeros(lo.size, bool) if not log_scale else (lo > 0) & (hi > 10 * lo)
+    a = np.where(log, np.log(np.where(log, lo, 1.0)), lo)
+    b = np.where(log, np.log(np.where(log, hi, 1.0)), hi)
+    width = np.where(b > a, b - a, 1.0)
 
     def to_x(z):
-        return lo + np.clip(z, 0.0, 1.0) * width
+        u = a + np.clip(z, 0.0, 1.0) * width
+        return np.where(log, np.exp(u), u)
+
+    def to_z(x):
+        return (np.where(log, np.log(np.where(log, x, 1.0)), x) - a) / width
+
+    def dx_dz(x):
+        return np.where(log, x, 1.0) * width
 
     seen = set()
     state = dict(rows=None, restarts=0, result=None, stop_reason=None)
@@ -130,7 +141,7 @@ def run_nlopt(P, mon, x0, optimizer, *, screen=-0.3, max_restarts=20, xtol_rel=1
     ev = P.evaluate(x0, gradient=True)
     names = ev.evaluation.constraint_names
     state["rows"] = screened_rows(ev.g, names, screen)
-    z = (np.asarray(x0, float) - lo) / width
+    z = to_z(np.asarray(x0, float))
     while True:
         rows = state["rows"]
         opt = nlopt.opt(algorithm, P.nv)
@@ -144,20 +155,22 @@ def run_nlopt(P, mon, x0, optimizer, *, screen=-0.3, max_restarts=20, xtol_rel=1
             # defaults (1e-14, 100000) made its own time 45-95 % of a run (docs/optimizers.md)
             opt.set_param("dual_ftol_rel", 1e-8)
             opt.set_param("dual_maxeval", 200)
+        if initial_step is not None:
+            opt.set_initial_step(np.full(P.nv, float(initial_step)))
         for key, value in (params or {}).items():
             opt.set_param(key, value)
 
         def objective(zz, grad):
             e = analyse(zz)
             if grad.size:
-                grad[:] = e.df * width
+                grad[:] = e.df * dx_dz(e.x)
             return float(e.f)
 
         def constraints(result, zz, grad):
             e = analyse(zz)
             result[:] = e.g[rows]
             if grad.size:
-                grad[:, :] = e.dg[rows] * width[None, :]
+                grad[:, :] = e.dg[rows] * dx_dz(e.x)[None, :]
 
         opt.set_min_objective(objective)
         if rows.size:
@@ -175,7 +188,7 @@ def run_nlopt(P, mon, x0, optimizer, *, screen=-0.3, max_restarts=20, xtol_rel=1
             at = state.pop("restart_at")
             state["restarts"] += 1
             state["rows"] = np.union1d(rows, screened_rows(at.g, names, screen))
-            z = (at.x - lo) / width
+            z = to_z(at.x)
         except nlopt.RoundoffLimited:
             state["result"] = "roundoff limited"
             mon.reason = mon.reason or "NLopt stopped: roundoff errors limited the progress"

@@ -278,10 +278,34 @@ class ProblemOptimizationResult:
             plt.close(fig)
 
 
+_NLOPT_KEYS = ("log_scale", "initial_step", "max_restarts", "params")
+
+
+def _nlopt_settings(options):
+    """Keyword arguments of library.run_nlopt from `nlopt_options` (ModelError naming a bad
+    key)."""
+    if options is None:
+        options = {}
+    if not isinstance(options, dict):
+        raise ModelError(f"nlopt_options must be a dict or None, got {options!r}")
+    bad = [k for k in options if k not in _NLOPT_KEYS]
+    if bad:
+        raise ModelError(f"nlopt_options: unknown key(s) {', '.join(map(repr, bad))}; allowed: "
+                         f"{', '.join(_NLOPT_KEYS)}")
+    kw = dict(log_scale=True)
+    kw.update(options)
+    step = kw.get("initial_step")
+    if step is not None and (isinstance(step, bool) or not isinstance(step, (int, float))
+                             or not 0 < step <= 1):
+        raise ModelError(f"nlopt_options initial_step must be in (0, 1], got {step!r}")
+    return kw
+
+
 def optimize_problem(problem, x0=None, *, optimizer="mma", max_iterations=100,
                      max_simulations=1000, objective_rel_change=1e-3, constraint_violation=1e-6,
                      design_rel_change=None, kkt_tol=1e-3, active_tol=1e-3, scale=None,
-                     mma_options=None, screen=-0.3, history=None, progress=None):
+                     mma_options=None, screen=-0.3, nlopt_options=None, history=None,
+                     progress=None):
     """Minimize a general-format problem's objective under its constraints, fully coupled.
 
     Parameters
@@ -317,6 +341,11 @@ def optimize_problem(problem, x0=None, *, optimizer="mma", max_iterations=100,
         the local maxima of each constraint's history, enlarged (with a restart) whenever the
         most violated row of a simulated design was left out; None gives every row.
         Every design is still checked on all rows.
+    nlopt_options : dict, optional
+        NLopt optimizers only: log_scale (bool, default True: variables whose bounds span a
+        decade or more are mapped to [0, 1] logarithmically), initial_step (in [0, 1] units,
+        default NLopt's), max_restarts (screening restarts, default 20), params (NLopt
+        algorithm parameters, e.g. {"dual_maxeval": 1000}).
     history : str, path or HistoryWriter, optional
         One JSON line per iteration written as the run goes (iteration 0: the start); keys
         iteration, design, objective, max_violation, responses (largest value of each),
@@ -349,6 +378,7 @@ def optimize_problem(problem, x0=None, *, optimizer="mma", max_iterations=100,
         objective_rel_change, constraint_violation, design_rel_change, kkt_tol, active_tol,
         max_iterations, max_simulations)
     mma_kw, max_inner = _mma_settings(mma_options)
+    nlopt_kw = _nlopt_settings(nlopt_options)
     progress = _progress_callback(progress)
     problem = load_problem(problem)
     mech = problem.mechanism
@@ -375,7 +405,8 @@ def optimize_problem(problem, x0=None, *, optimizer="mma", max_iterations=100,
             _run_slsqp(P, mon, P.to_x(p0))
         else:
             from flexmbs.optimize.library import run_nlopt
-            _, lib_details = run_nlopt(P, mon, P.to_x(p0), optimizer, screen=screen)
+            _, lib_details = run_nlopt(P, mon, P.to_x(p0), optimizer, screen=screen,
+                                       **nlopt_kw)
     finally:
         if own_writer:
             writer.close()
