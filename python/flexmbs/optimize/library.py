@@ -7,9 +7,13 @@ with one of NLopt's gradient-based algorithms for inequality-constrained problem
     'nlopt-ccsaq'  CCSA with quadratic conservative approximations (LD_CCSAQ)
     'nlopt-slsqp'  Kraft's SLSQP (LD_SLSQP)
 
-The design is mapped to the unit box, z = (x - lower) / (upper - lower) in [0, 1], so that
-every variable has the same range for the optimizer's move limits and asymptotes. The
-constraints go in as ONE vector constraint with its Jacobian (``add_inequality_mconstraint``),
+The design is mapped to the unit box z in [0, 1], so that every variable has the same range
+for the optimizer's move limits and asymptotes: linearly, z = (x - lower) / (upper - lower),
+or logarithmically, z = log(x / lower) / log(upper / lower), for a variable whose bounds span
+a decade or more (``log_scale``, default; on the four-bar, 15-500 mm, the linear map sent
+CCSAQ from 250 mm to the lower bounds in one step and into an infeasible stationary point,
+docs/optimizers.md). NLopt's CCSA dual problem is solved to 1e-8 (``dual_ftol_rel``) in at
+most 200 evaluations instead of NLopt's 1e-14 and 100000. The constraints go in as ONE vector constraint with its Jacobian (``add_inequality_mconstraint``),
 not one Python callback per row.
 
 Screening of the per-step constraints (``screen``, default -0.3): a problem with
@@ -78,19 +82,29 @@ class _Restart(Exception):
     """The screened set misses the most violated row: enlarge it and start again."""
 
 
+class _Feasible(Exception):
+    """The feasibility phase found a feasible design."""
+
+
 class _Finished(Exception):
     """The monitor's stopping test or a limit ended the run."""
 
 
 def run_nlopt(P, mon, x0, optimizer, *, screen=-0.3, max_restarts=20, xtol_rel=1e-8,
-              ftol_rel=1e-10, params=None, initial_step=None, log_scale=True):
+              ftol_rel=1e-10, params=None, initial_step=None, log_scale=True,
+              feasibility_phase=True):
     """Run an NLopt algorithm on the scaled problem P from x0, recording every new design
     simulated with `mon` (a fully._Monitor), which applies the stopping test.
 
+    feasibility_phase: from an infeasible start, first minimize the largest constraint value
+    (min s subject to g_i(x) <= s, the same algorithm and screened rows) until a simulated
+    design is feasible on all rows, then minimize the objective from there.
+
     Returns
     -------
-    (final ScaledEvaluation, details dict: nlopt_result, restarts, screened_rows (the number
-    of rows given to the optimizer in its last run), total_rows)
+    (final ScaledEvaluation, details dict: nlopt_result, restarts, failed_simulations,
+    feasibility_simulations (simulations of the feasibility phase), screened_rows (rows given
+    to the optimizer in its last run), total_rows, screen)
     """
     import nlopt
 
@@ -106,6 +120,7 @@ def run_nlopt(P, mon, x0, optimizer, *, screen=-0.3, max_restarts=20, xtol_rel=1
     a = np.where(log, np.log(np.where(log, lo, 1.0)), lo)
     b = np.where(log, np.log(np.where(log, hi, 1.0)), hi)
     width = np.where(b > a, b - a, 1.0)
+    nv = P.nv
 
     def to_x(z):
         u = a + np.clip(z, 0.0, 1.0) * width
@@ -118,18 +133,23 @@ def run_nlopt(P, mon, x0, optimizer, *, screen=-0.3, max_restarts=20, xtol_rel=1
         return np.where(log, x, 1.0) * width
 
     seen = set()
-    state = dict(rows=None, restarts=0, result=None, stop_reason=None)
+    state = dict(rows=None, restarts=0, result=None, failures=0, phase=1, feasibility_sims=0)
 
     def analyse(z):
-        ev = P.evaluate(to_x(z), gradient=True)
+        ev = P.evaluate(to_x(z[:nv]), gradient=True)
         key = ev.x.tobytes()
         if key not in seen:
             seen.add(key)
+            if state["phase"] == 0:
+                state["feasibility_sims"] += 1
             if mon.record(ev):
                 raise _Finished
             if P.simulations >= mon.max_simulations:
                 mon.reason = f"maximum number of simulations ({mon.max_simulations}) reached"
                 raise _Finished
+            if state["phase"] == 0 and ev.violation < mon.constraint_violation:
+                state["restart_at"] = ev
+                raise _Feasible
             rows = state["rows"]
             if ev.g.size and rows.size < ev.g.size and state["restarts"] < max_restarts:
                 worst = int(np.argmax(ev.g))
@@ -142,11 +162,23 @@ def run_nlopt(P, mon, x0, optimizer, *, screen=-0.3, max_restarts=20, xtol_rel=1
     names = ev.evaluation.constraint_names
     state["rows"] = screened_rows(ev.g, names, screen)
     z = to_z(np.asarray(x0, float))
+    if feasibility_phase and ev.violation >= mon.constraint_violation:
+        state["phase"] = 0
+    step = initial_step
     while True:
         rows = state["rows"]
-        opt = nlopt.opt(algorithm, P.nv)
-        opt.set_lower_bounds(np.zeros(P.nv))
-        opt.set_upper_bounds(np.ones(P.nv))
+        phase = state["phase"]
+        n = nv + (1 if phase == 0 else 0)
+        opt = nlopt.opt(algorithm, n)
+        zl, zu = np.zeros(n), np.ones(n)
+        if phase == 0:
+            # s, the largest constraint value: from that of z down to -1
+            g0 = P.evaluate(to_x(z), gradient=True).g
+            s0 = float(g0[rows].max()) if rows.size else 0.0
+            zl[-1], zu[-1] = -1.0, max(s0, 0.0) + 1.0
+            z = np.append(np.clip(z, 0.0, 1.0), s0)
+        opt.set_lower_bounds(zl)
+        opt.set_upper_bounds(zu)
         opt.set_xtol_rel(xtol_rel)
         opt.set_ftol_rel(ftol_rel)
         opt.set_maxeval(max(mon.max_simulations - P.simulations, 1) * 4)
@@ -155,48 +187,79 @@ def run_nlopt(P, mon, x0, optimizer, *, screen=-0.3, max_restarts=20, xtol_rel=1
             # defaults (1e-14, 100000) made its own time 45-95 % of a run (docs/optimizers.md)
             opt.set_param("dual_ftol_rel", 1e-8)
             opt.set_param("dual_maxeval", 200)
-        if initial_step is not None:
-            opt.set_initial_step(np.full(P.nv, float(initial_step)))
+        if step is not None:
+            st = np.full(n, float(step))
+            if phase == 0:
+                st[-1] = max(0.1 * (zu[-1] - zl[-1]), 1e-3)
+            opt.set_initial_step(st)
         for key, value in (params or {}).items():
             opt.set_param(key, value)
 
-        def objective(zz, grad):
+        def objective(zz, grad, phase=phase):
+            if phase == 0:
+                if grad.size:
+                    grad[:] = 0.0
+                    grad[-1] = 1.0
+                return float(zz[-1])
             e = analyse(zz)
             if grad.size:
                 grad[:] = e.df * dx_dz(e.x)
             return float(e.f)
 
-        def constraints(result, zz, grad):
+        def constraints(result, zz, grad, rows=rows, phase=phase):
             e = analyse(zz)
-            result[:] = e.g[rows]
+            result[:] = e.g[rows] - (zz[-1] if phase == 0 else 0.0)
             if grad.size:
-                grad[:, :] = e.dg[rows] * dx_dz(e.x)[None, :]
+                grad[:, :nv] = e.dg[rows] * dx_dz(e.x)[None, :]
+                if phase == 0:
+                    grad[:, -1] = -1.0
 
         opt.set_min_objective(objective)
         if rows.size:
             opt.add_inequality_mconstraint(constraints, np.full(rows.size, 1e-9))
         try:
-            opt.optimize(np.clip(z, 0.0, 1.0))
+            opt.optimize(np.clip(z, zl, zu))
             state["result"] = int(opt.last_optimize_result())
+            if phase == 0:
+                # no feasible design found: go on with the objective from the least violated
+                state["phase"] = 1
+                best = min(mon.iterates, key=lambda e: e.violation)
+                z = to_z(best.x)
+                continue
             if not mon.reason:
                 mon.reason = f"NLopt stopped ({_result_name(nlopt, state['result'])})"
             break
         except _Finished:
             state["result"] = "stopped by flexmbs"
             break
+        except _Feasible:
+            state["phase"] = 1
+            z = to_z(state.pop("restart_at").x)
         except _Restart:
             at = state.pop("restart_at")
             state["restarts"] += 1
             state["rows"] = np.union1d(rows, screened_rows(at.g, names, screen))
             z = to_z(at.x)
         except nlopt.RoundoffLimited:
+            if phase == 0:
+                state["phase"] = 1
+                z = to_z(min(mon.iterates, key=lambda e: e.violation).x)
+                continue
             state["result"] = "roundoff limited"
             mon.reason = mon.reason or "NLopt stopped: roundoff errors limited the progress"
             break
         except SimulationError as exc:
-            state["result"] = "simulation failed"
-            mon.reason = mon.reason or f"a trial design's simulation failed: {exc}"
-            break
+            # a trial design whose simulation fails (e.g. Newton does not converge on a very
+            # flexible design): start again from the last design simulated, with half the
+            # initial step (0.05 the first time)
+            if not mon.iterates or state["restarts"] >= max_restarts:
+                state["result"] = "simulation failed"
+                mon.reason = mon.reason or f"a trial design's simulation failed: {exc}"
+                break
+            state["restarts"] += 1
+            state["failures"] += 1
+            step = 0.05 if step is None else 0.5 * step
+            z = to_z(mon.iterates[-1].x)
     final = _choose(mon)
     if not mon.converged and final is not None and not mon.reason.startswith("maximum"):
         kkt = _kkt(mon, final)
@@ -206,6 +269,8 @@ def run_nlopt(P, mon, x0, optimizer, *, screen=-0.3, max_restarts=20, xtol_rel=1
                           f"{final.violation:.1e}) with KKT residual {kkt:.1e} < "
                           f"{mon.kkt_tol:g}")
     return final, dict(nlopt_result=state["result"], restarts=state["restarts"],
+                       failed_simulations=state["failures"],
+                       feasibility_simulations=state["feasibility_sims"],
                        screened_rows=int(state["rows"].size), total_rows=int(ev.g.size),
                        screen=screen)
 

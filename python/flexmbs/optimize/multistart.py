@@ -82,8 +82,16 @@ def start_designs(lower, upper, starts, sampler="sobol", seed=0):
 def start_job(case, start, optimizer, options):
     """One start (a batch job: plain data in, JSON out): `optimize_problem(case, start,
     optimizer=optimizer, **options)` summarised."""
+    from flexmbs.errors import SimulationError
     from flexmbs.optimize.problem_fully import optimize_problem
-    res = optimize_problem(_problem(case), start, optimizer=optimizer, **(options or {}))
+    try:
+        res = optimize_problem(_problem(case), start, optimizer=optimizer, **(options or {}))
+    except SimulationError as exc:
+        # a start whose own simulation fails (e.g. a very flexible design): no local optimum
+        return dict(start=[float(v) for v in start], design=None, objective=None,
+                    max_violation=None, converged=False, simulations=1, wall_time_s=0.0,
+                    optimizer_share=float("nan"),
+                    reason=f"the start's simulation failed: {exc}", error=str(exc))
     return dict(start=[float(v) for v in start], design=[float(v) for v in res.design],
                 objective=float(res.objective), max_violation=float(res.max_violation),
                 converged=bool(res.converged), reason=res.reason,
@@ -101,7 +109,8 @@ class MultistartResult:
     best : the lightest feasible local optimum (dict: start, design, objective, max_violation
         (re-checked), converged, simulations, ...), None when no start ended feasible.
     optima : every start's local optimum, in the order of the starts (same keys; max_violation
-        re-checked by a fresh simulation, `feasible` added).
+        re-checked by a fresh simulation, `feasible` added; a start whose own simulation
+        failed has design None and its `reason`).
     reached_best : how many starts ended feasible within best_tolerance of the best objective.
     best_tolerance : relative (0.003). wall_time_s. simulations : all starts' simulations and
         the re-checks.
@@ -167,6 +176,9 @@ class MultistartResult:
             lines.append(f"  {self.reached_best} of {n} starts reached it (within "
                          f"{self.best_tolerance * 100:.1f} %)")
         for k, o in enumerate(self.optima):
+            if o.get("design") is None:
+                lines.append(f"  start {k}: {o['reason']}")
+                continue
             lines.append(f"  start {k}: objective {o['objective']:.6g}, violation "
                          f"{o['max_violation']:.1e}, {o['simulations']} simulations"
                          + ("" if o["feasible"] else "  INFEASIBLE"))
@@ -182,6 +194,8 @@ class MultistartResult:
 
         fig, ax = plt.subplots(figsize=(6, 4))
         for k, o in enumerate(self.optima):
+            if o.get("design") is None:
+                continue
             ax.plot(k, o["objective"], "o" if o["feasible"] else "x",
                     color="C0" if o["feasible"] else "C3")
         ax.set_xlabel("start")
@@ -261,13 +275,18 @@ def multistart(case, starts=8, *, optimizer="nlopt-ccsaq", sampler="sobol", seed
     sims = 0
     for name in jobs:
         o = dict(out[name])
+        sims += int(o.get("simulations") or 0)
+        if o.get("design") is None:                # the start's simulation failed
+            o["feasible"] = False
+            optima.append(o)
+            continue
         # feasibility re-checked by a fresh simulation, here
+        sims += 1
         ev = problem.evaluate(o["design"], gradient=False)
         g = np.asarray(ev.constraints, float)
         o["max_violation"] = float(max(0.0, g.max())) if g.size else 0.0
         o["objective"] = float(ev.objective)
         o["feasible"] = o["max_violation"] <= feasibility_tol
-        sims += int(o.get("simulations", 0)) + 1
         optima.append(o)
     feas = [o for o in optima if o["feasible"]]
     best = min(feas, key=lambda o: o["objective"]) if feas else None

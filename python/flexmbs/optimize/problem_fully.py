@@ -278,7 +278,7 @@ class ProblemOptimizationResult:
             plt.close(fig)
 
 
-_NLOPT_KEYS = ("log_scale", "initial_step", "max_restarts", "params")
+_NLOPT_KEYS = ("log_scale", "initial_step", "max_restarts", "params", "feasibility_phase")
 
 
 def _nlopt_settings(options):
@@ -345,7 +345,9 @@ def optimize_problem(problem, x0=None, *, optimizer="mma", max_iterations=100,
         NLopt optimizers only: log_scale (bool, default True: variables whose bounds span a
         decade or more are mapped to [0, 1] logarithmically), initial_step (in [0, 1] units,
         default NLopt's), max_restarts (screening restarts, default 20), params (NLopt
-        algorithm parameters, e.g. {"dual_maxeval": 1000}).
+        algorithm parameters, e.g. {"dual_maxeval": 1000}), feasibility_phase (bool, default
+        True: from an infeasible start, first minimize the largest constraint value until a
+        design is feasible).
     history : str, path or HistoryWriter, optional
         One JSON line per iteration written as the run goes (iteration 0: the start); keys
         iteration, design, objective, max_violation, responses (largest value of each),
