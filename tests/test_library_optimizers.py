@@ -251,3 +251,17 @@ def test_feasibility_phase_from_an_infeasible_start(optimizer):
     assert res.details["feasibility_simulations"] >= 1
     assert res.objective == pytest.approx(9.0, rel=0.01)
     assert res.max_violation < 1e-6
+
+
+def test_multistart_candidates_start_from_feasible_light_designs():
+    """candidates=16, starts=3 on `_two_basins`: the 16 Sobol designs are simulated and the 3
+    feasible ones of lowest objective kept. The feasible set [0.5, 1] and [3, 10] is 41 % of
+    the log range of [0.1, 10] (6.6 of 16 stratified points), so every start must be a
+    feasible design (outside the gap (1, 3)), and the best is the global optimum x = 0.5."""
+    res = multistart(_two_basins(), 3, candidates=16, optimizer="nlopt-ccsaq", workers=1)
+    for o in res.optima:
+        x = o["start"][0]
+        assert 0.5 <= x <= 1.0 or 3.0 <= x <= 10.0
+    assert res.best["objective"] == pytest.approx(0.5, rel=0.01)
+    with pytest.raises(ModelError, match="candidates must be an integer >= starts"):
+        multistart(_two_basins(), 3, candidates=2, workers=1)

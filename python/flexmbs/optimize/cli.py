@@ -222,7 +222,8 @@ def run_general(args, problem):
                             f"leave this option out")
     progress = None if args.json else _print_general_iteration
     max_it = 100 if args.max_iterations is None else args.max_iterations
-    return optimize_problem(problem, start, optimizer=args.optimizer, kkt_tol=args.kkt_tol,
+    return optimize_problem(problem, start, optimizer=args.optimizer or "mma",
+                            kkt_tol=args.kkt_tol,
                             max_iterations=max_it, history=args.history, progress=progress)
 
 
@@ -241,8 +242,9 @@ def _run_multistart(args, problem, start):
         raise CaseError("--history is written by one run; with --starts give --store FOLDER "
                         "(one result file per start)")
     max_it = 100 if args.max_iterations is None else args.max_iterations
-    return multistart(problem, args.starts, optimizer=args.optimizer,
-                      sampler=args.sampler, seed=args.seed, workers=args.workers,
+    return multistart(problem, args.starts, optimizer=args.optimizer or "nlopt-mma",
+                      sampler=args.sampler, seed=args.seed, candidates=args.candidates,
+                      workers=args.workers,
                       dask=args.dask, store=args.store, progress=False if args.json else None,
                       kkt_tol=args.kkt_tol, max_iterations=max_it)
 
@@ -316,8 +318,9 @@ def add_fully_options(parser):
     g.add_argument("--fd-step", type=float, default=1e-6, metavar="S",
                    help="relative finite-difference step, default 1e-6")
     g.add_argument("--optimizer", choices=tuple(dict.fromkeys(OPTIMIZERS + GENERAL_OPTIMIZERS)),
-                   default="mma",
-                   help="mma: Svanberg's globally convergent MMA (default); sqp: trust-region "
+                   default=None,
+                   help="mma: Svanberg's globally convergent MMA (default; with --starts: "
+                        "nlopt-mma, docs/optimizers.md); sqp: trust-region "
                         "SQP (paper-format cases); slsqp: plain scipy SLSQP (no move limits, "
                         "fails from some starts); nlopt-mma, nlopt-ccsaq, nlopt-slsqp: NLopt's "
                         "(general-format cases, docs/optimizers.md)")
@@ -341,6 +344,9 @@ def add_fully_options(parser):
                         "feasible design, re-simulated, and the spread of the local optima")
     m.add_argument("--sampler", choices=("sobol", "lhs"), default="sobol",
                    help="sampler of the starts: scrambled Sobol (default) or Latin hypercube")
+    m.add_argument("--candidates", type=int, default=None, metavar="M",
+                   help="draw M >= N designs, simulate each once, and start from the N "
+                        "feasible ones of lowest objective")
     m.add_argument("--seed", type=int, default=0, metavar="S",
                    help="seed of the sampler (default 0: the same starts every run)")
     m.add_argument("--workers", type=int, default=None, metavar="N",
@@ -355,7 +361,7 @@ def run_fully(args, case):
     """Handler of ``flexmbs optimize CASE --method fully``: returns an OptimizationResult."""
     progress = None if args.json else _print_iteration
     return optimize_fully(case, start_from_args(args, case), sensitivity=args.sensitivity,
-                          fd_step=args.fd_step, optimizer=args.optimizer,
+                          fd_step=args.fd_step, optimizer=args.optimizer or "mma",
                           aggregation=args.aggregation,
                           aggregation_parameter=args.aggregation_parameter,
                           windows=args.windows, constraint_form=args.constraint_form,

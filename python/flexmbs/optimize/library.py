@@ -187,8 +187,10 @@ def run_nlopt(P, mon, x0, optimizer, *, screen=-0.3, max_restarts=20, xtol_rel=1
             # defaults (1e-14, 100000) made its own time 45-95 % of a run (docs/optimizers.md)
             opt.set_param("dual_ftol_rel", 1e-8)
             opt.set_param("dual_maxeval", 200)
-        if step is not None:
-            st = np.full(n, float(step))
+        if step is not None or phase == 0:
+            # the feasibility phase with NLopt's default step crept on the four-bar (0.01 %
+            # design change per simulation); 0.1 of the unit box found a feasible design
+            st = np.full(n, float(0.1 if step is None else step))
             if phase == 0:
                 st[-1] = max(0.1 * (zu[-1] - zl[-1]), 1e-3)
             opt.set_initial_step(st)

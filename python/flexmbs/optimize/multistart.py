@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flexmbs.errors import ModelError
+from flexmbs.errors import ModelError, SimulationError
 
 __all__ = ["multistart", "start_designs", "MultistartResult", "SAMPLERS", "start_job"]
 
@@ -209,8 +209,8 @@ class MultistartResult:
             plt.close(fig)
 
 
-def multistart(case, starts=8, *, optimizer="nlopt-ccsaq", sampler="sobol", seed=0,
-               start_range=None, workers=None, dask=None, store=None, progress=None,
+def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0,
+               start_range=None, candidates=None, workers=None, dask=None, store=None, progress=None,
                best_tolerance=0.003, feasibility_tol=1e-6, **options):
     """Run the fully coupled optimization from `starts` quasi-random starting designs.
 
@@ -219,13 +219,18 @@ def multistart(case, starts=8, *, optimizer="nlopt-ccsaq", sampler="sobol", seed
     case : a general-format case path or name, a dict or a Description (plain data, sent to
         the workers), or a Problem (its description is sent).
     starts : int, default 8
-    optimizer : str, default 'nlopt-ccsaq'
-        Any of `flexmbs.optimize.problem_fully.OPTIMIZERS`.
+    optimizer : str, default 'nlopt-mma'
+        Any of `flexmbs.optimize.problem_fully.OPTIMIZERS` (docs/optimizers.md: the most
+        four-bar starts reached the light design with nlopt-mma, at a small optimizer share).
     sampler : {'sobol', 'lhs'}, default 'sobol'
     seed : int, default 0
         Seed of the sampler (the same seed gives the same starts).
     start_range : (lower, upper), optional
         Box the starts are drawn from (user units, inside the bounds); default the bounds.
+    candidates : int, optional
+        Draw this many designs (>= starts), simulate each once without gradients, and start
+        from the `starts` feasible ones of lowest objective (then the least violated): no
+        start in an infeasible basin that the optimizer cannot leave.
     workers, dask, store, progress : as `flexmbs.batch.run_batch` (store: one JSON file per
         start, so an interrupted multi-start resumes where it stopped).
     best_tolerance : float, default 0.003
@@ -259,7 +264,27 @@ def multistart(case, starts=8, *, optimizer="nlopt-ccsaq", sampler="sobol", seed
             raise ModelError(f"start_range {np.asarray(slo).tolist()}..{np.asarray(shi).tolist()} "
                              f"must lie inside the bounds {lo.tolist()}..{hi.tolist()}")
         lo, hi = slo, shi
-    x0 = start_designs(lo, hi, starts, sampler, seed)
+    pre = 0
+    if candidates is None:
+        x0 = start_designs(lo, hi, starts, sampler, seed)
+    else:
+        if isinstance(candidates, bool) or not isinstance(candidates, int) or candidates < starts:
+            raise ModelError(f"candidates must be an integer >= starts ({starts}), got "
+                             f"{candidates!r}")
+        cand = start_designs(lo, hi, candidates, sampler, seed)
+        key = []
+        for x in cand:
+            try:
+                ev = problem.evaluate(x, gradient=False)
+            except SimulationError:
+                key.append((2, np.inf, np.inf))
+                continue
+            g = np.asarray(ev.constraints, float)
+            viol = float(max(0.0, g.max())) if g.size else 0.0
+            key.append((int(viol > feasibility_tol), viol if viol > feasibility_tol else 0.0,
+                        float(ev.objective)))
+        pre = len(cand)
+        x0 = cand[sorted(range(len(cand)), key=lambda k: key[k])[:starts]]
     # plain data for the workers: the case path, or the Description (picklable)
     if isinstance(case, (str, Path, dict)):
         payload = str(case) if isinstance(case, Path) else case
@@ -272,7 +297,7 @@ def multistart(case, starts=8, *, optimizer="nlopt-ccsaq", sampler="sobol", seed
     out = run_batch(start_job, jobs, workers=workers, dask=dask, store=store,
                     progress=progress, label="starts")
     optima = []
-    sims = 0
+    sims = pre
     for name in jobs:
         o = dict(out[name])
         sims += int(o.get("simulations") or 0)
@@ -298,6 +323,6 @@ def multistart(case, starts=8, *, optimizer="nlopt-ccsaq", sampler="sobol", seed
         units=[getattr(v, "unit", "") for v in desc.design], optimizer=optimizer,
         sampler=sampler, best=best, optima=optima, reached_best=int(reached),
         best_tolerance=best_tolerance, wall_time_s=time.perf_counter() - t0,
-        simulations=sims, details=dict(seed=seed, start_lower=np.asarray(lo).tolist(),
+        simulations=sims, details=dict(seed=seed, candidates=candidates, start_lower=np.asarray(lo).tolist(),
                                        start_upper=np.asarray(hi).tolist(),
                                        options={k: v for k, v in options.items()}))
