@@ -108,7 +108,8 @@ def test_history_is_written_as_the_run_goes(press, tmp_path):
 def test_bad_optimizer_and_start_are_named(press):
     """optimizer='sqp' (a paper-case optimizer, not offered here) and a start outside the
     bounds are ModelErrors naming the value given and what is allowed."""
-    with pytest.raises(ModelError, match=r"optimizer must be one of \('mma', 'slsqp'\).*'sqp'"):
+    with pytest.raises(ModelError, match=r"optimizer must be one of mma, slsqp, nlopt-mma, "
+                                         r"nlopt-ccsaq, nlopt-slsqp .*'sqp'"):
         optimize_problem(press, optimizer="sqp")
     with pytest.raises(ModelError, match=r"x0: d_rod = 70.0 lies outside its bounds \[5, 60\]"):
         optimize_problem(press, [70.0])
