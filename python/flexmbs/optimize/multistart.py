@@ -291,7 +291,7 @@ def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0
     elif hasattr(problem, "description") and type(problem).__name__ == "Problem":
         payload = problem.description
     else:
-        payload = problem                          # a Problem-like object, run in this process
+        payload = problem                          # a Problem-like object (pickled for workers)
     jobs = {f"start{k:03d}": dict(case=payload, start=x.tolist(), optimizer=optimizer,
                                   options=options) for k, x in enumerate(x0)}
     out = run_batch(start_job, jobs, workers=workers, dask=dask, store=store,

@@ -194,7 +194,9 @@ class ProblemOptimizationResult:
         included). converged, reason : the stopping test's verdict, in words.
     history : one record per iteration (iteration 0: the start), as written to the history
         file. wall_time_s. details : optimizer, kkt_residual, paper_test_iteration, stopping
-        settings, gradient_evaluations.
+        settings, gradient_evaluations, evaluate_time_s (inside Problem.evaluate),
+        optimizer_share (1 - evaluate_time_s / wall_time_s); NLopt: nlopt_result, restarts,
+        failed_simulations, feasibility_simulations, screened_rows, total_rows, screen.
     evaluation : the fresh `flexmbs.problem.Evaluation` of the final design (not in JSON).
     """
     method: str
