@@ -13,7 +13,7 @@ decade or more, such as 15-500 mm diameters: a uniform draw would put 97 % of th
 30 mm).
 
 >>> from flexmbs.optimize.multistart import multistart
->>> res = multistart("cases/general/fourbar.toml", starts=8, workers=2)    # doctest: +SKIP
+>>> res = multistart("fourbar", starts=8, workers=2)                        # doctest: +SKIP
 >>> res.best["objective"], res.reached_best                              # doctest: +SKIP
 """
 from __future__ import annotations
