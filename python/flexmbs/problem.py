@@ -34,10 +34,17 @@ from flexmbs.simulate import simulate
 __all__ = ["Problem", "Evaluation", "load_problem", "constraint_rows"]
 
 
+#: what an object needs to stand for a Problem in the optimizers (e.g. an analytic test problem)
+PROBLEM_INTERFACE = ("evaluate", "variables", "lower", "upper", "start", "description",
+                     "mechanism")
+
+
 def load_problem(case, overrides=None):
     """A Problem from a case: a path, the name of a shipped case (cases/), a dict or a
-    Description (a Problem is returned as it is when no overrides are given)."""
-    if isinstance(case, Problem) and not overrides:
+    Description; a Problem, or an object with its interface (PROBLEM_INTERFACE), as it is
+    when no overrides are given."""
+    if not overrides and (isinstance(case, Problem)
+                          or all(hasattr(case, a) for a in PROBLEM_INTERFACE)):
         return case
     return Problem(case, overrides=overrides)
 

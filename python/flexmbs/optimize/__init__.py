@@ -4,6 +4,7 @@ file or the name of a shipped case):
     optimize_weakly        the weakly coupled method: ESL cycles (paper 5.3; weakly.py)
     optimize_fully         the fully coupled method: dynamic response optimization
                            (paper 4, 5.4; fully.py, optimizer loops in loops.py)
+    multistart             optimize_fully from N quasi-random starts, in parallel (multistart.py)
     OptimizationResult     result of either method (result.py)
     HistoryWriter          per-cycle/iteration JSON-lines history written as the run goes
     read_history           read such a file back
@@ -11,6 +12,7 @@ file or the name of a shipped case):
 from flexmbs.optimize.fully import optimize_fully
 from flexmbs.optimize.result import HistoryWriter, OptimizationResult, read_history
 from flexmbs.optimize.weakly import optimize_weakly
+from flexmbs.optimize.multistart import multistart
 
-__all__ = ["optimize_weakly", "optimize_fully", "OptimizationResult", "HistoryWriter",
-           "read_history"]
+__all__ = ["optimize_weakly", "optimize_fully", "multistart", "OptimizationResult",
+           "HistoryWriter", "read_history"]

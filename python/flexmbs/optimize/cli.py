@@ -6,8 +6,10 @@ Usage::
                           [--set KEY=VALUE ...] [--json] [--history FILE] [--plot FILE.png]
         weakly: [--eps E] [--max-cycles N] [--confirm-cycles N] [--move-limit F]
                 [--frame tangent|chord]
-        fully:  [--optimizer mma|sqp|slsqp] [--kkt-tol TOL] [--max-iterations N]
-                [--design-rel-change TOL]
+        fully:  [--optimizer mma|sqp|slsqp|nlopt-mma|nlopt-ccsaq|nlopt-slsqp] [--kkt-tol TOL]
+                [--max-iterations N] [--design-rel-change TOL]
+                [--starts N [--candidates M] [--sampler sobol|lhs] [--seed S]
+                 [--workers N | --dask ADDRESS] [--store FOLDER]]
 
 CASE is the name of a shipped case or a case file (docs/case-format.md); it is optimized on
 its own objective and constraints (flexmbs.optimize.optimize_weakly / optimize_fully).
@@ -29,6 +31,7 @@ import sys
 
 from flexmbs.cli import (add_case_arguments, design_from_text, figure_file, output_file,
                          print_json, problem_from_args)
+from flexmbs.errors import CaseError
 from flexmbs.optimize.fully import OPTIMIZERS
 from flexmbs.optimize.result import HistoryWriter
 
@@ -127,6 +130,9 @@ def _interrupted(args, writer):
 
 def run_optimize(args):
     problem = problem_from_args(args)
+    if getattr(args, "starts", None) is not None and args.method != "fully":
+        raise CaseError(f"--starts {args.starts}: multi-start runs the fully coupled method; "
+                        f"add --method fully (got --method {args.method})")
     run = _load(METHODS[args.method])
     # output paths are checked before the run, not after it
     history_path = args.history
@@ -179,9 +185,11 @@ def _deviation_limit(problem):
 def add_fully_options(parser):
     """Options of ``flexmbs optimize CASE --method fully``."""
     g = parser.add_argument_group("fully coupled method")
-    g.add_argument("--optimizer", choices=OPTIMIZERS, default="mma",
-                   help="mma: Svanberg's globally convergent MMA (default); sqp: trust-region "
-                        "SQP; slsqp: plain scipy SLSQP (no move limits, fails from some starts)")
+    g.add_argument("--optimizer", choices=OPTIMIZERS, default=None,
+                   help="mma: Svanberg's globally convergent MMA (default; with --starts: "
+                        "nlopt-mma); sqp: trust-region SQP; slsqp: plain scipy SLSQP (no move "
+                        "limits, fails from some starts); nlopt-mma, nlopt-ccsaq, nlopt-slsqp: "
+                        "NLopt's (docs/optimizers.md)")
     g.add_argument("--kkt-tol", type=float, default=1e-3, metavar="TOL",
                    help="first-order test added to the paper's stopping test, default 1e-3")
     g.add_argument("--max-iterations", type=int, default=100, metavar="N",
@@ -189,15 +197,35 @@ def add_fully_options(parser):
     g.add_argument("--design-rel-change", type=float, default=None, metavar="TOL",
                    help="also require the relative design change below TOL to stop (the "
                         "paper's four-bar: 1e-3); default: not required")
+    m = parser.add_argument_group("multi-start (--method fully)")
+    m.add_argument("--starts", type=int, default=None, metavar="N",
+                   help="run the fully coupled method from N quasi-random starting designs "
+                        "(log-scaled where the bounds span a decade) and report the best "
+                        "feasible design, re-simulated, and the spread of the local optima")
+    m.add_argument("--sampler", choices=("sobol", "lhs"), default="sobol",
+                   help="sampler of the starts: scrambled Sobol (default) or Latin hypercube")
+    m.add_argument("--candidates", type=int, default=None, metavar="M",
+                   help="draw M >= N designs, simulate each once, and start from the N "
+                        "feasible ones of lowest objective")
+    m.add_argument("--seed", type=int, default=0, metavar="S",
+                   help="seed of the sampler (default 0: the same starts every run)")
+    m.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="local worker processes for the starts (default: the number of cores)")
+    m.add_argument("--dask", metavar="ADDRESS",
+                   help="run the starts on a Dask scheduler (tcp://host:8786, or 'local')")
+    m.add_argument("--store", metavar="FOLDER",
+                   help="save each start's result as it finishes; a rerun skips those stored")
 
 
 def run_fully(args, problem):
     """Handler of ``flexmbs optimize CASE --method fully``: returns an OptimizationResult."""
     from flexmbs.optimize.fully import optimize_fully
 
+    if args.starts is not None:
+        return _run_multistart(args, problem)
     progress = None if args.json else _print_iteration
     return optimize_fully(problem, design_from_text(args.start, problem, "--start"),
-                          optimizer=args.optimizer, kkt_tol=args.kkt_tol,
+                          optimizer=args.optimizer or "mma", kkt_tol=args.kkt_tol,
                           max_iterations=args.max_iterations,
                           design_rel_change=args.design_rel_change, history=args.history,
                           progress=progress)
@@ -208,3 +236,22 @@ def _print_iteration(rec):
     print(f"iteration {rec['iteration']:3d}  x = [{p}]  objective {rec['objective']:.6g}  "
           f"violation {rec['max_violation']:.1e}  KKT {rec['kkt_residual']:.1e}  "
           f"simulations {rec['simulations']}", flush=True)
+
+
+def _run_multistart(args, problem):
+    """``flexmbs optimize CASE --method fully --starts N``."""
+    from flexmbs.optimize.multistart import multistart
+
+    if args.start is not None:
+        raise CaseError("--starts draws the starting designs; leave --start out")
+    if args.starts < 1:
+        raise CaseError(f"--starts must be a positive integer, got {args.starts}")
+    if args.history.path is not None:
+        raise CaseError("--history is written by one run; with --starts give --store FOLDER "
+                        "(one result file per start)")
+    return multistart(problem, args.starts, optimizer=args.optimizer or "nlopt-mma",
+                      sampler=args.sampler, seed=args.seed, candidates=args.candidates,
+                      workers=args.workers, dask=args.dask, store=args.store,
+                      progress=False if args.json else None, kkt_tol=args.kkt_tol,
+                      max_iterations=args.max_iterations,
+                      design_rel_change=args.design_rel_change)

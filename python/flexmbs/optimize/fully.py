@@ -44,8 +44,9 @@ from flexmbs.sections import real_number
 
 __all__ = ["optimize_fully", "ScaledProblem", "OPTIMIZERS"]
 
-#: Optimizers: GCMMA (default), the trust-region SQP and plain scipy SLSQP (`loops`).
-OPTIMIZERS = ("mma", "sqp", "slsqp")
+#: Optimizers: GCMMA (hand-written, default), the trust-region SQP and plain scipy SLSQP
+#: (`loops`), and NLopt's MMA, CCSAQ and SLSQP (flexmbs.optimize.library, docs/optimizers.md).
+OPTIMIZERS = ("mma", "sqp", "slsqp", "nlopt-mma", "nlopt-ccsaq", "nlopt-slsqp")
 
 
 @dataclass
@@ -96,6 +97,7 @@ class ScaledProblem:
         self.lower = problem.lower / self.scale
         self.upper = problem.upper / self.scale
         self.simulations = 0
+        self.evaluate_time_s = 0.0          # wall time spent in Problem.evaluate
         self.gradient_evaluations = 0
         self.evaluations = 0
         self._cache = {}
@@ -162,7 +164,11 @@ class ScaledProblem:
     def _analyse(self, x, gradient):
         p = self.design(x)
         self.simulations += 1
-        ev = self.problem.evaluate(p, gradient=gradient)
+        t0 = time.perf_counter()
+        try:
+            ev = self.problem.evaluate(p, gradient=gradient)
+        finally:
+            self.evaluate_time_s += time.perf_counter() - t0
         if gradient:
             self.gradient_evaluations += 1
         df = (None if ev.d_objective is None else
@@ -204,11 +210,35 @@ class ScaledProblem:
         return {}
 
 
+_NLOPT_KEYS = ("log_scale", "initial_step", "max_restarts", "params", "feasibility_phase")
+
+
+def _nlopt_settings(options):
+    """Keyword arguments of library.run_nlopt from `nlopt_options` (ModelError naming a bad
+    key)."""
+    if options is None:
+        options = {}
+    if not isinstance(options, dict):
+        raise ModelError(f"nlopt_options must be a dict or None, got {options!r}")
+    bad = [k for k in options if k not in _NLOPT_KEYS]
+    if bad:
+        raise ModelError(f"nlopt_options: unknown key(s) {', '.join(map(repr, bad))}; allowed: "
+                         f"{', '.join(_NLOPT_KEYS)}")
+    kw = dict(log_scale=True)
+    kw.update(options)
+    step = kw.get("initial_step")
+    if step is not None and (isinstance(step, bool) or not isinstance(step, (int, float))
+                             or not 0 < step <= 1):
+        raise ModelError(f"nlopt_options initial_step must be in (0, 1], got {step!r}")
+    return kw
+
+
 def optimize_fully(problem, x0=None, *, optimizer="mma", max_iterations=100,
                    max_simulations=1000, objective_rel_change=1e-3, constraint_violation=1e-6,
                    design_rel_change=None, kkt_tol=1e-3, active_tol=1e-3, scale=None,
                    mma_options=None, trust_radius=0.2, max_trust_radius=0.5,
-                   model_fidelity=0.1, history=None, progress=None):
+                   model_fidelity=0.1, screen=-0.3, nlopt_options=None, history=None,
+                   progress=None):
     """Minimize a problem's objective under its constraints with the fully coupled method.
 
     Parameters
@@ -217,11 +247,14 @@ def optimize_fully(problem, x0=None, *, optimizer="mma", max_iterations=100,
         a Description (then loaded with flexmbs.problem.load_problem).
     x0 : array, optional
         Starting design (the variables' units, within the bounds); default the case's start.
-    optimizer : {'mma', 'sqp', 'slsqp'}, default 'mma'
+    optimizer : {'mma', 'sqp', 'slsqp', 'nlopt-mma', 'nlopt-ccsaq', 'nlopt-slsqp'}, default 'mma'
         Svanberg's globally convergent MMA (`flexmbs.optimize.mma`, with inner iterations),
-        the trust-region SQP, or plain scipy SLSQP (no move limits); see
-        `flexmbs.optimize.loops`.
+        the trust-region SQP, or plain scipy SLSQP (no move limits), see
+        `flexmbs.optimize.loops`; or NLopt's MMA, CCSAQ or SLSQP on the design mapped to
+        [0, 1] with the constraints as one vector constraint (`flexmbs.optimize.library`;
+        docs/optimizers.md compares them).
     max_iterations : int, default 100
+        (NLopt: every new design simulated counts as an iteration.)
     max_simulations : int, default 1000
     objective_rel_change : float, default 1e-3
         The paper's test: relative objective change between two iterations below this ...
@@ -243,6 +276,18 @@ def optimize_fully(problem, x0=None, *, optimizer="mma", max_iterations=100,
     model_fidelity : float or None, default 0.1
         'sqp': a step is rejected when a constraint near its limit differs from its
         linearization by more than this (None: no such test).
+    screen : float or None, default -0.3
+        NLopt optimizers only: the rows given to the optimizer are those with g > screen and
+        the local maxima of each constraint's history, enlarged (with a restart) whenever the
+        most violated row of a simulated design was left out; None gives every row.
+        Every design is still checked on all rows.
+    nlopt_options : dict, optional
+        NLopt optimizers only: log_scale (bool, default True: variables whose bounds span a
+        decade or more are mapped to [0, 1] logarithmically), initial_step (in [0, 1] units,
+        default NLopt's), max_restarts (screening restarts, default 20), params (NLopt
+        algorithm parameters, e.g. {"dual_maxeval": 1000}), feasibility_phase (bool, default
+        True: from an infeasible start, first minimize the largest constraint value until a
+        design is feasible).
     history : str, path or HistoryWriter, optional
         One JSON line per iteration written as the run goes (iteration 0: the start); keys
         iteration, design, objective, mass_kg, max_violation, responses (largest value of
@@ -255,7 +300,10 @@ def optimize_fully(problem, x0=None, *, optimizer="mma", max_iterations=100,
     -------
     flexmbs.optimize.OptimizationResult
         method 'fully'; inner_iterations None; details: optimizer, kkt_residual,
-        paper_test_iteration, gradient_evaluations, scale, stopping (the settings).
+        paper_test_iteration, gradient_evaluations, scale, stopping (the settings),
+        evaluate_time_s (inside Problem.evaluate), optimizer_share (1 - evaluate_time_s /
+        wall_time_s); NLopt: nlopt_result, restarts, failed_simulations,
+        feasibility_simulations, screened_rows, total_rows, screen.
 
     Raises
     ------
@@ -268,7 +316,10 @@ def optimize_fully(problem, x0=None, *, optimizer="mma", max_iterations=100,
 
     t0 = time.perf_counter()
     if not isinstance(optimizer, str) or optimizer not in OPTIMIZERS:
-        raise ModelError(f"optimizer must be one of {OPTIMIZERS}, got {optimizer!r}")
+        raise ModelError(f"optimizer must be one of {', '.join(OPTIMIZERS)}, got {optimizer!r}")
+    if screen is not None and (isinstance(screen, bool) or not isinstance(screen, (int, float))
+                               or not -np.inf < screen <= 0):
+        raise ModelError(f"screen must be a number <= 0 (e.g. -0.3) or None, got {screen!r}")
     real_number("trust_radius", trust_radius, positive=True)
     real_number("max_trust_radius", max_trust_radius, positive=True)
     if model_fidelity is not None:
@@ -277,6 +328,7 @@ def optimize_fully(problem, x0=None, *, optimizer="mma", max_iterations=100,
         objective_rel_change, constraint_violation, design_rel_change, kkt_tol, active_tol,
         max_iterations, max_simulations)
     mma_kw, max_inner = _mma_settings(mma_options)
+    nlopt_kw = _nlopt_settings(nlopt_options)
     progress = _progress_callback(progress)
     problem = load_problem(problem)
     mech = problem.mechanism
@@ -295,22 +347,33 @@ def optimize_fully(problem, x0=None, *, optimizer="mma", max_iterations=100,
                    constraint_violation=constraint_violation,
                    design_rel_change=design_rel_change, kkt_tol=kkt_tol, active_tol=active_tol,
                    max_iterations=max_iterations, max_simulations=max_simulations, t0=t0)
+    lib_details = {}
     try:
         if optimizer == "mma":
             _run_mma(P, mon, P.to_x(p0), opt, max_inner=max_inner)
         elif optimizer == "sqp":
             _run_sqp(P, mon, P.to_x(p0), radius0=trust_radius, radius_max=max_trust_radius,
                      fidelity=model_fidelity)
-        else:
+        elif optimizer == "slsqp":
             _run_slsqp(P, mon, P.to_x(p0))
+        else:
+            from flexmbs.optimize.library import run_nlopt
+            _, lib_details = run_nlopt(P, mon, P.to_x(p0), optimizer, screen=screen,
+                                       **nlopt_kw)
     finally:
         if own_writer:
             writer.close()
     if not mon.iterates:
         raise ModelError("the optimization recorded no iterate")
-    last = mon.iterates[-1]
+    if optimizer.startswith("nlopt"):
+        from flexmbs.optimize.library import _choose
+        last = _choose(mon)
+    else:
+        last = mon.iterates[-1]
     # the constraints of the final design re-checked by a fresh simulation (no cache)
+    t_fresh = time.perf_counter()
     fresh = problem.evaluate(last.design, gradient=False)
+    P.evaluate_time_s += time.perf_counter() - t_fresh
     P.simulations += 1
     desc = problem.description
     details = dict(optimizer=optimizer, kkt_residual=mon.last_kkt,
@@ -323,11 +386,19 @@ def optimize_fully(problem, x0=None, *, optimizer="mma", max_iterations=100,
     if optimizer == "sqp":
         details.update(trust_radius=trust_radius, max_trust_radius=max_trust_radius,
                        model_fidelity=model_fidelity)
+    details.update(lib_details)
     if optimizer == "mma":
         details["mma_inner_iterations"] = sum(r.get("mma_inner_iterations") or 0
                                               for r in writer.records)
     viol = float(max(0.0, fresh.constraints.max())) if fresh.constraints.size else 0.0
     dev = problem.constrained_deviation(fresh.values)
+    wall = time.perf_counter() - t0
+    details["evaluate_time_s"] = P.evaluate_time_s
+    details["optimizer_share"] = max(0.0, 1.0 - P.evaluate_time_s / wall) if wall > 0 else 0.0
+    converged = mon.converged and viol < constraint_violation
+    reason = mon.reason or "stopped"
+    if mon.converged and not converged:
+        reason += f"; but the re-simulated final design violates a constraint by {viol:.1e}"
     return OptimizationResult(
         method="fully", case=desc.case.name, variables=problem.variables,
         units=[v.unit for v in desc.design], design=last.design.copy(), start=p0.copy(),
@@ -335,6 +406,6 @@ def optimize_fully(problem, x0=None, *, optimizer="mma", max_iterations=100,
         mass_kg=problem.design_mass(last.design, fresh.values), max_violation=viol,
         max_deviation_m=None if dev is None else float(dev.max()),
         iterations=mon.iteration, inner_iterations=None, evaluations=P.evaluations,
-        simulations=P.simulations, converged=mon.converged, reason=mon.reason or "stopped",
-        history=list(writer.records), wall_time_s=time.perf_counter() - t0, details=details,
+        simulations=P.simulations, converged=converged, reason=reason,
+        history=list(writer.records), wall_time_s=wall, details=details,
         t=np.asarray(fresh.t), deviation=dev, evaluation=fresh)

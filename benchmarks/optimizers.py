@@ -1,0 +1,130 @@
+"""Every fully coupled optimizer side by side on general-format cases (a benchmark, not a test).
+
+    .venv/bin/python benchmarks/optimizers.py                       # robot_2dof and fourbar
+    .venv/bin/python benchmarks/optimizers.py --cases fourbar --optimizers nlopt-ccsaq,mma
+    .venv/bin/python benchmarks/optimizers.py --starts 8            # + a multi-start row each
+
+For each case (cases/NAME.toml, from the case's start) and optimizer
+(flexmbs.optimize.fully.OPTIMIZERS): wall time, simulations, final objective (mass),
+constraint violation of the final design re-simulated, and the optimizer's share of the wall
+time (the time outside Problem.evaluate: the optimizer's own subproblems, the stopping test,
+the history). With --starts N, a multi-start row per case and optimizer (N Sobol starts,
+--workers processes): best feasible mass, how many starts reached it, feasible starts.
+Every number is written to benchmarks/results/optimizers.json (--out).
+
+Single-threaded BLAS (OPENBLAS_NUM_THREADS=1), as run.py does. docs/optimizers.md records
+the numbers behind the default optimizer.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+HERE = Path(__file__).resolve().parent
+CASES = HERE.parent / "cases"
+
+
+def _commit():
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=HERE, text=True,
+                              capture_output=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def run_one(case, optimizer, max_simulations):
+    from flexmbs.optimize.fully import optimize_fully
+    from flexmbs.problem import Problem
+
+    problem = Problem(CASES / f"{case}.toml")
+    t = time.perf_counter()
+    try:
+        r = optimize_fully(problem, optimizer=optimizer, max_iterations=max_simulations,
+                             max_simulations=max_simulations)
+    except Exception as exc:     # noqa: BLE001 - a benchmark reports, it does not stop
+        return dict(case=case, optimizer=optimizer, error=f"{type(exc).__name__}: {exc}",
+                    wall_time_s=time.perf_counter() - t)
+    return dict(case=case, optimizer=optimizer, wall_time_s=r.wall_time_s,
+                simulations=r.simulations, objective=r.objective, max_violation=r.max_violation,
+                optimizer_share=r.details["optimizer_share"], converged=r.converged,
+                design=[float(v) for v in r.design], reason=r.reason)
+
+
+def run_multi(case, optimizer, starts, workers, max_simulations):
+    from flexmbs.optimize.multistart import multistart
+
+    r = multistart(CASES / f"{case}.toml", starts, optimizer=optimizer, workers=workers,
+                   progress=False, max_iterations=max_simulations,
+                   max_simulations=max_simulations)
+    feas = [o for o in r.optima if o["feasible"]]
+    return dict(case=case, optimizer=optimizer, starts=starts, wall_time_s=r.wall_time_s,
+                simulations=r.simulations,
+                objective=None if r.best is None else r.best["objective"],
+                max_violation=None if r.best is None else r.best["max_violation"],
+                reached_best=r.reached_best, feasible_starts=len(feas),
+                optimizer_share=(sum(o["optimizer_share"] * o["wall_time_s"] for o in r.optima)
+                                 / max(sum(o["wall_time_s"] for o in r.optima), 1e-300)),
+                optima=[(o["objective"], o["max_violation"]) for o in r.optima])
+
+
+def _fmt(v, f):
+    return "-" if v is None else format(v, f)
+
+
+def main(argv=None):
+    from flexmbs.optimize.fully import OPTIMIZERS
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", default="robot_2dof,fourbar",
+                    help="comma-separated names in cases/ (default robot_2dof,fourbar)")
+    ap.add_argument("--optimizers", default=",".join(OPTIMIZERS))
+    ap.add_argument("--max-simulations", type=int, default=300)
+    ap.add_argument("--starts", type=int, default=0,
+                    help="also a multi-start row per case and optimizer (N Sobol starts)")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--out", default=str(HERE / "results"))
+    args = ap.parse_args(argv)
+    cases = [c for c in args.cases.split(",") if c]
+    opts = [o for o in args.optimizers.split(",") if o]
+    print(f"# optimizers benchmark: {platform.node()}, load {os.getloadavg()[0]:.1f}, "
+          f"commit {_commit()}", flush=True)
+    head = (f"{'optimizer':12s} {'case':12s} {'starts':>6s} {'wall s':>8s} {'sims':>6s} "
+            f"{'mass':>9s} {'violation':>9s} {'opt share':>9s}  notes")
+    print(head)
+    print("-" * len(head))
+    rows = []
+    for case in cases:
+        for opt in opts:
+            r = run_one(case, opt, args.max_simulations)
+            rows.append(r)
+            note = r.get("error") or ("converged" if r["converged"] else r["reason"][:40])
+            print(f"{opt:12s} {case:12s} {1:6d} {r['wall_time_s']:8.1f} "
+                  f"{r.get('simulations', 0):6d} {_fmt(r.get('objective'), '9.4f')} "
+                  f"{_fmt(r.get('max_violation'), '9.1e')} "
+                  f"{_fmt(r.get('optimizer_share'), '9.2f')}  {note}", flush=True)
+            if args.starts:
+                m = run_multi(case, opt, args.starts, args.workers, args.max_simulations)
+                rows.append(m)
+                print(f"{opt:12s} {case:12s} {args.starts:6d} {m['wall_time_s']:8.1f} "
+                      f"{m['simulations']:6d} {_fmt(m['objective'], '9.4f')} "
+                      f"{_fmt(m['max_violation'], '9.1e')} {m['optimizer_share']:9.2f}  "
+                      f"best reached by {m['reached_best']}, feasible "
+                      f"{m['feasible_starts']}/{args.starts}", flush=True)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "optimizers.json").write_text(json.dumps(dict(commit=_commit(), rows=rows),
+                                                    indent=1, default=float))
+    print(f"# written {out / 'optimizers.json'}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
