@@ -231,7 +231,9 @@ def test_cli_multistart_finds_the_press_optimum(capsys):
     def gmax(d):
         return press.evaluate([d], gradient=False).max_violation
 
-    lo, hi = 5.0, 60.0
+    # the bisection starts at 8 mm: thinner rods buckle (strains above 6 %, outside the model's
+    # range) and Newton fails on some of them (6 mm even in full Newton)
+    lo, hi = 8.0, 60.0
     assert gmax(lo) > 0 > gmax(hi)
     while hi - lo > 1e-6 * hi:
         mid = 0.5 * (lo + hi)

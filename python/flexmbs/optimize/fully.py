@@ -49,6 +49,18 @@ __all__ = ["optimize_fully", "ScaledProblem", "OPTIMIZERS"]
 OPTIMIZERS = ("mma", "sqp", "slsqp", "nlopt-mma", "nlopt-ccsaq", "nlopt-slsqp")
 
 
+def _mass(problem, design, values):
+    """The design's mass (Problem.design_mass), None for a problem-like object without one."""
+    f = getattr(problem, "design_mass", None)
+    return None if f is None else f(design, values)
+
+
+def _deviation(problem, values):
+    """The constrained deviation history (Problem.constrained_deviation), or None."""
+    f = getattr(problem, "constrained_deviation", None)
+    return None if f is None else f(values)
+
+
 @dataclass
 class ScaledEvaluation:
     """One design of a ScaledProblem: scaled design x, objective f and constraints g with
@@ -192,7 +204,7 @@ class ScaledProblem:
         return out
 
     def _max_deviation(self, values):
-        dev = self.problem.constrained_deviation(values)
+        dev = _deviation(self.problem, values)
         return None if dev is None else float(dev.max())
 
     def record_fields(self, ev, active_tol):
@@ -200,7 +212,7 @@ class ScaledProblem:
         value of every response, active constraints."""
         e = ev.evaluation
         return dict(design=ev.design, objective=float(e.objective),
-                    mass_kg=self.problem.design_mass(ev.design, e.values),
+                    mass_kg=_mass(self.problem, ev.design, e.values),
                     max_deviation_m=self._max_deviation(e.values),
                     max_violation=ev.violation,
                     responses={k: float(np.max(v)) for k, v in e.values.items()},
@@ -391,7 +403,7 @@ def optimize_fully(problem, x0=None, *, optimizer="mma", max_iterations=100,
         details["mma_inner_iterations"] = sum(r.get("mma_inner_iterations") or 0
                                               for r in writer.records)
     viol = float(max(0.0, fresh.constraints.max())) if fresh.constraints.size else 0.0
-    dev = problem.constrained_deviation(fresh.values)
+    dev = _deviation(problem, fresh.values)
     wall = time.perf_counter() - t0
     details["evaluate_time_s"] = P.evaluate_time_s
     details["optimizer_share"] = max(0.0, 1.0 - P.evaluate_time_s / wall) if wall > 0 else 0.0
@@ -403,9 +415,9 @@ def optimize_fully(problem, x0=None, *, optimizer="mma", max_iterations=100,
         method="fully", case=desc.case.name, variables=problem.variables,
         units=[v.unit for v in desc.design], design=last.design.copy(), start=p0.copy(),
         objective=float(fresh.objective), objective_name=desc.objective.response,
-        mass_kg=problem.design_mass(last.design, fresh.values), max_violation=viol,
+        mass_kg=_mass(problem, last.design, fresh.values), max_violation=viol,
         max_deviation_m=None if dev is None else float(dev.max()),
         iterations=mon.iteration, inner_iterations=None, evaluations=P.evaluations,
         simulations=P.simulations, converged=converged, reason=reason,
         history=list(writer.records), wall_time_s=wall, details=details,
-        t=np.asarray(fresh.t), deviation=dev, evaluation=fresh)
+        t=None if dev is None else np.asarray(fresh.t), deviation=dev, evaluation=fresh)

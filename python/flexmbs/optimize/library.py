@@ -278,7 +278,7 @@ def run_nlopt(P, mon, x0, optimizer, *, screen=-0.3, max_restarts=20, xtol_rel=1
 
 
 def _kkt(mon, ev):
-    from flexmbs.optimize.fully import kkt_residual
+    from flexmbs.optimize.loops import kkt_residual
     P = mon.P
     return kkt_residual(ev.df, ev.g, ev.dg, ev.x, P.lower, P.upper, mon.active_tol)[0]
 
