@@ -488,9 +488,6 @@ def test_problem_design_must_be_flat(robot, design, text):
         assert text in str(err.value)
 
 
-@pytest.mark.xfail(strict=True, reason="Mechanism.design_values (mechanism.py:303-315) converts "
-                   "with np.asarray(x, float): True becomes 1.0 mm and '30' becomes 30.0 mm, "
-                   "silently (measured: design_mass([True, 30, 35, 25]) = 0.630 kg)")
 @pytest.mark.parametrize("design", [[True, 30, 35, 25], [40, "30", 35, 25]], ids=repr)
 def test_problem_design_refuses_bools_and_strings(robot, design):
     """A bool or a numeric string in a design is refused, as the old case API did."""
@@ -544,9 +541,6 @@ def test_optimize_fully_arguments(robot, kw, text):
     assert text in str(err.value)
 
 
-@pytest.mark.xfail(strict=True, raises=TypeError,
-                   reason="optimize/result.py:71 HistoryWriter: os.fspath(3) raises TypeError "
-                          "('expected str, bytes or os.PathLike object, not int')")
 def test_optimize_fully_history_must_be_a_path(robot):
     """history= is a path, a HistoryWriter or None: anything else is a ModelError naming it."""
     with pytest.raises(fx.ModelError, match="history"):

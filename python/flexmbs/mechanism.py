@@ -311,7 +311,12 @@ class Mechanism:
 
     # ------------------------------------------------------------------ design
     def design_values(self, x):
-        """x (user units) as a checked float array."""
+        """x (user units) as a checked float array: numbers only (a bool or a string is
+        refused, even a numeric one)."""
+        items = np.ravel(np.asarray(x, dtype=object)) if not isinstance(x, (str, bytes)) else [x]
+        if any(isinstance(v, (bool, np.bool_, str, bytes)) for v in items):
+            raise ModelError(f"design must be {len(self.variables)} numbers "
+                             f"({', '.join(self.variables)}), got {x!r}")
         try:
             arr = np.asarray(x, dtype=float)
         except (TypeError, ValueError):

@@ -68,6 +68,9 @@ class HistoryWriter:
     def __init__(self, path=None, mode="w"):
         if mode not in ("w", "a"):
             raise ValueError(f"HistoryWriter mode must be 'w' or 'a', got {mode!r}")
+        if path is not None and not isinstance(path, (str, bytes, os.PathLike)):
+            raise ModelError(f"history must be a file path, a HistoryWriter or None, "
+                             f"got {path!r} ({type(path).__name__})")
         self.path = None if path is None else os.fspath(path)
         self.records = []
         self._fh = None if self.path is None else open(self.path, mode, encoding="utf-8")
