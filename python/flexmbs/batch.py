@@ -408,8 +408,8 @@ def _problem(case, overrides):
 def max_deviation_job(case, design, overrides=None, steps=None):
     """Simulate one design of a case (a shipped case's name or a path; `overrides` as
     `flexmbs.problem.Problem`): its mass, the largest constrained deviation (the step-by-step
-    maximum of the deviation responses under a constraint) and its maximum, and that history
-    at the given 0-based steps (every step if `steps` is 'all')."""
+    maximum of the deviation responses under a constraint), its maximum and its limit, and that
+    history at the given 0-based steps (every step if `steps` is 'all')."""
     prob = _problem(case, overrides)
     ev = prob.evaluate(np.asarray(design, float), gradient=False)
     dev = prob.constrained_deviation(ev.values)
@@ -418,7 +418,7 @@ def max_deviation_job(case, design, overrides=None, steps=None):
     j = int(np.argmax(dev))
     out = dict(design=list(map(float, design)), mass_kg=prob.design_mass(ev.x, ev.values),
                max_deviation_m=float(dev[j]), t_at_max_s=float(ev.t[j]), step_at_max=j + 1,
-               max_violation=ev.max_violation)
+               max_violation=ev.max_violation, limit_m=prob.deviation_limit())
     if steps == "all":
         out["deviation_m"] = dev.tolist()
     elif steps is not None:

@@ -42,7 +42,7 @@ from flexmbs.errors import CaseError, FlexmbsError, ModelError
 
 __all__ = ["main", "build_parser", "COMMANDS", "add_case_arguments", "problem_from_args",
            "design_from_text", "parse_values", "parse_set", "register_simulate", "positive_int",
-           "output_file", "figure_file", "print_evaluation"]
+           "output_file", "figure_file", "print_evaluation", "add_design_arguments"]
 
 #: Subcommand registration functions, "module:function", in the order of the help text.
 COMMANDS = [
@@ -192,19 +192,24 @@ def register_simulate(subparsers):
                     "time), the objective and the constraints; optionally their exact design "
                     "gradients, the results (.npz) and an overview figure.")
     add_case_arguments(p)
-    p.add_argument("--design", metavar="X1,X2,...",
-                   help="design variables in their units (one value: all of them); default: "
-                        "the case's start")
+    add_design_arguments(p)
     p.add_argument("--out", metavar="FILE.npz",
                    help="save time, coordinates, rigid reference and response histories "
                         "(.npz is added to a name without it)")
     p.add_argument("--plot", metavar="FILE.png",
                    help="save an overview figure: motion (deflection magnified) and the "
                         "constrained responses (format from the extension: png, pdf, svg, ...)")
-    p.add_argument("--json", action="store_true", help="print one JSON object instead of a summary")
+    p.set_defaults(func=run_simulate)
+
+
+def add_design_arguments(p):
+    """--design, --gradient and --json: the options of a command that evaluates one design."""
+    p.add_argument("--design", metavar="X1,X2,...",
+                   help="design variables in their units (one value: all of them); default: "
+                        "the case's start")
     p.add_argument("--gradient", action="store_true",
                    help="also compute the design gradients (direct differentiation, exact)")
-    p.set_defaults(func=run_simulate)
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of a summary")
 
 
 def print_evaluation(prob, ev, source=None):

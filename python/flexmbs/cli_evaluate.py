@@ -5,7 +5,8 @@ from __future__ import annotations
 import json
 import sys
 
-from flexmbs.cli import add_case_arguments, design_from_text, print_evaluation, problem_from_args
+from flexmbs.cli import (add_case_arguments, add_design_arguments, design_from_text,
+                         print_evaluation, problem_from_args)
 
 __all__ = ["register", "run"]
 
@@ -17,11 +18,7 @@ def register(subparsers):
                     "response (maximum over time), the objective and the constraints, with "
                     "their exact design gradients.")
     add_case_arguments(p)
-    p.add_argument("--design", metavar="X1,X2,...",
-                   help="design variables in their units (one value: all of them); "
-                        "default: the case's start")
-    p.add_argument("--gradient", action="store_true", help="also compute design gradients")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_design_arguments(p)
     p.set_defaults(func=run)
 
 

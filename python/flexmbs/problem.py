@@ -318,6 +318,12 @@ class Problem:
                 if isinstance(r, Deviation) and r.name in constrained and r.name in values]
         return np.max(devs, axis=0) if devs else None
 
+    def deviation_limit(self):
+        """The smallest upper limit (m) of the constrained deviation responses, or None."""
+        limits = [c.upper for c in self.description.constraints
+                  if c.upper is not None and isinstance(self._resp[c.response], Deviation)]
+        return min(limits) if limits else None
+
 
 def constraint_rows(description, values, gradients, t, nv, gradient=True):
     """The normalised constraint rows g <= 0 of a description from response values.

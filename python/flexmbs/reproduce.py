@@ -389,20 +389,14 @@ def simulate_paper_designs(rows):
     `Row.paper_design`: does the paper's optimum sit on its 1 mm constraint in flexmbs's model?
     """
     from flexmbs.batch import max_deviation_job
-    from flexmbs.optimize.cli import _deviation_limit
-    from flexmbs.problem import Problem
-    done, limits = {}, {}
+    done = {}
     for r in rows:
         p = r.paper.get("p")
         if p is None or any(v is None for v in p):
             continue
         key = (r.run.case, r.run.overrides, tuple(p))
         if key not in done:
-            if key[:2] not in limits:
-                limits[key[:2]] = _deviation_limit(Problem(r.run.case, dict(r.run.overrides)))
-            out = max_deviation_job(r.run.case, list(p), dict(r.run.overrides))
-            out["limit_m"] = limits[key[:2]]
-            done[key] = out
+            done[key] = max_deviation_job(r.run.case, list(p), dict(r.run.overrides))
         r.paper_design = done[key]
 
 

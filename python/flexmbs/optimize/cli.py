@@ -152,7 +152,7 @@ def run_optimize(args):
         writer.close()
         args.history = history_path
     if args.plot:
-        result.plot(args.plot, limit_m=_deviation_limit(problem))
+        result.plot(args.plot, limit_m=problem.deviation_limit())
     if args.json:
         out = result.to_dict()
         if args.history:
@@ -170,15 +170,6 @@ def run_optimize(args):
                 print(f"  {what:<8s} {f}")
     sys.stdout.flush()
     return 0 if result.converged else 1
-
-
-def _deviation_limit(problem):
-    """The smallest upper limit of a constrained deviation response (m), for plots."""
-    from flexmbs.description import Deviation
-    kinds = {r.name: r for r in problem.description.responses}
-    limits = [c.upper for c in problem.description.constraints
-              if c.upper is not None and isinstance(kinds[c.response], Deviation)]
-    return min(limits) if limits else None
 
 
 # ----------------------------------------------------------------------------- fully coupled

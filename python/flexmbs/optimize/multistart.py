@@ -27,18 +27,12 @@ from pathlib import Path
 import numpy as np
 
 from flexmbs.errors import ModelError, SimulationError
+from flexmbs.problem import load_problem
 
 __all__ = ["multistart", "start_designs", "MultistartResult", "SAMPLERS", "start_job"]
 
 #: quasi-random samplers of the starting designs
 SAMPLERS = ("sobol", "lhs")
-
-
-def _problem(case):
-    from flexmbs.problem import Problem, load_problem
-    if isinstance(case, Problem) or (hasattr(case, "evaluate") and hasattr(case, "mechanism")):
-        return case
-    return load_problem(case)
 
 
 def start_designs(lower, upper, starts, sampler="sobol", seed=0):
@@ -82,10 +76,9 @@ def start_designs(lower, upper, starts, sampler="sobol", seed=0):
 def start_job(case, start, optimizer, options):
     """One start (a batch job: plain data in, JSON out): `optimize_fully(case, start,
     optimizer=optimizer, **options)` summarised."""
-    from flexmbs.errors import SimulationError
     from flexmbs.optimize.fully import optimize_fully
     try:
-        res = optimize_fully(_problem(case), start, optimizer=optimizer, **(options or {}))
+        res = optimize_fully(case, start, optimizer=optimizer, **(options or {}))
     except SimulationError as exc:
         # a start whose own simulation fails (e.g. a very flexible design): no local optimum
         return dict(start=[float(v) for v in start], design=None, objective=None,
@@ -253,7 +246,7 @@ def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0
         if bad in options:
             raise ModelError(f"multistart: option {bad!r} is per run; give store=FOLDER to keep "
                              "each start's result")
-    problem = _problem(case)
+    problem = load_problem(case)
     lo, hi = problem.lower, problem.upper
     if start_range is not None:
         try:
