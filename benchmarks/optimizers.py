@@ -3,6 +3,12 @@
     .venv/bin/python benchmarks/optimizers.py                       # robot_2dof and fourbar
     .venv/bin/python benchmarks/optimizers.py --cases fourbar --optimizers nlopt-ccsaq,mma
     .venv/bin/python benchmarks/optimizers.py --starts 8            # + a multi-start row each
+    .venv/bin/python benchmarks/optimizers.py --cases issue17        # Tables 1,2,5,6,7 + examples
+
+A run is a case name, optionally with overrides and a start (mm, one value per variable or
+one for all): ``robot_2dof:time.t_end=0.66@55,45,35,25``. ``--cases issue17`` is the set the
+issue asks for: the robot's Tables 1, 2, 5, 6 and 7 (the four starts of 6 and 7) and the three
+new examples (slider_crank_press, three_arm_robot, fourbar_tubes).
 
 For each case (cases/NAME.toml, from the case's start) and optimizer
 (flexmbs.optimize.fully.OPTIMIZERS): wall time, simulations, final objective (mass),
@@ -41,14 +47,48 @@ def _commit():
         return "unknown"
 
 
-def run_one(case, optimizer, max_simulations):
+#: The runs of issue 17's comparison: label -> run spec (see the module's docstring).
+ISSUE17 = {
+    "T1": "robot_2dof:time.t_end=0.65",
+    "T2": "robot_2dof_tracking:time.t_end=0.65",
+    "T5": "robot_2dof:time.t_end=0.66",
+    "T6-55": "robot_2dof:time.t_end=0.65@55",
+    "T6-55/45/35/25": "robot_2dof:time.t_end=0.65@55,45,35,25",
+    "T6-45": "robot_2dof:time.t_end=0.65@45",
+    "T7-50": "robot_2dof:time.t_end=0.6685",
+    "T7-55": "robot_2dof:time.t_end=0.6685@55",
+    "T7-55/45/35/25": "robot_2dof:time.t_end=0.6685@55,45,35,25",
+    "T7-45": "robot_2dof:time.t_end=0.6685@45",
+    "press": "slider_crank_press",
+    "3-arm": "three_arm_robot",
+    "tubes": "fourbar_tubes",
+}
+
+
+def parse_run(spec):
+    """(case, overrides, start or None) of a run spec ``case[:k=v;k=v][@s1,s2,...]``."""
+    from flexmbs.casefile import parse_override
+
+    spec, _, start = spec.partition("@")
+    case, _, over = spec.partition(":")
+    overrides = dict(parse_override(o) for o in over.split(";") if o)
+    x0 = [float(v) for v in start.split(",")] if start else None
+    return case, overrides, x0
+
+
+def run_one(spec, optimizer, max_simulations):
+    import numpy as np
+
     from flexmbs.optimize.fully import optimize_fully
     from flexmbs.problem import Problem
 
-    problem = Problem(CASES / f"{case}.toml")
+    case, overrides, x0 = parse_run(spec)
+    problem = Problem(case, overrides=overrides)
+    if x0 is not None:
+        x0 = np.broadcast_to(np.asarray(x0), problem.start.shape).copy()
     t = time.perf_counter()
     try:
-        r = optimize_fully(problem, optimizer=optimizer, max_iterations=max_simulations,
+        r = optimize_fully(problem, x0, optimizer=optimizer, max_iterations=max_simulations,
                              max_simulations=max_simulations)
     except Exception as exc:     # noqa: BLE001 - a benchmark reports, it does not stop
         return dict(case=case, optimizer=optimizer, error=f"{type(exc).__name__}: {exc}",
@@ -59,10 +99,12 @@ def run_one(case, optimizer, max_simulations):
                 design=[float(v) for v in r.design], reason=r.reason)
 
 
-def run_multi(case, optimizer, starts, workers, max_simulations):
+def run_multi(spec, optimizer, starts, workers, max_simulations):
     from flexmbs.optimize.multistart import multistart
+    from flexmbs.problem import Problem
 
-    r = multistart(CASES / f"{case}.toml", starts, optimizer=optimizer, workers=workers,
+    case, overrides, _ = parse_run(spec)
+    r = multistart(Problem(case, overrides=overrides), starts, optimizer=optimizer, workers=workers,
                    progress=False, max_iterations=max_simulations,
                    max_simulations=max_simulations)
     feas = [o for o in r.optima if o["feasible"]]
@@ -85,7 +127,8 @@ def main(argv=None):
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", default="robot_2dof,fourbar",
-                    help="comma-separated names in cases/ (default robot_2dof,fourbar)")
+                    help="comma-separated run specs (case[:k=v][@start]; ';'-separated when a "
+                         "start is given), or 'issue17' (default robot_2dof,fourbar)")
     ap.add_argument("--optimizers", default=",".join(OPTIMIZERS))
     ap.add_argument("--max-simulations", type=int, default=300)
     ap.add_argument("--starts", type=int, default=0,
@@ -93,7 +136,10 @@ def main(argv=None):
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", default=str(HERE / "results"))
     args = ap.parse_args(argv)
-    cases = [c for c in args.cases.split(",") if c]
+    if args.cases == "issue17":
+        cases = dict(ISSUE17)
+    else:
+        cases = {c: c for c in args.cases.split(";" if "@" in args.cases else ",") if c}
     opts = [o for o in args.optimizers.split(",") if o]
     print(f"# optimizers benchmark: {platform.node()}, load {os.getloadavg()[0]:.1f}, "
           f"commit {_commit()}", flush=True)
@@ -102,9 +148,10 @@ def main(argv=None):
     print(head)
     print("-" * len(head))
     rows = []
-    for case in cases:
+    for case, spec in cases.items():
         for opt in opts:
-            r = run_one(case, opt, args.max_simulations)
+            r = run_one(spec, opt, args.max_simulations)
+            r["case"] = case
             rows.append(r)
             note = r.get("error") or ("converged" if r["converged"] else r["reason"][:40])
             print(f"{opt:12s} {case:12s} {1:6d} {r['wall_time_s']:8.1f} "
@@ -112,7 +159,8 @@ def main(argv=None):
                   f"{_fmt(r.get('max_violation'), '9.1e')} "
                   f"{_fmt(r.get('optimizer_share'), '9.2f')}  {note}", flush=True)
             if args.starts:
-                m = run_multi(case, opt, args.starts, args.workers, args.max_simulations)
+                m = run_multi(spec, opt, args.starts, args.workers, args.max_simulations)
+                m["case"] = case
                 rows.append(m)
                 print(f"{opt:12s} {case:12s} {args.starts:6d} {m['wall_time_s']:8.1f} "
                       f"{m['simulations']:6d} {_fmt(m['objective'], '9.4f')} "
