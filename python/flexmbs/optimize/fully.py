@@ -127,7 +127,9 @@ class ScaledProblem:
         """Hessian of the scaled objective at the start (the SQP's first matrix): exact for a
         mass objective (a quadratic function of the section sizes needs no simulation:
         central differences of its exact gradient), the identity scaled by the gradient's
-        size otherwise."""
+        size otherwise. The mass of a tube, 4 rho L t (D - t), is indefinite in (D, t): its
+        eigenvalues are replaced by their absolute values, floored at 1e-3 times the largest
+        (the QP needs a positive definite matrix; for solid sections nothing changes)."""
         if getattr(self, "_hessian", None) is None:
             prob = self.problem
             obj = prob.description.objective.response
@@ -143,7 +145,10 @@ class ScaledProblem:
                     e = np.zeros(self.nv)
                     e[i] = 1e-4
                     H[:, i] = (grad(1.0 + e) - grad(1.0 - e)) / 2e-4
-                self._hessian = 0.5 * (H + H.T)
+                w, V = np.linalg.eigh(0.5 * (H + H.T))
+                w = np.abs(w)
+                w = np.maximum(w, 1e-3 * w.max() if w.max() > 0 else 1.0)
+                self._hessian = (V * w) @ V.T
             else:
                 g0 = self.evaluate(np.ones(self.nv), gradient=True).df
                 self._hessian = np.eye(self.nv) * max(float(np.abs(g0).max()), 1e-12)
