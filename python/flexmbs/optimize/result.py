@@ -63,24 +63,65 @@ class HistoryWriter:
         None: records are only kept in memory (`records`).
     mode : {'w', 'a'}, default 'w'
         'w' starts a new file, 'a' appends to an existing one.
+    resume : bool, default False
+        Continue the history of an interrupted run: the file's records are read back
+        (`previous`; a last line cut short is dropped from the file), and the first
+        len(previous) records written are checked against them (same iteration and design,
+        else ModelError: the resumed run does not follow the interrupted one) and kept in
+        memory only, since the file holds them already; later ones are appended. A missing
+        file starts a new history.
+
+    Attributes
+    ----------
+    records : the records of this run (without the file-only parts, see `write`).
+    previous : the records found in the file when resuming (else []).
     """
 
-    def __init__(self, path=None, mode="w"):
+    def __init__(self, path=None, mode="w", resume=False):
         if mode not in ("w", "a"):
             raise ValueError(f"HistoryWriter mode must be 'w' or 'a', got {mode!r}")
         if path is not None and not isinstance(path, (str, bytes, os.PathLike)):
             raise ModelError(f"history must be a file path, a HistoryWriter or None, "
                              f"got {path!r} ({type(path).__name__})")
+        if resume and path is None:
+            raise ModelError("resume needs the history file of the interrupted run: give "
+                             "history=FILE (command line: --history FILE)")
         self.path = None if path is None else os.fspath(path)
         self.records = []
+        self.previous = []
+        self.resume = bool(resume)
+        if resume and os.path.exists(self.path):
+            self.previous = read_history(self.path)
+            # keep only whole records: a line cut short is dropped before appending
+            from flexmbs.batch import atomic_open
+            with atomic_open(self.path) as fh:
+                for rec in self.previous:
+                    fh.write(json.dumps(rec) + "\n")
+            mode = "a"
         self._fh = None if self.path is None else open(self.path, mode, encoding="utf-8")
 
-    def write(self, record):
-        """Store a record (dict) and append it to the file as one JSON line."""
+    def write(self, record, file_extra=None):
+        """Store a record (dict) and append it to the file as one JSON line; `file_extra`
+        (dict) is added to the file's line only (large data, e.g. the evaluations a resumed
+        run replays, not kept in `records`). When resuming, a record the file holds already
+        is checked against it and not written again."""
         rec = jsonable(record)
+        k = len(self.records)
+        if k < len(self.previous):
+            old = self.previous[k]
+            if old.get("iteration") != rec.get("iteration") or old.get("design") != rec.get("design"):
+                raise ModelError(
+                    f"history {self.path!r}: the resumed run differs from the interrupted one at "
+                    f"record {k + 1}: iteration {rec.get('iteration')}, design "
+                    f"{rec.get('design')} where the file has iteration {old.get('iteration')}, "
+                    f"design {old.get('design')}; resume with the same case, start and "
+                    "options, or start afresh without resume")
+            self.records.append(rec)
+            return rec
         self.records.append(rec)
         if self._fh is not None:
-            self._fh.write(json.dumps(rec) + "\n")
+            line = rec if not file_extra else dict(rec, **jsonable(file_extra))
+            self._fh.write(json.dumps(line) + "\n")
             self._fh.flush()
             os.fsync(self._fh.fileno())
         return rec
