@@ -75,9 +75,10 @@ class Bar:
     def close(self):
         self._bar.close()
 
-    def write(self, text):
-        """Print a line above the bar (tqdm.write), so that the bar stays whole."""
-        self._bar.write(text, file=self._bar.fp)
+    def write(self, text, file=None):
+        """Print a line (on `file`, default the bar's stream) with the bar cleared first and
+        drawn again after it (tqdm.write), so that lines and bar do not mix."""
+        self._bar.write(text, file=file or self._bar.fp)
 
 
 class _Callback:
