@@ -211,3 +211,43 @@ def test_cli_resume(tmp_path, capsys):
     assert d["replayed_simulations"] > 0 and d["simulations"] < ref.simulations
     assert main(["optimize", "robot_2dof", "--resume"]) == 2
     assert "--resume continues the run recorded in --history FILE" in capsys.readouterr().err
+
+
+def test_ctrl_c_message_names_resume(tmp_path, monkeypatch, capsys):
+    """A KeyboardInterrupt in `flexmbs optimize --history FILE` after two records: exit status
+    130 and one line on stderr naming FILE and '--resume' (the way to continue); the file holds
+    both records."""
+    import flexmbs.optimize.weakly as weakly
+
+    def interrupted(problem, x0=None, *, history=None, **kw):
+        for k in (1, 2):
+            history.write(dict(iteration=k, design=[50.0, 50.0, 50.0, 50.0]))
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(weakly, "optimize_weakly", interrupted)
+    h = tmp_path / "h.jsonl"
+    assert main(["optimize", "robot_2dof", "--history", str(h)]) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(h) in err[0]
+    assert "run the same command with --resume" in err[0]
+    assert [r["iteration"] for r in read_history(h)] == [1, 2]
+
+
+def _square(v):
+    return {"value": v * v}
+
+
+def test_batch_progress_on_a_stream_and_callback():
+    """run_batch draws its tqdm bar on a given stream (label, 3/3, the describe() text of the
+    results so far); a callable progress gets (name, result) of each job; False: nothing."""
+    from flexmbs.batch import run_batch
+    jobs = {f"j{k}": dict(v=k) for k in range(3)}
+    stream = io.StringIO()
+    out = run_batch(_square, jobs, workers=1, progress=stream, label="squares",
+                    describe=lambda res: f"largest {max(r['value'] for r in res.values())}")
+    assert out["j2"] == {"value": 4}
+    text = stream.getvalue()
+    assert "squares" in text and "3/3" in text and "largest 4" in text
+    seen = []
+    run_batch(_square, jobs, workers=1, progress=lambda name, res: seen.append((name, res)))
+    assert sorted(seen) == [("j0", {"value": 0}), ("j1", {"value": 1}), ("j2", {"value": 4})]

@@ -259,7 +259,7 @@ def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0
     if resume and store is None:
         raise ModelError("multistart: resume=True needs the store folder of the interrupted "
                          "run (store=FOLDER; command line: --store FOLDER)")
-    for bad in ("history", "progress", "resume"):
+    for bad in ("history", "progress"):
         if bad in options:
             raise ModelError(f"multistart: option {bad!r} is per run; give store=FOLDER to keep "
                              "each start's result")
