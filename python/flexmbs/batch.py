@@ -352,52 +352,55 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
                 callback(name, value)
         bar.update(1, None if describe is None else describe(results))
 
-    if dask is not None:
-        from distributed import Client, LocalCluster, as_completed as dask_completed
-        cluster = None
-        if dask == "local":
-            cluster = LocalCluster(n_workers=workers or os.cpu_count(), threads_per_worker=1,
-                                   processes=True, dashboard_address=None)
-            client = Client(cluster)
-        else:
-            client = Client(dask)
-        try:
-            futs = {client.submit(_call, func, kw, key=f"flexmbs-{name}-{time.time_ns()}", pure=False): name
-                    for name, kw in todo.items()}
-            for fut in dask_completed(futs):
-                try:
-                    finish(futs[fut], fut.result())
-                except Exception as exc:    # noqa: BLE001 - reported after the others finish
-                    finish(futs[fut], error=exc)
-        finally:
-            client.close()
-            if cluster is not None:
-                cluster.close()
-    elif (workers or os.cpu_count() or 1) == 1 or len(todo) == 1:
-        for name, kw in todo.items():
+    try:
+        if dask is not None:
+            from distributed import Client, LocalCluster, as_completed as dask_completed
+            cluster = None
+            if dask == "local":
+                cluster = LocalCluster(n_workers=workers or os.cpu_count(), threads_per_worker=1,
+                                       processes=True, dashboard_address=None)
+                client = Client(cluster)
+            else:
+                client = Client(dask)
             try:
-                finish(name, func(**kw))
-            except Exception as exc:    # noqa: BLE001
-                finish(name, error=exc)
-    else:
-        left = dict(todo)
-        for attempt in range(retries + 1):
-            # after a worker died, each job left runs on a pool of its own: the job that
-            # kills its worker is then the only one without a result
-            run = _run_pool if attempt == 0 else _run_isolated
-            broken = run(func, left, workers or os.cpu_count(), finish)
-            left = {name: left[name] for name in broken}
-            if not left:
-                break
-            if attempt < retries:
-                warnings.warn(f"a worker process died; {len(left)} job(s) without a result "
-                              f"run again on new workers (retry {attempt + 1} of {retries}): "
-                              f"{', '.join(sorted(left))}", stacklevel=2)
-        if left:
-            first_error = first_error or SimulationError(
-                f"worker processes died {retries + 1} times (killed, e.g. for lack of "
-                f"memory?); no result for job(s) {', '.join(sorted(left))}")
-    bar.close()
+                futs = {client.submit(_call, func, kw, key=f"flexmbs-{name}-{time.time_ns()}",
+                                      pure=False): name
+                        for name, kw in todo.items()}
+                for fut in dask_completed(futs):
+                    try:
+                        finish(futs[fut], fut.result())
+                    except Exception as exc:    # noqa: BLE001 - reported after the others finish
+                        finish(futs[fut], error=exc)
+            finally:
+                client.close()
+                if cluster is not None:
+                    cluster.close()
+        elif (workers or os.cpu_count() or 1) == 1 or len(todo) == 1:
+            for name, kw in todo.items():
+                try:
+                    finish(name, func(**kw))
+                except Exception as exc:    # noqa: BLE001
+                    finish(name, error=exc)
+        else:
+            left = dict(todo)
+            for attempt in range(retries + 1):
+                # after a worker died, each job left runs on a pool of its own: the job that
+                # kills its worker is then the only one without a result
+                run = _run_pool if attempt == 0 else _run_isolated
+                broken = run(func, left, workers or os.cpu_count(), finish)
+                left = {name: left[name] for name in broken}
+                if not left:
+                    break
+                if attempt < retries:
+                    warnings.warn(f"a worker process died; {len(left)} job(s) without a result "
+                                  f"run again on new workers (retry {attempt + 1} of {retries}): "
+                                  f"{', '.join(sorted(left))}", stacklevel=2)
+            if left:
+                first_error = first_error or SimulationError(
+                    f"worker processes died {retries + 1} times (killed, e.g. for lack of "
+                    f"memory?); no result for job(s) {', '.join(sorted(left))}")
+    finally:
+        bar.close()
     if first_error is not None:
         raise first_error
     return {name: results[name] for name in jobs}

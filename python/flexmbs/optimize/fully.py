@@ -23,6 +23,10 @@ Stopping test (`flexmbs.optimize.loops`): the paper's, relative objective change
 the constraints within `active_tol` of their limit and the bounds touched); a run whose design
 stops changing for 5 iterations ends as not converged.
 
+Long runs: ``progress=True`` shows a tqdm bar; with ``history=FILE`` every analysis is
+recorded, and ``resume=True`` continues an interrupted run from FILE by replaying them
+(docs/optimizers.md, "Long runs").
+
 >>> from flexmbs.optimize import optimize_fully
 >>> res = optimize_fully("slider_crank_press")                     # doctest: +SKIP
 >>> res.design, res.objective, res.max_violation                  # doctest: +SKIP

@@ -19,7 +19,15 @@ inner_iterations and predicted_max_violation of the static problem that produced
 whose active steps are active_steps, simulation_active_steps (rows where the cycle's full
 simulation is within active_tol of the limit), static_message (None when SLSQP succeeded).
 Fully coupled: responses (largest value of each), objective_rel_change, design_rel_change,
-kkt_residual, simulations, gradient_evaluations, wall_time_s.
+kkt_residual, simulations, gradient_evaluations, wall_time_s; in the file only (not in
+`records` nor in the result's history), evaluations: every analysis made since the previous
+record (scaled design x, gradient flag, objective, d_objective, constraints, jacobian,
+constraint_names as [[name, rows], ...], values: every response, histories in full), what a
+resumed run replays.
+
+Resume (`HistoryWriter(path, resume=True)`, the optimizers' ``resume=True``): the records in
+the file are read back (`previous`), the records the resumed run makes again are checked
+against them instead of being written twice, and the run appends the rest.
 """
 from __future__ import annotations
 
