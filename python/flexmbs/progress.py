@@ -54,7 +54,7 @@ class Bar:
 
     def __init__(self, total=None, label="", stream=None, describe=None, position=None,
                  initial=0):
-        from tqdm.auto import tqdm
+        from tqdm import tqdm
 
         self.describe = describe
         self.position = position

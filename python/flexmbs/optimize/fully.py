@@ -42,7 +42,7 @@ from flexmbs.errors import ModelError
 from flexmbs.optimize.loops import (_check_stopping, _mma_settings, _Monitor, _run_mma,
                                     _run_slsqp, _run_sqp)
 from flexmbs.optimize.mma import MMA
-from flexmbs.optimize.result import HistoryWriter, OptimizationResult
+from flexmbs.optimize.result import OptimizationResult, open_history
 from flexmbs.progress import check_progress, describe_iteration, reporter
 from flexmbs.sections import real_number
 
@@ -423,9 +423,6 @@ def optimize_fully(problem, x0=None, *, optimizer="mma", max_iterations=100,
     check_progress(progress)
     if not isinstance(resume, bool):
         raise ModelError(f"resume must be True or False, got {resume!r}")
-    if resume and isinstance(history, HistoryWriter) and not history.resume:
-        raise ModelError("resume=True with a HistoryWriter: open it with "
-                         "HistoryWriter(path, resume=True)")
     problem = load_problem(problem)
     mech = problem.mechanism
     p0 = problem.start if x0 is None else mech.design_values(x0)
@@ -435,8 +432,7 @@ def optimize_fully(problem, x0=None, *, optimizer="mma", max_iterations=100,
         i = int(bad[0])
         raise ModelError(f"x0: {problem.variables[i]} = {float(p0[i])!r} lies outside its "
                          f"bounds [{lo[i]:g}, {hi[i]:g}]")
-    own_writer = not isinstance(history, HistoryWriter)
-    writer = history if not own_writer else HistoryWriter(history, resume=resume)
+    writer, own_writer = open_history(history, resume)
     replay = []
     for rec in writer.previous:
         replay += rec.pop("evaluations", None) or []

@@ -41,7 +41,7 @@ import numpy as np
 
 from flexmbs.errors import ModelError
 
-__all__ = ["OptimizationResult", "HistoryWriter", "read_history", "jsonable"]
+__all__ = ["OptimizationResult", "HistoryWriter", "read_history", "jsonable", "open_history"]
 
 
 def jsonable(obj):
@@ -146,6 +146,21 @@ class HistoryWriter:
 
     def __exit__(self, *exc):
         self.close()
+
+
+def open_history(history, resume=False):
+    """(writer, own) for an optimizer's `history` and `resume` options: a HistoryWriter of
+    the given path (own=True: the optimizer closes it), or the HistoryWriter given (which must
+    have been opened with resume=True when resume is asked). ModelError for a non-bool resume
+    or resume without a history file."""
+    if not isinstance(resume, bool):
+        raise ModelError(f"resume must be True or False, got {resume!r}")
+    if isinstance(history, HistoryWriter):
+        if resume and not history.resume:
+            raise ModelError("resume=True with a HistoryWriter: open it with "
+                             "HistoryWriter(path, resume=True)")
+        return history, False
+    return HistoryWriter(history, resume=resume), True
 
 
 def read_history(path):

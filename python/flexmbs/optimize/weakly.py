@@ -64,7 +64,7 @@ from flexmbs.description import Beam, Deviation, Mass, PointMass, Stress, body_p
 from flexmbs.errors import CaseError, ModelError
 from flexmbs.esl import (BodyStiffness, ChordFrame, TangentFrame, equivalent_static_loads,
                          esl_change, solve_static)
-from flexmbs.optimize.result import HistoryWriter, OptimizationResult
+from flexmbs.optimize.result import OptimizationResult, open_history
 from flexmbs.optimize.cycles import CycleControl, check_cycle_options, move_limited_bounds
 from flexmbs.progress import check_progress, describe_cycle, reporter
 from flexmbs.problem import _scalar, constraint_rows, load_problem
@@ -633,8 +633,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
                         "beam's deformation (no deviation chain through a beam, no stress)")
     mass_resp = [r for r in d.responses if isinstance(r, Mass)]
 
-    own_writer = not isinstance(history, HistoryWriter)
-    writer = history if not own_writer else HistoryWriter(history, resume=resume)
+    writer, own_writer = open_history(history, resume)
     prev_loads, pending = None, None
     control = CycleControl(eps, confirm_cycles, max_cycles, stop_on_oscillation)
     inner_total = n_static = 0
