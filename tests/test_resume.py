@@ -142,6 +142,16 @@ def test_weakly_interrupted_run_resumes_to_the_same_design(tmp_path):
     assert again.simulations == ref_problem.simulations - 2 == res.simulations
 
 
+def test_weakly_resume_with_other_start_is_refused(tmp_path):
+    """Resuming a weakly coupled history from another start: ModelError naming the file's
+    start and this run's."""
+    h = tmp_path / "w.jsonl"
+    optimize_weakly(_robot(), history=h, max_cycles=1)
+    with pytest.raises(ModelError, match=r"starts from design \[50\.0, 50\.0, 50\.0, 50\.0\], "
+                                         r"this run from \[45\.0, 45\.0, 45\.0, 45\.0\]"):
+        optimize_weakly(_robot(), [45.0] * 4, history=h, resume=True)
+
+
 # ----------------------------------------------------------------------------- progress
 def test_progress_shown_only_when_asked(capsys):
     """progress=None prints nothing on stdout or stderr; progress=True draws the tqdm bar on
