@@ -91,12 +91,20 @@ class ScaledProblem:
     problem : flexmbs.problem.Problem
     scale : (nv,) array, optional
         x = p / scale; default the problem's start design.
+    replay : list of dict, optional
+        Analyses recorded by an interrupted run (history records' ``evaluations``): an
+        analysis of the same scaled design (bitwise) with the same gradient flag is taken from
+        them, in order, instead of simulating (resume).
+    log : bool, default False
+        Keep every analysis for the history (`take_log`).
 
     Attributes
     ----------
     lower, upper : scaled bounds; simulations : Problem.evaluate calls (one simulation each);
     gradient_evaluations : those with gradients; evaluations : distinct designs analysed;
-    sensitivity : 'direct' (trial designs are evaluated with their gradients).
+    sensitivity : 'direct' (trial designs are evaluated with their gradients);
+    replayed : analyses taken from `replay` (counted in `simulations` too, so that the
+    resumed run's records and limits are those of the interrupted one).
     """
 
     sensitivity = "direct"
