@@ -16,6 +16,7 @@ mass, constraint violation, ...). A reporter has ``close()`` (a no-op for a plai
 """
 from __future__ import annotations
 
+import os
 import sys
 
 from flexmbs.errors import ModelError
@@ -58,9 +59,16 @@ class Bar:
 
         self.describe = describe
         self.position = position
-        self._bar = tqdm(total=total, desc=label, file=stream or sys.stderr, initial=initial,
-                         leave=True, dynamic_ncols=True, disable=False, mininterval=0.0,
-                         smoothing=0.1)
+        stream = stream or sys.stderr
+        try:
+            cols = os.get_terminal_size(stream.fileno()).columns
+        except (AttributeError, OSError, ValueError):
+            cols = 0
+        # a terminal of unknown width (0 columns, e.g. a pseudo-terminal without a size)
+        # would get no bar from tqdm: 100 columns and 20 rows then
+        width = dict(dynamic_ncols=True) if cols > 0 else dict(ncols=100, nrows=20)
+        self._bar = tqdm(total=total, desc=label, file=stream, initial=initial, leave=True,
+                         disable=False, mininterval=0.0, smoothing=0.1, **width)
 
     def __call__(self, record=None):
         bar = self._bar
