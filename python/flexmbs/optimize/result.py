@@ -119,7 +119,8 @@ class HistoryWriter:
         k = len(self.records)
         if k < len(self.previous):
             old = self.previous[k]
-            if old.get("iteration") != rec.get("iteration") or old.get("design") != rec.get("design"):
+            if (old.get("iteration") != rec.get("iteration")
+                    or old.get("design") != rec.get("design")):
                 raise ModelError(
                     f"history {self.path!r}: the resumed run differs from the interrupted one at "
                     f"record {k + 1}: iteration {rec.get('iteration')}, design "
