@@ -57,29 +57,35 @@ _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
 
 class Progress:
-    """A one-line progress bar on stderr (only when stderr is a terminal, or forced)."""
+    """Progress of a batch: a tqdm bar (`flexmbs.progress.Bar`) on stderr when it is a
+    terminal (enabled=None), always (True, or a text stream given as `stream`), or never;
+    `update(n, postfix)` counts n more finished jobs and shows `postfix` beside the count."""
 
     def __init__(self, total, label="jobs", enabled=None, stream=None):
         self.total = total
         self.done = 0
         self.label = label
         self.stream = stream or sys.stderr
-        self.enabled = self.stream.isatty() if enabled is None else enabled
-        self.t0 = time.perf_counter()
+        self.enabled = self.stream.isatty() if enabled is None else bool(enabled)
+        self._bar = None
+        if self.enabled:
+            from flexmbs.progress import Bar
+            self._bar = Bar(total, label, self.stream)
 
-    def update(self, n=1):
+    def update(self, n=1, postfix=None):
         self.done += n
-        if not self.enabled:
+        if self._bar is None or n <= 0 and postfix is None:
             return
-        frac = self.done / max(self.total, 1)
-        bar = "#" * int(30 * frac)
-        el = time.perf_counter() - self.t0
-        eta = el / frac - el if frac > 0 else 0.0
-        self.stream.write(f"\r{self.label}: [{bar:<30}] {self.done}/{self.total} "
-                          f"{el:6.1f} s elapsed, ~{eta:5.1f} s left")
+        if postfix is not None:
+            self._bar._bar.set_postfix_str(postfix, refresh=False)
+        self._bar._bar.update(n)
         if self.done >= self.total:
-            self.stream.write("\n")
-        self.stream.flush()
+            self.close()
+
+    def close(self):
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
 
 
 # ----------------------------------------------------------------------------- safe files
@@ -255,7 +261,7 @@ def _run_isolated(func, todo, workers, finish):
 
 
 def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None, label="jobs",
-              retries=2):
+              retries=2, describe=None):
     """Run `func(**jobs[name])` for every name; return {name: result}.
 
     Parameters
@@ -273,8 +279,13 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
     store : path, optional
         Folder where each result is saved as it finishes; names already stored are not
         run again (their stored result is returned).
-    progress : bool, optional
-        Show a progress bar (default: when stderr is a terminal).
+    progress : bool, text stream or callable, optional
+        Show a progress bar (tqdm) on stderr (True; default: when stderr is a terminal), on
+        a given text stream, or not (False); a callable is called as `progress(name,
+        result)` when a job finishes (stored results included, first), nothing shown.
+    describe : callable, optional
+        `describe(results)` ({name: result} of the jobs finished so far) gives the text
+        shown beside the bar's count (e.g. the best result so far).
     retries : int, default 2
         Local worker processes: how many times the jobs left without a result by a worker
         process that died (the pool broke) are run again, each on a new pool of its own (so
@@ -313,9 +324,19 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
         if unreadable:
             warnings.warn(f"{len(unreadable)} stored result(s) unreadable (truncated or not "
                           f"JSON), their jobs run again: {', '.join(unreadable)}", stacklevel=2)
-    bar = Progress(len(jobs), label, enabled=progress)
-    bar.update(len(results))
+    callback = progress if callable(progress) and not hasattr(progress, "write") else None
+    if callback is not None:
+        bar = Progress(len(jobs), label, enabled=False)
+    elif hasattr(progress, "write"):
+        bar = Progress(len(jobs), label, enabled=True, stream=progress)
+    else:
+        bar = Progress(len(jobs), label, enabled=progress)
+    for name in results:
+        if callback is not None:
+            callback(name, results[name])
+    bar.update(len(results), None if describe is None or not results else describe(results))
     if not todo:
+        bar.close()
         return {name: results[name] for name in jobs}
     first_error = None
 
@@ -327,53 +348,59 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
             results[name] = value
             if store is not None:
                 _save(store, name, value)
-        bar.update()
+            if callback is not None:
+                callback(name, value)
+        bar.update(1, None if describe is None else describe(results))
 
-    if dask is not None:
-        from distributed import Client, LocalCluster, as_completed as dask_completed
-        cluster = None
-        if dask == "local":
-            cluster = LocalCluster(n_workers=workers or os.cpu_count(), threads_per_worker=1,
-                                   processes=True, dashboard_address=None)
-            client = Client(cluster)
-        else:
-            client = Client(dask)
-        try:
-            futs = {client.submit(_call, func, kw, key=f"flexmbs-{name}-{time.time_ns()}", pure=False): name
-                    for name, kw in todo.items()}
-            for fut in dask_completed(futs):
-                try:
-                    finish(futs[fut], fut.result())
-                except Exception as exc:    # noqa: BLE001 - reported after the others finish
-                    finish(futs[fut], error=exc)
-        finally:
-            client.close()
-            if cluster is not None:
-                cluster.close()
-    elif (workers or os.cpu_count() or 1) == 1 or len(todo) == 1:
-        for name, kw in todo.items():
+    try:
+        if dask is not None:
+            from distributed import Client, LocalCluster, as_completed as dask_completed
+            cluster = None
+            if dask == "local":
+                cluster = LocalCluster(n_workers=workers or os.cpu_count(), threads_per_worker=1,
+                                       processes=True, dashboard_address=None)
+                client = Client(cluster)
+            else:
+                client = Client(dask)
             try:
-                finish(name, func(**kw))
-            except Exception as exc:    # noqa: BLE001
-                finish(name, error=exc)
-    else:
-        left = dict(todo)
-        for attempt in range(retries + 1):
-            # after a worker died, each job left runs on a pool of its own: the job that
-            # kills its worker is then the only one without a result
-            run = _run_pool if attempt == 0 else _run_isolated
-            broken = run(func, left, workers or os.cpu_count(), finish)
-            left = {name: left[name] for name in broken}
-            if not left:
-                break
-            if attempt < retries:
-                warnings.warn(f"a worker process died; {len(left)} job(s) without a result "
-                              f"run again on new workers (retry {attempt + 1} of {retries}): "
-                              f"{', '.join(sorted(left))}", stacklevel=2)
-        if left:
-            first_error = first_error or SimulationError(
-                f"worker processes died {retries + 1} times (killed, e.g. for lack of "
-                f"memory?); no result for job(s) {', '.join(sorted(left))}")
+                futs = {client.submit(_call, func, kw, key=f"flexmbs-{name}-{time.time_ns()}",
+                                      pure=False): name
+                        for name, kw in todo.items()}
+                for fut in dask_completed(futs):
+                    try:
+                        finish(futs[fut], fut.result())
+                    except Exception as exc:    # noqa: BLE001 - reported after the others finish
+                        finish(futs[fut], error=exc)
+            finally:
+                client.close()
+                if cluster is not None:
+                    cluster.close()
+        elif (workers or os.cpu_count() or 1) == 1 or len(todo) == 1:
+            for name, kw in todo.items():
+                try:
+                    finish(name, func(**kw))
+                except Exception as exc:    # noqa: BLE001
+                    finish(name, error=exc)
+        else:
+            left = dict(todo)
+            for attempt in range(retries + 1):
+                # after a worker died, each job left runs on a pool of its own: the job that
+                # kills its worker is then the only one without a result
+                run = _run_pool if attempt == 0 else _run_isolated
+                broken = run(func, left, workers or os.cpu_count(), finish)
+                left = {name: left[name] for name in broken}
+                if not left:
+                    break
+                if attempt < retries:
+                    warnings.warn(f"a worker process died; {len(left)} job(s) without a result "
+                                  f"run again on new workers (retry {attempt + 1} of {retries}): "
+                                  f"{', '.join(sorted(left))}", stacklevel=2)
+            if left:
+                first_error = first_error or SimulationError(
+                    f"worker processes died {retries + 1} times (killed, e.g. for lack of "
+                    f"memory?); no result for job(s) {', '.join(sorted(left))}")
+    finally:
+        bar.close()
     if first_error is not None:
         raise first_error
     return {name: results[name] for name in jobs}

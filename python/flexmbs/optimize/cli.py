@@ -3,7 +3,8 @@
 Usage::
 
     flexmbs optimize CASE [--method weakly|fully] [--start X1,...] [--t-end T]
-                          [--set KEY=VALUE ...] [--json] [--history FILE] [--plot FILE.png]
+                          [--set KEY=VALUE ...] [--json] [--history FILE [--resume]]
+                          [--progress | --no-progress] [--plot FILE.png]
         weakly: [--eps E] [--max-cycles N] [--confirm-cycles N] [--move-limit F]
                 [--frame tangent|chord]
         fully:  [--optimizer mma|sqp|slsqp|nlopt-mma|nlopt-ccsaq|nlopt-slsqp] [--kkt-tol TOL]
@@ -19,13 +20,18 @@ arguments and the Problem and returns an OptimizationResult); method-specific op
 added by the functions listed in `METHOD_OPTIONS` ("module:function", called with the parser).
 This module is the command line's: the optimizers never import it.
 
+Progress: a tqdm bar on stderr (iteration or cycle, simulations, mass, constraint violation;
+with --starts: starts done, best feasible objective), on by default when stderr is a terminal
+(--progress / --no-progress).
+
 Exit status: 0 when the method converged, 1 when it stopped without converging (maximum
 number of cycles, oscillation), 2 on bad input or a failed simulation, 130 when stopped by
-Ctrl-C (one line on stderr names the history file and the --start that resumes from the last
-design analysed).
+Ctrl-C (one line on stderr names the history file, says that the same command with --resume
+continues the run, and gives the --start of its last design analysed).
 """
 from __future__ import annotations
 
+import argparse
 import importlib
 import sys
 
@@ -70,6 +76,12 @@ def register(subparsers):
                    help="print one JSON object (the result) instead of the progress and summary")
     p.add_argument("--history", metavar="FILE",
                    help="write one JSON line per cycle/iteration to FILE as the run goes")
+    p.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run from its --history FILE (with --starts: "
+                        "from its --store FOLDER): it follows the recorded path without "
+                        "simulating and ends at the same optimum; a missing FILE starts afresh")
+    p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                   help="show a progress bar on stderr (default: when stderr is a terminal)")
     p.add_argument("--plot", metavar="FILE.png",
                    help="save the objective history and the final design's deviation history")
     for spec in METHOD_OPTIONS:
@@ -93,36 +105,69 @@ def add_weakly_options(p):
 
 def run_weakly(args, problem):
     from flexmbs.optimize.weakly import optimize_weakly
+    from flexmbs.progress import describe_cycle
 
-    progress = None if args.json else _print_cycle
-    return optimize_weakly(problem, design_from_text(args.start, problem, "--start"),
-                           eps=args.eps, max_cycles=args.max_cycles,
-                           confirm_cycles=args.confirm_cycles, move_limit=args.move_limit,
-                           frame_kind=args.frame, history=args.history, progress=progress)
+    with _Reporter(args, args.max_cycles, "cycles", describe_cycle, _cycle_line) as report:
+        return optimize_weakly(problem, design_from_text(args.start, problem, "--start"),
+                               eps=args.eps, max_cycles=args.max_cycles,
+                               confirm_cycles=args.confirm_cycles, move_limit=args.move_limit,
+                               frame_kind=args.frame, history=args.history, progress=report,
+                               resume=args.resume)
 
 
-def _print_cycle(rec):
+class _Reporter:
+    """The command line's progress: one line per record on stdout (not with --json) and, with
+    --progress, a tqdm bar on stderr (lines are printed through it so that the two do not
+    mix)."""
+
+    def __init__(self, args, total, label, describe, line):
+        from flexmbs.progress import Bar
+        self.line = None if args.json else line
+        self.bar = (Bar(total, label, sys.stderr, describe, lambda r: r["iteration"])
+                    if args.progress else None)
+
+    def __call__(self, rec):
+        if self.line is not None:
+            if self.bar is not None:
+                self.bar.write(self.line(rec), file=sys.stdout)
+            else:
+                print(self.line(rec), flush=True)
+        if self.bar is not None:
+            self.bar(rec)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _cycle_line(rec):
     p = ", ".join(f"{v:.4g}" for v in rec["design"])
     ch = rec.get("esl_change")
     chg = "-" if ch is None else f"{ch:.3g}"
     inner = rec.get("inner_iterations")
     viol = rec.get("max_violation")
-    print(f"cycle {rec['iteration']:3d}  x = [{p}]  objective {rec['objective']:.6g}  "
-          + ("" if viol is None else f"max g {viol:+.2e}  ")
-          + f"ESL change {chg}" + ("" if inner is None else f"  inner {inner}"), flush=True)
+    return (f"cycle {rec['iteration']:3d}  x = [{p}]  objective {rec['objective']:.6g}  "
+            + ("" if viol is None else f"max g {viol:+.2e}  ")
+            + f"ESL change {chg}" + ("" if inner is None else f"  inner {inner}"))
 
 
 def _interrupted(args, writer):
     """The one line printed on Ctrl-C: what is kept and how to resume."""
     recs = writer.records
     where = (f"history of {len(recs)} record(s) in {writer.path}" if writer.path
-             else "no history file (--history FILE keeps one)")
+             else "no history file (--history FILE keeps one and makes a run resumable)")
     last = recs[-1].get("design") if recs else None
-    if last is not None:
+    if writer.path and recs:
+        p = ",".join(f"{v:.6g}" for v in last)
+        how = ("to continue the run where it stopped, run the same command with --resume "
+               f"(or start a new run from the last design analysed with --start={p} and a "
+               "new --history name)")
+    elif last is not None:
         p = ",".join(f"{v:.6g}" for v in last)
         how = f"to resume from the last design analysed, run the same command with --start={p}"
-        if writer.path:
-            how += " and a new --history name (an existing history file is started afresh)"
     else:
         how = "no design analysed yet: run the same command again"
     print(f"flexmbs optimize: interrupted; {where}; {how}", file=sys.stderr, flush=True)
@@ -134,13 +179,18 @@ def run_optimize(args):
         raise CaseError(f"--starts {args.starts}: multi-start runs the fully coupled method; "
                         f"add --method fully (got --method {args.method})")
     run = _load(METHODS[args.method])
+    if args.progress is None:
+        args.progress = sys.stderr.isatty()
+    if args.resume and not args.history and getattr(args, "starts", None) is None:
+        raise CaseError("--resume continues the run recorded in --history FILE: give the "
+                        "--history of the interrupted run")
     # output paths are checked before the run, not after it
     history_path = args.history
     if history_path:
         history_path = output_file(history_path, "--history")
     if args.plot:
         args.plot = figure_file(args.plot, "--plot")
-    writer = HistoryWriter(history_path)
+    writer = HistoryWriter(history_path, resume=args.resume and bool(history_path))
     args.history = writer           # the methods accept a HistoryWriter for `history`
     try:
         result = run(args, problem)
@@ -214,19 +264,22 @@ def run_fully(args, problem):
 
     if args.starts is not None:
         return _run_multistart(args, problem)
-    progress = None if args.json else _print_iteration
-    return optimize_fully(problem, design_from_text(args.start, problem, "--start"),
-                          optimizer=args.optimizer or "mma", kkt_tol=args.kkt_tol,
-                          max_iterations=args.max_iterations,
-                          design_rel_change=args.design_rel_change, history=args.history,
-                          progress=progress)
+    from flexmbs.progress import describe_iteration
+
+    with _Reporter(args, args.max_iterations, "iterations", describe_iteration,
+                   _iteration_line) as report:
+        return optimize_fully(problem, design_from_text(args.start, problem, "--start"),
+                              optimizer=args.optimizer or "mma", kkt_tol=args.kkt_tol,
+                              max_iterations=args.max_iterations,
+                              design_rel_change=args.design_rel_change, history=args.history,
+                              progress=report, resume=args.resume)
 
 
-def _print_iteration(rec):
+def _iteration_line(rec):
     p = ", ".join(f"{v:.4g}" for v in rec["design"])
-    print(f"iteration {rec['iteration']:3d}  x = [{p}]  objective {rec['objective']:.6g}  "
-          f"violation {rec['max_violation']:.1e}  KKT {rec['kkt_residual']:.1e}  "
-          f"simulations {rec['simulations']}", flush=True)
+    return (f"iteration {rec['iteration']:3d}  x = [{p}]  objective {rec['objective']:.6g}  "
+            f"violation {rec['max_violation']:.1e}  KKT {rec['kkt_residual']:.1e}  "
+            f"simulations {rec['simulations']}")
 
 
 def _run_multistart(args, problem):
@@ -240,9 +293,12 @@ def _run_multistart(args, problem):
     if args.history.path is not None:
         raise CaseError("--history is written by one run; with --starts give --store FOLDER "
                         "(one result file per start)")
+    if args.resume and args.store is None:
+        raise CaseError("--resume with --starts continues from the --store FOLDER of the "
+                        "interrupted run: give --store")
     return multistart(problem, args.starts, optimizer=args.optimizer or "nlopt-mma",
                       sampler=args.sampler, seed=args.seed, candidates=args.candidates,
                       workers=args.workers, dask=args.dask, store=args.store,
-                      progress=False if args.json else None, kkt_tol=args.kkt_tol,
+                      progress=bool(args.progress), resume=args.resume, kkt_tol=args.kkt_tol,
                       max_iterations=args.max_iterations,
                       design_rel_change=args.design_rel_change)

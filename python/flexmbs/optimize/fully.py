@@ -23,6 +23,10 @@ Stopping test (`flexmbs.optimize.loops`): the paper's, relative objective change
 the constraints within `active_tol` of their limit and the bounds touched); a run whose design
 stops changing for 5 iterations ends as not converged.
 
+Long runs: ``progress=True`` shows a tqdm bar; with ``history=FILE`` every analysis is
+recorded, and ``resume=True`` continues an interrupted run from FILE by replaying them
+(docs/optimizers.md, "Long runs").
+
 >>> from flexmbs.optimize import optimize_fully
 >>> res = optimize_fully("slider_crank_press")                     # doctest: +SKIP
 >>> res.design, res.objective, res.max_violation                  # doctest: +SKIP
@@ -38,8 +42,8 @@ from flexmbs.errors import ModelError
 from flexmbs.optimize.loops import (_check_stopping, _mma_settings, _Monitor, _run_mma,
                                     _run_slsqp, _run_sqp)
 from flexmbs.optimize.mma import MMA
-from flexmbs.optimize.result import HistoryWriter, OptimizationResult
-from flexmbs.optimize.cycles import _progress_callback
+from flexmbs.optimize.result import OptimizationResult, open_history
+from flexmbs.progress import check_progress, describe_iteration, reporter
 from flexmbs.sections import real_number
 
 __all__ = ["optimize_fully", "ScaledProblem", "OPTIMIZERS"]
@@ -87,17 +91,25 @@ class ScaledProblem:
     problem : flexmbs.problem.Problem
     scale : (nv,) array, optional
         x = p / scale; default the problem's start design.
+    replay : list of dict, optional
+        Analyses recorded by an interrupted run (history records' ``evaluations``): an
+        analysis of the same scaled design (bitwise) with the same gradient flag is taken from
+        them, in order, instead of simulating (resume).
+    log : bool, default False
+        Keep every analysis for the history (`take_log`).
 
     Attributes
     ----------
     lower, upper : scaled bounds; simulations : Problem.evaluate calls (one simulation each);
     gradient_evaluations : those with gradients; evaluations : distinct designs analysed;
-    sensitivity : 'direct' (trial designs are evaluated with their gradients).
+    sensitivity : 'direct' (trial designs are evaluated with their gradients);
+    replayed : analyses taken from `replay` (counted in `simulations` too, so that the
+    resumed run's records and limits are those of the interrupted one).
     """
 
     sensitivity = "direct"
 
-    def __init__(self, problem, scale=None):
+    def __init__(self, problem, scale=None, replay=None, log=False):
         self.problem = problem
         self.nv = len(problem.variables)
         if self.nv == 0:
@@ -115,6 +127,13 @@ class ScaledProblem:
         self._cache = {}
         self._order = []
         self._cache_size = 32
+        # resume: recorded analyses (design, gradient flag) -> Evaluation, used in order
+        self.replayed = 0
+        self._replay = {}
+        for entry in replay or ():
+            key = (np.asarray(entry["x"], float).tobytes(), bool(entry["gradient"]))
+            self._replay.setdefault(key, []).append(entry)
+        self._log = [] if log else None
         # the objective's scale: its value at x = 1 (that evaluation is kept, rescaled)
         self.f_ref = 1.0
         ev = self.evaluate(np.ones(self.nv), gradient=True)
@@ -181,11 +200,18 @@ class ScaledProblem:
     def _analyse(self, x, gradient):
         p = self.design(x)
         self.simulations += 1
-        t0 = time.perf_counter()
-        try:
-            ev = self.problem.evaluate(p, gradient=gradient)
-        finally:
-            self.evaluate_time_s += time.perf_counter() - t0
+        recorded = self._replay.get((x.tobytes(), bool(gradient)))
+        if recorded:
+            ev = _evaluation_from_log(recorded.pop(0), p)
+            self.replayed += 1
+        else:
+            t0 = time.perf_counter()
+            try:
+                ev = self.problem.evaluate(p, gradient=gradient)
+            finally:
+                self.evaluate_time_s += time.perf_counter() - t0
+        if self._log is not None:
+            self._log.append(_log_entry(x, gradient, ev))
         if gradient:
             self.gradient_evaluations += 1
         df = (None if ev.d_objective is None else
@@ -193,6 +219,14 @@ class ScaledProblem:
         dg = None if ev.jacobian is None else np.asarray(ev.jacobian) * self.scale[None, :]
         return ScaledEvaluation(x=x, design=p, f=float(ev.objective) / self.f_ref, df=df,
                                 g=np.asarray(ev.constraints, float), dg=dg, evaluation=ev)
+
+    def take_log(self):
+        """The analyses since the last call (history records keep them, file only, so that a
+        resumed run replays them): a dict {'evaluations': [...]} or None when not logging."""
+        if not self._log:
+            return None
+        out, self._log = self._log, []
+        return {"evaluations": out}
 
     # ------------------------------------------------------------------ history records
     def active_constraints(self, ev, active_tol):
@@ -227,6 +261,45 @@ class ScaledProblem:
         return {}
 
 
+def _runs(names):
+    """Run-length form [[name, count], ...] of a list of names."""
+    out = []
+    for n in names:
+        if out and out[-1][0] == n:
+            out[-1][1] += 1
+        else:
+            out.append([n, 1])
+    return out
+
+
+def _log_entry(x, gradient, ev):
+    """One analysis of a run, as written to its history (exact: JSON floats round-trip)."""
+    return dict(x=x, gradient=bool(gradient), objective=ev.objective,
+                d_objective=ev.d_objective, constraints=ev.constraints,
+                jacobian=ev.jacobian, constraint_names=_runs(ev.constraint_names),
+                values=ev.values)
+
+
+def _array(v):
+    return None if v is None else np.asarray(v, float)
+
+
+def _evaluation_from_log(entry, design):
+    """The Evaluation of a recorded analysis (a resumed run's replay: no simulation)."""
+    from flexmbs.problem import Evaluation
+    names = [n for n, k in entry["constraint_names"] for _ in range(k)]
+    values = {k: (float("nan") if v is None else v) if not isinstance(v, list) else _array(v)
+              for k, v in entry["values"].items()}
+    jac = _array(entry["jacobian"])
+    g = _array(entry["constraints"])
+    if jac is not None and jac.size == 0:
+        jac = jac.reshape(0, design.size)
+    return Evaluation(x=np.asarray(design, float).copy(), t=None, values=values, gradients={},
+                      objective=entry["objective"], d_objective=_array(entry["d_objective"]),
+                      constraints=g, jacobian=jac, constraint_names=names,
+                      stats={"replayed": True})
+
+
 _NLOPT_KEYS = ("log_scale", "initial_step", "max_restarts", "params", "feasibility_phase")
 
 
@@ -255,7 +328,7 @@ def optimize_fully(problem, x0=None, *, optimizer="mma", max_iterations=100,
                    design_rel_change=None, kkt_tol=1e-3, active_tol=1e-3, scale=None,
                    mma_options=None, trust_radius=0.2, max_trust_radius=0.5,
                    model_fidelity=0.1, screen=-0.3, nlopt_options=None, history=None,
-                   progress=None):
+                   progress=None, resume=False):
     """Minimize a problem's objective under its constraints with the fully coupled method.
 
     Parameters
@@ -310,8 +383,22 @@ def optimize_fully(problem, x0=None, *, optimizer="mma", max_iterations=100,
         iteration, design, objective, mass_kg, max_violation, responses (largest value of
         each), active_steps, objective_rel_change, design_rel_change, kkt_residual,
         simulations, gradient_evaluations, wall_time_s (mma: mma_inner_iterations).
-    progress : callable, optional
-        Called with each history record.
+        With a file, each record also holds (file only, key ``evaluations``) every analysis
+        made since the previous record: scaled design, objective, constraints, their
+        gradients and the responses, exact (JSON floats round-trip), for `resume`.
+    progress : bool, text stream or callable, optional
+        True: a tqdm bar on stderr (iteration, simulations, mass, constraint violation); a
+        text stream: that bar on the stream; a callable: called with each history record.
+        None/False (default): nothing shown (`flexmbs.progress`).
+    resume : bool, default False
+        Continue an interrupted run from its `history` file (required): the analyses it
+        recorded are replayed when the optimizer asks for the same design again (bitwise
+        the same scaled design: the optimizers are deterministic), so the run follows the
+        interrupted one's path without simulating and goes on from where it stopped,
+        appending to the file; it ends at the same optimum as an uninterrupted run. A
+        missing file starts afresh. Run it with the same problem, start and options (a
+        record that differs from the file's raises ModelError). details replayed_simulations
+        counts the replayed analyses; `simulations` counts only those run.
 
     Returns
     -------
@@ -346,7 +433,9 @@ def optimize_fully(problem, x0=None, *, optimizer="mma", max_iterations=100,
         max_iterations, max_simulations)
     mma_kw, max_inner = _mma_settings(mma_options)
     nlopt_kw = _nlopt_settings(nlopt_options)
-    progress = _progress_callback(progress)
+    check_progress(progress)
+    if not isinstance(resume, bool):
+        raise ModelError(f"resume must be True or False, got {resume!r}")
     problem = load_problem(problem)
     mech = problem.mechanism
     p0 = problem.start if x0 is None else mech.design_values(x0)
@@ -356,10 +445,21 @@ def optimize_fully(problem, x0=None, *, optimizer="mma", max_iterations=100,
         i = int(bad[0])
         raise ModelError(f"x0: {problem.variables[i]} = {float(p0[i])!r} lies outside its "
                          f"bounds [{lo[i]:g}, {hi[i]:g}]")
-    P = ScaledProblem(problem, p0 if scale is None else scale)
+    writer, own_writer = open_history(history, resume)
+    replay = []
+    for rec in writer.previous:
+        replay += rec.pop("evaluations", None) or []
+    try:
+        P = ScaledProblem(problem, p0 if scale is None else scale, replay=replay,
+                          log=writer.path is not None)
+    except BaseException:
+        if own_writer:
+            writer.close()
+        raise
+    del replay
     opt = MMA(P.lower, P.upper, **mma_kw) if optimizer == "mma" else None
-    writer = history if isinstance(history, HistoryWriter) else HistoryWriter(history)
-    own_writer = not isinstance(history, HistoryWriter)
+    progress = reporter(progress, total=max_iterations, label="iterations",
+                        describe=describe_iteration, position=lambda r: r["iteration"])
     mon = _Monitor(P, writer, progress, objective_rel_change=objective_rel_change,
                    constraint_violation=constraint_violation,
                    design_rel_change=design_rel_change, kkt_tol=kkt_tol, active_tol=active_tol,
@@ -380,6 +480,8 @@ def optimize_fully(problem, x0=None, *, optimizer="mma", max_iterations=100,
     finally:
         if own_writer:
             writer.close()
+        if progress is not None:
+            progress.close()
     if not mon.iterates:
         raise ModelError("the optimization recorded no iterate")
     if optimizer.startswith("nlopt"):
@@ -411,6 +513,8 @@ def optimize_fully(problem, x0=None, *, optimizer="mma", max_iterations=100,
     dev = _deviation(problem, fresh.values)
     wall = time.perf_counter() - t0
     details["evaluate_time_s"] = P.evaluate_time_s
+    if resume:
+        details["replayed_simulations"] = P.replayed
     details["optimizer_share"] = max(0.0, 1.0 - P.evaluate_time_s / wall) if wall > 0 else 0.0
     converged = mon.converged and viol < constraint_violation
     reason = mon.reason or "stopped"
@@ -423,6 +527,6 @@ def optimize_fully(problem, x0=None, *, optimizer="mma", max_iterations=100,
         mass_kg=_mass(problem, last.design, fresh.values), max_violation=viol,
         max_deviation_m=None if dev is None else float(dev.max()),
         iterations=mon.iteration, inner_iterations=None, evaluations=P.evaluations,
-        simulations=P.simulations, converged=converged, reason=reason,
+        simulations=P.simulations - P.replayed, converged=converged, reason=reason,
         history=list(writer.records), wall_time_s=wall, details=details,
         t=None if dev is None else np.asarray(fresh.t), deviation=dev, evaluation=fresh)

@@ -212,7 +212,8 @@ class _Monitor:
         record.update(P.record_tail(ev, self.active_tol))
         record.update(extra)
         self.iterates.append(ev)
-        self.writer.write(record)
+        take_log = getattr(P, "take_log", None)
+        self.writer.write(record, file_extra=None if take_log is None else take_log())
         if self.progress is not None:
             self.progress(self.writer.records[-1])
         if prev is not None:

@@ -204,7 +204,7 @@ class MultistartResult:
 
 def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0,
                start_range=None, candidates=None, workers=None, dask=None, store=None, progress=None,
-               best_tolerance=0.003, feasibility_tol=1e-6, **options):
+               best_tolerance=0.003, feasibility_tol=1e-6, resume=False, **options):
     """Run the fully coupled optimization from `starts` quasi-random starting designs.
 
     Parameters
@@ -224,8 +224,17 @@ def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0
         Draw this many designs (>= starts), simulate each once without gradients, and start
         from the `starts` feasible ones of lowest objective (then the least violated): no
         start in an infeasible basin that the optimizer cannot leave.
-    workers, dask, store, progress : as `flexmbs.batch.run_batch` (store: one JSON file per
-        start, so an interrupted multi-start resumes where it stopped).
+    workers, dask, store : as `flexmbs.batch.run_batch` (store: one JSON file per start, so
+        an interrupted multi-start resumes where it stopped: starts already in the store are
+        not run again).
+    progress : bool, text stream or callable, optional
+        True: a tqdm bar on stderr (starts done, best feasible objective so far); a text
+        stream: that bar on the stream; a callable: called with each finished start's summary
+        (its job name under 'name'); None/False (default): nothing shown.
+    resume : bool, default False
+        Continue an interrupted multi-start from `store` (required): the starts found there
+        are taken as they are. (A rerun with the same store does so anyway; resume=True
+        only checks that a store is given.)
     best_tolerance : float, default 0.003
         A start reached the best when it ended feasible within this relative objective.
     feasibility_tol : float, default 1e-6
@@ -242,6 +251,14 @@ def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0
     t0 = time.perf_counter()
     if not isinstance(optimizer, str) or optimizer not in OPTIMIZERS:
         raise ModelError(f"optimizer must be one of {', '.join(OPTIMIZERS)}, got {optimizer!r}")
+    from flexmbs.progress import check_progress, describe_start
+
+    check_progress(progress)
+    if not isinstance(resume, bool):
+        raise ModelError(f"resume must be True or False, got {resume!r}")
+    if resume and store is None:
+        raise ModelError("multistart: resume=True needs the store folder of the interrupted "
+                         "run (store=FOLDER; command line: --store FOLDER)")
     for bad in ("history", "progress"):
         if bad in options:
             raise ModelError(f"multistart: option {bad!r} is per run; give store=FOLDER to keep "
@@ -287,8 +304,20 @@ def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0
         payload = problem                          # a Problem-like object (pickled for workers)
     jobs = {f"start{k:03d}": dict(case=payload, start=x.tolist(), optimizer=optimizer,
                                   options=options) for k, x in enumerate(x0)}
+    def best_so_far(results):
+        f = [o["objective"] for o in results.values() if o.get("design") is not None
+             and o.get("max_violation") is not None and o["max_violation"] <= feasibility_tol]
+        return describe_start(min(f) if f else None)
+
+    if progress is None or progress is False:
+        show = False
+    elif callable(progress) and not hasattr(progress, "write"):
+        def show(name, value):
+            progress(dict(value, name=name))
+    else:
+        show = progress
     out = run_batch(start_job, jobs, workers=workers, dask=dask, store=store,
-                    progress=progress, label="starts")
+                    progress=show, label="starts", describe=best_so_far)
     optima = []
     sims = pre
     for name in jobs:

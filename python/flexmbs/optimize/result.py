@@ -19,7 +19,15 @@ inner_iterations and predicted_max_violation of the static problem that produced
 whose active steps are active_steps, simulation_active_steps (rows where the cycle's full
 simulation is within active_tol of the limit), static_message (None when SLSQP succeeded).
 Fully coupled: responses (largest value of each), objective_rel_change, design_rel_change,
-kkt_residual, simulations, gradient_evaluations, wall_time_s.
+kkt_residual, simulations, gradient_evaluations, wall_time_s; in the file only (not in
+`records` nor in the result's history), evaluations: every analysis made since the previous
+record (scaled design x, gradient flag, objective, d_objective, constraints, jacobian,
+constraint_names as [[name, rows], ...], values: every response, histories in full), what a
+resumed run replays.
+
+Resume (`HistoryWriter(path, resume=True)`, the optimizers' ``resume=True``): the records in
+the file are read back (`previous`), the records the resumed run makes again are checked
+against them instead of being written twice, and the run appends the rest.
 """
 from __future__ import annotations
 
@@ -33,7 +41,7 @@ import numpy as np
 
 from flexmbs.errors import ModelError
 
-__all__ = ["OptimizationResult", "HistoryWriter", "read_history", "jsonable"]
+__all__ = ["OptimizationResult", "HistoryWriter", "read_history", "jsonable", "open_history"]
 
 
 def jsonable(obj):
@@ -43,6 +51,8 @@ def jsonable(obj):
     if isinstance(obj, (list, tuple)):
         return [jsonable(v) for v in obj]
     if isinstance(obj, np.ndarray):
+        if obj.dtype.kind in "iub" or (obj.dtype.kind == "f" and np.all(np.isfinite(obj))):
+            return obj.tolist()                 # plain ints / bools / finite floats: fast
         return jsonable(obj.tolist())
     if isinstance(obj, (np.bool_, bool)):
         return bool(obj)
@@ -63,24 +73,66 @@ class HistoryWriter:
         None: records are only kept in memory (`records`).
     mode : {'w', 'a'}, default 'w'
         'w' starts a new file, 'a' appends to an existing one.
+    resume : bool, default False
+        Continue the history of an interrupted run: the file's records are read back
+        (`previous`; a last line cut short is dropped from the file), and the first
+        len(previous) records written are checked against them (same iteration and design,
+        else ModelError: the resumed run does not follow the interrupted one) and kept in
+        memory only, since the file holds them already; later ones are appended. A missing
+        file starts a new history.
+
+    Attributes
+    ----------
+    records : the records of this run (without the file-only parts, see `write`).
+    previous : the records found in the file when resuming (else []).
     """
 
-    def __init__(self, path=None, mode="w"):
+    def __init__(self, path=None, mode="w", resume=False):
         if mode not in ("w", "a"):
             raise ValueError(f"HistoryWriter mode must be 'w' or 'a', got {mode!r}")
         if path is not None and not isinstance(path, (str, bytes, os.PathLike)):
             raise ModelError(f"history must be a file path, a HistoryWriter or None, "
                              f"got {path!r} ({type(path).__name__})")
+        if resume and path is None:
+            raise ModelError("resume needs the history file of the interrupted run: give "
+                             "history=FILE (command line: --history FILE)")
         self.path = None if path is None else os.fspath(path)
         self.records = []
+        self.previous = []
+        self.resume = bool(resume)
+        if resume and os.path.exists(self.path):
+            self.previous = read_history(self.path)
+            # keep only whole records: a line cut short is dropped before appending
+            from flexmbs.batch import atomic_open
+            with atomic_open(self.path) as fh:
+                for rec in self.previous:
+                    fh.write(json.dumps(rec) + "\n")
+            mode = "a"
         self._fh = None if self.path is None else open(self.path, mode, encoding="utf-8")
 
-    def write(self, record):
-        """Store a record (dict) and append it to the file as one JSON line."""
+    def write(self, record, file_extra=None):
+        """Store a record (dict) and append it to the file as one JSON line; `file_extra`
+        (dict) is added to the file's line only (large data, e.g. the evaluations a resumed
+        run replays, not kept in `records`). When resuming, a record the file holds already
+        is checked against it and not written again."""
         rec = jsonable(record)
+        k = len(self.records)
+        if k < len(self.previous):
+            old = self.previous[k]
+            if (old.get("iteration") != rec.get("iteration")
+                    or old.get("design") != rec.get("design")):
+                raise ModelError(
+                    f"history {self.path!r}: the resumed run differs from the interrupted one at "
+                    f"record {k + 1}: iteration {rec.get('iteration')}, design "
+                    f"{rec.get('design')} where the file has iteration {old.get('iteration')}, "
+                    f"design {old.get('design')}; resume with the same case, start and "
+                    "options, or start afresh without resume")
+            self.records.append(rec)
+            return rec
         self.records.append(rec)
         if self._fh is not None:
-            self._fh.write(json.dumps(rec) + "\n")
+            line = rec if not file_extra else dict(rec, **jsonable(file_extra))
+            self._fh.write(json.dumps(line) + "\n")
             self._fh.flush()
             os.fsync(self._fh.fileno())
         return rec
@@ -95,6 +147,21 @@ class HistoryWriter:
 
     def __exit__(self, *exc):
         self.close()
+
+
+def open_history(history, resume=False):
+    """(writer, own) for an optimizer's `history` and `resume` options: a HistoryWriter of
+    the given path (own=True: the optimizer closes it), or the HistoryWriter given (which must
+    have been opened with resume=True when resume is asked). ModelError for a non-bool resume
+    or resume without a history file."""
+    if not isinstance(resume, bool):
+        raise ModelError(f"resume must be True or False, got {resume!r}")
+    if isinstance(history, HistoryWriter):
+        if resume and not history.resume:
+            raise ModelError("resume=True with a HistoryWriter: open it with "
+                             "HistoryWriter(path, resume=True)")
+        return history, False
+    return HistoryWriter(history, resume=resume), True
 
 
 def read_history(path):

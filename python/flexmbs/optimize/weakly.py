@@ -64,9 +64,9 @@ from flexmbs.description import Beam, Deviation, Mass, PointMass, Stress, body_p
 from flexmbs.errors import CaseError, ModelError
 from flexmbs.esl import (BodyStiffness, ChordFrame, TangentFrame, equivalent_static_loads,
                          esl_change, solve_static)
-from flexmbs.optimize.result import HistoryWriter, OptimizationResult
-from flexmbs.optimize.cycles import (CycleControl, _progress_callback, check_cycle_options,
-                                     move_limited_bounds)
+from flexmbs.optimize.result import OptimizationResult, open_history
+from flexmbs.optimize.cycles import CycleControl, check_cycle_options, move_limited_bounds
+from flexmbs.progress import check_progress, describe_cycle, reporter
 from flexmbs.problem import _scalar, constraint_rows, load_problem
 from flexmbs.responses.strain import raw_strain_derivatives, raw_strains, shape, gauss_points
 
@@ -549,7 +549,7 @@ def _active_rows(g, names, active_tol):
 def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles=1,
                     move_limit=None, frames=None, frame_kind="tangent", screen=0.3,
                     ftol=1e-8, max_inner=200, active_tol=1e-3, stop_on_oscillation=True,
-                    history=None, progress=None):
+                    history=None, progress=None, resume=False):
     """Optimize a problem with the weakly coupled method (paper 5.3).
 
     Parameters
@@ -585,8 +585,16 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         Stop when the designs repeat with a period of 2 to 6 cycles (reason 'oscillation').
     history : str, path or HistoryWriter, optional
         File receiving one JSON line per cycle as the run goes.
-    progress : callable, optional
-        Called with each history record.
+    progress : bool, text stream or callable, optional
+        True: a tqdm bar on stderr (cycle, mass, violation, ESL change); a text stream: that
+        bar on the stream; a callable: called with each history record; None/False
+        (default): nothing shown (`flexmbs.progress`).
+    resume : bool, default False
+        Continue an interrupted run from its `history` file (required; a missing file starts
+        afresh): the cycles it recorded are taken from the file, the designs of its last
+        two cycles are simulated again (the previous ESL, for eq. (25), and the last cycle's
+        own), and the run goes on from there exactly as the interrupted one would have,
+        appending to the file. details resumed_cycles: the cycles taken from the file.
 
     Returns
     -------
@@ -611,7 +619,9 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         raise ModelError(f"frame_kind must be 'tangent' or 'chord', got {frame_kind!r}")
     if frames is not None and not isinstance(frames, dict):
         raise ModelError(f"frames must be a dict beam -> point or None, got {frames!r}")
-    progress = _progress_callback(progress)
+    check_progress(progress)
+    if not isinstance(resume, bool):
+        raise ModelError(f"resume must be True or False, got {resume!r}")
     lower, upper = problem.lower, problem.upper
     x = mech.start.copy() if x0 is None else mech.design_values(x0).copy()
     if np.any(x < lower) or np.any(x > upper):
@@ -623,15 +633,21 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
                         "beam's deformation (no deviation chain through a beam, no stress)")
     mass_resp = [r for r in d.responses if isinstance(r, Mass)]
 
-    writer = history if isinstance(history, HistoryWriter) else HistoryWriter(history)
-    own_writer = not isinstance(history, HistoryWriter)
+    writer, own_writer = open_history(history, resume)
     prev_loads, pending = None, None
     control = CycleControl(eps, confirm_cycles, max_cycles, stop_on_oscillation)
     inner_total = n_static = 0
     change = None
     values = g_dyn = names = result = None
+    progress = reporter(progress, total=max_cycles, label="cycles", describe=describe_cycle,
+                        position=lambda r: r["iteration"])
+    first, resumed = 1, 0
     try:
-        for cycle in range(1, max_cycles + 1):
+        if resume and writer.previous:
+            first, x, prev_loads, pending, inner_total, n_static = _resume_cycles(
+                problem, static, writer, control, progress, x, max_cycles)
+            resumed = first - 1
+        for cycle in range(first, max_cycles + 1):
             result = problem.simulate(x, store="all")
             values, g_dyn, names = _dynamic(problem, x, result)
             dev = problem.constrained_deviation(values)
@@ -671,6 +687,8 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
     finally:
         if own_writer:
             writer.close()
+        if progress is not None:
+            progress.close()
     mech.set_design(x)
     final_violation = float(g_dyn.max()) if g_dyn.size else None
     feasible = final_violation is None or final_violation <= 1e-6
@@ -698,6 +716,8 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         t_end=float(mech.t[-1]),
         active_steps=None if pending is None else pending.active_steps,
         mass_responses=[r.name for r in mass_resp])
+    if resume:
+        details["resumed_cycles"] = resumed
     return OptimizationResult(
         method="weakly", case=d.case.name, variables=list(mech.variables),
         units=[v.unit for v in d.design], design=x.copy(), start=control.designs[0],
@@ -706,6 +726,45 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         max_violation=None if final_violation is None else max(0.0, final_violation),
         max_deviation_m=record["max_deviation_m"], iterations=len(control.designs),
         inner_iterations=inner_total, evaluations=len(control.designs),
-        simulations=len(control.designs), converged=control.converged, reason=reason,
+        simulations=len(control.designs) - resumed + (resumed > 0),
+        converged=control.converged, reason=reason,
         history=list(writer.records), wall_time_s=time.perf_counter() - t_start,
         details=details, t=np.asarray(mech.t), deviation=dev)
+
+
+def _resume_cycles(problem, static, writer, control, progress, x0, max_cycles):
+    """The state of an interrupted run after the cycles of its history (`writer.previous`):
+    cycles 1 .. c-1 are taken from the file (`control` observes them, `writer` and `progress`
+    get their records), the design of cycle c-1 is simulated again for its ESL (eq. (25) of
+    cycle c) and the static problem that produced cycle c's design is restored from cycle c's
+    record; cycle c itself is run again (its record is checked against the file's).
+    Returns (c, design of cycle c, ESL of cycle c-1, static result, inner iterations so far,
+    static optimizations so far)."""
+    recs = writer.previous[:max_cycles]
+    if not np.array_equal(np.asarray(recs[0]["design"], float), x0):
+        raise ModelError(f"history {writer.path!r} starts from design {recs[0]['design']}, "
+                         f"this run from {x0.tolist()}: resume with the same start")
+    c = len(recs)
+    for rec in recs[:-1]:
+        control.observe(rec["iteration"], np.asarray(rec["design"], float),
+                        rec.get("esl_change"), dict(rec))
+        writer.write(rec)
+        if progress is not None:
+            progress(rec)
+    last = recs[-1]
+    x = np.asarray(last["design"], float).copy()
+    prev_loads = pending = None
+    if c > 1:
+        xp = np.asarray(recs[-2]["design"], float)
+        result = problem.simulate(xp, store="all")
+        model = problem.mechanism.set_design(xp)
+        prev_loads = equivalent_static_loads(model, result, static.frames,
+                                             stiffness=static.stiffness,
+                                             props=model.element_properties())
+        pending = SimpleNamespace(x=x, iterations=last.get("inner_iterations") or 0,
+                                  max_violation=last.get("predicted_max_violation"),
+                                  active_steps=last.get("active_steps"),
+                                  success=last.get("static_message") is None,
+                                  message=last.get("static_message"))
+    inner = sum(r.get("inner_iterations") or 0 for r in recs[1:])
+    return c, x, prev_loads, pending, inner, c - 1
