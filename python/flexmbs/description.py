@@ -125,9 +125,11 @@ class MaterialSpec(_Strict):
 
 
 class Section(_Strict):
-    """A beam cross section. Dimensions (m) are numbers, design variable names, or a list of
-    either with one entry per element (root element first) or per group of elements (the
-    elements are split into len(list) equal consecutive groups).
+    """A beam cross section. Dimensions (m) are numbers, design variable names (an
+    element-wise variable, `DesignVariable.elementwise`, gives each element its own
+    component), or a list of numbers and scalar variables' names with one entry per element
+    (root element first) or per group of elements (the elements are split into len(list)
+    equal consecutive groups).
 
     shape:
       circle     diameter
