@@ -77,6 +77,25 @@ def test_mass_and_its_gradient_are_the_tube_formula(grouped):
     np.testing.assert_allclose(grad, 2 * RHO * AREA * x * 1e-6 * lengths, rtol=1e-12)
 
 
+def test_one_elementwise_variable_links_two_beams_element_by_element():
+    """Both arms name d_arm1 (3 elements each): 3 components, component k sizes element k of
+    arm 1 and of arm 2 (rhoA by hand), and dmass/dd_k = 2 x 2 rho 0.09 pi d_k 1e-6 L_e (the
+    two arms' equal element lengths, 0.2 m)."""
+    raw = _raw("robot_2dof_tapered")
+    raw["bodies"][1]["section"]["diameter"] = "d_arm1"
+    del raw["design"][1]
+    p = Problem(raw, overrides=_small())
+    assert p.variables == ["d_arm1[1]", "d_arm1[2]", "d_arm1[3]"]
+    x = np.array([45.0, 35.0, 25.0])
+    m = p.mechanism.set_design(x)
+    props = m.element_properties()
+    for body in ("arm1", "arm2"):
+        for e, d in zip(m.body(body).elements, x):
+            assert props[3, e] == pytest.approx(RHO * AREA * (d * 1e-3) ** 2, rel=1e-13)
+    _, grad = p._response(p._resp["mass"], x, None, True)
+    np.testing.assert_allclose(grad, 2 * 2 * RHO * AREA * x * 1e-6 * 0.2, rtol=1e-12)
+
+
 def test_deviation_and_stress_gradients_match_central_differences(grouped):
     """d(deviation_28)/dx and d(stress)/dx at the last step and at mid-horizon (100 steps,
     non-uniform design), direct differentiation against central differences with a step of
