@@ -309,3 +309,13 @@ def test_inconsistent_elementwise_input_names_the_key(edit, message):
     negative max_step: each a CaseError naming the variable, the key and the value."""
     with pytest.raises(CaseError, match=message):
         description_from_dict(_tapered(edit), "robot_2dof_tapered.toml")
+
+
+def test_a_design_of_the_wrong_length_names_the_components():
+    """A design that does not list every component is a ModelError naming the count and the
+    element-wise variables as d[1..n]."""
+    from flexmbs.errors import ModelError
+    p = Problem("robot_2dof_tapered", overrides=_small(t_end=0.002))
+    with pytest.raises(ModelError, match=r"design must be 6 finite numbers "
+                                         r"\(d_arm1\[1\.\.3\], d_arm2\[1\.\.3\]\), got \[40, 30\]"):
+        p.evaluate([40, 30])

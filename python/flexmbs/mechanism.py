@@ -161,7 +161,7 @@ class Mechanism:
         (DesignVariable.elementwise) one per element or group, named 'name[k]' (k from 1)."""
         layout = design_layout(d)
         self.variables, self.units, scale, lower, upper, start = [], [], [], [], [], []
-        self._offset, self._component = {}, {}
+        self._offset, self._component, self._linear = {}, {}, None
         self.variable_components = {}
         for v in d.design:
             ncomp, per_beam = layout[v.name]
@@ -192,28 +192,34 @@ class Mechanism:
         max_step s:           (x[k+1] - x[k]) / s - 1 <= 0 and (x[k] - x[k+1]) / s - 1 <= 0
         max_step_relative r:  (x[k+1] - (1 + r) x[k]) / (r upper) <= 0 and the same with k,
                               k+1 swapped (normalised by the step r allows at the upper bound)
-        Neighbours are consecutive components (elements, or groups in the order given)."""
+        Neighbours are consecutive components (elements, or groups in the order given); a
+        variable's max_step rows come before its max_step_relative rows."""
+        if self._linear is not None:
+            A, b, names = self._linear
+            return A.copy(), b.copy(), list(names)
         nv = len(self.variables)
         rows, rhs, names = [], [], []
         for v in self.description.design:
             idx = self.variable_components[v.name]
-            for a, b in zip(idx, idx[1:]):
-                for i, j in ((b, a), (a, b)):
-                    if v.max_step is not None:
-                        r = np.zeros(nv)
-                        r[i], r[j] = 1.0 / v.max_step, -1.0 / v.max_step
-                        rows.append(r)
-                        rhs.append(1.0)
-                        names.append(f"{v.name} max_step")
-                    if v.max_step_relative is not None:
-                        s = v.max_step_relative * v.upper
-                        r = np.zeros(nv)
-                        r[i], r[j] = 1.0 / s, -(1.0 + v.max_step_relative) / s
-                        rows.append(r)
-                        rhs.append(0.0)
-                        names.append(f"{v.name} max_step_relative")
+            pairs = [(i, j) for a, b in zip(idx, idx[1:]) for i, j in ((b, a), (a, b))]
+            if v.max_step is not None:
+                for i, j in pairs:
+                    r = np.zeros(nv)
+                    r[i], r[j] = 1.0 / v.max_step, -1.0 / v.max_step
+                    rows.append(r)
+                    rhs.append(1.0)
+                    names.append(f"{v.name} max_step")
+            if v.max_step_relative is not None:
+                s = v.max_step_relative * v.upper
+                for i, j in pairs:
+                    r = np.zeros(nv)
+                    r[i], r[j] = 1.0 / s, -(1.0 + v.max_step_relative) / s
+                    rows.append(r)
+                    rhs.append(0.0)
+                    names.append(f"{v.name} max_step_relative")
         A = np.array(rows) if rows else np.zeros((0, nv))
-        return A, np.array(rhs, float), names
+        self._linear = (A, np.array(rhs, float), names)
+        return self.linear_constraints()
 
     # ------------------------------------------------------------------ structure
     def _structure(self, name):
@@ -367,21 +373,29 @@ class Mechanism:
         return q0.copy(), qd0.copy()
 
     # ------------------------------------------------------------------ design
+    def _summary(self):
+        """The variables for messages: 'd[1..8]' for an element-wise one."""
+        out = []
+        for v in self.description.design:
+            n = len(self.variable_components[v.name])
+            out.append(f"{v.name}[1..{n}]" if v.elementwise else v.name)
+        return ", ".join(out)
+
     def design_values(self, x):
         """x (user units) as a checked float array: numbers only (a bool or a string is
         refused, even a numeric one)."""
         items = np.ravel(np.asarray(x, dtype=object)) if not isinstance(x, (str, bytes)) else [x]
         if any(isinstance(v, (bool, np.bool_, str, bytes)) for v in items):
             raise ModelError(f"design must be {len(self.variables)} numbers "
-                             f"({', '.join(self.variables)}), got {x!r}")
+                             f"({self._summary()}), got {x!r}")
         try:
             arr = np.asarray(x, dtype=float)
         except (TypeError, ValueError):
             raise ModelError(f"design must be {len(self.variables)} numbers "
-                             f"({', '.join(self.variables)}), got {x!r}") from None
+                             f"({self._summary()}), got {x!r}") from None
         if arr.shape != (len(self.variables),) or not np.all(np.isfinite(arr)):
             raise ModelError(f"design must be {len(self.variables)} finite numbers "
-                             f"({', '.join(self.variables)}), got {x!r}")
+                             f"({self._summary()}), got {x!r}")
         if np.any(arr <= 0):
             raise ModelError(f"design values must be positive (section sizes), got {x!r}")
         return arr
