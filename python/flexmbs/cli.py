@@ -215,7 +215,7 @@ def add_design_arguments(p):
 def print_evaluation(prob, ev, source=None):
     """The summary of an Evaluation for people: design, every response, the constraints."""
     d = prob.description
-    units = [v.unit for v in d.design]
+    units = prob.mechanism.units
     print(f"{d.case.name}: {d.case.description or ''}")
     if source:
         print(f"  case file       {source}")

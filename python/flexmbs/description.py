@@ -34,7 +34,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 __all__ = ["Description", "Law", "Beam", "Rigid", "PointMass", "Joint", "Drive", "Load",
            "SpringDamper", "DesignVariable", "Deviation", "Mass", "Stress", "Torque", "Reaction",
            "Constraint",
-           "TimeSettings", "Section", "MaterialSpec", "Term", "PointRef", "GROUND"]
+           "TimeSettings", "Section", "MaterialSpec", "Term", "PointRef", "GROUND",
+           "design_layout"]
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
@@ -124,9 +125,11 @@ class MaterialSpec(_Strict):
 
 
 class Section(_Strict):
-    """A beam cross section. Dimensions (m) are numbers, design variable names, or a list of
-    either with one entry per element (root element first) or per group of elements (the
-    elements are split into len(list) equal consecutive groups).
+    """A beam cross section. Dimensions (m) are numbers, design variable names (an
+    element-wise variable, `DesignVariable.elementwise`, gives each element its own
+    component), or a list of numbers and scalar variables' names with one entry per element
+    (root element first) or per group of elements (the elements are split into len(list)
+    equal consecutive groups).
 
     shape:
       circle     diameter
@@ -310,13 +313,29 @@ class SpringDamper(_Strict):
 
 
 class DesignVariable(_Strict):
-    """A sizing variable: bounds, start, and the unit of the values given for it."""
+    """A sizing variable: bounds, start, and the unit of the values given for it.
+
+    Element-wise: with ``per_element = true`` the variable is an array with one component per
+    element of the beams whose section names it (root element first); with ``groups`` (lists
+    of 1-based element numbers, every element in exactly one group) one component per group.
+    The components are named ``name[1]``, ``name[2]``, ...; each has the variable's bounds and
+    start. Beams sharing an element-wise variable must have the same number of elements
+    (component k sizes element k of each). ``max_step`` (in the variable's unit) bounds the
+    change between neighbouring components, |x[k+1] - x[k]| <= max_step, and
+    ``max_step_relative`` = r bounds it relative to each: x[k+1] <= (1 + r) x[k] and
+    x[k] <= (1 + r) x[k+1]; both are linear constraints of the sizing problem.
+    """
     name: Name
     lower: Positive
     upper: Positive
     start: Positive
     unit: Literal["m", "mm"] = "m"
     description: str | None = None
+    per_element: bool | None = None
+    groups: Annotated[list[Annotated[list[Annotated[int, Field(ge=1)]], Field(min_length=1)]],
+                      Field(min_length=1)] | None = None
+    max_step: Positive | None = None
+    max_step_relative: Positive | None = None
 
     @model_validator(mode="after")
     def _bounds(self):
@@ -326,7 +345,31 @@ class DesignVariable(_Strict):
         if not self.lower <= self.start <= self.upper:
             raise ValueError(f"design variable {self.name!r}: start = {self.start} must lie "
                              f"within [{self.lower}, {self.upper}]")
+        if self.groups is not None and self.per_element is False:
+            raise ValueError(f"design variable {self.name!r}: groups = {self.groups} makes it "
+                             f"element-wise, but per_element = false; drop per_element or set "
+                             f"it to true")
+        if not self.elementwise:
+            for key in ("max_step", "max_step_relative"):
+                if getattr(self, key) is not None:
+                    raise ValueError(f"design variable {self.name!r}: {key} = "
+                                     f"{getattr(self, key)} needs an element-wise variable "
+                                     f"(per_element = true or groups)")
+        if self.groups is not None:
+            seen = set()
+            for g in self.groups:
+                for e in g:
+                    if e in seen:
+                        raise ValueError(f"design variable {self.name!r}: groups = "
+                                         f"{self.groups} lists element {e} twice; every "
+                                         f"element belongs to exactly one group")
+                    seen.add(e)
         return self
+
+    @property
+    def elementwise(self):
+        """An array over elements (per_element = true or groups given)."""
+        return bool(self.per_element) or self.groups is not None
 
     @property
     def scale(self):
@@ -592,6 +635,7 @@ class Description(_Strict):
                 for b in (r.bodies or []):
                     if b not in bodies or not isinstance(bodies[b], Beam):
                         raise ValueError(f"{where}: {b!r} is not a beam")
+        design_layout(self)          # element-wise variables: their beams and groups agree
         if self.objective is not None and self.objective.response not in responses:
             raise ValueError(f"objective: unknown response {self.objective.response!r} "
                              f"(responses: {', '.join(sorted(responses)) or 'none'})")
@@ -600,6 +644,71 @@ class Description(_Strict):
                 raise ValueError(f"constraint: unknown response {c.response!r} "
                                  f"(responses: {', '.join(sorted(responses)) or 'none'})")
         return self
+
+
+def design_layout(description):
+    """How each design variable maps onto the elements: {name: (components, {beam: [component
+    of each element (0-based)]})}. A scalar variable has one component; an element-wise one
+    (`DesignVariable.elementwise`) one per element of the beams naming it, or one per group.
+    ValueError, naming the variable, the key and the beams, when an element-wise variable is
+    named by no beam, inside a list of per-element entries, by beams with different numbers of
+    elements, or has groups that do not cover the elements exactly once."""
+    users = {v.name: [] for v in description.design}
+    listed = {}
+    for b in description.bodies:
+        if not isinstance(b, Beam):
+            continue
+        for dim, spec in b.section.dimensions().items():
+            if isinstance(spec, str) and spec in users:
+                if all(u.name != b.name for u in users[spec]):
+                    users[spec].append(b)
+            elif isinstance(spec, list):
+                for item in spec:
+                    if isinstance(item, str):
+                        listed.setdefault(item, (b.name, dim))
+    out = {}
+    for v in description.design:
+        beams = users[v.name]
+        if not v.elementwise:
+            out[v.name] = (1, {b.name: [0] * b.elements for b in beams})
+            continue
+        where = f"design variable {v.name!r} ({'groups' if v.groups is not None else 'per_element'})"
+        if v.name in listed:
+            b, dim = listed[v.name]
+            raise ValueError(f"{where}: body {b!r} names it inside the list section.{dim}; an "
+                             f"element-wise variable sizes the whole beam: write {dim} = "
+                             f"\"{v.name}\"")
+        if not beams:
+            raise ValueError(f"{where}: no beam section names it, so its number of components "
+                             f"is unknown; name it in a beam's section (e.g. diameter = "
+                             f"\"{v.name}\") or drop per_element/groups")
+        counts = {b.name: b.elements for b in beams}
+        if len(set(counts.values())) > 1:
+            raise ValueError(f"{where}: the beams sharing it have different numbers of elements ("
+                             + ", ".join(f"{k!r}: {n}" for k, n in counts.items())
+                             + "); an element-wise variable links beams element by element: give "
+                             "them the same elements or use one variable per beam")
+        n = beams[0].elements
+        if v.groups is None:
+            comp = list(range(n))
+            ncomp = n
+        else:
+            comp = [-1] * n
+            for k, g in enumerate(v.groups):
+                for e in g:
+                    if e > n:
+                        raise ValueError(f"{where}: groups = {v.groups} names element {e}, but "
+                                         f"body {beams[0].name!r} has {n} elements (numbered 1 "
+                                         f"to {n} from its 'from' end)")
+                    comp[e - 1] = k
+            missing = [e + 1 for e in range(n) if comp[e] < 0]
+            if missing:
+                raise ValueError(f"{where}: groups = {v.groups} leave element(s) "
+                                 f"{missing} of body {beams[0].name!r} ({n} elements) in no "
+                                 f"group; every element belongs to exactly one group")
+            ncomp = len(v.groups)
+        out[v.name] = (ncomp, {b.name: list(comp) for b in beams})
+    return out
 
 
 def body_points(body):

@@ -19,7 +19,7 @@ import warnings
 import numpy as np
 
 from flexmbs.description import (GROUND, Beam, Description, PointMass, Rigid, Section,
-                                 body_points)
+                                 body_points, design_layout)
 from flexmbs.errors import ModelError
 from flexmbs.laws import TimeLaw
 from flexmbs.model import Model
@@ -120,7 +120,10 @@ class Mechanism:
     reference_model : Model       the same nodes with the rigid reference's constraints
     node : dict (body, point) -> node id
     nsteps, t : the time grid (t_end rounded to a whole number of steps h)
-    variables : list of design variable names; x is in their own units
+    variables : list of the design vector's components: a scalar variable's name, or
+        'name[k]' (k = 1, 2, ...) for each component of an element-wise one; x is in their
+        own units (`units`); lower, upper, start: (nv,) arrays
+    variable_components : dict variable name -> indices of its components in x
     joint_rows, drive_rows : per joint / drive of the description (in its order), the indices
         of the model's constraint rows it added (motor torques and joint reactions read them)
     """
@@ -141,12 +144,7 @@ class Mechanism:
             warnings.warn(f"time.t_end = {ts.t_end} s is not a whole number of steps "
                           f"h = {ts.h} s: simulating to {self.t_end:.10g} s ({self.nsteps} steps)",
                           stacklevel=2)
-        self.variables = [v.name for v in d.design]
-        self._var = {v.name: i for i, v in enumerate(d.design)}
-        self._scale = np.array([v.scale for v in d.design])
-        self.lower = np.array([v.lower for v in d.design])
-        self.upper = np.array([v.upper for v in d.design])
-        self.start = np.array([v.start for v in d.design])
+        self._expand_design(d)
         self.materials = {k: Material(m.E, m.nu, m.rho) for k, m in d.materials.items()}
         self._bodies = {b.name: b for b in d.bodies}
         self.model, self.node = self._structure(d.case.name)
@@ -157,6 +155,71 @@ class Mechanism:
         self._add_constraints(self.model, reference=False,
                               motion=self.reference if needs else None)
         self.set_design(self.start)
+
+    def _expand_design(self, d):
+        """The design vector's components: a scalar variable is one, an element-wise one
+        (DesignVariable.elementwise) one per element or group, named 'name[k]' (k from 1)."""
+        layout = design_layout(d)
+        self.variables, self.units, scale, lower, upper, start = [], [], [], [], [], []
+        self._offset, self._component, self._linear = {}, {}, None
+        self.variable_components = {}
+        for v in d.design:
+            ncomp, per_beam = layout[v.name]
+            first = len(self.variables)
+            self._offset[v.name] = first
+            self._component[v.name] = per_beam
+            names = [v.name] if not v.elementwise else [f"{v.name}[{k + 1}]" for k in range(ncomp)]
+            self.variables += names
+            self.variable_components[v.name] = list(range(first, first + ncomp))
+            self.units += [v.unit] * ncomp
+            scale += [v.scale] * ncomp
+            lower += [v.lower] * ncomp
+            upper += [v.upper] * ncomp
+            start += [v.start] * ncomp
+        self._scale, self.lower = np.array(scale), np.array(lower)
+        self.upper, self.start = np.array(upper), np.array(start)
+
+    def _index(self, variable, beam, element):
+        """The design vector index of `variable` at element `element` (0-based) of `beam`."""
+        comp = self._component[variable].get(beam)
+        # a scalar variable may also sit in a list of per-element entries: one component
+        return self._offset[variable] + (comp[element] if comp and len(comp) > 1 else 0)
+
+    def linear_constraints(self):
+        """The smoothness limits of element-wise variables (max_step, max_step_relative) as
+        normalised linear rows g = A x - b <= 0 (x in user units): (A (m, nv), b (m,), names).
+
+        max_step s:           (x[k+1] - x[k]) / s - 1 <= 0 and (x[k] - x[k+1]) / s - 1 <= 0
+        max_step_relative r:  (x[k+1] - (1 + r) x[k]) / (r upper) <= 0 and the same with k,
+                              k+1 swapped (normalised by the step r allows at the upper bound)
+        Neighbours are consecutive components (elements, or groups in the order given); a
+        variable's max_step rows come before its max_step_relative rows."""
+        if self._linear is not None:
+            A, b, names = self._linear
+            return A.copy(), b.copy(), list(names)
+        nv = len(self.variables)
+        rows, rhs, names = [], [], []
+        for v in self.description.design:
+            idx = self.variable_components[v.name]
+            pairs = [(i, j) for a, b in zip(idx, idx[1:]) for i, j in ((b, a), (a, b))]
+            if v.max_step is not None:
+                for i, j in pairs:
+                    r = np.zeros(nv)
+                    r[i], r[j] = 1.0 / v.max_step, -1.0 / v.max_step
+                    rows.append(r)
+                    rhs.append(1.0)
+                    names.append(f"{v.name} max_step")
+            if v.max_step_relative is not None:
+                s = v.max_step_relative * v.upper
+                for i, j in pairs:
+                    r = np.zeros(nv)
+                    r[i], r[j] = 1.0 / s, -(1.0 + v.max_step_relative) / s
+                    rows.append(r)
+                    rhs.append(0.0)
+                    names.append(f"{v.name} max_step_relative")
+        A = np.array(rows) if rows else np.zeros((0, nv))
+        self._linear = (A, np.array(rhs, float), names)
+        return self.linear_constraints()
 
     # ------------------------------------------------------------------ structure
     def _structure(self, name):
@@ -310,21 +373,29 @@ class Mechanism:
         return q0.copy(), qd0.copy()
 
     # ------------------------------------------------------------------ design
+    def _summary(self):
+        """The variables for messages: 'd[1..8]' for an element-wise one."""
+        out = []
+        for v in self.description.design:
+            n = len(self.variable_components[v.name])
+            out.append(f"{v.name}[1..{n}]" if v.elementwise else v.name)
+        return ", ".join(out)
+
     def design_values(self, x):
         """x (user units) as a checked float array: numbers only (a bool or a string is
         refused, even a numeric one)."""
         items = np.ravel(np.asarray(x, dtype=object)) if not isinstance(x, (str, bytes)) else [x]
         if any(isinstance(v, (bool, np.bool_, str, bytes)) for v in items):
             raise ModelError(f"design must be {len(self.variables)} numbers "
-                             f"({', '.join(self.variables)}), got {x!r}")
+                             f"({self._summary()}), got {x!r}")
         try:
             arr = np.asarray(x, dtype=float)
         except (TypeError, ValueError):
             raise ModelError(f"design must be {len(self.variables)} numbers "
-                             f"({', '.join(self.variables)}), got {x!r}") from None
+                             f"({self._summary()}), got {x!r}") from None
         if arr.shape != (len(self.variables),) or not np.all(np.isfinite(arr)):
             raise ModelError(f"design must be {len(self.variables)} finite numbers "
-                             f"({', '.join(self.variables)}), got {x!r}")
+                             f"({self._summary()}), got {x!r}")
         if np.any(arr <= 0):
             raise ModelError(f"design values must be positive (section sizes), got {x!r}")
         return arr
@@ -335,7 +406,7 @@ class Mechanism:
         for dim, spec in b.section.dimensions().items():
             for e, item in enumerate(_groups(spec, b.elements)):
                 if isinstance(item, str):
-                    i = self._var[item]
+                    i = self._index(item, b.name, e)
                     out[e][dim] = (x_m[i], i)
                 else:
                     out[e][dim] = (float(item), -1)

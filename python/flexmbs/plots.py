@@ -295,8 +295,8 @@ def plot_overview(problem, result, evaluation, file=None, *, magnification=None)
         plot_histories(evaluation.t, hist[:3], ax=ax2, scale=1.0, unit="",
                        title="constrained responses")
     d = problem.description
-    design = ", ".join(f"{n} = {v:.4g} {v_.unit}" for n, v, v_ in
-                       zip(problem.variables, evaluation.x, d.design))
+    design = ", ".join(f"{n} = {v:.4g} {u}" for n, v, u in
+                       zip(problem.variables, evaluation.x, problem.mechanism.units))
     obj = "" if evaluation.objective is None else \
         f", {d.objective.response} {evaluation.objective:.4g}"
     state = ("" if not evaluation.constraints.size else

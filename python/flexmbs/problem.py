@@ -71,8 +71,9 @@ class Evaluation:
 
     values[name]: (nt,) history or a float; gradients[name]: (nt, nv) or (nv,) (None without
     gradients). objective, d_objective: the objective's value and gradient. constraints: the
-    normalised constraint values g <= 0 (one per time step for 'every_step'), jacobian
-    (ng, nv), constraint_names (the response of each row).
+    normalised constraint values g <= 0 (one per time step for 'every_step'; then the linear
+    smoothness rows of element-wise design variables), jacobian (ng, nv), constraint_names
+    (the response of each row; 'VARIABLE max_step' for a smoothness row).
     """
     x: np.ndarray
     t: np.ndarray
@@ -289,6 +290,7 @@ class Problem:
             f, df = _scalar(values[obj.response], grads[obj.response], obj.over, None, t)
         cons, jac, names, _ = constraint_rows(self.description, values, grads, t,
                                               len(mech.variables), gradient)
+        cons, jac, names = with_linear_rows(mech, x, cons, jac, names)
         return Evaluation(x=x, t=t, values=values, gradients=grads if gradient else {},
                           objective=f, d_objective=df if gradient else None, constraints=cons,
                           jacobian=jac, constraint_names=names,
@@ -359,6 +361,19 @@ def constraint_rows(description, values, gradients, t, nv, gradient=True):
     cons = np.concatenate(g_rows) if g_rows else np.zeros(0)
     jac = (np.vstack(j_rows) if j_rows else np.zeros((0, nv))) if gradient else None
     return cons, jac, names, np.asarray(groups, int)
+
+
+def with_linear_rows(mechanism, x, g, jacobian, names):
+    """Constraint rows g, their Jacobian (or None) and names followed by the mechanism's
+    linear rows (the smoothness limits of element-wise design variables,
+    `Mechanism.linear_constraints`: constant Jacobian, no simulation)."""
+    A, b, lin_names = mechanism.linear_constraints()
+    if not lin_names:
+        return g, jacobian, names
+    g = np.concatenate([g, A @ np.asarray(x, float) - b])
+    if jacobian is not None:
+        jacobian = np.vstack([jacobian, A])
+    return g, jacobian, list(names) + lin_names
 
 
 def _scalar(v, dv, how, parameter, t):

@@ -59,6 +59,13 @@ def _mass(problem, design, values):
     return None if f is None else f(design, values)
 
 
+def _units(problem):
+    """The unit of every design component (Mechanism.units; problem-like objects without a
+    mechanism: their description's variables)."""
+    units = getattr(getattr(problem, "mechanism", None), "units", None)
+    return list(units) if units is not None else [v.unit for v in problem.description.design]
+
+
 def _deviation(problem, values):
     """The constrained deviation history (Problem.constrained_deviation), or None."""
     f = getattr(problem, "constrained_deviation", None)
@@ -522,7 +529,7 @@ def optimize_fully(problem, x0=None, *, optimizer="mma", max_iterations=100,
         reason += f"; but the re-simulated final design violates a constraint by {viol:.1e}"
     return OptimizationResult(
         method="fully", case=desc.case.name, variables=problem.variables,
-        units=[v.unit for v in desc.design], design=last.design.copy(), start=p0.copy(),
+        units=_units(problem), design=last.design.copy(), start=p0.copy(),
         objective=float(fresh.objective), objective_name=desc.objective.response,
         mass_kg=_mass(problem, last.design, fresh.values), max_violation=viol,
         max_deviation_m=None if dev is None else float(dev.max()),

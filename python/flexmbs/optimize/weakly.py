@@ -466,6 +466,16 @@ class StaticModel:
                 groups.append(grp + ngroup)
                 ngroup += (grp.max() + 1) if grp.size else 0
                 names += nm
+        # the smoothness limits of element-wise variables: linear, one group per variable
+        A, b, lin = self.mech.linear_constraints()
+        for name in dict.fromkeys(lin):
+            rows = [k for k, n in enumerate(lin) if n == name]
+            g_all.append(A[rows] @ np.asarray(x, float) - b[rows])
+            if gradient:
+                j_all.append(A[rows])
+            groups.append(np.full(len(rows), ngroup))
+            ngroup += 1
+            names += [name] * len(rows)
         g = np.concatenate(g_all) if g_all else np.zeros(0)
         J = (np.vstack(j_all) if j_all else np.zeros((0, nv))) if gradient else None
         return f, df, g, J, (np.concatenate(groups) if groups else np.zeros(0, int)), names
@@ -720,7 +730,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         details["resumed_cycles"] = resumed
     return OptimizationResult(
         method="weakly", case=d.case.name, variables=list(mech.variables),
-        units=[v.unit for v in d.design], design=x.copy(), start=control.designs[0],
+        units=list(mech.units), design=x.copy(), start=control.designs[0],
         objective=record["objective"], objective_name=d.objective.response,
         mass_kg=record["mass_kg"],
         max_violation=None if final_violation is None else max(0.0, final_violation),
