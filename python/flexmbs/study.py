@@ -502,15 +502,13 @@ def _format_errors(exc, source):
 
 
 @functools.lru_cache(maxsize=8)
-def _load(path_text, mtime):
+def _load(path_text, text):
     path = Path(path_text)
     source = str(path)
     try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+        raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise CaseError(f"{source}: not valid TOML: {exc}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CaseError(f"{source}: cannot be read: {exc}") from None
     try:
         f = StudyFile.model_validate(raw)
     except ValidationError as exc:
@@ -581,4 +579,8 @@ def load_study(study=None):
     if isinstance(study, Study):
         return study
     p = study_path(study).resolve()
-    return _load(str(p), p.stat().st_mtime_ns)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CaseError(f"{p}: cannot be read: {exc}") from None
+    return _load(str(p), text)          # read again when the file changed
