@@ -2,7 +2,7 @@
 the key, the value and what is allowed. The format: docs/case-format.md.
 
 Shipped cases (the repository's ``cases/`` folder, or the copy installed with the package in
-``flexmbs/cases_data``) are found by name: `case_path("fourbar")`. Any key can be replaced
+``flexmbs/cases_data``) are found by name: `case_path("NAME")`. Any key can be replaced
 before validation with `overrides`, by a dotted path: ``{"time.t_end": 0.66}``; an item of a
 table array is addressed by its ``name`` or its index: ``{"bodies.arm1.elements": 8}``.
 """
