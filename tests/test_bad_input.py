@@ -457,8 +457,6 @@ def test_override_messages_name_file_key_and_value(overrides, text):
     assert text in msg and "robot_2dof.toml" in msg
 
 
-@pytest.mark.xfail(strict=True, reason="the unknown-key message points to docs/case-format.md "
-                   "but does not list the keys allowed in [time] (the old load_case listed them)")
 def test_unknown_override_key_lists_allowed_keys():
     """An unknown override key names itself and lists the keys allowed in its table."""
     with pytest.raises(fx.CaseError) as err:

@@ -2,7 +2,7 @@
 the key, the value and what is allowed. The format: docs/case-format.md.
 
 Shipped cases (the repository's ``cases/`` folder, or the copy installed with the package in
-``flexmbs/cases_data``) are found by name: `case_path("fourbar")`. Any key can be replaced
+``flexmbs/cases_data``) are found by name: `case_path("NAME")`. Any key can be replaced
 before validation with `overrides`, by a dotted path: ``{"time.t_end": 0.66}``; an item of a
 table array is addressed by its ``name`` or its index: ``{"bodies.arm1.elements": 8}``.
 """
@@ -10,10 +10,12 @@ from __future__ import annotations
 
 import copy
 import tomllib
+import types
+import typing
 from importlib import resources
 from pathlib import Path
 
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 
 from flexmbs.description import Description
 from flexmbs.errors import CaseError
@@ -32,21 +34,77 @@ def _loc(loc):
     return out
 
 
-def _friendly(err):
-    """One line of a pydantic error: the key, what is wrong, the value given."""
+def _step(tp, part):
+    """The types a location part leads to from type `tp` (a model, list, dict, union)."""
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin is typing.Annotated:
+        return _step(args[0], part)
+    if origin in (typing.Union, types.UnionType):
+        return [t for a in args for t in _step(a, part)]
+    if origin in (list, tuple):
+        return list(args[:1]) if isinstance(part, int) else []
+    if origin is dict:
+        return list(args[1:2]) if isinstance(part, str) else []
+    if not (isinstance(tp, type) and issubclass(tp, BaseModel)) or not isinstance(part, str):
+        return []
+    for name, f in tp.model_fields.items():
+        if part in (name, f.alias):
+            return [f.annotation]
+    if part.startswith("function-"):             # a validator's step: the same model
+        return [tp]
+    for f in tp.model_fields.values():           # the tag of a union member ('beam')
+        if typing.get_origin(f.annotation) is typing.Literal and part in typing.get_args(f.annotation):
+            return [tp]
+    return []
+
+
+def _models(tp):
+    """The models a type stands for (through Annotated, unions and None)."""
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin is typing.Annotated:
+        return _models(args[0])
+    if origin in (typing.Union, types.UnionType):
+        return [m for a in args for m in _models(a)]
+    return [tp] if isinstance(tp, type) and issubclass(tp, BaseModel) else []
+
+
+def allowed_keys(model, loc):
+    """The keys allowed in the table that holds the last key of `loc` (a pydantic error's
+    location under `model`), as a file spells them; None when no single table is found."""
+    types = [model]
+    for part in loc[:-1]:
+        types = [t for tp in types for t in _step(tp, part)]
+    models = {m for tp in types for m in _models(tp)}
+    if len(models) != 1:
+        return None
+    (m,) = models
+    return [f.alias or name for name, f in m.model_fields.items()]
+
+
+def friendly_error(err, model=None, doc="docs/case-format.md", tags=None):
+    """One line of a pydantic error: the key, what is wrong, the value given (for an unknown
+    key of `model`'s data, default a case's Description, the keys allowed in its table).
+    tags: the tags of `model`'s tagged unions (default: a case's)."""
+    tags = _TAGS if tags is None else tags
     # pydantic adds the tag of a union member ('beam') or of a validator to the location
     loc = [p for p in err["loc"] if not (isinstance(p, str) and
-                                         (p in _TAGS or p.startswith("function-")))]
+                                         (p in tags or p.startswith("function-")))]
     msg = err["msg"].removeprefix("Value error, ")
+    allowed = ""
     if err["type"] == "extra_forbidden":
-        msg = "is not a known key (see docs/case-format.md)"
+        msg = f"is not a known key (see {doc})"
+        keys = allowed_keys(model or Description, err["loc"])
+        if keys:
+            where = f"[{_loc(loc[:-1])}]" if loc[:-1] else "the top level"
+            allowed = f"; allowed in {where}: {', '.join(keys)}"
     elif err["type"] == "missing":
         msg = "is missing"
     if not loc:                      # a check across keys: its message names them
         return msg
     inp = err.get("input")
     shown = "" if err["type"] == "missing" or isinstance(inp, (dict, list)) else f", got {inp!r}"
-    return f"key '{_loc(loc)}' {msg}{shown}"
+    return f"key '{_loc(loc)}' {msg}{shown}{allowed}"
+
 
 
 _TAGS = ("beam", "rigid", "mass", "deviation", "stress", "torque", "reaction")
@@ -65,7 +123,7 @@ def description_from_dict(data, source="<dict>", overrides=None):
     try:
         return Description.model_validate(data)
     except ValidationError as exc:
-        lines = [_friendly(e) for e in exc.errors()]
+        lines = [friendly_error(e) for e in exc.errors()]
         more = f" (and {len(lines) - 5} more)" if len(lines) > 5 else ""
         raise CaseError(f"{source}: " + "; ".join(lines[:5]) + more) from None
 

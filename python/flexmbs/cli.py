@@ -5,7 +5,7 @@ Usage::
     flexmbs simulate CASE [--design P1,P2,...] [--t-end T] [--h H] [--rho-inf R]
                           [--set KEY=VALUE ...] [--out result.npz] [--plot FILE.png] [--json]
     flexmbs demo [--out DIR] [--workers N]
-    flexmbs reproduce [--table N ...|--all] [--out DIR] [--workers N | --dask ADDRESS] [--quick]
+    flexmbs reproduce [--study FILE] [--table N ...|--all] [--out DIR] [--workers N | --dask ADDRESS] [--quick]
 
 CASE is the name of a shipped case (``flexmbs.casefile.available_cases()``: the files of cases/)
 or a path to a TOML case file (docs/case-format.md). Errors in the input or in the simulation, and files that cannot be

@@ -1,5 +1,6 @@
-"""``flexmbs reproduce`` and ``flexmbs demo``: the paper's tables run as jobs
-(flexmbs.reproduce), then their figures and report (flexmbs.report.publish)."""
+"""``flexmbs reproduce`` and ``flexmbs demo``: a study's tables (the paper's by default,
+flexmbs.study) run as jobs (flexmbs.reproduce), then their figures and report
+(flexmbs.report.publish)."""
 from __future__ import annotations
 
 import sys
@@ -8,7 +9,8 @@ from pathlib import Path
 from flexmbs.cli import positive_int
 from flexmbs.errors import ModelError
 from flexmbs.report import publish
-from flexmbs.reproduce import TABLES, reproduce
+from flexmbs.reproduce import reproduce
+from flexmbs.study import load_study
 
 __all__ = ["register", "run_reproduce", "register_demo", "run_demo", "interrupted",
            "print_report"]
@@ -17,13 +19,19 @@ __all__ = ["register", "run_reproduce", "register_demo", "run_demo", "interrupte
 def register(subparsers):
     """Add the ``reproduce`` subcommand (listed in flexmbs.cli.COMMANDS)."""
     p = subparsers.add_parser(
-        "reproduce", help="reproduce the paper's Tables 1-8 and Figures 5-15, with a report",
-        description="Run the optimizations behind the paper's tables (each starting point x "
-                    "method is one job, on local worker processes or a Dask cluster), print "
-                    "every row beside the published one, draw the figures and write "
-                    "DIR/README.md. Finished jobs are saved under DIR/jobs/ and not run again.")
-    p.add_argument("--table", type=int, nargs="+", action="extend", choices=sorted(TABLES),
-                   metavar="N", help="tables to reproduce, 1-8 (repeatable); default: all")
+        "reproduce", help="reproduce the paper's tables and figures (or another study's), "
+                          "with a report",
+        description="Run the optimizations behind a study's tables (the paper's by default; "
+                    "each starting point x method is one job, on local worker processes or a "
+                    "Dask cluster), print every row beside the published one, draw the figures "
+                    "and write DIR/README.md. Finished jobs are saved under DIR/jobs/ and not "
+                    "run again.")
+    p.add_argument("--study", metavar="FILE",
+                   help="a study file (docs/study-format.md) or the name of a shipped study; "
+                        "default: the paper's (cases/studies/paper.toml)")
+    p.add_argument("--table", type=int, nargs="+", action="extend",
+                   metavar="N", help="tables to reproduce (numbers of the study's tables, "
+                                     "repeatable); default: all")
     p.add_argument("--all", action="store_true", help="every table (the default)")
     p.add_argument("--out", default="reproduction", metavar="DIR",
                    help="output folder (default: reproduction)")
@@ -36,7 +44,7 @@ def register(subparsers):
     p.add_argument("--quick", action="store_true",
                    help="coarse design-domain maps (11 x 11 instead of 41 x 41 simulations)")
     p.add_argument("--grid", type=int, metavar="N",
-                   help="points per axis of the maps of Figs. 12 and 15 (overrides --quick)")
+                   help="points per axis of the design-domain maps (overrides --quick)")
     p.add_argument("--force", action="store_true",
                    help="run the optimizations again even when DIR/jobs/ holds their results")
     p.add_argument("--no-figures", action="store_true", help="tables only, no PNG")
@@ -48,10 +56,17 @@ def run_reproduce(args):
     grid = args.grid if args.grid is not None else (11 if args.quick else 41)
     if grid < 2:
         raise ModelError(f"--grid must be an integer >= 2, got {grid}")
+    study = load_study(args.study)
+    if tables is not None:
+        bad = [t for t in tables if t not in study.tables]
+        if bad:
+            raise ModelError(f"--table must be among the study's tables "
+                             f"{', '.join(map(str, study.tables))} ({study.path}), got "
+                             f"{', '.join(map(str, bad))}")
     try:
         log = lambda s: print(s, flush=True)        # noqa: E731
         report = reproduce(tables, args.out, workers=args.workers, dask=args.dask, grid=grid,
-                           force=args.force, log=log)
+                           force=args.force, log=log, study=study)
         publish(report, figures=not args.no_figures, log=log)
     except KeyboardInterrupt:
         interrupted(args.command, args.out, "run the same command again to resume "
@@ -81,7 +96,7 @@ def print_report(report):
         print(f"{sum(c.ok for c in checks)} of {len(checks)} findings of the paper reproduced"
               + ("" if all(c.ok for c in checks) else "; differing: "
                  + "; ".join(f"Table {c.table}: {c.what}" for c in checks if not c.ok)))
-    times = ", ".join(f"Table {t} {report.table_time(t):.1f} s" for t in report.tables if t != 8)
+    times = ", ".join(f"Table {t} {report.table_time(t):.1f} s" for t in report.row_tables)
     print(f"serial wall time of the runs: {times}")
     print("elapsed: " + ", ".join(f"{k} {v:.1f} s" for k, v in report.elapsed.items()))
     print(f"report: {report.out / 'README.md'}"
@@ -92,11 +107,13 @@ def print_report(report):
 # ----------------------------------------------------------------------------- demo
 def register_demo(subparsers):
     p = subparsers.add_parser(
-        "demo", help="reproduce the paper's Table 1 with both methods (under a minute)",
-        description="The paper's 2-dof robot (section 6.2, deviation (28), 0.65 s): optimize "
-                    "it with the weakly and the fully coupled methods from the start design, "
-                    "print the results beside the paper's Table 1, draw Fig. 5 and write a "
-                    "report (DIR/README.md). `flexmbs reproduce` does the same for every table.")
+        "demo", help="reproduce the demo table of the paper's study with both methods (under a "
+                     "minute)",
+        description="The demo table of the shipped study (the paper's first table, "
+                    "cases/studies/paper.toml): optimize it with the weakly and the fully "
+                    "coupled methods from its start design, print the results beside the "
+                    "paper's, draw its figure and write a report (DIR/README.md). `flexmbs "
+                    "reproduce` does the same for every table.")
     p.add_argument("--out", default="reproduction/demo", metavar="DIR",
                    help="output folder (default: reproduction/demo)")
     p.add_argument("--workers", type=positive_int, default=2, metavar="N",
@@ -104,22 +121,35 @@ def register_demo(subparsers):
     p.set_defaults(func=run_demo)
 
 
+def _design_text(p):
+    return "[" + ", ".join(f"{v:.2f}" for v in p) + "]"
+
+
 def run_demo(args):
-    print("flexmbs demo: the paper's Table 1 (2-dof robot, deviation (28), 0.65 s), weakly and "
-          "fully coupled optimizations from p = [50, 50, 50, 50] mm", flush=True)
+    study = load_study()
+    demo = study.demo
+    if demo is None:
+        raise ModelError(f"{study.path}: the study names no demo table (key 'study.demo')")
+    n = demo.table
+    spec = study.tables[n]
+    unit = spec.units[0] if len(set(spec.units)) == 1 else ""
+    start = "[" + ", ".join(f"{v:g}" for v in spec.starts[0]) + "]"
+    print(f"flexmbs demo: the paper's Table {n} ({demo.about}), weakly and fully coupled "
+          f"optimizations from p = {start}{f' {unit}' if unit else ''}", flush=True)
     try:
         log = lambda s: print(s, flush=True)        # noqa: E731
-        report = publish(reproduce([1], args.out, workers=args.workers, force=True, log=log),
-                         log=log)
+        report = publish(reproduce([n], args.out, workers=args.workers, force=True, log=log,
+                                   study=study), log=log)
     except KeyboardInterrupt:
         interrupted(args.command, args.out, "the demo starts again from the beginning "
-                    "(`flexmbs reproduce --table 1` keeps finished jobs)")
+                    f"(`flexmbs reproduce --table {n}` keeps finished jobs)")
         return 130
     print_report(report)
     print()
-    for r in report.rows.get(1, []):
-        fmt = lambda p: "[" + ", ".join(f"{v:.2f}" for v in p) + "]"     # noqa: E731
-        print(f"Table 1, {r.method} coupled optimum: flexmbs {r.mass_kg:.4f} kg, "
-              f"p = {fmt(r.design_mm)} mm; paper {r.paper['mass']:.3f} kg, "
-              f"p = {fmt(r.paper['p'])} mm")
+    u = f" {unit}" if unit else ""
+    for r in report.rows.get(n, []):
+        paper = (f"paper {r.paper['mass']:.3f} kg, p = {_design_text(r.paper['p'])}{u}"
+                 if r.paper.get("mass") is not None and r.paper.get("p") else "paper: -")
+        print(f"Table {n}, {r.method} coupled optimum: flexmbs {r.mass_kg:.4f} kg, "
+              f"p = {_design_text(r.design_mm)}{u}; {paper}")
     return 1 if report.failures else 0

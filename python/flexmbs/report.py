@@ -1,19 +1,18 @@
 """The reproduction report: figures (PNG) and ``README.md`` of `flexmbs.reproduce`.
 
-`make_figures(report)` draws the paper's figures from the results a `Report` holds and returns
-{key: (caption, path relative to the report folder)}; `write_report(report)` writes
-``README.md`` (every table beside the paper, the checks, the figures, the timings) and
+`make_figures(report)` draws the figures its study declares from the results a `Report` holds
+and returns {key: (caption, path relative to the report folder)}; `write_report(report)` writes
+``README.md`` (every table beside the published one, the checks, the figures, the timings) and
 ``comparison.json`` (the same numbers for programs).
 
-Figures (the paper's numbering):
+Figure kinds (``docs/study-format.md``):
 
-- 5, 6, 8, 9, 11: objective history of both methods and the deviation history of their optimal
-  designs (Tables 1, 2, 3, 4, 5);
-- 10: the weakly coupled method's oscillation on Table 5's problem (mass per cycle, and the
+- two_methods: objective history of a table's runs and the deviation history of their optima;
+- oscillation: a run that does not converge (mass and critical time per cycle, and the
   deviation of the last cycles' designs);
-- 13: Table 7's four starts, both methods; 14: the infeasible start [45, 45, 45, 45];
-- 12, 15: design-domain maps of the deviation at step 200 (0.0995 s) and 1338 (0.6685 s) over
-  (p2, p4), with the maximum deviation over all steps beside them.
+- starts: every start of a table, both methods; start_detail: both methods from one start;
+- map: a design-domain map of the deviation at one time step over two design variables, with
+  the maximum deviation over all steps beside it.
 
 Matplotlib's Agg canvas only: no pyplot, no global backend change.
 """
@@ -27,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
+
+from flexmbs.reproduce import scan_key
 
 __all__ = ["make_figures", "write_report", "markdown"]
 
@@ -110,10 +111,10 @@ def _fig_two_methods(report, table, key, number, what):
     colors = [_METHOD_COLOR[r.method] for r in rows]
     styles = ["-" if r.method == "weakly" else "--" for r in rows]
     masses = [m for r in rows for m in _history(r)[1] if np.isfinite(m)]
-    spans_decades = bool(masses) and max(masses) > 5 * min(masses)    # e.g. the four-bar's
+    spans_decades = bool(masses) and max(masses) > 5 * min(masses)
     _objective_axes(a1, rows, labels, colors, styles, log=spans_decades)
     a1.set_title("objective history", fontsize=10)
-    # solid lines: the four-bar's deviations oscillate too fast for dashes
+    # solid lines: fast oscillating deviations leave dashes unreadable
     _deviation_axes(a2, rows, [f"{r.method} coupled" for r in rows], colors, ["-"] * len(rows))
     a2.set_title("deviation of the optimal designs at every time step", fontsize=10)
     fig.suptitle(f"Fig. {number} (Table {table}): {what}", fontsize=11)
@@ -126,10 +127,11 @@ def _fig_two_methods(report, table, key, number, what):
               "limit.", path)
 
 
-def _fig10(report):
-    """The weakly coupled oscillation of Table 5: mass and critical time per cycle, and the
-    deviation histories of the last cycles' designs (re-simulated)."""
-    rows = [r for r in report.rows.get(5, []) if r.method == "weakly"]
+def _fig_oscillation(report, spec):
+    """A run that does not converge (the first of the figure's method in its table): mass and
+    critical time per cycle, and the deviation histories of the last cycles' designs
+    (re-simulated)."""
+    rows = [r for r in report.rows.get(spec.table, []) if r.method == spec.method]
     if not rows:
         return None
     from flexmbs.batch import max_deviation_job
@@ -140,10 +142,10 @@ def _fig10(report):
     tmax = np.array([rec.get("t_at_max_s", np.nan) for rec in h], float)
     fig = Figure(figsize=(13, 4.8))
     a1, a2 = fig.subplots(1, 2, gridspec_kw=dict(width_ratios=[1, 1.25]))
-    keep = it >= 2                     # cycle 1 is the start design (2.29 kg): off scale
-    a1.plot(it[keep], m[keep], "o-", color=_METHOD_COLOR["weakly"], ms=5, label="beam mass")
+    keep = it >= 2                     # cycle 1 is the start design: off scale
+    a1.plot(it[keep], m[keep], "o-", color=_METHOD_COLOR[spec.method], ms=5, label="beam mass")
     a1.set_xlabel(f"cycle (cycle 1, the start design, {m[0]:.2f} kg, is off scale)")
-    a1.set_ylabel("beam mass (kg)", color=_METHOD_COLOR["weakly"])
+    a1.set_ylabel("beam mass (kg)", color=_METHOD_COLOR[spec.method])
     lo, hi = m[keep].min(), m[keep].max()
     a1.set_ylim(lo - 0.35 * (hi - lo), hi + 0.6 * (hi - lo))
     a1.grid(alpha=0.3)
@@ -155,10 +157,10 @@ def _fig10(report):
     lines = a1.get_lines() + b1.get_lines()
     a1.legend(lines, [ln.get_label() for ln in lines], fontsize=8, loc="upper left",
               framealpha=0.9)
-    a1.set_title(f"weakly coupled: {'converged' if r.converged else 'NOT converged'} "
+    a1.set_title(f"{spec.method} coupled: {'converged' if r.converged else 'NOT converged'} "
                  f"after {r.iterations} cycles", fontsize=10)
-    # the last (up to) four cycles' designs, simulated again (50 ms each)
-    last = h[-4:]
+    # the last cycles' designs, simulated again
+    last = h[-spec.last:]
     t_end = 0.0
     for k, rec in enumerate(last):
         cr = max_deviation_job(r.run.case, rec["design"], dict(r.run.overrides), steps="all")
@@ -172,22 +174,19 @@ def _fig10(report):
     a2.set_ylim(0, 1.2 + 0.11 * (len(last) + 1))
     a2.set_xlim(0, t_end)
     a2.set_xlabel("time (s)")
-    a2.set_ylabel("deviation (28) (mm)")
+    a2.set_ylabel(spec.deviation_label)
     a2.grid(alpha=0.3)
     a2.legend(fontsize=7.5, loc="upper left")
     a2.set_title("deviation of the designs of the last cycles", fontsize=10)
-    fig.suptitle("Fig. 10 (Table 5, 0.66 s): the weakly coupled method oscillates between designs",
-                 fontsize=11)
+    fig.suptitle(spec.title, fontsize=11)
     fig.tight_layout()
-    path = _save(fig, report.out / "figures", "fig10")
-    return ("Fig. 10: the weakly coupled method on the 0.66 s problem. Left: beam mass and time "
-            "of the maximum deviation per cycle. Right: deviation histories of the designs of "
-            "the last cycles (the critical time alternates between the peak near 0.1 s and the "
-            "last step, as the paper describes).", path)
+    path = _save(fig, report.out / "figures", spec.key)
+    return spec.caption, path
 
 
-def _fig13(report):
-    rows = report.rows.get(7, [])
+def _fig_starts(report, spec):
+    """Every start of a table: one row of panels per method."""
+    rows = report.rows.get(spec.table, [])
     if not rows:
         return None
     fig = Figure(figsize=(13, 8.6))
@@ -204,17 +203,16 @@ def _fig13(report):
         _deviation_axes(axes[k, 1], rr, [f"start {_start_text(r.start_mm)}" for r in rr],
                         colors, styles)
         axes[k, 1].set_title(f"{method} coupled: deviation of the optimal designs", fontsize=10)
-    fig.suptitle("Fig. 13 (Table 7, 0.6685 s = 1338 steps): influence of the starting point",
-                 fontsize=11)
+    fig.suptitle(spec.title, fontsize=11)
     fig.tight_layout()
-    path = _save(fig, report.out / "figures", "fig13")
-    return ("Fig. 13: Table 7's problem from the four starting points. Top: weakly coupled; "
-            "bottom: fully coupled. Left: beam mass per cycle / iteration; right: deviation of "
-            "the final designs.", path)
+    path = _save(fig, report.out / "figures", spec.key)
+    return spec.caption, path
 
 
-def _fig14(report):
-    rows = [r for r in report.rows.get(7, []) if list(r.start_mm) == [45.0] * 4]
+def _fig_start_detail(report, spec):
+    """Both methods from one start of a table: mass, maximum deviation per iterate, optima."""
+    rows = [r for r in report.rows.get(spec.table, [])
+            if list(r.start_mm) == [float(v) for v in spec.start]]
     if not rows:
         return None
     fig = Figure(figsize=(15, 4.6))
@@ -235,12 +233,10 @@ def _fig14(report):
     a2.set_title("maximum deviation of each design (start infeasible)", fontsize=10)
     _deviation_axes(a3, rows, [f"{r.method} coupled" for r in rows], colors, styles)
     a3.set_title("deviation of the optimal designs", fontsize=10)
-    fig.suptitle("Fig. 14 (Table 7): infeasible starting point [45, 45, 45, 45]", fontsize=11)
+    fig.suptitle(spec.title, fontsize=11)
     fig.tight_layout()
-    path = _save(fig, report.out / "figures", "fig14")
-    return ("Fig. 14: Table 7's problem from the infeasible start [45, 45, 45, 45] (1.26 mm). "
-            "Left: beam mass; middle: maximum deviation of each iterate; right: deviation of the "
-            "final designs.", path)
+    path = _save(fig, report.out / "figures", spec.key)
+    return spec.caption, path
 
 
 def _nice_step(span, n=20):
@@ -271,15 +267,18 @@ def _map_panel(fig, ax, a, b, z_m, title, limit=1.0):
     ax.set_title(title, fontsize=10)
 
 
-def _fig_map(report, key):
+def _fig_map(report, key, fig_key=None):
     m = report.maps.get(key)
     if m is None:
         return None
     s = m.spec
-    h = 5e-4
+    h = m.h_s
     fig = Figure(figsize=(13, 10.5))
     axes = fig.subplots(2, 2)
-    fixed = ", ".join(f"p{k + 1} = {v:g}" for k, v in s.fixed)
+    unit = m.units[0] if len(set(m.units)) == 1 else ""
+    u = f" {unit}" if unit else ""
+    fixed = ", ".join(f"{k} = {v:g}" for k, v in s.fixed)
+    over = f"({m.names[0]}, {m.names[1]})"
     step_txt = f"deviation at step {s.step} (t = {(s.step - 1) * h:.4f} s)"
     for row, region in enumerate(("full", "zoom")):
         a, b, at, mx = m.grids[region]
@@ -287,9 +286,9 @@ def _fig_map(report, key):
         for col, (z, what) in enumerate(((at, step_txt), (mx, "maximum deviation over all steps"))):
             ax = axes[row, col]
             _map_panel(fig, ax, a, b, z, f"{what}: {where}")
-            ax.set_xlabel(f"{m.names[0]} (mm)")
-            ax.set_ylabel(f"{m.names[1]} (mm)")
-            _map_markers(ax, report, s)
+            ax.set_xlabel(f"{m.names[0]} ({m.units[0]})" if m.units[0] else m.names[0])
+            ax.set_ylabel(f"{m.names[1]} ({m.units[1]})" if m.units[1] else m.names[1])
+            _map_markers(ax, report, m)
             ax.set_xlim(a[0], a[-1])
             ax.set_ylim(b[0], b[-1])
         if region == "full":
@@ -298,29 +297,31 @@ def _fig_map(report, key):
                 ax.plot([a0, a1, a1, a0, a0], [b0, b0, b1, b1, b0], "w--", lw=1.0)
     axes[1, 0].legend(fontsize=8, loc="upper right", framealpha=0.9)
     n = m.grids["full"][0].size
-    fig.suptitle(f"Fig. {s.figure} (Table {s.table}): design domain over (p2, p4), {fixed} mm; "
+    fig.suptitle(f"Fig. {s.figure} (Table {s.table}): design domain over {over}, {fixed}{u}; "
                  f"two {n} x {n} grids, one simulation per point", fontsize=11)
     fig.tight_layout()
-    path = _save(fig, report.out / "figures", key)
+    path = _save(fig, report.out / "figures", fig_key or key)
     return (f"Fig. {s.figure}: deviation at time step {s.step} (t = {(s.step - 1) * h:.4f} s, "
-            f"left) and maximum deviation over all steps (right) over (p2, p4) with {fixed} mm; "
+            f"left) and maximum deviation over all steps (right) over {over} with {fixed}{u}; "
             f"top: the whole box of the bounds (dashed: the zoom), bottom: the zoom near the "
             f"optima; red: the 1 mm limit; colours clipped at 2 mm; markers: Table {s.table}'s "
-            f"optima, paper (x) and flexmbs (o) (their p1, p3 differ slightly from the map's).",
+            f"optima, paper (x) and flexmbs (o) (their {', '.join(k for k, _ in s.fixed)} differ "
+            f"slightly from the map's).",
             path)
 
 
-def _map_markers(ax, report, spec):
-    rows = report.rows.get(spec.table, [])
+def _map_markers(ax, report, m):
+    rows = report.rows.get(m.spec.table, [])
+    i, j = m.indices
     done = set()
     for r in rows:
         for who, p, mk in (("paper", r.paper.get("p"), "x"), ("flexmbs", r.design_mm, "o")):
-            if p is None or p[1] is None:
+            if p is None or p[i] is None:
                 continue
             key = (who, r.method)
             lab = None if key in done else f"{who}, {r.method} coupled optima"
             done.add(key)
-            ax.plot(p[1], p[3], mk, color=_METHOD_COLOR[r.method], mec="k" if mk == "o" else None,
+            ax.plot(p[i], p[j], mk, color=_METHOD_COLOR[r.method], mec="k" if mk == "o" else None,
                     ms=6, mew=1.2, label=lab, zorder=5)
 
 
@@ -328,23 +329,18 @@ def make_figures(report):
     """Draw every figure the report's tables allow; return {key: (caption, relative path)}."""
     folder = report.out / "figures"
     folder.mkdir(parents=True, exist_ok=True)
-    makers = [
-        ("fig05", lambda: _fig_two_methods(report, 1, "fig05", 5,
-                                           "2-dof robot, deviation (28), 0.65 s")),
-        ("fig06", lambda: _fig_two_methods(report, 2, "fig06", 6,
-                                           "2-dof robot, tracking deviation (30), 0.65 s")),
-        ("fig08", lambda: _fig_two_methods(report, 3, "fig08", 8,
-                                           "four-bar mechanism with lumped masses")),
-        ("fig09", lambda: _fig_two_methods(report, 4, "fig09", 9,
-                                           "four-bar mechanism without lumped masses")),
-        ("fig10", lambda: _fig10(report)),
-        ("fig11", lambda: _fig_two_methods(report, 5, "fig11", 11,
-                                           "2-dof robot, deviation (28), 0.66 s")),
-        ("fig12", lambda: _fig_map(report, "fig12")),
-        ("fig13", lambda: _fig13(report)),
-        ("fig14", lambda: _fig14(report)),
-        ("fig15", lambda: _fig_map(report, "fig15")),
-    ]
+    makers = []
+    for fig in report.study.figures:
+        if fig.kind == "two_methods":
+            make = (lambda f: lambda: _fig_two_methods(report, f.table, f.key, f.number,
+                                                       f.what))(fig)
+        elif fig.kind == "map":
+            make = (lambda f: lambda: _fig_map(report, f.map, f.key))(fig)
+        else:
+            draw = {"oscillation": _fig_oscillation, "starts": _fig_starts,
+                    "start_detail": _fig_start_detail}[fig.kind]
+            make = (lambda d, f: lambda: d(report, f))(draw, fig)
+        makers.append((fig.key, make))
     out = {}
     for key, make in makers:
         res = make()
@@ -364,7 +360,6 @@ def _num(v, spec):
 
 
 def _md_table(report, table):
-    from flexmbs.reproduce import TABLES
     rows = report.rows.get(table, [])
     if not rows:
         return "_no result_\n"
@@ -397,25 +392,33 @@ def _md_table(report, table):
                      f"maximum deviation of the final design {r.max_deviation_m * 1e3:.4f} mm; "
                      f"{r.result.get('simulations')} simulations, {r.wall_time_s:.1f} s"
                      + (f"; {pd}." if pd else "."))
-    missing = [n.name for n in TABLES[table].runs() if n.name not in report.results]
+    missing = [n.name for n in report.study.tables[table].runs() if n.name not in report.results]
     for name in missing:
         lines.append(f"- **no result** for {name}: {report.failures.get(name, 'not run')}")
     return "\n".join(lines) + "\n"
 
 
-def _md_scan(scan):
-    """The Table 3 diagnostic: maximum deviation over p1 for two (p2, p3)."""
-    tails = sorted({(r["p2_mm"], r["p3_mm"]) for r in scan})
-    p1s = sorted({r["p1_mm"] for r in scan})
-    val = {(r["p1_mm"], r["p2_mm"], r["p3_mm"]): r for r in scan}
-    L = ["Why the fully coupled four-bar optimum is sensitive: maximum deviation (mm) of A over "
-         "the crank diameter p1 with a slender coupler and follower (simulated by flexmbs; the "
-         "peak is a vibration of the slender links, not monotonic in the design):", "",
-         "| p1 (mm) | " + " | ".join(f"{v:g}" for v in p1s) + " |",
-         "|---|" + "---|" * len(p1s)]
-    for p2, p3 in tails:
-        L.append(f"| p2, p3 = {p2:g}, {p3:g} mm | " + " | ".join(
-            f"{val[(p1, p2, p3)]['max_deviation_m'] * 1e3:.3f}" for p1 in p1s) + " |")
+def _md_scan(spec, scan):
+    """A table's scan (`flexmbs.reproduce.design_scan`): maximum deviation over one design
+    variable, one line per setting of the others."""
+    sc = spec.scan
+    i = spec.index(sc.variable)
+    keys = [f"{n}_{u}" if u else n for n, u in zip(spec.variables, spec.units)]
+    rest = [k for k in range(len(keys)) if k != i]
+    tails = sorted({tuple(r[keys[k]] for k in rest) for r in scan})
+    values = sorted({r[keys[i]] for r in scan})
+    val = {(r[keys[i]], tuple(r[keys[k]] for k in rest)): r for r in scan}
+    unit = spec.units[i]
+    others = ", ".join(spec.variables[k] for k in rest)
+    ru = {spec.units[k] for k in rest}
+    u = f" {ru.pop()}" if len(ru) == 1 and "" not in ru else ""
+    L = [sc.caption, "",
+         f"| {sc.variable}{f' ({unit})' if unit else ''} | "
+         + " | ".join(f"{v:g}" for v in values) + " |",
+         "|---|" + "---|" * len(values)]
+    for tail in tails:
+        L.append(f"| {others} = {', '.join(f'{v:g}' for v in tail)}{u} | " + " | ".join(
+            f"{val[(v, tail)]['max_deviation_m'] * 1e3:.3f}" for v in values) + " |")
     L.append("")
     return "\n".join(L) + "\n"
 
@@ -433,26 +436,35 @@ def _md_checks(checks):
     return "\n".join(lines) + "\n"
 
 
+def _shared_run_example(study):
+    """A table whose single start is the first start of another table of the same problem,
+    as a clause of the wall-time note ('' when no table shares its runs)."""
+    rows = [t for t in study.tables.values() if t.kind == "rows"]
+    for a in rows:
+        for b in rows:
+            if (a.number != b.number and len(a.starts) == 1 and len(b.starts) > 1
+                    and a.case == b.case and a.overrides == b.overrides
+                    and a.starts[0] == b.starts[0]):
+                return f", e.g. Table {a.number} = Table {b.number}'s first start,"
+    return ""
+
+
 def markdown(report):
     """The report as Markdown text."""
     from flexmbs import __version__
-    from flexmbs.reproduce import MAPS, TABLES
+    study = report.study
     now = datetime.datetime.now().strftime("%Y-%m-%d %H:%M")
     tabs = ", ".join(map(str, report.tables))
     word = "Tables" if len(report.tables) > 1 else "Table"
-    L = [f"# flexmbs reproduction of Tromme, Brüls & Duysinx, {word} {tabs}", "",
-         "*Weakly and fully coupled methods for structural optimization of flexible mechanisms*: "
-         "every table below puts the published numbers (transcribed in `paper_tables.json`) "
-         "beside those flexmbs computes, with the difference in per cent; the figures are "
-         "drawn from the same runs. Nothing here needs to be run again to be checked: the "
-         "result of every optimization is in `jobs/` (JSON, with its full history) and all "
-         "numbers are in `comparison.json`.", "",
-         f"flexmbs {__version__}, Python {platform.python_version()}, {now}; "
-         f"{report.settings.get('executor', '')}; this report took "
-         f"{report.elapsed.get('total', 0):.0f} s (see Wall times for the computations). "
-         "Iter. = cycles, i.e. MBS analyses (weakly coupled) or optimizer iterations (fully "
-         "coupled); Inner iter. = iterations of the static problems, summed. Modelling choices "
-         "the paper leaves open are fixed as in the case files (`cases/*.toml`).", ""]
+    L = [f"# flexmbs reproduction of {study.reference or study.name}, {word} {tabs}", ""]
+    if study.introduction:
+        L += [study.introduction, ""]
+    L += [f"flexmbs {__version__}, Python {platform.python_version()}, {now}; "
+          f"{report.settings.get('executor', '')}; this report took "
+          f"{report.elapsed.get('total', 0):.0f} s (see Wall times for the computations). "
+          "Iter. = cycles, i.e. MBS analyses (weakly coupled) or optimizer iterations (fully "
+          "coupled); Inner iter. = iterations of the static problems, summed. Modelling choices "
+          "the paper leaves open are fixed as in the case files (`cases/*.toml`).", ""]
     checks = [c for c in report.all_checks if c.ok is not None]
     if checks:
         bad = [c for c in checks if not c.ok]
@@ -466,9 +478,9 @@ def markdown(report):
         L += [f"- {n}: {e}" for n, e in report.failures.items()]
         L.append("")
     for t in report.tables:
-        spec = TABLES[t]
+        spec = study.tables[t]
         L += [f"## Table {t}: {spec.title}", ""]
-        if t == 8:
+        if spec.kind == "active_steps":
             L += ["Active time steps (1-based, t = (n - 1) h) per cycle (weakly coupled) / "
                   "iteration (fully coupled). flexmbs, weakly coupled: the steps active at the "
                   "solution of the static problem that produced the cycle's design, and the "
@@ -477,21 +489,22 @@ def markdown(report):
                   "start).", "",
                   "| iter. | paper, weakly | flexmbs, weakly (static problem) | flexmbs, weakly "
                   "(simulation) | paper, fully | flexmbs, fully |", "|---|---|---|---|---|---|"]
-            for r in report.table8 or []:
+            for r in report.active_steps.get(t) or []:
                 L.append("| " + " | ".join(str(v) for v in r) + " |")
             L.append("")
             continue
         L.append(_md_table(report, t))
-        if t == 3 and report.extra.get("table3_p1_scan"):
-            L.append(_md_scan(report.extra["table3_p1_scan"]))
+        if spec.scan is not None and report.extra.get(scan_key(spec)):
+            L.append(_md_scan(spec, report.extra[scan_key(spec)]))
         ch = report.checks.get(t)
         if ch:
             L += [_md_checks(ch)]
+        numbers = {f.key: f.number for f in study.figures}
         for key in spec.figures:
             if key in report.figures:
                 cap, path = report.figures[key]
-                L += [f"![Fig. {key[3:].lstrip('0')}]({path})", "", f"*{cap}*", ""]
-        for key, m in MAPS.items():
+                L += [f"![Fig. {numbers[key]}]({path})", "", f"*{cap}*", ""]
+        for key, m in study.maps.items():
             if m.table == t and key in report.maps:
                 mp = report.maps[key]
                 L.append(f"Maps of Fig. {m.figure}: {mp.simulations} simulations in "
@@ -499,10 +512,8 @@ def markdown(report):
                 L.append("")
     L += ["## Wall times", "",
           "| table | runs | serial wall time of its runs (s) |", "|---|---|---|"]
-    for t in report.tables:
-        if t == 8:
-            continue
-        runs = {r.name for r in TABLES[t].runs()}
+    for t in report.row_tables:
+        runs = {r.name for r in study.tables[t].runs()}
         L.append(f"| {t} | {len(runs)} | {report.table_time(t):.1f} |")
     L.append("")
     if report.timings:
@@ -514,10 +525,15 @@ def markdown(report):
           + f" ({len(report.settings.get('stored_runs', []))} optimizations were already "
           f"stored)."]
     L += ["", "Serial wall time of a table: the sum of its runs' wall times (a run shared by "
-          "several tables, e.g. Table 1 = Table 6's first start, is computed once and counted in "
+          f"several tables{_shared_run_example(study)} is computed once and counted in "
           "each). The phases' times are those of the call that computed their jobs (stored "
           "results are not computed again).", ""]
     return "\n".join(L)
+
+
+def _map_axes(m, g):
+    """{'p2_mm': grid values, 'p4_mm': ...} of a map's region (name_unit keys)."""
+    return {(f"{n}_{u}" if u else n): v for n, u, v in zip(m.names, m.units, g[:2])}
 
 
 def write_report(report):
@@ -532,11 +548,13 @@ def write_report(report):
         rows={str(t): [r.to_dict() for r in rows] for t, rows in report.rows.items()},
         checks=[dict(table=c.table, what=c.what, paper=c.paper, flexmbs=c.flexmbs, ok=c.ok)
                 for c in report.all_checks],
-        table8=report.table8, failures=report.failures,
+        **{f"table{t}": report.active_steps.get(t) for t, spec in report.study.tables.items()
+           if spec.kind == "active_steps"},
+        failures=report.failures,
         figures={k: v[1] for k, v in report.figures.items()},
-        maps={k: dict(step=m.spec.step, fixed={f"p{i + 1}": v for i, v in m.spec.fixed},
-                      **{region: dict(p2_mm=g[0], p4_mm=g[1], deviation_at_step_m=g[2],
-                                      max_deviation_m=g[3]) for region, g in m.grids.items()})
+        maps={k: dict(step=m.spec.step, fixed=dict(m.spec.fixed),
+                      **{region: {**_map_axes(m, g), "deviation_at_step_m": g[2],
+                                  "max_deviation_m": g[3]} for region, g in m.grids.items()})
               for k, m in report.maps.items()})
     write_atomic(out / "comparison.json", json.dumps(jsonable(data), indent=1))
     return out / "README.md"

@@ -1,27 +1,19 @@
-"""Reproduce the paper: the optimizations behind its Tables 1-8 and Figures 5-15.
+"""Reproduce a study: the optimizations behind a paper's tables and figures, compared with
+the published numbers.
+
+A study (`flexmbs.study`, ``docs/study-format.md``) declares, as data, each table (its case,
+overrides, starting designs, methods, optimizer options, where its published numbers are, the
+findings to check), each design-domain map and each figure. The shipped study is the paper's
+(``cases/studies/paper.toml``); ``study=`` takes any other study file.
 
 `reproduce(tables, out)` runs every optimization a table needs (each starting point x method
 is one job of `flexmbs.batch.run_batch`: local worker processes by default, a Dask cluster when
-an address is given), compares the results with the published numbers (the paper's tables,
-shipped with flexmbs as ``paper_tables.json``) and returns a `Report`;
+an address is given), compares the results with the published numbers and returns a `Report`;
 `flexmbs.report.publish(report)` draws the figures and writes ``out/README.md``, a report a
 reader can check without running anything. Every job's result is saved under ``out/jobs/``
 as soon as it finishes; running the same command again skips what is done.
 
 The command line is ``flexmbs reproduce`` (flexmbs/cli_reproduce.py).
-
-Tables and what they need
--------------------------
-====  ==================================================================  ====================
- 1    robot, deviation (28), 0.65 s, start 50 mm: both methods             Fig. 5
- 2    robot, deviation (30), 0.65 s: both methods                          Fig. 6
- 3    four-bar with 5 kg at A and B: both methods                          Fig. 8
- 4    four-bar without the lumped masses: both methods                     Fig. 9
- 5    robot, (28), 0.66 s: weakly oscillates, fully converges              Figs. 10, 11
- 6    robot, (28), 0.65 s, four starts x two methods                       Fig. 12 (map)
- 7    robot, (28), 0.6685 s (1338 steps), four starts x two methods        Figs. 13, 14, 15
- 8    active time steps per cycle / iteration, Table 7 from [55]*4         (Table 7's runs)
-====  ==================================================================  ====================
 
 Example
 -------
@@ -37,147 +29,57 @@ import json
 import os
 import time
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
 from flexmbs.errors import ModelError
+from flexmbs.study import MapSpec, Run, Study, TableSpec, load_study
 
-__all__ = ["reproduce", "Report", "Row", "TableSpec", "Run", "TABLES", "paper_tables",
-           "table_runs", "optimization_job", "map_jobs",
-           "MAPS", "MapSpec", "MapResult", "REGIONS", "Check", "table_checks",
-           "STARTS", "WEAKLY_OPTIONS", "FULLY_OPTIONS", "CRITERIA", "paper_row", "build_rows",
-           "design_spread", "table8_rows", "format_table", "format_table8",
-           "simulate_paper_designs", "paper_design_text", "first_variable_scan"]
+# TABLES and MAPS (the shipped study's tables and maps) are read when first used (__getattr__)
+__all__ = ["reproduce", "Report", "Row", "TableSpec", "Run", "paper_tables",
+           "table_runs", "optimization_job", "map_jobs", "load_study", "Study",
+           "MapSpec", "MapResult", "REGIONS", "Check", "table_checks", "paper_row",
+           "build_rows", "design_spread", "active_steps_rows", "format_table",
+           "format_active_steps", "simulate_paper_designs", "paper_design_text",
+           "design_scan", "scan_key"]
 
-#: Starting points of Tables 6 and 7 (mm).
-STARTS = ((50.0, 50.0, 50.0, 50.0), (55.0, 55.0, 55.0, 55.0), (55.0, 45.0, 35.0, 25.0),
-          (45.0, 45.0, 45.0, 45.0))
 
-#: Options of the optimizers for every table, beyond the case files' stopping tests: the
-#: methods' defaults (30 cycles at most for the weakly coupled method), and at most 40
-#: iterations (about twice the paper's 21) for the four-bar's fully coupled runs. On the
-#: four-bar the weakly coupled cycles never meet test (25) (the paper needed 73 cycles): they
-#: wander around one design, and 100 cycles instead of 30 change its mass by under 1 %.
-WEAKLY_OPTIONS = {"robot_2dof": dict(max_cycles=30), "robot_2dof_tracking": dict(max_cycles=30),
-                  "fourbar": dict(max_cycles=30), "fourbar_no_masses": dict(max_cycles=30)}
-FULLY_OPTIONS = {"robot_2dof": dict(), "robot_2dof_tracking": dict(),
-                 "fourbar": dict(max_iterations=40, design_rel_change=1e-3),
-                 "fourbar_no_masses": dict(max_iterations=40, design_rel_change=1e-3)}
+def __getattr__(name):
+    """TABLES and MAPS: the tables and maps of the shipped study (read when first used)."""
+    if name == "TABLES":
+        return load_study().tables
+    if name == "MAPS":
+        return load_study().maps
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 # ============================================================================ published numbers
-def paper_tables():
-    """The published numbers of the paper's Tables 1-8 (dict, as in ``paper_tables.json``).
+def paper_tables(study=None):
+    """The published numbers of a study (dict, the JSON file its ``study.published`` names;
+    default: the shipped study's ``paper_tables.json``)."""
+    return load_study(study).published_data()
 
-    Read from the repository's ``tests/data/paper_tables.json`` when flexmbs runs from a source
-    tree, else from the copy installed with the package (``flexmbs/paper_data``).
-    """
-    root = Path(__file__).resolve().parents[2]
-    f = root / "tests" / "data" / "paper_tables.json"
-    if f.is_file() and (root / "python" / "flexmbs").is_dir():
-        return json.loads(f.read_text(encoding="utf-8"))
-    try:
-        g = resources.files("flexmbs") / "paper_data" / "paper_tables.json"
-        return json.loads(g.read_text(encoding="utf-8"))
-    except (FileNotFoundError, ModuleNotFoundError, NotADirectoryError) as exc:
-        raise ModelError("paper_tables.json not found (neither tests/data/ of a source tree "
-                         "nor flexmbs/paper_data/ of the installed package)") from exc
+
+def _published(spec, data):
+    node = data
+    for key in spec.published:
+        node = node[key]
+    return node
 
 
 # ============================================================================ runs and tables
-@dataclass(frozen=True)
-class Run:
-    """One optimization: a case (name + overrides), a method and a starting design.
-
-    Runs that are equal share one job (Table 1's runs are Table 6's first row).
-    """
-    case: str
-    method: str
-    start_mm: tuple
-    overrides: tuple = ()       # sorted (key, value) pairs
-
-    @property
-    def name(self):
-        """The job name: case, end time, method and start, e.g.
-        ``robot_2dof-t0.65-weakly-50-50-50-50``."""
-        ov = dict(self.overrides)
-        t_end = ov.pop("time.t_end", None)
-        parts = [self.case]
-        if t_end is not None:
-            parts.append(f"t{t_end:g}")
-        parts += [f"{k}{v}" for k, v in sorted(ov.items())]
-        parts.append(self.method)
-        parts.append("-".join(f"{v:g}" for v in self.start_mm))
-        return "-".join(parts)
-
-    def job(self):
-        """Keyword arguments of `optimization_job`."""
-        opts = (WEAKLY_OPTIONS if self.method == "weakly" else FULLY_OPTIONS)[self.case]
-        return dict(case=self.case, method=self.method, start=list(self.start_mm),
-                    overrides=dict(self.overrides), options=dict(opts))
-
-
-@dataclass(frozen=True)
-class TableSpec:
-    """A table of the paper: its case, its rows (runs) and where its numbers are published."""
-    number: int
-    title: str
-    case: str
-    overrides: tuple
-    section: str                # key of paper_tables.json: "robot_2dof" or "four_bar"
-    key: str                    # the table's key in that section
-    starts: tuple               # starting designs (one row per start and method)
-    methods: tuple = ("weakly", "fully")
-    figures: tuple = ()
-
-    def runs(self):
-        return [Run(self.case, m, tuple(float(v) for v in s), self.overrides)
-                for m in self.methods for s in self.starts]
-
-
-_R50 = (STARTS[0],)
-_F250 = ((250.0, 250.0, 250.0),)
-TABLES = {
-    1: TableSpec(1, "2-dof robot, deviation (28), 0.65 s (1301 steps)", "robot_2dof",
-                 (("time.t_end", 0.65),), "robot_2dof", "table1_formulation28_tend0.65", _R50,
-                 figures=("fig05",)),
-    2: TableSpec(2, "2-dof robot, tracking deviation (30), 0.65 s (1301 steps)",
-                 "robot_2dof_tracking", (("time.t_end", 0.65),), "robot_2dof",
-                 "table2_formulation30_tend0.65", _R50, figures=("fig06",)),
-    3: TableSpec(3, "four-bar mechanism with 5 kg at A and B, deviation (33) of A, 0.5 s",
-                 "fourbar", (), "four_bar", "table3_with_lumped_masses", _F250,
-                 figures=("fig08",)),
-    4: TableSpec(4, "four-bar mechanism without lumped masses, deviation (33) of A, 0.5 s",
-                 "fourbar_no_masses", (), "four_bar", "table4_without_lumped_masses", _F250,
-                 figures=("fig09",)),
-    5: TableSpec(5, "2-dof robot, deviation (28), 0.66 s (1321 steps)", "robot_2dof",
-                 (("time.t_end", 0.66),), "robot_2dof", "table5_formulation28_tend0.66", _R50,
-                 figures=("fig10", "fig11")),
-    6: TableSpec(6, "2-dof robot, deviation (28), 0.65 s: four starting points", "robot_2dof",
-                 (("time.t_end", 0.65),), "robot_2dof", "table6_formulation28_tend0.65_initial_points",
-                 STARTS, figures=("fig12",)),
-    7: TableSpec(7, "2-dof robot, deviation (28), 0.6685 s (1338 steps): four starting points",
-                 "robot_2dof", (("time.t_end", 0.6685),), "robot_2dof",
-                 "table7_formulation28_tend0.6687_initial_points", STARTS,
-                 figures=("fig13", "fig14", "fig15")),
-    8: TableSpec(8, "active time steps per cycle / iteration, Table 7's problem from "
-                    "[55, 55, 55, 55]", "robot_2dof", (("time.t_end", 0.6685),), "robot_2dof",
-                 "table8_active_constraints_start55", (STARTS[1],)),
-}
-
-
-def table_runs(numbers):
-    """The distinct runs the given tables need, longest first (four-bar, then fully coupled)."""
-    seen = {}
+def table_runs(numbers, study=None):
+    """The distinct runs the given tables need, the costliest first: by the tables' ``cost``
+    (the largest of the tables that share a run), then the fully coupled runs."""
+    study = load_study(study)
+    seen, cost = {}, {}
     for n in numbers:
-        for r in TABLES[n].runs():
+        spec = study.tables[n]
+        for r in spec.runs():
             seen.setdefault(r.name, r)
-    def cost(r):                # the longest runs first: the four-bar's, then fully coupled
-        return (0 if "max_iterations" in FULLY_OPTIONS[r.case] else 1,
-                0 if r.method == "fully" else 1)
-    return sorted(seen.values(), key=cost)
+            cost[r.name] = max(cost.get(r.name, 0.0), spec.cost)
+    return sorted(seen.values(), key=lambda r: (-cost[r.name], 0 if r.method == "fully" else 1))
 
 
 def optimization_job(case, method, start, overrides=None, options=None):
@@ -216,46 +118,6 @@ def optimization_job(case, method, start, overrides=None, options=None):
 
 
 # ============================================================================ design-domain maps
-@dataclass(frozen=True)
-class MapSpec:
-    """A design-domain map of the deviation at one time step over a grid of (p2, p4).
-
-    Paper Fig. 12: step 200 (0.0995 s) of the 0.65 s problem, p1 = 39.35, p3 = 35 mm.
-    Paper Fig. 15: step 1338 (0.6685 s) of the 0.6685 s problem, p1 = 52.49, p3 = 33.24 mm.
-    Two grids: the whole box of the bounds, and a zoom around the optima of the map's table,
-    where the paper describes the landscape (smooth in Fig. 12, oscillating near the limit in
-    Fig. 15).
-    """
-    key: str
-    figure: int
-    table: int
-    case: str
-    overrides: tuple
-    step: int                   # 1-based, as the paper counts (t = (step - 1) h)
-    fixed: tuple                # ((index, value mm), ...) of the variables held fixed
-    zoom: tuple                 # ((lo, hi), (lo, hi)) mm of the mapped variables
-    axes: tuple = (1, 3)        # 0-based indices of the mapped variables (p2, p4)
-
-    def grid(self, n, lower, upper, region="full"):
-        """The n values of each mapped variable (mm): between the bounds ('full') or in the
-        zoom box ('zoom')."""
-        i, j = self.axes
-        if region == "zoom":
-            (a0, a1), (b0, b1) = self.zoom
-        elif region == "full":
-            a0, a1, b0, b1 = lower[i], upper[i], lower[j], upper[j]
-        else:
-            raise ModelError(f"region must be 'full' or 'zoom', got {region!r}")
-        return np.linspace(a0, a1, n), np.linspace(b0, b1, n)
-
-
-MAPS = {
-    "fig12": MapSpec("fig12", 12, 6, "robot_2dof", (("time.t_end", 0.65),), 200,
-                     ((0, 39.35), (2, 35.0)), ((24.0, 32.0), (21.0, 29.0))),
-    "fig15": MapSpec("fig15", 15, 7, "robot_2dof", (("time.t_end", 0.6685),), 1338,
-                     ((0, 52.49), (2, 33.24)), ((33.0, 41.0), (21.5, 29.5))),
-}
-
 #: Regions of a map.
 REGIONS = ("full", "zoom")
 
@@ -268,15 +130,15 @@ def map_jobs(spec, n, region="full"):
     """
     from flexmbs.problem import Problem
     c = Problem(spec.case, overrides=dict(spec.overrides))
-    a, b = spec.grid(n, c.lower, c.upper, region)
-    i, j = spec.axes
-    names = c.variables
+    names = list(c.variables)
+    a, b = spec.grid(n, c.lower, c.upper, region, names)
+    i, j = spec.indices(names)
     jobs = {}
     for va in a:
         for vb in b:
             p = np.array(c.start, float)
             for k, v in spec.fixed:
-                p[k] = v
+                p[names.index(k)] = v
             p[i], p[j] = va, vb
             name = f"{names[i]}-{va:.3f}-{names[j]}-{vb:.3f}"
             jobs[name] = dict(case=spec.case, design=[float(v) for v in p],
@@ -292,28 +154,38 @@ class MapResult:
     ----------
     spec : MapSpec
     grids : dict region -> (a, b, at_step, maximum)
-        a, b: values (mm) of the first (rows) and second (columns) mapped variable; at_step:
+        a, b: values of the first (rows) and second (columns) mapped variable; at_step:
         (na, nb) deviation (m) at spec.step; maximum: (na, nb) maximum deviation over all steps.
     names : tuple of the mapped variables' names
     simulations : int
     wall_time_s : float
+    indices : tuple of the mapped variables' indices in the design
+    h_s : float
+        The time step of the map's case (t = (step - 1) h).
+    units : tuple of the mapped variables' units
     """
     spec: MapSpec
     grids: dict
     names: tuple
     simulations: int = 0
     wall_time_s: float = 0.0
+    indices: tuple = (0, 1)
+    h_s: float = 5e-4
+    units: tuple = ("", "")
 
 
 def _collect_map(spec, n, results, region):
     from flexmbs.problem import Problem
     c = Problem(spec.case, overrides=dict(spec.overrides))
-    a, b = spec.grid(n, c.lower, c.upper, region)
-    names = list(map_jobs(spec, n, region))
-    at = np.array([results[k]["deviation_at_steps_m"][0] for k in names]).reshape(n, n)
-    mx = np.array([results[k]["max_deviation_m"] for k in names]).reshape(n, n)
-    i, j = spec.axes
-    return (a, b, at, mx), (c.variables[i], c.variables[j])
+    names = list(c.variables)
+    a, b = spec.grid(n, c.lower, c.upper, region, names)
+    keys = list(map_jobs(spec, n, region))
+    at = np.array([results[k]["deviation_at_steps_m"][0] for k in keys]).reshape(n, n)
+    mx = np.array([results[k]["max_deviation_m"] for k in keys]).reshape(n, n)
+    i, j = spec.indices(names)
+    units = tuple(v.unit or "" for v in c.description.design)
+    return (a, b, at, mx), (names[i], names[j]), (i, j), float(c.description.time.h), \
+        (units[i], units[j])
 
 
 # ============================================================================ comparison
@@ -414,37 +286,44 @@ def paper_design_text(row):
             f"{d['max_deviation_m'] * 1e3:.3f} mm at {d['t_at_max_s']:.4f} s ({state})")
 
 
-#: Crank diameters (mm) of the Table 3 diagnostic scan (`first_variable_scan`).
-SCAN_P1_MM = (50.0, 54.0, 56.15, 58.0, 60.0, 62.0, 65.0, 68.0, 72.0, 76.0)
+def scan_key(spec):
+    """The key of a table's scan in `Report.extra` (and comparison.json)."""
+    return f"table{spec.number}_{spec.scan.variable}_scan"
 
 
-def first_variable_scan(case="fourbar", p1=SCAN_P1_MM, tails=((15.0, 15.0), (15.10, 16.24))):
-    """Maximum constrained deviation over the first design variable, the others held at each
-    of `tails` (Table 3: the four-bar's crank diameter with a slender coupler and follower, on
-    the 15 mm bound and at the paper's fully coupled values).
+def design_scan(spec):
+    """Maximum constrained deviation over one design variable of a table's case (its
+    ``scan``: the variable, its values, and the other variables held at each of ``others``).
 
-    Shows how strongly (and not monotonically) the peak deviation depends on the design near
-    the paper's fully coupled optimum. Returns a list of dicts
-    {p1_mm, p2_mm, p3_mm, mass_kg, max_deviation_m, t_at_max_s}.
+    Shows how strongly (and whether monotonically) the peak deviation depends on the design.
+    Returns a list of dicts {NAME_UNIT: value for every variable, mass_kg, max_deviation_m,
+    t_at_max_s}, e.g. {'p1_mm': 50.0, 'p2_mm': 15.0, ...}.
     """
     from flexmbs.batch import max_deviation_job
+    sc = spec.scan
+    i = spec.index(sc.variable)
+    keys = [f"{n}_{u}" if u else n for n, u in zip(spec.variables, spec.units)]
     out = []
-    for rest in tails:
-        for v in p1:
-            r = max_deviation_job(case, [v, *rest])
-            out.append(dict(p1_mm=v, p2_mm=rest[0], p3_mm=rest[1], mass_kg=r["mass_kg"],
-                            max_deviation_m=r["max_deviation_m"], t_at_max_s=r["t_at_max_s"]))
+    for rest in sc.others:
+        for v in sc.values:
+            design = [*rest[:i], v, *rest[i:]]
+            r = max_deviation_job(spec.case, design, dict(spec.overrides) or None)
+            row = {keys[i]: v}
+            row.update({k: x for k, x in zip(keys, design) if k != keys[i]})
+            row.update(mass_kg=r["mass_kg"], max_deviation_m=r["max_deviation_m"],
+                       t_at_max_s=r["t_at_max_s"])
+            out.append(row)
     return out
 
 
-def paper_row(table, method, start_mm, data=None):
+def paper_row(table, method, start_mm, data=None, study=None):
     """The published numbers of one row of a table (dict)."""
-    spec = TABLES[table]
-    data = paper_tables() if data is None else data
-    tab = data[spec.section][spec.key]
-    if table == 8:
-        tab = data[spec.section][TABLES[7].key]
-        table = 7
+    study = load_study(study)
+    spec = study.tables[table]
+    if spec.kind != "rows":
+        raise ModelError(f"table {table} is of kind {spec.kind!r}: it has no rows")
+    data = study.published_data() if data is None else data
+    tab = _published(spec, data)
     entry = tab[method]
     if isinstance(entry, list):
         starts = [list(map(float, s)) for s in tab["starts"]]
@@ -452,11 +331,12 @@ def paper_row(table, method, start_mm, data=None):
     return dict(entry)
 
 
-def build_rows(table, results, data=None):
+def build_rows(table, results, data=None, study=None):
     """The rows of a table from the job results {job name: result}."""
-    data = paper_tables() if data is None else data
-    return [Row(table, r, paper_row(table, r.method, r.start_mm, data), results[r.name])
-            for r in TABLES[table].runs()]
+    study = load_study(study)
+    data = study.published_data() if data is None else data
+    return [Row(table, r, paper_row(table, r.method, r.start_mm, data, study), results[r.name])
+            for r in study.tables[table].runs()]
 
 
 def design_spread(designs):
@@ -466,22 +346,12 @@ def design_spread(designs):
     return float(np.max((d.max(axis=0) - d.min(axis=0)) / d.mean(axis=0)))
 
 
-#: What each table must show (the issue's criteria; tests/test_paper_tables.py asserts them).
-CRITERIA = {
-    1: dict(mass=0.01, design=0.03),
-    2: dict(mass=0.01, design=0.03),
-    5: dict(mass=0.01, design=0.05),
-    6: dict(mass=0.01, design=0.03),
-    7: dict(mass=0.01, design=0.03, fully_mass=0.03, weakly_spread=0.01),
-}
-
-
 @dataclass
 class Check:
-    """One finding of the paper checked on flexmbs's results.
+    """One published finding checked on flexmbs's results.
 
     ok: True (reproduced), False (not reproduced) or None (a number reported beside the
-    paper's without a criterion, e.g. the four-bar's local optima).
+    paper's without a criterion, e.g. a local optimum).
     """
     table: int
     what: str
@@ -494,85 +364,157 @@ class Check:
         return {True: "ok", False: "DIFFERS", None: "reported"}[self.ok]
 
 
-def table_checks(table, rows):
-    """The checks of one table (list of Check): the issue's criteria on its rows."""
-    out = []
-    crit = CRITERIA.get(table, {})
+def _pct(v):
+    return "-" if v is None else f"{100 * v:+.2f} %"
 
-    def pct(v):
-        return "-" if v is None else f"{100 * v:+.2f} %"
 
+def _unit(spec):
+    """' mm' when every design variable of the table is in mm ('' for mixed units)."""
+    return f" {spec.units[0]}" if len(set(spec.units)) == 1 and spec.units[0] else ""
+
+
+def _list(values, spec=".2f"):
+    return "[" + ", ".join(format(v, spec) for v in values) + "]"
+
+
+_COUNT = {2: "two", 3: "three", 4: "four", 5: "five", 6: "six", 7: "seven", 8: "eight",
+          9: "nine", 10: "ten"}
+
+
+def _row_check(spec, c, r):
+    """A check of type c on row r (a Check), or None when the row has nothing to compare."""
+    n = spec.number
+    start = "[" + ", ".join(f"{v:g}" for v in r.start_mm) + "]"
+    tag = f"{r.method}, start {start}"
+    conv = "" if r.converged else ", NOT converged"
+    if c.type == "not_converged":
+        return Check(n, f"{tag}: {c.what or 'does not converge'}",
+                     c.paper or "does not converge",
+                     ("converged" if r.converged else "not converged") + f" ({r.reason})",
+                     not r.converged)
+    if c.type == "mass_within":
+        if r.paper.get("mass") is None:
+            return None
+        # a mass counts only when the run converged
+        return Check(n, f"{tag}: {c.what or f'converged, mass within {100 * c.rel:g} %'}",
+                     c.paper or f"{r.paper['mass']:.3f} kg",
+                     f"{r.mass_kg:.4f} kg ({_pct(r.mass_difference)}{conv})",
+                     r.converged and abs(r.mass_difference) <= c.rel)
+    if c.type == "design_within":
+        if r.paper.get("mass") is None or not r.paper.get("p"):
+            return None
+        md = r.max_design_difference
+        u = _unit(spec)
+        return Check(n, f"{tag}: {c.what or f'every p_i within {100 * c.rel:g} %'}",
+                     c.paper or _list(r.paper["p"]) + u,
+                     _list(r.design_mm) + u + f" (largest {100 * md:.2f} %)", md <= c.rel)
+    if c.type == "local_optimum_reported":
+        if r.paper.get("mass") is None:
+            return None
+        u = _unit(spec)
+        return Check(n, c.what or f"{r.method} coupled optimum ({c.note})",
+                     c.paper or f"{r.paper['mass']:.3f} kg, " + _list(r.paper["p"]) + u,
+                     f"{r.mass_kg:.3f} kg ({_pct(r.mass_difference)}), "
+                     + _list(r.design_mm) + u, None)
+    raise ModelError(f"unknown row check type {c.type!r}")    # pragma: no cover
+
+
+def _table_check(spec, c, by):
+    """A check of a table-level type c on the rows by method, or None when they are missing."""
+    n = spec.number
+    if c.type == "converges":
+        if c.method not in by:
+            return None
+        r = by[c.method][0]
+        it = r.paper.get("iter")
+        return Check(n, c.what or f"{c.method} coupled converges",
+                     c.paper or ("converged" + (f" in {it} iterations" if it else "")),
+                     ("converged" if r.converged else "NOT converged")
+                     + f" in {r.iterations} iterations", r.converged)
+    if c.type in ("starts_agree_within", "starts_differ_more"):
+        other = c.than if c.type == "starts_differ_more" else None
+        rows = by.get(c.method, [])
+        if len(rows) < 2 or (other is not None and len(by.get(other, [])) < 2):
+            return None
+        s = design_spread([r.design_mm for r in rows])
+        ps = [r.paper.get("p") for r in rows]
+        p = (f"spread {100 * design_spread(ps):.2f} %"
+             if all(q and None not in q for q in ps) else "-")
+        count = _COUNT.get(len(rows), str(len(rows)))
+        if other is None:
+            return Check(n, c.what or f"{c.method} coupled designs of the {count} starts agree "
+                         f"within {100 * c.rel:g} %", c.paper or p, f"spread {100 * s:.2f} %",
+                         s <= c.rel)
+        so = design_spread([r.design_mm for r in by[other]])
+        return Check(n, c.what or f"{c.method} coupled designs of the {count} starts differ by "
+                     "more", c.paper or p, f"spread {100 * s:.2f} %", s > so)
+    if c.type == "masses_ratio_at_least":
+        if c.numerator not in by or c.denominator not in by:
+            return None
+        a, b = by[c.numerator][0], by[c.denominator][0]
+        ratio = a.mass_kg / b.mass_kg
+        pa, pb = a.paper.get("mass"), b.paper.get("mass")
+        return Check(n, c.what or f"{c.denominator} coupled at least {c.ratio:g} x lighter than "
+                     f"{c.numerator} coupled",
+                     c.paper or ("-" if not (pa and pb) else f"{pa / pb:.1f} x"),
+                     f"{ratio:.1f} x", ratio >= c.ratio)
+    if c.type in ("variables_at_bound", "variables_off_bound"):
+        if c.method not in by:
+            return None
+        r = by[c.method][0]
+        idx = [spec.index(v) for v in c.variables]
+        bounds = np.array([(spec.lower if c.bound == "lower" else spec.upper)[k] for k in idx])
+        x = r.design_mm[idx]
+        unit = spec.units[idx[0]]
+        u = f" {unit}" if unit else ""
+        names = " and ".join(c.variables)
+        got = ", ".join(f"{v} = {x[k]:.2f}" for k, v in enumerate(c.variables)) + u
+        b = bounds[0] if np.all(bounds == bounds[0]) else None
+        if c.type == "variables_at_bound":
+            ok = (x <= bounds * (1 + c.rel)) if c.bound == "lower" else (x >= bounds * (1 - c.rel))
+            where = f"the {b:g}{u} bound" if b is not None else f"their {c.bound} bounds"
+            return Check(n, c.what or f"{c.method} coupled: {names} at {where}",
+                         c.paper or " = ".join(c.variables) + (f" = {b:g}{u}" if b is not None
+                                                               else f" at the {c.bound} bound"),
+                         got, bool(np.all(ok)))
+        ok = (x > bounds * (1 + c.rel)) if c.bound == "lower" else (x < bounds * (1 - c.rel))
+        side = "above" if c.bound == "lower" else "below"
+        return Check(n, c.what or f"{c.method} coupled: {names} stay {side} the bound",
+                     c.paper or f"{names} off the {c.bound} bound", got, bool(np.all(ok)))
+    raise ModelError(f"unknown check type {c.type!r}")      # pragma: no cover
+
+
+def table_checks(table, rows, study=None):
+    """The checks of one table (list of Check): its study's checks on its rows.
+
+    Row checks (`flexmbs.study.ROW_CHECKS`) listed one after another form a group: each row
+    in turn gets the group's checks that apply to its method; a table check applies once,
+    where it is listed."""
+    from flexmbs.study import ROW_CHECKS
+    spec = load_study(study).tables[table] if not isinstance(table, TableSpec) else table
     by = {}
     for r in rows:
         by.setdefault(r.method, []).append(r)
-    for r in rows:
-        start = "[" + ", ".join(f"{v:g}" for v in r.start_mm) + "]"
-        tag = f"{r.method}, start {start}"
-        if table == 5 and r.method == "weakly":
-            out.append(Check(table, f"{tag}: does not converge", "oscillates, stops at the "
-                             "maximum number of iterations",
-                             ("converged" if r.converged else "not converged") + f" ({r.reason})",
-                             not r.converged))
-            continue
-        # a mass counts only when the run converged (the tests assert both)
-        conv = "" if r.converged else ", NOT converged"
-        if table == 7 and r.method == "fully":
-            tol = crit["fully_mass"]
-            out.append(Check(table, f"{tag}: converged, mass within {100 * tol:g} %",
-                             f"{r.paper['mass']:.3f} kg", f"{r.mass_kg:.4f} kg "
-                             f"({pct(r.mass_difference)}{conv})",
-                             r.converged and abs(r.mass_difference) <= tol))
-            continue
-        if "mass" in crit and r.paper.get("mass") is not None:
-            out.append(Check(table, f"{tag}: converged, mass within {100 * crit['mass']:g} %",
-                             f"{r.paper['mass']:.3f} kg",
-                             f"{r.mass_kg:.4f} kg ({pct(r.mass_difference)}{conv})",
-                             r.converged and abs(r.mass_difference) <= crit["mass"]))
-            md = r.max_design_difference
-            out.append(Check(table, f"{tag}: every p_i within {100 * crit['design']:g} %",
-                             "[" + ", ".join(f"{v:.2f}" for v in r.paper["p"]) + "] mm",
-                             "[" + ", ".join(f"{v:.2f}" for v in r.design_mm) + "] mm "
-                             f"(largest {100 * md:.2f} %)", md <= crit["design"]))
-    if table == 5 and "fully" in by:
-        r = by["fully"][0]
-        out.append(Check(table, "fully coupled converges", "converged in 11 iterations",
-                         ("converged" if r.converged else "NOT converged")
-                         + f" in {r.iterations} iterations", r.converged))
-    if table == 7 and len(by.get("weakly", [])) > 1 and len(by.get("fully", [])) > 1:
-        sw = design_spread([r.design_mm for r in by["weakly"]])
-        sf = design_spread([r.design_mm for r in by["fully"]])
-        pw = design_spread([r.paper["p"] for r in by["weakly"]])
-        pf = design_spread([r.paper["p"] for r in by["fully"]])
-        out.append(Check(table, "weakly coupled designs of the four starts agree within 1 %",
-                         f"spread {100 * pw:.2f} %", f"spread {100 * sw:.2f} %",
-                         sw <= crit["weakly_spread"]))
-        out.append(Check(table, "fully coupled designs of the four starts differ by more",
-                         f"spread {100 * pf:.2f} %", f"spread {100 * sf:.2f} %", sf > sw))
-    if table in (3, 4):
+    out, group = [], []
+
+    def flush():
         for r in rows:
-            if r.paper.get("mass") is None:
-                continue
-            out.append(Check(
-                table, f"{r.method} coupled optimum (a local optimum, paper 7.2)",
-                f"{r.paper['mass']:.3f} kg, [" + ", ".join(f"{v:.2f}" for v in r.paper["p"])
-                + "] mm", f"{r.mass_kg:.3f} kg ({pct(r.mass_difference)}), ["
-                + ", ".join(f"{v:.2f}" for v in r.design_mm) + "] mm", None))
-    if table == 3 and "fully" in by and "weakly" in by:
-        ratio = by["weakly"][0].mass_kg / by["fully"][0].mass_kg
-        out.append(Check(table, "fully coupled at least 4 x lighter than weakly coupled",
-                         f"{by['weakly'][0].paper['mass'] / by['fully'][0].paper['mass']:.1f} x",
-                         f"{ratio:.1f} x", ratio >= 4.0))
-    if table == 4 and "fully" in by and "weakly" in by:
-        f, w = by["fully"][0], by["weakly"][0]
-        lo = 15.0
-        out.append(Check(table, "fully coupled: p2 and p3 at the 15 mm bound",
-                         "p2 = p3 = 15 mm",
-                         f"p2 = {f.design_mm[1]:.2f}, p3 = {f.design_mm[2]:.2f} mm",
-                         bool(np.all(f.design_mm[1:] <= lo * 1.01))))
-        out.append(Check(table, "weakly coupled: links 2 and 3 stay above the bound",
-                         "links 2 and 3 not removed",
-                         f"p2 = {w.design_mm[1]:.2f}, p3 = {w.design_mm[2]:.2f} mm",
-                         bool(np.all(w.design_mm[1:] > lo * 1.1))))
+            for c in group:
+                if c.methods is None or r.method in c.methods:
+                    ck = _row_check(spec, c, r)
+                    if ck is not None:
+                        out.append(ck)
+        group.clear()
+
+    for c in spec.checks:
+        if c.type in ROW_CHECKS:
+            group.append(c)
+            continue
+        flush()
+        ck = _table_check(spec, c, by)
+        if ck is not None:
+            out.append(ck)
+    flush()
     return out
 
 
@@ -586,15 +528,15 @@ def _fmt(v, spec):
     return "-" if v is None else format(v, spec)
 
 
-def format_table(table, rows, checks=None):
+def format_table(table, rows, checks=None, title="", names=None, unit="mm"):
     """The comparison of one table as text: for every row the paper, flexmbs and the
-    difference in %, then the run's status, then the checks."""
-    spec = TABLES[table]
+    difference in %, then the run's status, then the checks. names: of the design variables
+    (default p1, p2, ...)."""
     nv = len(rows[0].design_mm)
-    names = [f"p{k + 1}" for k in range(nv)]
-    lines = [f"Table {table}: {spec.title}",
+    names = list(names) if names else [f"p{k + 1}" for k in range(nv)]
+    lines = [f"Table {table}: {title}",
              f"{'':30s}{'mass kg':>9s}{'iter':>6s}{'inner':>7s}"
-             + "".join(f"{n:>9s}" for n in names) + "   (mm)"]
+             + "".join(f"{n:>9s}" for n in names) + (f"   ({unit})" if unit else "")]
     for r in rows:
         start = "[" + ", ".join(f"{v:g}" for v in r.start_mm) + "]"
         lines.append(f"{r.method} coupled, start {start}")
@@ -653,21 +595,22 @@ def _active(rec, key="active_steps"):
     return list(act)
 
 
-def table8_rows(weakly, fully, data=None):
-    """Table 8 beside flexmbs: list of (iteration, paper weakly, flexmbs weakly static problem,
-    flexmbs weakly simulation, paper fully, flexmbs fully), step lists as text.
 
-    weakly / fully: the results (dicts) of Table 7's runs from [55, 55, 55, 55]. For the weakly
-    coupled method flexmbs lists, per cycle, the steps active at the solution of the static
-    problem that produced the cycle's design and the steps where the cycle's full simulation
-    is within 0.1 % of the limit; for the fully coupled method the steps of the iterate within
-    0.1 % of the limit (iteration 0 is the start).
+def active_steps_rows(weakly, fully, published):
+    """A table of kind 'active_steps' beside flexmbs: list of (iteration, paper weakly, flexmbs
+    weakly static problem, flexmbs weakly simulation, paper fully, flexmbs fully), step lists
+    as text.
+
+    weakly / fully: the results (dicts) of the table's two runs; published: its published
+    entry, {'weakly_by_cycle': {cycle: steps}, 'fully_by_iteration': {'a-b' or 'a': steps}}.
+    For the weakly coupled method flexmbs lists, per cycle, the steps active at the solution of
+    the static problem that produced the cycle's design and the steps where the cycle's full
+    simulation is within 0.1 % of the limit; for the fully coupled method the steps of the
+    iterate within 0.1 % of the limit (iteration 0 is the start).
     """
-    data = paper_tables() if data is None else data
-    t8 = data["robot_2dof"][TABLES[8].key]
-    pw = t8["weakly_by_cycle"]
+    pw = published["weakly_by_cycle"]
     pf = {}
-    for k, v in t8["fully_by_iteration"].items():
+    for k, v in published["fully_by_iteration"].items():
         a, _, b = k.partition("-")
         for i in range(int(a), int(b or a) + 1):
             pf[i] = v
@@ -690,14 +633,14 @@ def table8_rows(weakly, fully, data=None):
     return out
 
 
-def format_table8(rows8):
+def format_active_steps(table, rows, heading=""):
+    """The text of a table of kind 'active_steps' (`active_steps_rows`)."""
     head = ("iter.", "paper weakly", "flexmbs weakly (static problem)",
             "flexmbs weakly (simulation)", "paper fully", "flexmbs fully")
     w = [5, 22, 34, 30, 12, 24]
-    lines = ["Table 8: active time steps per cycle (weakly) / iteration (fully), Table 7's "
-             "problem from [55, 55, 55, 55]",
+    lines = [f"Table {table}: {heading}",
              "  ".join(h.ljust(k) for h, k in zip(head, w))]
-    for r in rows8:
+    for r in rows:
         lines.append("  ".join(str(v).ljust(k) for v, k in zip(r, w)))
     return "\n".join(lines)
 
@@ -714,22 +657,24 @@ class Report:
     tables : list of int
     rows : dict table -> list of Row
     checks : dict table -> list of Check
-    table8 : list of tuples or None (see `table8_rows`)
-    maps : dict key -> MapResult ('fig12', 'fig15')
+    active_steps : dict table -> list of tuples (`active_steps_rows`), for the tables of kind
+        'active_steps'
+    maps : dict key -> MapResult
     figures : dict key -> (caption, path relative to `out`)
     failures : dict job name -> error text, for runs that produced no result
-    elapsed : dict phase -> wall time (s) of this call: 'optimizations', 'fig12', 'fig15',
+    elapsed : dict phase -> wall time (s) of this call: 'optimizations', one per map,
         'figures', 'total'
     timings : dict phase -> {elapsed_s, jobs_computed, executor, date}: the last call that
         computed jobs of that phase (kept in ``out/jobs/timings.json``)
-    extra : dict of diagnostics, e.g. 'table3_p1_scan' (`first_variable_scan`)
+    extra : dict of diagnostics, e.g. the tables' scans (`design_scan`, key `scan_key`)
     settings : dict (executor, grid, tables, stored_runs)
+    study : Study
     """
     out: Path
     tables: list
     rows: dict = field(default_factory=dict)
     checks: dict = field(default_factory=dict)
-    table8: list | None = None
+    active_steps: dict = field(default_factory=dict)
     maps: dict = field(default_factory=dict)
     figures: dict = field(default_factory=dict)
     failures: dict = field(default_factory=dict)
@@ -738,22 +683,34 @@ class Report:
     timings: dict = field(default_factory=dict)
     extra: dict = field(default_factory=dict)
     results: dict = field(default_factory=dict, repr=False)
+    study: Study | None = field(default=None, repr=False)
+
+    def __post_init__(self):
+        self.study = load_study(self.study)
 
     def table_time(self, table):
         """Serial wall time of a table: the sum of its runs' wall times (s)."""
-        runs = {r.name for r in TABLES[table].runs()}
+        runs = {r.name for r in self.study.tables[table].runs()}
         return sum(float(self.results[n]["wall_time_s"]) for n in runs if n in self.results)
 
     def text(self, table):
         """The terminal comparison of one table."""
-        if table == 8:
-            return format_table8(self.table8 or [])
+        spec = self.study.tables[table]
+        if spec.kind == "active_steps":
+            return format_active_steps(table, self.active_steps.get(table) or [], spec.heading)
         rows = self.rows.get(table, [])
-        missing = [r.name for r in TABLES[table].runs() if r.name not in self.results]
-        txt = format_table(table, rows, self.checks.get(table)) if rows else f"Table {table}:"
+        missing = [r.name for r in spec.runs() if r.name not in self.results]
+        unit = spec.units[0] if len(set(spec.units)) == 1 else ""
+        txt = (format_table(table, rows, self.checks.get(table), spec.title, spec.variables,
+                            unit) if rows else f"Table {table}:")
         for name in missing:
             txt += f"\n  [NO RESULT] {name}: {self.failures.get(name, 'not run')}"
         return txt
+
+    @property
+    def row_tables(self):
+        """The report's tables that have rows (kind 'rows')."""
+        return [t for t in self.tables if self.study.tables[t].kind == "rows"]
 
     @property
     def all_checks(self):
@@ -782,8 +739,9 @@ def _resolve_dask(dask, workers):
 
 
 def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=41, maps=True,
-              force=False, progress=None, log=None):
-    """Run the optimizations behind the paper's tables and compare them with the paper.
+              force=False, progress=None, log=None, study=None):
+    """Run the optimizations behind a study's tables and compare them with its published
+    numbers.
 
     The figures and the report (README.md, comparison.json) are drawn and written from the
     returned Report by `flexmbs.report.publish` (as `flexmbs reproduce` does).
@@ -791,7 +749,7 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
     Parameters
     ----------
     tables : list of int, optional
-        Tables 1-8 (default: all).
+        Numbers of the study's tables (default: all).
     out : path, default 'reproduction'
         Output folder: ``README.md`` (the report), ``comparison.json``, ``figures/*.png`` and
         ``jobs/`` (one JSON file per finished job; what is there is not run again).
@@ -801,15 +759,17 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
     dask : str, optional
         A Dask scheduler address (``tcp://host:8786``), or 'local' for a LocalCluster.
     grid : int, default 41
-        Points per axis of the design-domain maps of Figs. 12 and 15 (41: 1 mm steps).
+        Points per axis of the design-domain maps.
     maps : bool, default True
-        Compute the maps when Table 6 (Fig. 12) or Table 7 (Fig. 15) is asked for.
+        Compute the maps of the tables asked for.
     force : bool, default False
         Run the tables' optimizations again even when a stored result exists.
     progress : bool, optional
         Progress bars on stderr (default: when stderr is a terminal).
     log : callable, optional
         Called with a line of text at every phase (the command line prints them).
+    study : str, path or Study, optional
+        The study (default: the shipped study of the paper, `flexmbs.study.load_study`).
 
     Returns
     -------
@@ -818,10 +778,12 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
     from flexmbs.batch import max_deviation_job, run_batch
 
     t_start = time.perf_counter()
-    tables = sorted(set(TABLES if tables is None else tables))
-    bad = [t for t in tables if t not in TABLES]
+    study = load_study(study)
+    all_tables = study.tables
+    tables = sorted(set(all_tables if tables is None else tables))
+    bad = [t for t in tables if t not in all_tables]
     if bad:
-        raise ModelError(f"tables must be among {sorted(TABLES)}, got {bad}")
+        raise ModelError(f"tables must be among {sorted(all_tables)}, got {bad}")
     if not (isinstance(grid, int) and grid >= 2):
         raise ModelError(f"grid must be an integer >= 2, got {grid!r}")
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int)
@@ -830,19 +792,19 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
     from flexmbs.batch import check_disk_space, check_writable, read_stored, write_atomic
     say = log or (lambda s: None)
     out = Path(out)
-    runs = table_runs(tables)
+    runs = table_runs(tables, study)
     # before any run: the folder can be written and has room for the results (a rough upper
     # bound: 0.5 MB per optimization, 2 KB per map point, 1 MB per figure)
     check_writable(out, f"output folder {str(out)!r}", create=True)
-    n_map = sum(2 * grid * grid for spec in MAPS.values() if maps and spec.table in tables)
+    n_map = sum(2 * grid * grid for spec in study.maps.values() if maps and spec.table in tables)
     check_disk_space(out, 500e3 * len(runs) + 2e3 * n_map + 20e6,
                      f"output folder {str(out)!r}")
     store = out / "jobs" / "optimizations"
     if force:
         for r in runs:
             (store / f"{r.name}.json").unlink(missing_ok=True)
-    data = paper_tables()
-    report = Report(out=out, tables=tables)
+    data = study.published_data()
+    report = Report(out=out, tables=tables, study=study)
     tfile = out / "jobs" / "timings.json"
     report.timings = read_stored(tfile) or {}
     address, cluster = _resolve_dask(dask, workers)
@@ -873,21 +835,26 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
                        len(results) - len(report.settings["stored_runs"]),
                        report.elapsed["optimizations"])
         for t in tables:
-            if t == 8:
+            spec = all_tables[t]
+            if spec.kind != "rows":
                 continue
-            rows = [Row(t, r, paper_row(t, r.method, r.start_mm, data), results[r.name])
-                    for r in TABLES[t].runs() if r.name in results]
+            rows = [Row(t, r, paper_row(t, r.method, r.start_mm, data, study), results[r.name])
+                    for r in spec.runs() if r.name in results]
             simulate_paper_designs(rows)
             report.rows[t] = rows
-            report.checks[t] = table_checks(t, rows)
-        if 3 in tables:
-            report.extra["table3_p1_scan"] = first_variable_scan()
-        if 8 in tables:
-            w, f = (Run("robot_2dof", m, STARTS[1], TABLES[8].overrides).name
-                    for m in ("weakly", "fully"))
-            report.table8 = table8_rows(results.get(w), results.get(f), data)
+            report.checks[t] = table_checks(spec, rows)
+        for t in tables:
+            spec = all_tables[t]
+            if spec.scan is not None:
+                report.extra[scan_key(spec)] = design_scan(spec)
+        for t in tables:
+            spec = all_tables[t]
+            if spec.kind == "active_steps":
+                w, f = (spec.run(m).name for m in ("weakly", "fully"))
+                report.active_steps[t] = active_steps_rows(results.get(w), results.get(f),
+                                                           _published(spec, data))
         if maps:
-            for key, spec in MAPS.items():
+            for key, spec in study.maps.items():
                 if spec.table not in tables:
                     continue
                 t0 = time.perf_counter()
@@ -897,13 +864,15 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
                 mstore = out / "jobs" / key
                 map_stored = sum(read_stored(mstore / f"{n}.json") is not None for n in mj)
                 say(f"Fig. {spec.figure}: {len(mj)} simulations (two {grid} x {grid} grids of "
-                    f"p2, p4: the bounds' box and a zoom), results in {out / 'jobs' / key}")
+                    f"{', '.join(spec.axes)}: the bounds' box and a zoom), results in "
+                    f"{out / 'jobs' / key}")
                 res = run_batch(max_deviation_job, mj, workers=workers, dask=address,
                                 store=mstore, progress=progress, label=f"Fig. {spec.figure}")
                 grids = {}
                 for region in REGIONS:
-                    grids[region], names = _collect_map(spec, grid, res, region)
-                m = MapResult(spec, grids, names, len(mj), time.perf_counter() - t0)
+                    grids[region], names, idx, h, units = _collect_map(spec, grid, res, region)
+                m = MapResult(spec, grids, names, len(mj), time.perf_counter() - t0, idx, h,
+                              units)
                 report.maps[key] = m
                 report.elapsed[key] = m.wall_time_s
                 _record_timing(report, key, len(mj) - map_stored, m.wall_time_s)

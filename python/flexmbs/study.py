@@ -1,0 +1,586 @@
+"""Studies: the tables, maps and figures `flexmbs reproduce` runs, compares with published
+numbers and reports, as data (a TOML file; every key in ``docs/study-format.md``).
+
+A study declares tables (a case, overrides, starting designs, methods, optimizer options,
+where the published numbers are, the checks of the published findings), design-domain maps and
+figures. `load_study()` reads and validates one (pydantic, as `flexmbs.description` does for
+cases; errors are `CaseError` naming the file and the key) into a `Study`. The shipped study
+(``cases/studies/paper.toml``, installed in ``flexmbs/cases_data/studies``) is the paper's;
+a user's study file reproduces any other published results the same way
+(``flexmbs reproduce --study FILE``).
+
+>>> from flexmbs.study import load_study
+>>> s = load_study()                                    # the shipped study ('paper')
+>>> sorted(s.tables)[:3], s.tables[1].methods
+([1, 2, 3], ('weakly', 'fully'))
+"""
+from __future__ import annotations
+
+import functools
+import inspect
+import json
+import tomllib
+from dataclasses import dataclass, field, replace
+from importlib import resources
+from pathlib import Path
+from typing import Annotated, Literal, Union
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from flexmbs.errors import CaseError
+
+__all__ = ["load_study", "study_path", "Study", "TableSpec", "MapSpec", "Run", "METHODS",
+           "ROW_CHECKS", "DEFAULT_STUDY"]
+
+#: The optimization methods a study runs.
+METHODS = ("weakly", "fully")
+#: The name of the shipped study `load_study()` reads by default.
+DEFAULT_STUDY = "paper"
+
+Method = Literal["weakly", "fully"]
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+Scalar = Union[bool, int, float, str]
+Design = Annotated[list[Finite], Field(min_length=1)]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+# ----------------------------------------------------------------------------- checks
+class _Check(_Strict):
+    what: str | None = None         # replaces the generated description of the finding
+    paper: str | None = None        # replaces the generated text of the paper's side
+
+
+class _RowCheck(_Check):
+    methods: list[Method] | None = None     # the rows it applies to (default: every row)
+
+
+class MassWithin(_RowCheck):
+    """Converged, and the mass within rel of the published one (rows with a published mass)."""
+    type: Literal["mass_within"]
+    rel: NonNegative
+
+
+class DesignWithin(_RowCheck):
+    """Every design variable within rel of the published one (rows with a published design)."""
+    type: Literal["design_within"]
+    rel: NonNegative
+
+
+class NotConverged(_RowCheck):
+    """The run does not converge (the paper: the method oscillates)."""
+    type: Literal["not_converged"]
+
+
+class LocalOptimumReported(_RowCheck):
+    """The optimum reported beside the published one, no criterion (a local optimum)."""
+    type: Literal["local_optimum_reported"]
+    note: str = "a local optimum"
+
+
+class Converges(_Check):
+    """The first run of `method` converges."""
+    type: Literal["converges"]
+    method: Method
+
+
+class StartsAgreeWithin(_Check):
+    """The designs of `method` from every start agree within rel (largest relative spread)."""
+    type: Literal["starts_agree_within"]
+    method: Method
+    rel: NonNegative
+
+
+class StartsDifferMore(_Check):
+    """The designs of `method` from the starts spread more than those of `than`."""
+    type: Literal["starts_differ_more"]
+    method: Method
+    than: Method
+
+
+class MassesRatioAtLeast(_Check):
+    """mass(numerator) / mass(denominator) >= ratio (first run of each method)."""
+    type: Literal["masses_ratio_at_least"]
+    numerator: Method
+    denominator: Method
+    ratio: Positive
+
+
+class VariablesAtBound(_Check):
+    """The named variables of the first run of `method` at their bound within rel."""
+    type: Literal["variables_at_bound"]
+    method: Method
+    variables: Annotated[list[str], Field(min_length=1)]
+    bound: Literal["lower", "upper"] = "lower"
+    rel: NonNegative = 0.01
+
+
+class VariablesOffBound(_Check):
+    """The named variables of the first run of `method` farther than rel from their bound."""
+    type: Literal["variables_off_bound"]
+    method: Method
+    variables: Annotated[list[str], Field(min_length=1)]
+    bound: Literal["lower", "upper"] = "lower"
+    rel: NonNegative = 0.1
+
+
+CheckSpec = Annotated[Union[MassWithin, DesignWithin, NotConverged, LocalOptimumReported,
+                            Converges, StartsAgreeWithin, StartsDifferMore, MassesRatioAtLeast,
+                            VariablesAtBound, VariablesOffBound], Field(discriminator="type")]
+#: Check types applied to every row (the others apply once per table).
+ROW_CHECKS = ("mass_within", "design_within", "not_converged", "local_optimum_reported")
+_CHECK_TAGS = ROW_CHECKS + ("converges", "starts_agree_within", "starts_differ_more",
+                            "masses_ratio_at_least", "variables_at_bound", "variables_off_bound")
+
+
+# ----------------------------------------------------------------------------- the file
+class Scan(_Strict):
+    """Maximum deviation over one design variable, the others held at each of `others`."""
+    variable: str
+    values: Annotated[list[Finite], Field(min_length=1)]
+    others: Annotated[list[list[Finite]], Field(min_length=1)]
+    caption: str = ""
+
+
+class TableFile(_Strict):
+    kind: Literal["rows", "active_steps"] = "rows"
+    title: str
+    heading: str | None = None
+    case: str
+    overrides: dict[str, Scalar] = {}
+    published: Annotated[list[str], Field(min_length=1)]
+    starts: Annotated[list[Design], Field(min_length=1)]
+    methods: Annotated[list[Method], Field(min_length=1)] = ["weakly", "fully"]
+    options: dict[Method, dict[str, Scalar]] = {}
+    cost: Positive = 1.0
+    checks: list[CheckSpec] = []
+    scan: Scan | None = None
+
+
+class MapFile(_Strict):
+    figure: int
+    table: int
+    step: Annotated[int, Field(ge=1)]
+    axes: Annotated[list[str], Field(min_length=2, max_length=2)]
+    fixed: dict[str, Finite] = {}
+    zoom: Annotated[list[Annotated[list[Finite], Field(min_length=2, max_length=2)]],
+                    Field(min_length=2, max_length=2)]
+
+
+class _Figure(_Strict):
+    key: Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9_\-]+$")]
+    number: int
+
+
+class TwoMethodsFigure(_Figure):
+    """Objective history of a table's runs and the deviation history of their optima."""
+    kind: Literal["two_methods"]
+    table: int
+    what: str
+
+
+class OscillationFigure(_Figure):
+    """A non-converging run: mass and critical time per cycle, the last cycles' deviations."""
+    kind: Literal["oscillation"]
+    table: int
+    method: Method = "weakly"
+    last: Annotated[int, Field(ge=1)] = 4
+    deviation_label: str = "deviation (mm)"
+    title: str
+    caption: str
+
+
+class StartsFigure(_Figure):
+    """Every start of a table, one row of panels per method."""
+    kind: Literal["starts"]
+    table: int
+    title: str
+    caption: str
+
+
+class StartDetailFigure(_Figure):
+    """Both methods from one start of a table: mass, maximum deviation per iterate, optima."""
+    kind: Literal["start_detail"]
+    table: int
+    start: Design
+    title: str
+    caption: str
+
+
+class MapFigure(_Figure):
+    """The panels of a design-domain map ([maps.KEY])."""
+    kind: Literal["map"]
+    map: str
+
+
+FigureSpec = Annotated[Union[TwoMethodsFigure, OscillationFigure, StartsFigure,
+                             StartDetailFigure, MapFigure], Field(discriminator="kind")]
+_FIGURE_TAGS = ("two_methods", "oscillation", "starts", "start_detail", "map")
+
+
+class Demo(_Strict):
+    table: int
+    about: str
+
+
+class StudyInfo(_Strict):
+    name: str
+    reference: str = ""
+    introduction: str = ""
+    published: str
+    demo: Demo | None = None
+
+
+class StudyFile(_Strict):
+    study: StudyInfo
+    options: dict[Method, dict[str, Scalar]] = {}
+    tables: Annotated[dict[str, TableFile], Field(min_length=1)]
+    maps: dict[str, MapFile] = {}
+    figures: list[FigureSpec] = []
+
+
+# ----------------------------------------------------------------------------- runtime
+@dataclass(frozen=True)
+class Run:
+    """One optimization: a case (name or path + overrides), a method, a starting design and
+    the optimizer's options. Runs with the same name share one job."""
+    case: str
+    method: str
+    start_mm: tuple
+    overrides: tuple = ()       # sorted (key, value) pairs
+    options: tuple = ()         # sorted (keyword, value) pairs of the optimizer
+
+    @property
+    def name(self):
+        """The job name: case, end time, other overrides, method and start, e.g.
+        ``case-t0.65-weakly-50-50-50-50``."""
+        ov = dict(self.overrides)
+        t_end = ov.pop("time.t_end", None)
+        case = Path(self.case).stem if self.case.endswith(".toml") else self.case
+        parts = [case]
+        if t_end is not None:
+            parts.append(f"t{t_end:g}")
+        parts += [f"{k}{v}" for k, v in sorted(ov.items())]
+        parts.append(self.method)
+        parts.append("-".join(f"{v:g}" for v in self.start_mm))
+        return "-".join(parts)
+
+    def job(self):
+        """Keyword arguments of `flexmbs.reproduce.optimization_job`."""
+        return dict(case=self.case, method=self.method, start=list(self.start_mm),
+                    overrides=dict(self.overrides), options=dict(self.options))
+
+
+@dataclass(frozen=True)
+class TableSpec:
+    """A table of a study: its case, its rows (one run per method and start), the optimizer
+    options, where its published numbers are, its checks, scan and figures.
+
+    variables, lower, upper, units: the case's design variables (with the overrides)."""
+    number: int
+    title: str
+    case: str
+    overrides: tuple
+    published: tuple            # keys of the published data leading to this table
+    starts: tuple
+    methods: tuple = METHODS
+    options: tuple = ()         # ((method, ((keyword, value), ...)), ...)
+    kind: str = "rows"
+    heading: str = ""
+    cost: float = 1.0
+    checks: tuple = ()
+    scan: Scan | None = None
+    figures: tuple = ()
+    variables: tuple = ()
+    lower: tuple = ()
+    upper: tuple = ()
+    units: tuple = ()
+
+    def run(self, method, start=None):
+        """The run of `method` from `start` (default: the first start)."""
+        start = self.starts[0] if start is None else start
+        return Run(self.case, method, tuple(float(v) for v in start), self.overrides,
+                   dict(self.options).get(method, ()))
+
+    def runs(self):
+        return [self.run(m, s) for m in self.methods for s in self.starts]
+
+    def index(self, name):
+        return self.variables.index(name)
+
+
+@dataclass(frozen=True)
+class MapSpec:
+    """A design-domain map of the deviation at one time step over a grid of two design
+    variables (`axes`, names), the others at the case's start or at `fixed` {name: value}.
+
+    Two grids: the whole box of the bounds ('full'), and `zoom` ((lo, hi), (lo, hi))."""
+    key: str
+    figure: int
+    table: int
+    case: str
+    overrides: tuple
+    step: int                   # 1-based (t = (step - 1) h)
+    fixed: tuple                # ((name, value), ...) of the variables held fixed
+    zoom: tuple
+    axes: tuple                 # names of the mapped variables
+
+    def grid(self, n, lower, upper, region="full", variables=None):
+        """The n values of each mapped variable: between the bounds ('full') or in the zoom
+        box ('zoom'). lower, upper: of every design variable, named by `variables`."""
+        from flexmbs.errors import ModelError
+        import numpy as np
+        i, j = self.indices(variables)
+        if region == "zoom":
+            (a0, a1), (b0, b1) = self.zoom
+        elif region == "full":
+            a0, a1, b0, b1 = lower[i], upper[i], lower[j], upper[j]
+        else:
+            raise ModelError(f"region must be 'full' or 'zoom', got {region!r}")
+        return np.linspace(a0, a1, n), np.linspace(b0, b1, n)
+
+    def indices(self, variables):
+        """Indices of the mapped variables in `variables` (the case's names)."""
+        return tuple(list(variables).index(a) for a in self.axes)
+
+
+@dataclass(frozen=True)
+class Study:
+    """A validated study file (`load_study`)."""
+    path: Path
+    name: str
+    reference: str
+    introduction: str
+    published: Path
+    tables: dict
+    maps: dict = field(default_factory=dict)
+    figures: tuple = ()
+    demo: Demo | None = None
+
+    def published_data(self):
+        """The published numbers (the JSON file `published`)."""
+        return json.loads(self.published.read_text(encoding="utf-8"))
+
+    def figure_table(self, fig):
+        """The table a figure belongs to."""
+        return self.maps[fig.map].table if fig.kind == "map" else fig.table
+
+
+# ----------------------------------------------------------------------------- loading
+def _study_folders():
+    from flexmbs.casefile import case_folders
+    return [f / "studies" for f in case_folders() if (f / "studies").is_dir()]
+
+
+def study_path(study=None):
+    """The file of a study: an existing path, or the name of a shipped study (default
+    'paper'); CaseError naming the shipped studies if neither."""
+    study = DEFAULT_STUDY if study is None else study
+    if not isinstance(study, (str, Path)):
+        raise CaseError(f"a study is a path to a .toml file or the name of a shipped study, "
+                        f"got {study!r} ({type(study).__name__})")
+    p = Path(study)
+    if p.is_file():
+        return p
+    if len(p.parts) == 1:
+        for folder in _study_folders():
+            f = folder / f"{p.name.removesuffix('.toml')}.toml"
+            if f.is_file():
+                return f
+    names = sorted({f.stem for d in _study_folders() for f in d.glob("*.toml")})
+    raise CaseError(f"study {str(study)!r}: no such file, and not a shipped study "
+                    f"(shipped: {', '.join(names) or 'none'})")
+
+
+def _published_file(name, folder, source):
+    """The published-numbers file: beside the study file, else shipped with flexmbs."""
+    cands = [folder / name]
+    if len(Path(name).parts) == 1:
+        root = Path(__file__).resolve().parents[2]
+        if (root / "python" / "flexmbs").is_dir():
+            cands.append(root / "tests" / "data" / name)
+        try:
+            cands.append(Path(str(resources.files("flexmbs") / "paper_data" / name)))
+        except (ModuleNotFoundError, NotADirectoryError):     # pragma: no cover
+            pass
+    for c in cands:
+        if c.is_file():
+            return c
+    raise CaseError(f"{source}: key 'study.published': file {name!r} not found (looked in "
+                    f"{', '.join(str(c.parent) for c in cands)})")
+
+
+def _optimizer_keywords(method):
+    from flexmbs.optimize import optimize_fully, optimize_weakly
+    fn = optimize_weakly if method == "weakly" else optimize_fully
+    return [n for n, p in inspect.signature(fn).parameters.items()
+            if p.kind == p.KEYWORD_ONLY or (p.default is not p.empty)]
+
+
+def _check_options(options, where, source):
+    for method, opts in options.items():
+        allowed = _optimizer_keywords(method)
+        for k in opts:
+            if k not in allowed:
+                raise CaseError(f"{source}: key '{where}.{method}.{k}' is not an option of the "
+                                f"{method} coupled optimizer, got {k!r}; allowed: "
+                                f"{', '.join(allowed)}")
+
+
+def _resolve_case(case, folder):
+    """A case name, or a path relative to the study file's folder."""
+    p = Path(case)
+    if case.endswith(".toml") and not p.is_absolute() and (folder / p).is_file():
+        return str((folder / p).resolve())
+    return case
+
+
+def _table_spec(n, t, defaults, folder, source, published):
+    from flexmbs.casefile import case_path, read_description
+    where = f"tables.{n}"
+    case = _resolve_case(t.case, folder)
+    try:
+        desc = read_description(case_path(case), dict(t.overrides) or None)
+    except CaseError as exc:
+        raise CaseError(f"{source}: key '{where}.case' ({t.case!r}): {exc}") from None
+    dv = desc.design
+    names = tuple(v.name for v in dv)
+    for k, s in enumerate(t.starts):
+        if len(s) != len(names):
+            raise CaseError(f"{source}: key '{where}.starts[{k}]' must have {len(names)} values "
+                            f"({', '.join(names)}), got {s}")
+    node = published
+    for k, key in enumerate(t.published):
+        if not isinstance(node, dict) or key not in node:
+            raise CaseError(f"{source}: key '{where}.published': no entry {key!r} at "
+                            f"{t.published[:k]} of the published numbers")
+        node = node[key]
+    _check_options(t.options, f"{where}.options", source)
+    for k, c in enumerate(t.checks):
+        for v in getattr(c, "variables", None) or ():
+            if v not in names:
+                raise CaseError(f"{source}: key '{where}.checks[{k}].variables': {v!r} is not a "
+                                f"design variable of {t.case!r} ({', '.join(names)})")
+        for m in [getattr(c, a, None) for a in ("method", "than", "numerator", "denominator")] \
+                + list(getattr(c, "methods", None) or []):
+            if m is not None and m not in t.methods:
+                raise CaseError(f"{source}: key '{where}.checks[{k}]': method {m!r} is not "
+                                f"among the table's methods {t.methods}")
+    if t.kind == "active_steps" and (len(t.starts) != 1 or set(t.methods) != set(METHODS)):
+        raise CaseError(f"{source}: key '{where}': a table of kind 'active_steps' has one start "
+                        f"and both methods, got {len(t.starts)} start(s), methods {t.methods}")
+    if t.scan is not None:
+        if t.scan.variable not in names:
+            raise CaseError(f"{source}: key '{where}.scan.variable': {t.scan.variable!r} is not "
+                            f"a design variable of {t.case!r} ({', '.join(names)})")
+        for k, o in enumerate(t.scan.others):
+            if len(o) != len(names) - 1:
+                raise CaseError(f"{source}: key '{where}.scan.others[{k}]' must have "
+                                f"{len(names) - 1} values (the variables but "
+                                f"{t.scan.variable}), got {o}")
+    opts = {m: {**defaults.get(m, {}), **t.options.get(m, {})} for m in t.methods}
+    return TableSpec(
+        number=n, title=t.title, case=case, overrides=tuple(sorted(t.overrides.items())),
+        published=tuple(t.published), starts=tuple(tuple(map(float, s)) for s in t.starts),
+        methods=tuple(t.methods), options=tuple((m, tuple(sorted(o.items())))
+                                                for m, o in opts.items()),
+        kind=t.kind, heading=t.heading or t.title, cost=float(t.cost), checks=tuple(t.checks),
+        scan=t.scan, variables=names, lower=tuple(v.lower for v in dv),
+        upper=tuple(v.upper for v in dv), units=tuple(v.unit or "" for v in dv))
+
+
+def _format_errors(exc, source):
+    from flexmbs.casefile import friendly_error
+    lines = [friendly_error(e, StudyFile, "docs/study-format.md",
+                            tags=_CHECK_TAGS + _FIGURE_TAGS) for e in exc.errors()]
+    more = f" (and {len(lines) - 5} more)" if len(lines) > 5 else ""
+    return f"{source}: " + "; ".join(lines[:5]) + more
+
+
+@functools.lru_cache(maxsize=8)
+def _load(path_text, text):
+    path = Path(path_text)
+    source = str(path)
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise CaseError(f"{source}: not valid TOML: {exc}") from None
+    try:
+        f = StudyFile.model_validate(raw)
+    except ValidationError as exc:
+        raise CaseError(_format_errors(exc, source)) from None
+    folder = path.parent
+    _check_options(f.options, "options", source)
+    pub = _published_file(f.study.published, folder, source)
+    try:
+        published = json.loads(pub.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise CaseError(f"{source}: key 'study.published': {pub} is not readable JSON: "
+                        f"{exc}") from None
+    tables = {}
+    for key, t in f.tables.items():
+        if not key.isdigit():
+            raise CaseError(f"{source}: key 'tables.{key}': tables are numbered "
+                            f"([tables.1], [tables.2], ...), got {key!r}")
+        tables[int(key)] = _table_spec(int(key), t, f.options, folder, source, published)
+    tables = dict(sorted(tables.items()))
+    maps = {}
+    for key, m in f.maps.items():
+        where = f"maps.{key}"
+        if m.table not in tables:
+            raise CaseError(f"{source}: key '{where}.table': no table {m.table} "
+                            f"(tables: {', '.join(map(str, tables))})")
+        spec = tables[m.table]
+        for name in [*m.axes, *m.fixed]:
+            if name not in spec.variables:
+                raise CaseError(f"{source}: key '{where}': {name!r} is not a design variable of "
+                                f"table {m.table}'s case ({', '.join(spec.variables)})")
+        maps[key] = MapSpec(key, m.figure, m.table, spec.case, spec.overrides, m.step,
+                            tuple(m.fixed.items()), tuple(tuple(z) for z in m.zoom),
+                            tuple(m.axes))
+    keys = set()
+    for k, fig in enumerate(f.figures):
+        where = f"figures[{k}]"
+        if fig.key in keys:
+            raise CaseError(f"{source}: key '{where}.key': {fig.key!r} is used twice")
+        keys.add(fig.key)
+        if fig.kind == "map":
+            if fig.map not in maps:
+                raise CaseError(f"{source}: key '{where}.map': no map {fig.map!r} (maps: "
+                                f"{', '.join(maps) or 'none'})")
+        elif fig.table not in tables:
+            raise CaseError(f"{source}: key '{where}.table': no table {fig.table} "
+                            f"(tables: {', '.join(map(str, tables))})")
+    if f.study.demo is not None and f.study.demo.table not in tables:
+        raise CaseError(f"{source}: key 'study.demo.table': no table {f.study.demo.table}")
+    # a run shared by tables is one job: it must have the same options everywhere
+    seen = {}
+    for t in tables.values():
+        for r in t.runs():
+            if seen.setdefault(r.name, r) != r:
+                raise CaseError(f"{source}: run {r.name} of table {t.number} has other optimizer "
+                                f"options than in another table: {dict(r.options)} vs "
+                                f"{dict(seen[r.name].options)}")
+    owner = [maps[fig.map].table if fig.kind == "map" else fig.table for fig in f.figures]
+    tables = {n: replace(t, figures=tuple(fig.key for fig, o in zip(f.figures, owner) if o == n))
+              for n, t in tables.items()}
+    return Study(path=path, name=f.study.name, reference=f.study.reference,
+                 introduction=f.study.introduction, published=pub, tables=tables, maps=maps,
+                 figures=tuple(f.figures), demo=f.study.demo)
+
+
+def load_study(study=None):
+    """Read and validate a study: a path to a study file or the name of a shipped study
+    (default: the paper's). Returns a `Study`; CaseError naming the file and the key."""
+    if isinstance(study, Study):
+        return study
+    p = study_path(study).resolve()
+    try:
+        text = p.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CaseError(f"{p}: cannot be read: {exc}") from None
+    return _load(str(p), text)          # read again when the file changed
