@@ -288,17 +288,19 @@ def press():
     return Problem(CASES / "slider_crank_press.toml")
 
 
-@pytest.fixture(scope="module")
-def press_result(press):
-    return optimize_fully(press)
+@pytest.fixture(scope="module", params=["mma", "sqp"])
+def press_result(press, request):
+    return optimize_fully(press, optimizer=request.param)
 
 
 def test_press_optimum_is_the_smallest_feasible_diameter(press, press_result):
     """cases/slider_crank_press.toml: one variable (rod diameter), rod mass grows with it, rod
     stress <= 25 MPa and ram error <= 20 um at every step. The optimum is the smallest
-    feasible diameter, where the binding constraint is active: max(g) within 1e-4 of 0, and
-    the diameter equals that of an independent bisection on max(g) = 0 (Problem.evaluate
-    without gradients, bracket 15-25 mm, to 1e-5 relative) within 0.1 %."""
+    feasible diameter, where the binding constraint is active, and the diameter equals that
+    of an independent bisection on max(g) = 0 (Problem.evaluate without gradients, bracket
+    15-25 mm, to 1e-5 relative) within 0.1 %: for the hand-written MMA and for the default,
+    the trust-region SQP. (NLopt's CCSAQ stops 5.2e-4 short of the limit in g, on flexmbs's
+    objective-change test 1e-3: docs/optimizers.md.)"""
     res = press_result
     assert res.converged, res.reason
     assert abs(res.evaluation.max_violation) < 1e-4
@@ -343,7 +345,12 @@ def test_press_start_outside_the_bounds_is_named(press):
         optimize_fully(press, [70.0])
 
 
-def test_cli_optimizes_the_press(press_result, capsys):
+@pytest.fixture(scope="module")
+def press_default(press):
+    return optimize_fully(press)
+
+
+def test_cli_optimizes_the_press(press_default, capsys):
     """`flexmbs optimize slider_crank_press --method fully --json`: exit 0, the press's
     objective, a design equal to the library's within 1e-6. `--method weakly --frame chord`
     runs the weakly coupled method on it: converged, at a diameter within 5 % of the fully
@@ -352,12 +359,12 @@ def test_cli_optimizes_the_press(press_result, capsys):
     assert main(["optimize", "slider_crank_press", "--method", "fully", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["objective_name"] == "rod_mass" and out["converged"]
-    assert out["design"][0] == pytest.approx(press_result.design[0], rel=1e-6)
+    assert out["design"][0] == pytest.approx(press_default.design[0], rel=1e-6)
     assert main(["optimize", str(CASES / "slider_crank_press.toml"), "--method", "weakly",
                  "--frame", "chord", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["method"] == "weakly" and out["converged"]
-    assert out["design"][0] == pytest.approx(press_result.design[0], rel=0.05)
+    assert out["design"][0] == pytest.approx(press_default.design[0], rel=0.05)
 
 
 def test_sqp_first_matrix_is_positive_definite_for_tube_sections():

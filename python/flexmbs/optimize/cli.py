@@ -227,10 +227,11 @@ def add_fully_options(parser):
     """Options of ``flexmbs optimize CASE --method fully``."""
     g = parser.add_argument_group("fully coupled method")
     g.add_argument("--optimizer", choices=OPTIMIZERS, default=None,
-                   help="mma: Svanberg's globally convergent MMA (default; with --starts: "
-                        "nlopt-mma); sqp: trust-region SQP; slsqp: plain scipy SLSQP (no move "
-                        "limits, fails from some starts); nlopt-mma, nlopt-ccsaq, nlopt-slsqp: "
-                        "NLopt's (docs/optimizers.md)")
+                   help="sqp: trust-region SQP (default; with --starts: nlopt-mma); "
+                        "nlopt-ccsaq, nlopt-mma, nlopt-slsqp: NLopt's; mma: Svanberg's "
+                        "globally convergent MMA, hand-written (the paper's; `flexmbs "
+                        "reproduce` uses it); slsqp: plain scipy SLSQP (no move limits, fails "
+                        "from some starts). docs/optimizers.md compares them")
     g.add_argument("--kkt-tol", type=float, default=1e-3, metavar="TOL",
                    help="first-order test added to the paper's stopping test, default 1e-3")
     g.add_argument("--max-iterations", type=int, default=100, metavar="N",
@@ -269,7 +270,7 @@ def run_fully(args, problem):
     with _Reporter(args, args.max_iterations, "iterations", describe_iteration,
                    _iteration_line) as report:
         return optimize_fully(problem, design_from_text(args.start, problem, "--start"),
-                              optimizer=args.optimizer or "mma", kkt_tol=args.kkt_tol,
+                              optimizer=args.optimizer or "sqp", kkt_tol=args.kkt_tol,
                               max_iterations=args.max_iterations,
                               design_rel_change=args.design_rel_change, history=args.history,
                               progress=report, resume=args.resume)
