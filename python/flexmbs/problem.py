@@ -214,7 +214,7 @@ class Problem:
                         grad += length * dprop[3, e]
             return value, (grad if gradient else None)
         if isinstance(r, Deviation):
-            ref = mech.reference.q
+            ref = mech.reference          # the reference coordinates of these nodes only
             parts = []
             for t in r.terms:
                 node = mech.node[(t.body, t.at)]
