@@ -29,7 +29,7 @@ from flexmbs.responses.aggregate import aggregate
 from flexmbs.responses.deviation import deviation, deviation_terms
 from flexmbs.responses.forces import constraint_force, joint_reaction
 from flexmbs.responses.stress import beam_stress
-from flexmbs.simulate import simulate
+from flexmbs.simulate import memory_estimate, simulate
 
 __all__ = ["Problem", "Evaluation", "load_problem", "constraint_rows"]
 
@@ -170,10 +170,9 @@ class Problem:
     def _needs_forces(self, names):
         return any(isinstance(self._resp[n], (Torque, Reaction)) for n in names)
 
-    def simulate(self, x=None, *, gradient=False, responses=None, store=None):
-        """Simulate design x (default: start); with gradient=True the design derivatives of
-        the coordinates the responses need (all responses, or `responses`), and those of the
-        constraint multipliers (Result.dmu) if a torque or reaction response is among them."""
+    def _run(self, x, gradient, responses, store):
+        """(model, t_end, h, keywords of `simulate`) of a simulation of design x (see
+        `simulate`)."""
         mech = self.mechanism
         x = mech.start if x is None else mech.design_values(x)
         model = mech.set_design(x)
@@ -187,7 +186,11 @@ class Problem:
         kw = dict(rho_inf=ts.rho_inf, start=ts.start, newton=newton, q0=q0,
                   qd0=None if ts.start == "static" else qd0)
         if store is None:
-            store = nodes if nodes else "all"
+            # only what the responses read: the multipliers (motor torques, joint reactions)
+            # are kept at every step anyway, so without a node to read one node's coordinates
+            # are enough (the core keeps at least one coordinate)
+            store = nodes if nodes else [0]
+        kw["store"] = store
         forces = self._needs_forces(names)
         if gradient and (nodes or forces) and mech.variables:
             # the core needs at least one sensitivity coordinate: node 0's when only the
@@ -195,7 +198,32 @@ class Problem:
             dofs = np.array([3 * n + k for n in (nodes or [0]) for k in range(3)])
             kw.update(design_derivatives=mech.element_property_derivatives(x),
                       sensitivity_dofs=dofs, constraint_force_derivatives=forces)
-        return simulate(model, mech.t_end, ts.h, store=store, **kw)
+        return model, mech.t_end, ts.h, kw
+
+    def simulate(self, x=None, *, gradient=False, responses=None, store=None):
+        """Simulate design x (default: start); with gradient=True the design derivatives of
+        the coordinates the responses need (all responses, or `responses`), and those of the
+        constraint multipliers (Result.dmu) if a torque or reaction response is among them.
+
+        store: None (default) keeps only the coordinates the responses read (the points of
+        deviation responses, the nodes of stressed beams; one node when only motor torques or
+        joint reactions are asked, which come from the multipliers); 'all' or a list of nodes
+        as in `flexmbs.simulate`."""
+        model, t_end, h, kw = self._run(x, gradient, responses, store)
+        return simulate(model, t_end, h, **kw)
+
+    def memory_estimate(self, x=None, gradient=True, *, responses=None, store=None):
+        """The memory (flexmbs.resources.MemoryEstimate) of the simulation that
+        `evaluate(x, gradient)` runs (of `simulate(x, ...)` with `responses` or `store`),
+        without running it; None when no response needs a simulation. What is stored over
+        the time grid is the responses' coordinates only (see `simulate`)."""
+        if responses is None:
+            responses = [n for n, r in self._resp.items() if not isinstance(r, Mass)]
+            if not responses and store is None:
+                return None
+        gradient = bool(gradient) and bool(self.mechanism.variables)
+        model, t_end, h, kw = self._run(x, gradient, responses, store)
+        return memory_estimate(model, t_end, h, **kw)
 
     # ------------------------------------------------------------------ responses
     def _response(self, r, x, result, gradient):
