@@ -169,3 +169,36 @@ def test_rigid_reference_work_does_not_grow_with_the_elements(monkeypatch):
         x0, y0 = 0.21961524227066315, 0.21961524227066315
         assert np.abs(xy[:, 6] - (x0 + D)).max() <= 1e-12
         assert np.abs(xy[:, 7] - (y0 + D)).max() <= 1e-12
+
+
+def test_gradients_of_the_used_responses_only(monkeypatch):
+    """evaluate(x, gradient='used') differentiates only what the objective (mass) and the
+    constraint (coupler stress) read: the motor torque, reported but not constrained, gets no
+    gradient and the simulation no multiplier derivatives (Result.dmu None, which
+    gradient=True computes); the constraint jacobian is the one of gradient=True (1e-12
+    relative: the same sensitivity solves). An unknown name is a ModelError naming it."""
+    from flexmbs.errors import ModelError
+    prob = Problem(_fourbar_without_deviation())
+    seen = []
+    original = Problem.simulate
+
+    def spy(self, *args, **kwargs):
+        res = original(self, *args, **kwargs)
+        seen.append(res)
+        return res
+
+    monkeypatch.setattr(Problem, "simulate", spy)
+    used = prob.evaluate(FOURBAR_DESIGN, gradient="used")
+    assert prob.used_responses() == ["coupler_stress", "mass"]
+    assert sorted(used.gradients) == ["coupler_stress", "mass"]
+    assert seen[-1].dmu is None and seen[-1].dq is not None
+    full = prob.evaluate(FOURBAR_DESIGN, gradient=True)
+    assert seen[-1].dmu is not None and "motor_torque" in full.gradients
+    scale = np.abs(full.jacobian).max()
+    assert np.abs(used.jacobian - full.jacobian).max() <= 1e-12 * scale
+    assert np.abs(used.d_objective - full.d_objective).max() <= 1e-12 * np.abs(
+        full.d_objective).max()
+    with pytest.raises(ModelError, match="unknown response.*'torque'"):
+        prob.evaluate(FOURBAR_DESIGN, gradient=["torque"])
+    with pytest.raises(ModelError, match="gradient must be True, False, 'used'"):
+        prob.evaluate(FOURBAR_DESIGN, gradient="all")

@@ -177,6 +177,10 @@ class ScaledProblem:
         p = self.design(x)
         self.simulations += 1
         t0 = time.perf_counter()
+        if gradient and callable(getattr(self.problem, "used_responses", None)):
+            # only the objective's and the constraints' gradients: responses that are only
+            # reported are not differentiated
+            gradient = "used"
         try:
             ev = self.problem.evaluate(p, gradient=gradient)
         finally:
