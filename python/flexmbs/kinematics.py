@@ -19,7 +19,10 @@ identically.
   order; lstsq, so consistent redundant rows do no harm).
 - `rigid_reference` is the position analysis on a time grid: Newton at each time from a
   quadratic extrapolation of the previous solutions, then velocities J zd = -Phi_t and
-  accelerations J zdd = gamma - Phi_q q_zz[zd, zd] at every time at once (batched SVD).
+  accelerations J zdd = gamma - Phi_q q_zz[zd, zd] at every time at once (batched SVD). It
+  works on the poses and on the coordinates of the nodes the constraint rows use only, so its
+  cost does not grow with the number of elements; the other nodes follow from the poses by
+  rigid transforms when asked (`RigidMotion.coordinates`, or every node: `RigidMotion.q`).
 - `drive_velocities` is the rigid-body velocity field the drives impose at one state (for a
   start from rest of a moving mechanism).
 
