@@ -202,3 +202,29 @@ def test_gradients_of_the_used_responses_only(monkeypatch):
         prob.evaluate(FOURBAR_DESIGN, gradient=["torque"])
     with pytest.raises(ModelError, match="gradient must be True, False, 'used'"):
         prob.evaluate(FOURBAR_DESIGN, gradient="all")
+
+
+def test_cli_simulate_stores_everything_only_for_out(monkeypatch, tmp_path, capsys):
+    """`flexmbs simulate` keeps every coordinate only when --out (or --plot) asks for them:
+    without it its one simulation stores the 3 coordinates of the four-bar's point A; with
+    --out one more run stores all of them (the .npz holds every coordinate)."""
+    import flexmbs.problem as problem_module
+    from flexmbs.cli import main
+    stored = []
+    original = problem_module.simulate
+
+    def spy(model, *args, **kwargs):
+        res = original(model, *args, **kwargs)
+        stored.append(res.dofs.size)
+        return res
+
+    monkeypatch.setattr(problem_module, "simulate", spy)
+    assert main(["simulate", "fourbar", "--set", "time.t_end=0.05"]) == 0
+    assert stored == [3]
+    stored.clear()
+    out = tmp_path / "r.npz"
+    assert main(["simulate", "fourbar", "--set", "time.t_end=0.05", "--out", str(out)]) == 0
+    ndof = Problem("fourbar", overrides={"time.t_end": 0.05}).mechanism.model.ndof
+    assert sorted(stored) == [3, ndof]
+    assert np.load(out)["q"].shape[1] == ndof
+    capsys.readouterr()
