@@ -14,6 +14,12 @@ cancel. N2 is chosen from a trial run so that the difference takes about a secon
 
 Dense runs stop above DENSE_MAX_N unknowns (a dense factorization of 3000 unknowns already
 takes ~1 s on one core, and memory grows as n^2).
+
+The KLU sweep (`klu_sweep`, issue 16 "Scaling") goes on to ~10^5 unknowns (16 000 elements,
+96 006 unknowns) with the default settings (KLU, newton='auto'): time per step, time per step
+and unknown, and memory beside it: the process's peak resident memory (getrusage ru_maxrss),
+its growth during the simulations and flexmbs's own estimate (flexmbs.simulate.memory_estimate).
+`python benchmarks/scaling.py --klu [--max-elements N]` runs it alone (each size once).
 """
 from __future__ import annotations
 
@@ -29,6 +35,9 @@ from common import format_table, pyplot
 
 ELEMENTS_FULL = [2, 4, 8, 16, 32, 64, 125, 250, 500, 1000, 2000, 4000]
 ELEMENTS_QUICK = [2, 8, 32, 125, 500]
+#: the KLU sweep to ~10^5 unknowns (n = 6 n_el + 6)
+ELEMENTS_KLU = [125, 500, 2000, 4000, 8000, 16000]
+ELEMENTS_KLU_QUICK = [125, 500, 2000]
 DENSE_MAX_N = 3100
 
 
@@ -77,18 +86,21 @@ def _child(cfg):
     import time
 
     import flexmbs as fx
+    import resource
+    from flexmbs.simulate import memory_estimate
     m, arm = arm_model(cfg["elements"])
     n = m.compile().n
     m.pattern(cfg["solver"])
     h = 5e-4
     rss0 = _reset_peak_rss()
+    newton = cfg.get("newton") or ("reuse" if cfg["reuse"] else "full")
 
     def timed(steps):
         best, res = float("inf"), None
         for _ in range(cfg["repeats"]):
             c0 = time.process_time()
             res = fx.simulate(m, steps * h, h, start="static", store=[arm.last],
-                              solver=cfg["solver"], newton="reuse" if cfg["reuse"] else "full")
+                              solver=cfg["solver"], newton=newton)
             best = min(best, time.process_time() - c0)
             if best * cfg["repeats"] > 4 * cfg["budget"]:
                 break
@@ -102,16 +114,19 @@ def _child(cfg):
     rss1 = _peak_rss()
     it = (r2.stats["newton_iterations"] - r1.stats["newton_iterations"]) / (n2 - n1)
     fa = (r2.stats["factorizations"] - r1.stats["factorizations"]) / (n2 - n1)
+    est = memory_estimate(m, n2 * h, h, store=[arm.last], solver=cfg["solver"])
     return dict(elements=cfg["elements"], unknowns=n, solver=cfg["solver"], reuse=cfg["reuse"],
-                per_step=(t2 - t1) / (n2 - n1), n1=n1, n2=n2, t1=t1, t2=t2,
+                newton=newton, per_step=(t2 - t1) / (n2 - n1), n1=n1, n2=n2, t1=t1, t2=t2,
                 iterations_per_step=it, factorizations_per_step=fa,
-                peak_rss_mb=rss1 / 1024, base_rss_mb=rss0 / 1024, sim_mb=(rss1 - rss0) / 1024)
+                peak_rss_mb=rss1 / 1024, base_rss_mb=rss0 / 1024, sim_mb=(rss1 - rss0) / 1024,
+                maxrss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                estimate_mb=est.total / 1e6)
 
 
-def measure(elements, solver, reuse, budget=1.0, repeats=3, timeout=900):
+def measure(elements, solver, reuse, budget=1.0, repeats=3, timeout=900, newton=None):
     """Run one configuration in a child process; returns its dict or None on failure."""
     cfg = dict(elements=elements, solver=solver, reuse=reuse, budget=budget, repeats=repeats,
-               n1=4, max_steps=4000)
+               n1=4, max_steps=4000, newton=newton)
     cmd = [sys.executable, os.path.abspath(__file__), "--child", json.dumps(cfg)]
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
@@ -201,7 +216,38 @@ def run(quick=False, outdir="benchmarks/results", log=print):
         json.dump(dict(runs=results, summary=summary, dense_max_unknowns=DENSE_MAX_UNKNOWNS), f,
                   indent=1, default=float)
     _plot(ok, outdir, log)
-    return dict(runs=results, summary=summary)
+    large = klu_sweep(ELEMENTS_KLU_QUICK if quick else ELEMENTS_KLU, budget, log)
+    with open(os.path.join(outdir, "scaling_klu.json"), "w") as f:
+        json.dump(large, f, indent=1, default=float)
+    return dict(runs=results, summary=summary, klu=large)
+
+
+def klu_sweep(elements=ELEMENTS_KLU, budget=1.0, log=print):
+    """KLU with the default settings (newton='auto') up to ~10^5 unknowns, each size once in a
+    fresh process (one repeat above 2000 elements): time per step and memory side by side."""
+    rows, runs = [], []
+    for nel in elements:
+        r = measure(nel, "klu", False, budget, 1 if nel > 2000 else 3, newton="auto")
+        runs.append(r)
+        if "error" in r:
+            log(f"  {nel} el: FAILED {r['error']}")
+            continue
+        rows.append([nel, r["unknowns"], r["per_step"] * 1e3, r["per_step"] / r["unknowns"] * 1e6,
+                     r["iterations_per_step"], r["factorizations_per_step"], r["n2"] - r["n1"],
+                     r["maxrss_mb"], r["sim_mb"], r["estimate_mb"]])
+        log(f"  {nel:6d} el  n={r['unknowns']:6d}  {r['per_step'] * 1e3:9.3f} ms/step  "
+            f"peak RSS {r['maxrss_mb']:.0f} MB", )
+    ok = [r for r in runs if "error" not in r]
+    big = [(r["unknowns"], r["per_step"]) for r in ok if r["elements"] >= 500]
+    slope = loglog_slope(*zip(*big)) if len(big) >= 2 else None
+    log(format_table(["el", "unknowns", "ms/step", "us/step/unknown", "it/step", "fact/step",
+                      "steps timed", "peak RSS MB", "RSS growth MB", "flexmbs estimate MB"],
+                     rows, title="\nKLU, newton='auto' (the defaults): CPU time per step "
+                                 "((T(N2) - T(N1)) / (N2 - N1)) and memory"))
+    if slope is not None:
+        log(f"log-log slope of the time per step against the unknowns (>= 500 elements): "
+            f"{slope:.3f} (1 = linear)")
+    return dict(runs=runs, slope=slope)
 
 
 def _plot(ok, outdir, log):
@@ -244,6 +290,15 @@ if __name__ == "__main__":
     if len(sys.argv) == 3 and sys.argv[1] == "--child":
         sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
         print(json.dumps(_child(json.loads(sys.argv[2]))))
+    elif len(sys.argv) >= 2 and sys.argv[1] == "--klu":
+        for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ.setdefault(var, "1")
+        sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+        from common import machine_summary
+        top = int(sys.argv[sys.argv.index("--max-elements") + 1]) \
+            if "--max-elements" in sys.argv else max(ELEMENTS_KLU)
+        print(f"scaling, KLU sweep: {machine_summary()}")
+        klu_sweep([e for e in ELEMENTS_KLU if e <= top])
     else:
         print("run through benchmarks/run.py --only scaling", file=sys.stderr)
         sys.exit(2)

@@ -19,7 +19,10 @@ identically.
   order; lstsq, so consistent redundant rows do no harm).
 - `rigid_reference` is the position analysis on a time grid: Newton at each time from a
   quadratic extrapolation of the previous solutions, then velocities J zd = -Phi_t and
-  accelerations J zdd = gamma - Phi_q q_zz[zd, zd] at every time at once (batched SVD).
+  accelerations J zdd = gamma - Phi_q q_zz[zd, zd] at every time at once (batched SVD). It
+  works on the poses and on the coordinates of the nodes the constraint rows use only, so its
+  cost does not grow with the number of elements; the other nodes follow from the poses by
+  rigid transforms when asked (`RigidMotion.coordinates`, or every node: `RigidMotion.q`).
 - `drive_velocities` is the rigid-body velocity field the drives impose at one state (for a
   start from rest of a moving mechanism).
 
@@ -44,7 +47,8 @@ Example
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -91,7 +95,6 @@ class _Poses:
     def __init__(self, model):
         cm = model.compile()
         self.cm = cm
-        self.rows = row_table(cm)
         self.groups = rigid_groups(model)
         ng = len(self.groups)
         self.ng = ng
@@ -119,11 +122,24 @@ class _Poses:
                       self.count * (0.1 * self.length) ** 2)
         self.weight = np.stack([self.count, self.count, wt], axis=1).ravel()
         self.scale = max(1.0, float(np.abs(ref[:, :2]).max()) if nn else 1.0)
+        # the nodes the constraint rows act on ("active"): the position analysis works on their
+        # coordinates alone, so that its cost does not grow with the number of elements; rows
+        # holds the constraint rows on the active coordinates (3 per active node, in order)
+        full = row_table(cm)
+        used = full.dofs[full.dofs >= 0]
+        self.active = np.unique(used // 3)
+        where = np.full(nn, -1, np.int64)
+        where[self.active] = np.arange(self.active.size)
+        d = np.where(full.dofs >= 0, full.dofs, 0)
+        self.rows = replace(full, dofs=np.where(full.dofs >= 0, 3 * where[d // 3] + d % 3, -1),
+                            ndof=3 * self.active.size)
+        self.active_dofs = (3 * self.active[:, None] + np.arange(3)).ravel()
         # Jacobian pattern: each entry of Phi_q on coordinate (node n, component k) feeds the
-        # pose columns of n's group (translation for x, y; rotation for all three)
-        r_idx, cols, _ = jacobian_entries(self.rows, cm.qref)
+        # pose columns of n's group (translation for x, y; rotation for all three); node is
+        # the index among the active nodes
+        r_idx, cols, _ = jacobian_entries(self.rows, cm.qref[self.active_dofs])
         node, comp = cols // 3, cols % 3
-        g = self.group_of[node]
+        g = self.group_of[self.active[node]]
         self._entries = (r_idx, node, comp, g)
         from scipy.sparse import csr_matrix
         nent = r_idx.size
@@ -135,47 +151,57 @@ class _Poses:
                                    shape=(self.rows.nc * ncol, src.size))
 
     # ---------------------------------------------------------------- maps
-    def q(self, z):
-        """Node coordinates (..., ndof) of poses z (..., ng, 3)."""
+    # nodes: None (every node) or an array of node ids; outputs follow its order
+    def q(self, z, nodes=None):
+        """Node coordinates (..., 3 nnodes) of poses z (..., ng, 3), of every node or `nodes`."""
+        sel = slice(None) if nodes is None else nodes
         z = np.asarray(z, float)
-        zn = z[..., self.group_of, :]                                   # (..., nn, 3)
+        zn = z[..., self.group_of[sel], :]                              # (..., nn, 3)
         c, s = np.cos(zn[..., 2]), np.sin(zn[..., 2])
-        rx, ry = self.r[:, 0], self.r[:, 1]
+        rx, ry = self.r[sel, 0], self.r[sel, 1]
         out = np.stack([zn[..., 0] + c * rx - s * ry, zn[..., 1] + s * rx + c * ry,
-                        self.phi0 + zn[..., 2]], axis=-1)
+                        self.phi0[sel] + zn[..., 2]], axis=-1)
         return out.reshape(z.shape[:-2] + (-1,))
 
-    def rotated(self, z):
-        """R(theta) r_n of every node, (..., nn, 2)."""
-        th = np.asarray(z, float)[..., self.group_of, 2]
+    def qa(self, z):
+        """Coordinates (..., 3 nactive) of the active nodes (those the constraint rows use)."""
+        return self.q(z, self.active)
+
+    def rotated(self, z, nodes=None):
+        """R(theta) r_n of every node (or of `nodes`), (..., nn, 2)."""
+        sel = slice(None) if nodes is None else nodes
+        th = np.asarray(z, float)[..., self.group_of[sel], 2]
         c, s = np.cos(th), np.sin(th)
-        rx, ry = self.r[:, 0], self.r[:, 1]
+        rx, ry = self.r[sel, 0], self.r[sel, 1]
         return np.stack([c * rx - s * ry, s * rx + c * ry], axis=-1)
 
-    def qd(self, z, zd):
-        """Node velocities (..., ndof) of pose rates zd at poses z."""
-        rr = self.rotated(z)
-        zn = np.asarray(zd, float)[..., self.group_of, :]
+    def qd(self, z, zd, nodes=None):
+        """Node velocities (..., 3 nn) of pose rates zd at poses z (every node or `nodes`)."""
+        sel = slice(None) if nodes is None else nodes
+        rr = self.rotated(z, nodes)
+        zn = np.asarray(zd, float)[..., self.group_of[sel], :]
         w = zn[..., 2]
         out = np.stack([zn[..., 0] - w * rr[..., 1], zn[..., 1] + w * rr[..., 0], w], axis=-1)
         return out.reshape(out.shape[:-2] + (-1,))
 
-    def centripetal(self, z, zd):
-        """q_zz[zd, zd] (..., ndof): the node accelerations of pose rates zd with zdd = 0."""
-        rr = self.rotated(z)
-        w = np.asarray(zd, float)[..., self.group_of, 2]
+    def centripetal(self, z, zd, nodes=None):
+        """q_zz[zd, zd] (..., 3 nn): the node accelerations of pose rates zd with zdd = 0."""
+        sel = slice(None) if nodes is None else nodes
+        rr = self.rotated(z, nodes)
+        w = np.asarray(zd, float)[..., self.group_of[sel], 2]
         out = np.stack([-w * w * rr[..., 0], -w * w * rr[..., 1], 0.0 * w], axis=-1)
         return out.reshape(out.shape[:-2] + (-1,))
 
-    def jacobian(self, z, q=None, rr=None):
-        """J = Phi_q dq/dz, (..., nc, 3 ng), at poses z (..., ng, 3)."""
+    def jacobian(self, z, qa=None, rra=None):
+        """J = Phi_q dq/dz, (..., nc, 3 ng), at poses z (..., ng, 3); qa, rra: the active
+        nodes' coordinates and R(theta) r_n when already known."""
         z = np.asarray(z, float)
-        q = self.q(z) if q is None else q
-        rr = self.rotated(z) if rr is None else rr
-        _, _, vals = jacobian_entries(self.rows, q)                     # (..., nent)
+        qa = self.qa(z) if qa is None else qa
+        rra = self.rotated(z, self.active) if rra is None else rra
+        _, _, vals = jacobian_entries(self.rows, qa)                    # (..., nent)
         r_idx, node, comp = self._entries[:3]
         tr = comp < 2
-        arm = np.where(comp == 0, -rr[..., node, 1], np.where(comp == 1, rr[..., node, 0], 1.0))
+        arm = np.where(comp == 0, -rra[..., node, 1], np.where(comp == 1, rra[..., node, 0], 1.0))
         contrib = np.concatenate([vals[..., tr], vals * arm], axis=-1)
         lead = contrib.shape[:-1]
         flat = (self._scatter @ contrib.reshape(-1, contrib.shape[-1]).T).T
@@ -269,7 +295,7 @@ def _nearest_assembly(P, z, qg, zg, law_val, tol, max_iter):
     nz = 3 * ng
     it = 0
     while True:
-        phi = constraint_values(P.rows, P.q(z), law_val)
+        phi = constraint_values(P.rows, P.qa(z), law_val)
         res = float(np.max(np.abs(phi))) if phi.size else 0.0
         rr = P.rotated(z)
         pos = z[gi, :2] + rr
@@ -293,13 +319,13 @@ def _nearest_assembly(P, z, qg, zg, law_val, tol, max_iter):
         lam = 1.0
         for _ in range(30):
             znew = z + lam * step.reshape(-1, 3)
-            rn = float(np.max(np.abs(constraint_values(P.rows, P.q(znew), law_val)))) if nc else 0.0
+            rn = float(np.max(np.abs(constraint_values(P.rows, P.qa(znew), law_val)))) if nc else 0.0
             if rn <= max(2 * res, tol * P.scale) or lam < 1e-6:
                 break
             lam *= 0.5
         it += 1
         if lam * move <= 1e-15 * P.scale and res > tol * P.scale:
-            return znew, it, rn, constraint_values(P.rows, P.q(znew), law_val)   # stalled
+            return znew, it, rn, constraint_values(P.rows, P.qa(znew), law_val)  # stalled
         z = znew
 
 
@@ -388,24 +414,65 @@ def free_degrees_of_freedom(model, q=None, t=0.0):
     return nz - rank, where
 
 
-@dataclass
+@dataclass(eq=False)
 class RigidMotion:
     """The rigid reference on a time grid (see `rigid_reference`).
 
-    t : (nt,); q, qd, qdd : (nt, ndof) node coordinates, velocities, accelerations;
-    z, zd, zdd : (nt, ngroups, 3) group poses and their rates; groups : the node groups;
-    iterations : (nt,) Newton iterations per time; residual : (nt,) max |Phi|.
+    t : (nt,); z, zd, zdd : (nt, ngroups, 3) group poses and their rates; groups : the node
+    groups; iterations : (nt,) Newton iterations per time; residual : (nt,) max |Phi|.
+
+    The node histories follow from the poses by rigid transforms: `coordinates(dofs, rate)`
+    gives those of some coordinates (cost and memory nt x len(dofs)); q, qd, qdd (nt, ndof)
+    hold every node's, computed on first use and kept (nt x ndof values each).
     """
     t: np.ndarray
-    q: np.ndarray
-    qd: np.ndarray
-    qdd: np.ndarray
     z: np.ndarray
     zd: np.ndarray
     zdd: np.ndarray
     groups: list
     iterations: np.ndarray
     residual: np.ndarray
+    poses: object = field(default=None, repr=False)
+
+    def _nodes_history(self, nodes, rate):
+        P = self.poses
+        if rate == 0:
+            return P.q(self.z, nodes)
+        if rate == 1:
+            return P.qd(self.z, self.zd, nodes)
+        return P.qd(self.z, self.zdd, nodes) + P.centripetal(self.z, self.zd, nodes)
+
+    def coordinates(self, dofs, rate=0):
+        """(nt, len(dofs)) history of the coordinates `dofs` (0-based indices of q; an int
+        gives (nt,)): positions (rate=0), velocities (1) or accelerations (2)."""
+        if isinstance(rate, bool) or rate not in (0, 1, 2):
+            raise ModelError(f"RigidMotion.coordinates: rate must be 0, 1 or 2, got {rate!r}")
+        ndof = self.poses.cm.ndof
+        d = np.asarray(dofs)
+        if d.ndim > 1 or (d.size and d.dtype.kind not in "iu") or \
+                (d.size and (d.min() < 0 or d.max() >= ndof)):
+            raise ModelError(f"RigidMotion.coordinates: dofs must be coordinate indices in "
+                             f"[0, {ndof}), got {dofs!r}")
+        flat = np.atleast_1d(d).astype(np.int64)
+        nodes, inv = np.unique(flat // 3, return_inverse=True)
+        h = self._nodes_history(nodes, rate).reshape(self.t.size, nodes.size, 3)
+        out = h[:, inv.ravel(), flat % 3]
+        return out[:, 0] if d.ndim == 0 else out
+
+    @cached_property
+    def q(self):
+        """(nt, ndof) node coordinates (every node; see `coordinates` for a few)."""
+        return self._nodes_history(None, 0)
+
+    @cached_property
+    def qd(self):
+        """(nt, ndof) node velocities."""
+        return self._nodes_history(None, 1)
+
+    @cached_property
+    def qdd(self):
+        """(nt, ndof) node accelerations."""
+        return self._nodes_history(None, 2)
 
 
 _CHUNK_ITER, _CHUNK_MAX = 6, 64
@@ -432,7 +499,7 @@ def _newton_batch(P, z, law_val, tol, max_iter):
     Phi (K, nc))."""
     sw = np.sqrt(P.weight)
     K = z.shape[0]
-    phi = constraint_values(P.rows, P.q(z), law_val)
+    phi = constraint_values(P.rows, P.qa(z), law_val)
     res = np.max(np.abs(phi), axis=-1) if phi.shape[-1] else np.zeros(K)
     it = 0
     target = 0.01 * tol * P.scale
@@ -441,7 +508,7 @@ def _newton_batch(P, z, law_val, tol, max_iter):
         u, s, vt = np.linalg.svd(P.jacobian(z) / sw, full_matrices=False)
         rtol = RANK_RTOL * s.max(axis=-1)
         z = z + (_svd_solve(u, s, vt, -phi, rtol) / sw).reshape(z.shape)
-        phi = constraint_values(P.rows, P.q(z), law_val)
+        phi = constraint_values(P.rows, P.qa(z), law_val)
         new = np.max(np.abs(phi), axis=-1)
         floor = np.all(new <= tol * P.scale) and np.all((new > 0.25 * res) | (new <= target))
         res = new
@@ -517,9 +584,10 @@ def rigid_reference(model, t, q0=None, *, tol=1e-12, max_iter=20):
         k += size
         if it <= 3:
             size = min(2 * size, _CHUNK_MAX)
-    q = P.q(z)
-    rr = P.rotated(z)
-    J = P.jacobian(z, q, rr)                                        # (nt, nc, nz)
+    # velocities and accelerations of the poses, on the active nodes' coordinates only
+    qa = P.qa(z)
+    rra = P.rotated(z, P.active)
+    J = P.jacobian(z, qa, rra)                                      # (nt, nc, nz)
     sw = np.sqrt(P.weight)
     u, s, vt = np.linalg.svd(J / sw, full_matrices=False)
     smax = s.max(axis=-1)
@@ -532,18 +600,17 @@ def rigid_reference(model, t, q0=None, *, tol=1e-12, max_iter=20):
                          f"of {rank0}); the drives do not determine the motion there")
     rtol = RANK_RTOL * smax
     zd = (_svd_solve(u, s, vt, -constraint_rate(P.rows, rate), rtol) / sw).reshape(nt, P.ng, 3)
-    qd = P.qd(z, zd)
-    gamma = acceleration_rhs(P.rows, q, qd, acc)
-    cen = P.centripetal(z, zd)
-    _, _, pq = jacobian_entries(P.rows, q)                          # Phi_q entries (nt, nent)
+    qda = P.qd(z, zd, P.active)
+    gamma = acceleration_rhs(P.rows, qa, qda, acc)
+    cen = P.centripetal(z, zd, P.active)
+    _, _, pq = jacobian_entries(P.rows, qa)                         # Phi_q entries (nt, nent)
     r_idx, node, comp, _ = P._entries
     cols = 3 * node + comp
     pqc = np.zeros((nt, P.rows.nc))
     np.add.at(pqc.T, r_idx, (pq * cen[:, cols]).T)
     zdd = (_svd_solve(u, s, vt, gamma - pqc, rtol) / sw).reshape(nt, P.ng, 3)
-    qdd = P.qd(z, zdd) + cen
-    return RigidMotion(t=t, q=q, qd=qd, qdd=qdd, z=z, zd=zd, zdd=zdd, groups=P.groups,
-                       iterations=its, residual=resid)
+    return RigidMotion(t=t, z=z, zd=zd, zdd=zdd, groups=P.groups, iterations=its,
+                       residual=resid, poses=P)
 
 
 def drive_velocities(model, q, t=0.0):
@@ -565,7 +632,7 @@ def drive_velocities(model, q, t=0.0):
     arms = np.zeros((qn.shape[0], 2))
     for nodes in P.groups:
         arms[nodes] = qn[nodes, :2] - qn[nodes, :2].mean(axis=0)
-    J = P.jacobian(np.zeros((P.ng, 3)), q, arms)
+    J = P.jacobian(np.zeros((P.ng, 3)), q[P.active_dofs], arms[P.active])
     sw = np.sqrt(P.weight)
     zd = (_lstsq(J / sw, -constraint_rate(P.rows, rate)) / sw).reshape(P.ng, 3)
     w = zd[P.group_of]

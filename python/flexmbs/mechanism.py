@@ -332,18 +332,19 @@ class Mechanism:
     def _reference_law(self, dr, n, other, motion, name):
         """The drive's motion in the rigid reference, as a law exact on the time grid."""
         from scipy.interpolate import CubicHermiteSpline
-        c = 3 * n + (2 if dr.type == "rotation" else 0)
+        # the histories of the drive's coordinates alone (not of every node: motion.q)
         if dr.type == "rotation":
-            v, r, a = (arr[:, c] for arr in (motion.q, motion.qd, motion.qdd))
+            v, r, a = (motion.coordinates(3 * n + 2, rate) for rate in (0, 1, 2))
             if other is not None:
-                v = v - motion.q[:, 3 * other + 2]
-                r = r - motion.qd[:, 3 * other + 2]
-                a = a - motion.qdd[:, 3 * other + 2]
+                v = v - motion.coordinates(3 * other + 2, 0)
+                r = r - motion.coordinates(3 * other + 2, 1)
+                a = a - motion.coordinates(3 * other + 2, 2)
         else:
             ax = np.asarray(dr.axis, float) / math.hypot(*dr.axis)
-            sl = slice(3 * n, 3 * n + 2)
-            v = (motion.q[:, sl] - motion.q[0, sl]) @ ax
-            r, a = motion.qd[:, sl] @ ax, motion.qdd[:, sl] @ ax
+            sl = [3 * n, 3 * n + 1]
+            q = motion.coordinates(sl, 0)
+            v = (q - q[0]) @ ax
+            r, a = motion.coordinates(sl, 1) @ ax, motion.coordinates(sl, 2) @ ax
         t = motion.t
         spline = CubicHermiteSpline(t, v, r)
         return TimeLaw(spline, spline.derivative(1), lambda s: np.interp(s, t, a), name=name)

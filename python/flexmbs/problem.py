@@ -29,7 +29,7 @@ from flexmbs.responses.aggregate import aggregate
 from flexmbs.responses.deviation import deviation, deviation_terms
 from flexmbs.responses.forces import constraint_force, joint_reaction
 from flexmbs.responses.stress import beam_stress
-from flexmbs.simulate import simulate
+from flexmbs.simulate import memory_estimate, simulate
 
 __all__ = ["Problem", "Evaluation", "load_problem", "constraint_rows"]
 
@@ -171,14 +171,14 @@ class Problem:
     def _needs_forces(self, names):
         return any(isinstance(self._resp[n], (Torque, Reaction)) for n in names)
 
-    def simulate(self, x=None, *, gradient=False, responses=None, store=None):
-        """Simulate design x (default: start); with gradient=True the design derivatives of
-        the coordinates the responses need (all responses, or `responses`), and those of the
-        constraint multipliers (Result.dmu) if a torque or reaction response is among them."""
+    def _run(self, x, gradient, responses, store, differentiate=None):
+        """(model, t_end, h, keywords of `simulate`) of a simulation of design x (see
+        `simulate`)."""
         mech = self.mechanism
         x = mech.start if x is None else mech.design_values(x)
         model = mech.set_design(x)
         names = list(self._resp) if responses is None else list(responses)
+        diff = names if differentiate is None else list(differentiate)
         nodes = self._nodes_needed(names)
         ts = self.description.time
         q0, qd0 = mech.initial_state()
@@ -188,15 +188,49 @@ class Problem:
         kw = dict(rho_inf=ts.rho_inf, start=ts.start, newton=newton, q0=q0,
                   qd0=None if ts.start == "static" else qd0)
         if store is None:
-            store = nodes if nodes else "all"
-        forces = self._needs_forces(names)
-        if gradient and (nodes or forces) and mech.variables:
+            # only what the responses read: the multipliers (motor torques, joint reactions)
+            # are kept at every step anyway, so without a node to read one node's coordinates
+            # are enough (the core keeps at least one coordinate)
+            store = nodes if nodes else [0]
+        kw["store"] = store
+        forces = self._needs_forces(diff)
+        dnodes = self._nodes_needed(diff)
+        if gradient and (dnodes or forces) and mech.variables:
             # the core needs at least one sensitivity coordinate: node 0's when only the
             # multipliers' derivatives are wanted
-            dofs = np.array([3 * n + k for n in (nodes or [0]) for k in range(3)])
+            dofs = np.array([3 * n + k for n in (dnodes or [0]) for k in range(3)])
             kw.update(design_derivatives=mech.element_property_derivatives(x),
                       sensitivity_dofs=dofs, constraint_force_derivatives=forces)
-        return simulate(model, mech.t_end, ts.h, store=store, **kw)
+        return model, mech.t_end, ts.h, kw
+
+    def simulate(self, x=None, *, gradient=False, responses=None, store=None,
+                 differentiate=None):
+        """Simulate design x (default: start); with gradient=True the design derivatives of
+        the coordinates the responses need (all responses, or `responses`; or only those of
+        the responses named in `differentiate`), and those of the constraint multipliers
+        (Result.dmu) if a torque or reaction response is among them.
+
+        store: None (default) keeps only the coordinates the responses read (the points of
+        deviation responses, the nodes of stressed beams; one node when only motor torques or
+        joint reactions are asked, which come from the multipliers); 'all' or a list of nodes
+        as in `flexmbs.simulate`."""
+        model, t_end, h, kw = self._run(x, gradient, responses, store, differentiate)
+        return simulate(model, t_end, h, **kw)
+
+    def memory_estimate(self, x=None, gradient=True, *, responses=None, store=None):
+        """The memory (flexmbs.resources.MemoryEstimate) of the simulation that
+        `evaluate(x, gradient)` runs (gradient as there; of `simulate(x, ...)` with
+        `responses` or `store`),
+        without running it; None when no response needs a simulation. What is stored over
+        the time grid is the responses' coordinates only (see `simulate`)."""
+        if responses is None:
+            responses = [n for n, r in self._resp.items() if not isinstance(r, Mass)]
+            if not responses and store is None:
+                return None
+        want = self._gradient_names(gradient) if self.mechanism.variables else []
+        model, t_end, h, kw = self._run(x, bool(want), responses, store,
+                                        [n for n in responses if n in want])
+        return memory_estimate(model, t_end, h, **kw)
 
     # ------------------------------------------------------------------ responses
     def _response(self, r, x, result, gradient):
@@ -215,7 +249,7 @@ class Problem:
                         grad += length * dprop[3, e]
             return value, (grad if gradient else None)
         if isinstance(r, Deviation):
-            ref = mech.reference.q
+            ref = mech.reference          # the reference coordinates of these nodes only
             parts = []
             for t in r.terms:
                 node = mech.node[(t.body, t.at)]
@@ -272,26 +306,59 @@ class Problem:
         return {"x": (rc.x, rc.dx), "y": (rc.y, rc.dy),
                 "magnitude": (rc.magnitude, rc.dmagnitude)}[component]
 
+    def used_responses(self):
+        """Names of the responses the objective and the constraints use."""
+        d = self.description
+        used = ([d.objective.response] if d.objective is not None else []) + \
+            [c.response for c in d.constraints]
+        return [n for n in self._resp if n in used]
+
+    def _gradient_names(self, gradient):
+        """The responses whose gradients `evaluate(gradient=...)` asks for."""
+        if isinstance(gradient, str):
+            if gradient != "used":
+                raise ModelError(f"gradient must be True, False, 'used' or a list of response "
+                                 f"names, got {gradient!r}")
+            return self.used_responses()
+        if isinstance(gradient, (list, tuple, set, frozenset)):
+            unknown = [g for g in gradient if g not in self._resp]
+            if unknown:
+                raise ModelError(f"gradient: unknown response(s) {unknown!r}; the responses are "
+                                 f"{', '.join(self._resp)}")
+            return [n for n in self._resp if n in gradient]
+        return list(self._resp) if gradient else []
+
     def evaluate(self, x=None, gradient=True):
-        """Every response, the objective and the constraints at design x (user units)."""
+        """Every response, the objective and the constraints at design x (user units).
+
+        gradient : True (every response's gradient), False (none: nothing is differentiated),
+            'used' (those of the objective's and the constraints' responses) or a list of
+            response names: only those gradients are computed, and the simulation
+            differentiates only the coordinates and multipliers they read. d_objective and
+            the constraints' jacobian are given when the gradients they need are.
+        """
         t0 = _time.perf_counter()
         mech = self.mechanism
         x = mech.start if x is None else mech.design_values(x)
-        gradient = bool(gradient) and bool(mech.variables)
+        want = self._gradient_names(gradient) if mech.variables else []
+        gradient = bool(want)
         timed = [n for n, r in self._resp.items() if not isinstance(r, Mass)]
-        result = self.simulate(x, gradient=gradient, responses=timed) if timed else None
+        result = self.simulate(x, gradient=gradient, responses=timed,
+                               differentiate=[n for n in timed if n in want]) if timed else None
         values, grads = {}, {}
         for name, r in self._resp.items():
-            values[name], grads[name] = self._response(r, x, result, gradient)
+            values[name], grads[name] = self._response(r, x, result, name in want)
         t = mech.t
         f = df = None
         obj = self.description.objective
         if obj is not None:
             f, df = _scalar(values[obj.response], grads[obj.response], obj.over, None, t)
+        with_jac = gradient and all(c.response in want for c in self.description.constraints)
         cons, jac, names, _ = constraint_rows(self.description, values, grads, t,
-                                              len(mech.variables), gradient)
+                                              len(mech.variables), with_jac)
         cons, jac, names = with_linear_rows(mech, x, cons, jac, names)
-        return Evaluation(x=x, t=t, values=values, gradients=grads if gradient else {},
+        return Evaluation(x=x, t=t, values=values,
+                          gradients={k: v for k, v in grads.items() if k in want},
                           objective=f, d_objective=df if gradient else None, constraints=cons,
                           jacobian=jac, constraint_names=names,
                           stats=result.stats if result is not None else {},

@@ -18,7 +18,7 @@ from flexmbs.resources import memory_limit as _memory_limit
 from flexmbs.validity import ValidityLimits, apply_validity, check_result, diagnose_failure
 
 __all__ = ["simulate", "Result", "DENSE_MAX_UNKNOWNS", "NEWTON_MODES", "time_grid", "time_steps",
-           "system_matrices", "core_model_args", "newton_mode"]
+           "system_matrices", "core_model_args", "newton_mode", "stored_dofs", "memory_estimate"]
 
 #: Largest system solved with dense LU when solver="auto" (KLU above). benchmarks/scaling.py
 #: measured KLU faster than LAPACK's dense LU at every size from 18 unknowns up (1.5x at 18,
@@ -281,6 +281,63 @@ def _drives_move_at_start(cm, margs):
     return bool(used.size) and bool(np.any(np.asarray(margs["law_der"])[used, 0] != 0.0))
 
 
+def stored_dofs(model, store="all"):
+    """The coordinates (sorted 0-based indices of q) that `simulate(model, store=store)` keeps
+    at every step: every one for 'all', else the three of each node and those of each body
+    (Body objects) listed."""
+    if isinstance(store, str):
+        if store != "all":
+            raise ModelError(f"store must be 'all' or a list of nodes/bodies, got {store!r}")
+        return np.arange(model.ndof)
+    if not isinstance(store, (list, tuple, np.ndarray)):
+        raise ModelError(f"store must be 'all' or a list of nodes/bodies, got {store!r}")
+    dofs = []
+    for item in store:
+        if hasattr(item, "dofs"):
+            if model.bodies.get(getattr(item, "name", None)) is not item:
+                raise ModelError(f"store: body {getattr(item, 'name', item)!r} is not a body "
+                                 "of this model")
+            dofs.extend(item.dofs)
+        else:
+            node = model._check_node(item, "store")
+            dofs.extend([3 * node, 3 * node + 1, 3 * node + 2])
+    out = np.unique(np.asarray(dofs, int))
+    if out.size == 0:
+        raise ModelError("store is empty")
+    return out
+
+
+def _estimate(model, nsteps, out, solver, design_derivatives, sensitivity_dofs, want_dmu):
+    nv = 0
+    if design_derivatives is not None:
+        shape = np.shape(design_derivatives)
+        nv = shape[2] if len(shape) == 3 else 0
+    nsens = out.size if sensitivity_dofs is None else np.size(sensitivity_dofs)
+    return estimate_memory(n=model.ndof + len(model._rows), ndof=model.ndof, nc=len(model._rows),
+                           nel=len(model._elements), nt=nsteps + 1, nout=out.size, solver=solver,
+                           nlaw=len(model.laws()), nv=nv, nsens=nsens, dmu=bool(want_dmu))
+
+
+def memory_estimate(model: Model, t_end, h=5e-4, *, store="all", solver="auto",
+                    design_derivatives=None, sensitivity_dofs=None,
+                    constraint_force_derivatives=False, **settings):
+    """The memory `simulate(model, t_end, h, ...)` with these arguments would need, without
+    running it (flexmbs.resources.MemoryEstimate: `total` bytes and its `parts`). Only the
+    arguments that change it are read; `settings` (simulate's other keywords) are accepted and
+    ignored, so that the same keywords can be passed to both."""
+    if not isinstance(model, Model):
+        raise ModelError(f"memory_estimate expects a flexmbs Model, got {type(model).__name__}")
+    nsteps = time_steps(t_end, h, math.inf)
+    n_unknowns = model.ndof + len(model._rows)
+    if isinstance(solver, str) and solver == "auto":
+        solver = "dense" if n_unknowns <= DENSE_MAX_UNKNOWNS else "klu"
+    if not isinstance(solver, str) or solver not in _SOLVERS:
+        raise ModelError(f"solver must be 'auto', 'dense' or 'klu', got {solver!r}")
+    want_dmu = bool(constraint_force_derivatives) and design_derivatives is not None
+    return _estimate(model, nsteps, stored_dofs(model, store), solver, design_derivatives,
+                     sensitivity_dofs, want_dmu)
+
+
 def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="all",
              solver="auto", newton="auto", reuse_jacobian=None, tol=1e-10, max_iter=20, max_cuts=6,
              kscale=None, penalty=None, q0=None, qd0=None, design_derivatives=None,
@@ -394,45 +451,17 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     if not isinstance(solver, str) or solver not in _SOLVERS:
         raise ModelError(f"solver must be 'auto', 'dense' or 'klu', got {solver!r}")
 
-    if isinstance(store, str):
-        if store != "all":
-            raise ModelError(f"store must be 'all' or a list of nodes/bodies, got {store!r}")
-        out = np.arange(model.ndof)
-    else:
-        if not isinstance(store, (list, tuple, np.ndarray)):
-            raise ModelError(f"store must be 'all' or a list of nodes/bodies, got {store!r}")
-        dofs = []
-        for item in store:
-            if hasattr(item, "dofs"):
-                if model.bodies.get(getattr(item, "name", None)) is not item:
-                    raise ModelError(f"store: body {getattr(item, 'name', item)!r} is not a body "
-                                     "of this model")
-                dofs.extend(item.dofs)
-            else:
-                node = model._check_node(item, "store")
-                dofs.extend([3 * node, 3 * node + 1, 3 * node + 2])
-        out = np.unique(np.asarray(dofs, int))
-        if out.size == 0:
-            raise ModelError("store is empty")
-
+    out = stored_dofs(model, store)
     # memory: estimated and checked before anything of the model's or the grid's size is built
-    nv_est = 0
-    if design_derivatives is not None:
-        shape = np.shape(design_derivatives)
-        nv_est = shape[2] if len(shape) == 3 else 0
-    nsens_est = out.size if sensitivity_dofs is None else np.size(sensitivity_dofs)
     if not isinstance(constraint_force_derivatives, (bool, np.bool_)):
         raise ModelError(f"constraint_force_derivatives must be True or False, got "
                          f"{constraint_force_derivatives!r}")
     if constraint_force_derivatives and design_derivatives is None:
         raise ModelError("constraint_force_derivatives=True needs design_derivatives=...")
     want_dmu = bool(constraint_force_derivatives)
-    est = estimate_memory(n=n_unknowns, ndof=model.ndof, nc=len(model._rows),
-                          nel=len(model._elements), nt=nsteps + 1, nout=out.size, solver=solver,
-                          nlaw=len(model.laws()), nv=nv_est, nsens=nsens_est,
-                          dmu=want_dmu)
+    est = _estimate(model, nsteps, out, solver, design_derivatives, sensitivity_dofs, want_dmu)
     check_memory(est, memory_limit, what=f"simulate (solver={solver!r}, {n_unknowns} unknowns, "
-                                         f"{nsteps} steps)")
+                                         f"{nsteps} steps, {out.size} stored coordinates)")
 
     t = h * np.arange(nsteps + 1)
     cm = model.compile()

@@ -212,9 +212,14 @@ class ScaledProblem:
             ev = _evaluation_from_log(recorded.pop(0), p)
             self.replayed += 1
         else:
+            want = gradient
+            if gradient and callable(getattr(self.problem, "used_responses", None)):
+                # only the objective's and the constraints' gradients: responses that are
+                # only reported are not differentiated
+                want = "used"
             t0 = time.perf_counter()
             try:
-                ev = self.problem.evaluate(p, gradient=gradient)
+                ev = self.problem.evaluate(p, gradient=want)
             finally:
                 self.evaluate_time_s += time.perf_counter() - t0
         if self._log is not None:

@@ -41,26 +41,35 @@ def _history(result, dofs, derivatives):
     return q, result.dq[:, s, :]
 
 
+def _reference(reference, dofs):
+    """(nt, len(dofs)) rigid-reference history of some coordinates: from a RigidMotion (only
+    those coordinates are computed) or an (nt, ndof) array."""
+    if hasattr(reference, "coordinates"):
+        return reference.coordinates(dofs)
+    return np.asarray(reference)[:, dofs]
+
+
 def deviation_terms(node, reference_q, result, term, frame_node=None, relative_node=None,
                     derivatives=False):
     """Scalar terms (ncomp, nt) of one Term and their gradients (ncomp, nt, nv) or None.
 
     node, relative_node, frame_node: node ids of the point, of the point it is measured from
-    (or None) and of the frame body's first node (None: ground); reference_q: (nt, ndof)."""
+    (or None) and of the frame body's first node (None: ground); reference_q: the rigid
+    reference, a flexmbs.kinematics.RigidMotion or its (nt, ndof) coordinates."""
     sl = [3 * node + 2] if term.component == "angle" else [3 * node, 3 * node + 1]
     q, dq = _history(result, sl, derivatives)
-    d = q - reference_q[:, sl]
+    d = q - _reference(reference_q, sl)
     if relative_node is not None:
         rl = [3 * relative_node + 2] if term.component == "angle" else \
             [3 * relative_node, 3 * relative_node + 1]
         qr, dqr = _history(result, rl, derivatives)
-        d = d - (qr - reference_q[:, rl])
+        d = d - (qr - _reference(reference_q, rl))
         if derivatives:
             dq = dq - dqr
     if term.component == "angle":
         return d.T, (np.moveaxis(dq, 1, 0) if derivatives else None)
     if frame_node is not None:
-        th = reference_q[:, 3 * frame_node + 2]
+        th = _reference(reference_q, [3 * frame_node + 2])[:, 0]
         c, s = np.cos(th), np.sin(th)
         d = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
         if derivatives:
