@@ -24,6 +24,8 @@ module generalized_alpha
     implicit none
     private
     public :: ga_settings, ga_stats, ga_simulate, ga_coefficients
+    ! for the adjoint (adjoint.f90): the static start and the scalings, recomputed exactly
+    public :: ga_state, static_equilibrium, mass_scale, diagonal_scale
     public :: NEWTON_FULL, NEWTON_REUSE, NEWTON_AUTO
     public :: GA_OK, GA_NEWTON_FAILED, GA_SINGULAR, GA_STATIC_FAILED, GA_INITIAL_SINGULAR, &
               GA_INCONSISTENT_INITIAL, GA_NONFINITE, GA_BAD_INPUT, GA_LINEAR_SOLVER, GA_NO_MEMORY

@@ -505,7 +505,9 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     res = Result(t=t, q=q_out.T, qd=qd_out.T, qdd=qdd_out.T, mu=mu_out[:cm.nc].T, dofs=out,
                   stats=st, wall_time=time.perf_counter() - t_start,
                   settings=dict(h=h, t_end=t_end, rho_inf=rho_inf, start=start, solver=solver,
-                                newton=newton),
+                                newton=newton, tol=float(tol), max_iter=int(max_iter),
+                                max_cuts=int(max_cuts), kscale=float(kscale or 0.0),
+                                penalty=float(penalty or 0.0), q0=q_init, qd0=qd_init),
                   sens_dofs=sdofs if nv else None,
                   dq=np.transpose(dq_out[:, :nv, :], (2, 0, 1)) if nv else None,
                   dmu=np.transpose(dmu_out[:cm.nc, :nv, :], (2, 0, 1)) if want_dmu else None)
