@@ -31,7 +31,16 @@ from flexmbs.responses.forces import constraint_force, joint_reaction
 from flexmbs.responses.stress import beam_stress
 from flexmbs.simulate import simulate
 
-__all__ = ["Problem", "Evaluation", "load_problem", "constraint_rows"]
+__all__ = ["Problem", "Evaluation", "load_problem", "constraint_rows", "GRADIENT_METHODS"]
+
+#: Gradient methods of Problem.evaluate (see Problem.gradient_method).
+GRADIENT_METHODS = ("direct", "adjoint", "auto")
+#: 'auto' takes the adjoint when the variables outnumber the aggregated functionals this many
+#: times, and are at least ADJOINT_MIN_VARIABLES: below, direct differentiation's extra
+#: right-hand sides (the factorization is Newton's) cost less than the adjoint's forward run
+#: with every state stored and its factorization per step
+ADJOINT_MARGIN = 4
+ADJOINT_MIN_VARIABLES = 16
 
 
 #: what an object needs to stand for a Problem in the optimizers (e.g. an analytic test problem)
@@ -85,6 +94,10 @@ class Evaluation:
     constraint_names: list
     stats: dict = field(default_factory=dict)
     wall_time: float = 0.0
+    #: how the gradients were computed: 'direct' (forward differentiation, every history's
+    #: gradient), 'adjoint' (the aggregated rows only: gradients of histories are None) or
+    #: None without gradients
+    gradient_method: str | None = None
 
     @property
     def feasible(self):
@@ -228,6 +241,9 @@ class Problem:
             vals, grads = [], []
             for b in r.bodies:
                 c, dc = mech.half_depths(x, b)
+                if gradient and result.dq is not None and dc.shape[1] < result.dq.shape[2]:
+                    # the adjoint's virtual variables (coordinates, forces) come first
+                    dc = np.hstack([np.zeros((dc.shape[0], result.dq.shape[2] - dc.shape[1])), dc])
                 bs = beam_stress(mech.model, result, b, dc=dc if gradient else None)
                 nt = bs.normal.shape[0]
                 vals.append(bs.normal.reshape(nt, -1))
@@ -271,13 +287,56 @@ class Problem:
         return {"x": (rc.x, rc.dx), "y": (rc.y, rc.dy),
                 "magnitude": (rc.magnitude, rc.dmagnitude)}[component]
 
-    def evaluate(self, x=None, gradient=True):
-        """Every response, the objective and the constraints at design x (user units)."""
+    def gradient_functionals(self):
+        """Number of aggregated time functionals of the objective and the constraints (rows of
+        a history aggregated over time, 'every_step' rows counting one per time step): the
+        right-hand sides of an adjoint pass."""
+        t = self.mechanism.t
+        n = 0
+        obj = self.description.objective
+        if obj is not None and not isinstance(self._resp[obj.response], Mass):
+            n += 1
+        for c in self.description.constraints:
+            if isinstance(self._resp[c.response], Mass):
+                continue
+            bounds = (c.upper is not None) + (c.lower is not None)
+            n += bounds * (t.size if c.over == "every_step" else 1)
+        return n
+
+    def gradient_method(self, method="direct"):
+        """The method `evaluate` uses for gradients: 'direct' or 'adjoint'; 'auto' takes the
+        adjoint when the design variables outnumber the aggregated functionals
+        (`gradient_functionals`) by ADJOINT_MARGIN times and at least ADJOINT_MIN_VARIABLES."""
+        if not isinstance(method, str) or method not in GRADIENT_METHODS:
+            raise ModelError(f"method must be one of {', '.join(map(repr, GRADIENT_METHODS))}, "
+                             f"got {method!r}")
+        if method != "auto":
+            return method
+        nv, nf = len(self.mechanism.variables), self.gradient_functionals()
+        if nf and nv >= ADJOINT_MIN_VARIABLES and nv > ADJOINT_MARGIN * nf:
+            return "adjoint"
+        return "direct"
+
+    def evaluate(self, x=None, gradient=True, method="direct"):
+        """Every response, the objective and the constraints at design x (user units).
+
+        method : {'direct', 'adjoint', 'auto'}, default 'direct'
+            How gradients are computed (`gradient_method`): direct differentiation (the
+            gradient of every history, Evaluation.gradients), or the discrete adjoint
+            (flexmbs.adjoint: the objective's and constraints' rows only, for about the cost
+            of one more simulation whatever the number of variables; the histories'
+            gradients are None). Evaluation.gradient_method tells which was used; the adjoint
+            falls back to direct differentiation when the run cut a step."""
         t0 = _time.perf_counter()
         mech = self.mechanism
         x = mech.start if x is None else mech.design_values(x)
         gradient = bool(gradient) and bool(mech.variables)
         timed = [n for n, r in self._resp.items() if not isinstance(r, Mass)]
+        chosen = self.gradient_method(method)
+        if gradient and timed and chosen == "adjoint":
+            ev = self._evaluate_adjoint(x, timed, t0)
+            if ev is not None:
+                return ev
         result = self.simulate(x, gradient=gradient, responses=timed) if timed else None
         values, grads = {}, {}
         for name, r in self._resp.items():
@@ -293,7 +352,80 @@ class Problem:
                           objective=f, d_objective=df if gradient else None, constraints=cons,
                           jacobian=jac, constraint_names=names,
                           stats=result.stats if result is not None else {},
-                          wall_time=_time.perf_counter() - t0)
+                          wall_time=_time.perf_counter() - t0,
+                          gradient_method="direct" if gradient else None)
+
+    def _evaluate_adjoint(self, x, timed, t0):
+        """evaluate() with the gradients of the objective and constraint rows by the discrete
+        adjoint; None when the forward run cut a step (the caller then differentiates
+        directly).
+
+        The responses are evaluated on the run with 'virtual' design variables: one per
+        differentiated coordinate and constraint row (dq, dmu identities) and the real ones
+        (explicit dependences, e.g. a stress's section depth): their gradients (nt, V) are
+        the per-step partials. The aggregation weights of each row over time come from
+        constraint_rows with identity gradients; weights times partials are the adjoint's
+        right-hand sides (flexmbs.adjoint.adjoint_gradient)."""
+        from dataclasses import replace
+
+        from flexmbs.adjoint import adjoint_gradient
+
+        mech = self.mechanism
+        model = mech.set_design(x)
+        result = self.simulate(x, gradient=False, responses=timed, store="all")
+        if result.stats.get("step_cuts", 0):
+            return None
+        nodes = self._nodes_needed(timed)
+        sdofs = np.array([3 * n + k for n in (nodes or [0]) for k in range(3)])
+        t = mech.t
+        nt, nsens, nc, nv = t.size, sdofs.size, result.mu.shape[1], len(mech.variables)
+        nvirt = nsens + nc + nv
+        dq = np.zeros((nt, nsens, nvirt))
+        dq[:, np.arange(nsens), np.arange(nsens)] = 1.0
+        dmu = np.zeros((nt, nc, nvirt))
+        dmu[:, np.arange(nc), nsens + np.arange(nc)] = 1.0
+        vres = replace(result, sens_dofs=sdofs, dq=dq, dmu=dmu)
+        values, partials, grads = {}, {}, {}
+        for name, r in self._resp.items():
+            if isinstance(r, Mass):
+                values[name], grads[name] = self._response(r, x, None, True)
+            else:
+                values[name], partials[name] = self._response(r, x, vres, True)
+                grads[name] = np.zeros((nt, nv))
+        # weights over time of every row (identity gradients), and the scalar responses' part
+        eye = np.eye(nt)
+        wgrads = {n: (eye if n in partials else np.zeros(nt)) for n in self._resp}
+        cons, wrows, names, _ = constraint_rows(self.description, values, wgrads, t, nt, True)
+        _, jac, _, _ = constraint_rows(self.description, values, grads, t, nv, True)
+        obj = self.description.objective
+        f = df = None
+        rows = [(names[i], wrows[i]) for i in range(len(names))]
+        if obj is not None:
+            f, df = _scalar(values[obj.response], grads[obj.response], obj.over, None, t)
+            _, wobj = _scalar(values[obj.response], wgrads[obj.response], obj.over, None, t)
+            rows.append((obj.response, np.atleast_1d(wobj)))
+        live = [k for k, (n, w) in enumerate(rows) if n in partials and np.any(w)]
+        out = np.zeros((len(rows), nv))
+        if live:
+            cm = model.compile()
+            gq = np.zeros((nt, cm.ndof, len(live)))
+            gmu = np.zeros((nt, nc, len(live)))
+            for i, k in enumerate(live):
+                n, w = rows[k]
+                p = np.asarray(partials[n], float).reshape(nt, nvirt)
+                gq[:, sdofs, i] = w[:, None] * p[:, :nsens]
+                gmu[:, :, i] = w[:, None] * p[:, nsens:nsens + nc]
+                out[k] = w @ p[:, nsens + nc:]
+            dprop = mech.element_property_derivatives(x)
+            out[live] += adjoint_gradient(model, result, dprop, gq, gmu).T
+        jac = jac + out[:len(names)]
+        if obj is not None:
+            df = np.asarray(df, float) + out[-1]
+        return Evaluation(x=x, t=t, values=values,
+                          gradients={n: (None if n in partials else g) for n, g in grads.items()},
+                          objective=f, d_objective=df, constraints=cons, jacobian=jac,
+                          constraint_names=names, stats=result.stats,
+                          wall_time=_time.perf_counter() - t0, gradient_method="adjoint")
 
 
     # ------------------------------------------------------------------ summaries
