@@ -41,6 +41,9 @@ GRADIENT_METHODS = ("direct", "adjoint", "auto")
 #: with every state stored and its factorization per step
 ADJOINT_MARGIN = 4
 ADJOINT_MIN_VARIABLES = 16
+#: the adjoint evaluates the responses' per-step partials on identity derivatives, in chunks of
+#: columns of at most this many bytes
+ADJOINT_CHUNK_BYTES = 32e6
 
 
 #: what an object needs to stand for a Problem in the optimizers (e.g. an analytic test problem)
@@ -241,9 +244,11 @@ class Problem:
             vals, grads = [], []
             for b in r.bodies:
                 c, dc = mech.half_depths(x, b)
-                if gradient and result.dq is not None and dc.shape[1] < result.dq.shape[2]:
-                    # the adjoint's virtual variables (coordinates, forces) come first
-                    dc = np.hstack([np.zeros((dc.shape[0], result.dq.shape[2] - dc.shape[1])), dc])
+                virtual = getattr(result, "_virtual", None)
+                if gradient and virtual is not None:
+                    # the adjoint's virtual variables: (coordinates, forces, design) columns
+                    front, cols = virtual
+                    dc = np.hstack([np.zeros((dc.shape[0], front)), dc])[:, cols]
                 bs = beam_stress(mech.model, result, b, dc=dc if gradient else None)
                 nt = bs.normal.shape[0]
                 vals.append(bs.normal.reshape(nt, -1))
@@ -380,18 +385,29 @@ class Problem:
         t = mech.t
         nt, nsens, nc, nv = t.size, sdofs.size, result.mu.shape[1], len(mech.variables)
         nvirt = nsens + nc + nv
-        dq = np.zeros((nt, nsens, nvirt))
-        dq[:, np.arange(nsens), np.arange(nsens)] = 1.0
-        dmu = np.zeros((nt, nc, nvirt))
-        dmu[:, np.arange(nc), nsens + np.arange(nc)] = 1.0
-        vres = replace(result, sens_dofs=sdofs, dq=dq, dmu=dmu)
         values, partials, grads = {}, {}, {}
         for name, r in self._resp.items():
             if isinstance(r, Mass):
                 values[name], grads[name] = self._response(r, x, None, True)
             else:
-                values[name], partials[name] = self._response(r, x, vres, True)
+                partials[name] = []
                 grads[name] = np.zeros((nt, nv))
+        # the virtual columns in chunks of at most ADJOINT_CHUNK_BYTES of dq
+        width = max(1, min(nvirt, int(ADJOINT_CHUNK_BYTES // (8.0 * nt * max(nsens, nc, 1)))))
+        for c0 in range(0, nvirt, width):
+            cols = np.arange(c0, min(c0 + width, nvirt))
+            dq = np.zeros((nt, nsens, cols.size))
+            k = np.flatnonzero(cols < nsens)
+            dq[:, cols[k], k] = 1.0
+            dmu = np.zeros((nt, nc, cols.size))
+            k = np.flatnonzero((cols >= nsens) & (cols < nsens + nc))
+            dmu[:, cols[k] - nsens, k] = 1.0
+            vres = replace(result, sens_dofs=sdofs, dq=dq, dmu=dmu)
+            vres._virtual = (nsens + nc, cols)
+            for name in partials:
+                values[name], part = self._response(self._resp[name], x, vres, True)
+                partials[name].append(np.asarray(part, float).reshape(nt, cols.size))
+        partials = {n: np.concatenate(p, axis=1) for n, p in partials.items()}
         # weights over time of every row (identity gradients), and the scalar responses' part
         eye = np.eye(nt)
         wgrads = {n: (eye if n in partials else np.zeros(nt)) for n in self._resp}
@@ -412,7 +428,7 @@ class Problem:
             gmu = np.zeros((nt, nc, len(live)))
             for i, k in enumerate(live):
                 n, w = rows[k]
-                p = np.asarray(partials[n], float).reshape(nt, nvirt)
+                p = partials[n]
                 gq[:, sdofs, i] = w[:, None] * p[:, :nsens]
                 gmu[:, :, i] = w[:, None] * p[:, nsens:nsens + nc]
                 out[k] = w @ p[:, nsens + nc:]
