@@ -116,7 +116,7 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
                     h, rho_inf, tol, max_iter, max_cuts, solver, newton, static_start, &
                     kscale, penalty, out_dofs, q_out, qd_out, qdd_out, mu_out, stats, status, info, &
                     nv, nva, nsens, dprop, sens_dofs, dq_out, &
-                    nsd, nsda, sd_dofs, sd_prop, map_sd, want_dmu, ndmu, dmu_out)
+                    nsd, nsda, sd_dofs, sd_prop, map_sd, want_dmu, ndmu, dmu_out, polish)
     use iso_c_binding, only: c_double, c_int
     use model_data, only: mbs_model, model_from_arrays
     use generalized_alpha, only: ga_settings, ga_stats, ga_simulate, GA_NO_MEMORY, MEM_MODEL
@@ -157,6 +157,9 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     integer(c_int), intent(in) :: want_dmu                  !! 1: return d(mu)/dp (needs nv > 0)
     integer(c_int), intent(in) :: ndmu                      !! extent: nca when want_dmu, else 1
     real(c_double), intent(out) :: dmu_out(ndmu, nva, nsteps + 1)  !! d(mu)/dp on the grid
+    !> 1: modified Newton takes full Newton steps from each step's second iteration (states
+    !! converged as for the direct method or the adjoint), 0: not
+    integer(c_int), intent(in) :: polish
     type(mbs_model) :: m
     type(ga_settings) :: s
     type(ga_stats) :: st
@@ -185,6 +188,7 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     s%static_start = static_start /= 0
     s%kscale = kscale
     s%penalty = penalty
+    s%polish = polish /= 0
     if (nv > 0 .and. want_dmu /= 0 .and. ndmu >= nc) then
         call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
                          mu_out, st, stat, info, dprop(:, :, 1:nv), int(sens_dofs), dq_out(:, 1:nv, :), &

@@ -95,6 +95,10 @@ module generalized_alpha
         logical :: static_start = .false.!! start from static equilibrium at t = 0
         real(wp) :: kscale = 0           !! scaling k of eq. (1); <= 0: automatic
         real(wp) :: penalty = 0          !! penalty p of eq. (1); <= 0: automatic (= k)
+        !> modified Newton (reuse, auto): full Newton steps from each step's second iteration,
+        !! as with design derivatives: the states converge as full Newton's do (the discrete
+        !! adjoint linearizes about them: adjoint.f90)
+        logical :: polish = .false.
     end type ga_settings
 
     !> Work counters returned with the result.
@@ -436,7 +440,7 @@ contains
                 ! matrix (full Newton steps): the derivative solve needs the factored
                 ! tangent within the tolerance of the converged state anyway (sens_step),
                 ! and the step then converges like full Newton, in one factorization
-                if (nv > 0 .and. mod_step .and. it >= 2) refresh = .true.
+                if ((nv > 0 .or. s%polish) .and. mod_step .and. it >= 2) refresh = .true.
                 fresh = refresh .or. .not. fact_valid .or. fact_h /= hh
                 ! the iteration matrix is assembled with the residual, in one pass over the
                 ! elements, whenever it is factored

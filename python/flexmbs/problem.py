@@ -186,7 +186,7 @@ class Problem:
     def _needs_forces(self, names):
         return any(isinstance(self._resp[n], (Torque, Reaction)) for n in names)
 
-    def simulate(self, x=None, *, gradient=False, responses=None, store=None):
+    def simulate(self, x=None, *, gradient=False, responses=None, store=None, polish=False):
         """Simulate design x (default: start); with gradient=True the design derivatives of
         the coordinates the responses need (all responses, or `responses`), and those of the
         constraint multipliers (Result.dmu) if a torque or reaction response is among them."""
@@ -202,6 +202,8 @@ class Problem:
             newton = "reuse" if ts.reuse_jacobian else "full"
         kw = dict(rho_inf=ts.rho_inf, start=ts.start, newton=newton, q0=q0,
                   qd0=None if ts.start == "static" else qd0)
+        if polish:
+            kw["polish"] = True
         if store is None:
             store = nodes if nodes else "all"
         forces = self._needs_forces(names)
@@ -377,7 +379,7 @@ class Problem:
 
         mech = self.mechanism
         model = mech.set_design(x)
-        result = self.simulate(x, gradient=False, responses=timed, store="all")
+        result = self.simulate(x, gradient=False, responses=timed, store="all", polish=True)
         if result.stats.get("step_cuts", 0):
             return None
         nodes = self._nodes_needed(timed)
