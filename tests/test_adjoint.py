@@ -48,11 +48,14 @@ def test_robot_ks_adjoint_equals_direct(start):
     assert adj.gradients["deviation_28"] is None          # histories: not by the adjoint
 
 
-@pytest.mark.parametrize("over", ["ks", "pnorm", "max"])
-def test_fourbar_aggregates_adjoint_equal_direct(over):
-    """Four-bar (cases/fourbar.toml, 0.04 s): KS, p-norm and max aggregates of the deviation
-    of point A, adjoint against direct differentiation, 1e-8 relative."""
-    p = _problem("fourbar", 0.04, over)
+@pytest.mark.parametrize("over,more", [("ks", {}), ("pnorm", {}), ("max", {}),
+                                       ("ks", {"constraints.0.window": [0.02, 0.04],
+                                               "constraints.0.parameter": 30.0})])
+def test_fourbar_aggregates_adjoint_equal_direct(over, more):
+    """Four-bar (cases/fourbar.toml, 0.05 s): KS, p-norm and max aggregates of the deviation
+    of point A, and KS over a window with its own rho: adjoint against direct
+    differentiation, 1e-8 relative."""
+    p = _problem("fourbar", 0.05, over, **more)
     direct = p.evaluate(p.start, method="direct")
     adj = p.evaluate(p.start, method="adjoint")
     assert _rel(adj.jacobian, direct.jacobian) < REL
