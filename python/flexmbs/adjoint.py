@@ -30,7 +30,7 @@ from flexmbs.resources import format_bytes, limit_source
 from flexmbs.resources import memory_limit as _memory_limit
 from flexmbs.simulate import Result, simulate
 
-__all__ = ["adjoint_gradient", "simulate_for_adjoint", "adjoint_memory"]
+__all__ = ["adjoint_gradient", "simulate_for_adjoint", "adjoint_memory", "check_adjoint_memory"]
 
 _SOLVERS = {"dense": 1, "klu": 2}
 
@@ -40,6 +40,19 @@ def adjoint_memory(ndof, nc, nt, nf, nel=0):
     functionals (ndof + nc per step and functional) and the per-element result (5 nel nf).
     The forward run's stored states (3 ndof + nc per step) are counted by `simulate`."""
     return 8.0 * (nt * nf * (ndof + max(nc, 1)) + 5 * max(nel, 1) * nf + 12 * ndof * nf)
+
+
+def check_adjoint_memory(ndof, nc, nt, nf, nel=0, memory_limit=None):
+    """ResourceError when a backward pass (`adjoint_memory`) does not fit in the memory limit
+    (as `simulate`'s memory_limit)."""
+    need = adjoint_memory(ndof, nc, nt, nf, nel)
+    avail = _memory_limit(memory_limit)
+    if need > avail:
+        raise ResourceError(f"adjoint_gradient: the per-step partials of {nf} functionals over "
+                            f"{nt} time points need {format_bytes(need)}, more than "
+                            f"{limit_source(memory_limit)} ({format_bytes(avail)}): fewer "
+                            "functionals, a coarser step or direct differentiation",
+                            required=need, available=avail)
 
 
 def simulate_for_adjoint(model, t_end, h=5e-4, **kwargs):
@@ -130,14 +143,7 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
     nv = dprop.shape[2]
     gq = _seed("dG_dq", dG_dq, nt, cm.ndof)
     nf = gq.shape[2]
-    need = adjoint_memory(cm.ndof, cm.nc, nt, nf, cm.nel)
-    avail = _memory_limit(memory_limit)
-    if need > avail:
-        raise ResourceError(f"adjoint_gradient: the per-step partials of {nf} functionals over "
-                            f"{nt} time points need {format_bytes(need)}, more than "
-                            f"{limit_source(memory_limit)} ({format_bytes(avail)}): fewer "
-                            "functionals, a coarser step or direct differentiation",
-                            required=need, available=avail)
+    check_adjoint_memory(cm.ndof, cm.nc, nt, nf, cm.nel, memory_limit)
     nca = max(cm.nc, 1)
     gq_f = np.zeros((cm.ndof, nf, nt), order="F")
     gq_f[...] = np.transpose(gq, (1, 2, 0))

@@ -375,10 +375,12 @@ class Problem:
         right-hand sides (flexmbs.adjoint.adjoint_gradient)."""
         from dataclasses import replace
 
-        from flexmbs.adjoint import adjoint_gradient
+        from flexmbs.adjoint import adjoint_gradient, check_adjoint_memory
 
         mech = self.mechanism
         model = mech.set_design(x)
+        cm = model.compile()
+        check_adjoint_memory(cm.ndof, cm.nc, mech.t.size, self.gradient_functionals(), cm.nel)
         result = self.simulate(x, gradient=False, responses=timed, store="all", polish=True)
         if result.stats.get("step_cuts", 0):
             return None
@@ -410,22 +412,32 @@ class Problem:
                 values[name], part = self._response(self._resp[name], x, vres, True)
                 partials[name].append(np.asarray(part, float).reshape(nt, cols.size))
         partials = {n: np.concatenate(p, axis=1) for n, p in partials.items()}
-        # weights over time of every row (identity gradients), and the scalar responses' part
-        eye = np.eye(nt)
-        wgrads = {n: (eye if n in partials else np.zeros(nt)) for n in self._resp}
-        cons, wrows, names, _ = constraint_rows(self.description, values, wgrads, t, nt, True)
-        _, jac, _, _ = constraint_rows(self.description, values, grads, t, nv, True)
+        # the scalar responses' part, then the weights over time of every row: the rows'
+        # gradients for identity gradients of the histories, in chunks of steps
+        cons, jac, names, _ = constraint_rows(self.description, values, grads, t, nv, True)
         obj = self.description.objective
         f = df = None
-        rows = [(names[i], wrows[i]) for i in range(len(names))]
         if obj is not None:
             f, df = _scalar(values[obj.response], grads[obj.response], obj.over, None, t)
-            _, wobj = _scalar(values[obj.response], wgrads[obj.response], obj.over, None, t)
-            rows.append((obj.response, np.atleast_1d(wobj)))
+        wrows = np.zeros((len(names), nt))
+        wobj = np.zeros(nt)
+        width = max(1, min(nt, int(ADJOINT_CHUNK_BYTES // (8.0 * nt))))
+        for c0 in range(0, nt, width):
+            c1 = min(c0 + width, nt)
+            block = np.zeros((nt, c1 - c0))
+            block[np.arange(c0, c1), np.arange(c1 - c0)] = 1.0
+            wgrads = {n: (block if n in partials else np.zeros(c1 - c0)) for n in self._resp}
+            _, wrows[:, c0:c1], _, _ = constraint_rows(self.description, values, wgrads, t,
+                                                       c1 - c0, True)
+            if obj is not None:
+                wobj[c0:c1] = _scalar(values[obj.response], wgrads[obj.response], obj.over,
+                                      None, t)[1]
+        rows = [(names[i], wrows[i]) for i in range(len(names))]
+        if obj is not None:
+            rows.append((obj.response, wobj))
         live = [k for k, (n, w) in enumerate(rows) if n in partials and np.any(w)]
         out = np.zeros((len(rows), nv))
         if live:
-            cm = model.compile()
             gq = np.zeros((nt, cm.ndof, len(live)))
             gmu = np.zeros((nt, nc, len(live)))
             for i, k in enumerate(live):
