@@ -232,3 +232,18 @@ def test_automatic_newton_paper_horizon(monkeypatch):
     with pytest.raises(ModelError, match="newton='auto' without polish=True"):
         adjoint_gradient(model, run, mech.element_property_derivatives(mech.start),
                          np.zeros((run.t.size, model.ndof)))
+
+
+def test_random_designs_robot_static():
+    """Property: over 3 random designs within the bounds (robot from static equilibrium,
+    0.03 s, KS and p-norm of the deviation), the adjoint gradient equals direct
+    differentiation to 1e-8 relative."""
+    rng = np.random.default_rng(18)
+    for over in ("ks", "pnorm"):
+        p = _problem("robot_2dof", 0.03, over, "static")
+        lo, hi = p.lower, p.upper
+        for _ in range(3):
+            x = lo + (hi - lo) * rng.uniform(0.1, 0.9, lo.size)
+            direct = p.evaluate(x, method="direct")
+            adj = p.evaluate(x, method="adjoint")
+            assert _rel(adj.jacobian, direct.jacobian) < REL
