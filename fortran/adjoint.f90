@@ -11,9 +11,10 @@
 !!
 !! The iteration matrix of every step is assembled and factored again at the stored
 !! converged state (the exact tangent: the direct method uses the factorization of the
-!! step's last Newton iteration, within the Newton tolerance of it). Only steps of the
-!! stored grid are handled: a forward run whose steps were cut (sub-steps not stored) is
-!! refused by the caller. Nothing is printed; every allocation is checked.
+!! step's last Newton iteration, within the Newton tolerance of it). The states are those of
+!! every (sub-)step of the forward run, in order (its tape: a cut step's sub-steps too), with
+!! the step that led to each; the partials are given on the output grid. Nothing is printed;
+!! every allocation is checked.
 module adjoint
     use flexmbs_kinds, only: wp
     use beam2d, only: beam_internal_forces, MAX_EDOF
@@ -35,19 +36,21 @@ contains
 
     !> Backward (adjoint) recursion over a converged forward run.
     !!
-    !! qt, qdt, qddt (ndof, nsteps + 1) and mut (>= nc, nsteps + 1): every coordinate,
-    !! velocity, acceleration and physical multiplier of the forward run on its grid (its
-    !! q_out, qd_out, qdd_out, mu_out with every coordinate stored), run with the settings s
-    !! from q0, qd0. gq (ndof, nf, nsteps + 1), gmu (>= nc, nf, nsteps + 1): dG_f/dq_j and
-    !! dG_f/dmu_j. Out: grad(v, f) = dG_f/dp_v and gprop(:, e, f) = dG_f/dprop_e.
-    !! status: GA_* codes; info = [time, 0, 0, extra] on failure.
-    subroutine ga_adjoint(m, s, ap, ai, q0, qd0, qt, qdt, qddt, mut, gq, gmu, dprop, grad, gprop, &
-                          status, info)
+    !! qt, qdt, qddt (ndof, ncol) and mut (>= nc, ncol): every coordinate, velocity,
+    !! acceleration and physical multiplier of every converged (sub-)step of the forward run
+    !! (its tape, ga_simulate), run with the settings s from q0, qd0; th(c): the step that led
+    !! to column c; grid(j + 1): the column of grid point j. gq (ndof, nf, nsteps + 1), gmu
+    !! (>= nc, nf, nsteps + 1): dG_f/dq_j and dG_f/dmu_j on the grid. Out: grad(v, f) =
+    !! dG_f/dp_v and gprop(:, e, f) = dG_f/dprop_e. status: GA_* codes; info = [time, 0, 0,
+    !! extra] on failure.
+    subroutine ga_adjoint(m, s, ap, ai, q0, qd0, qt, qdt, qddt, mut, th, grid, gq, gmu, dprop, &
+                          grad, gprop, status, info)
         type(mbs_model), intent(in) :: m
         type(ga_settings), intent(in) :: s
         integer, intent(in) :: ap(:), ai(:)
         real(wp), intent(in) :: q0(m%ndof), qd0(m%ndof)
-        real(wp), intent(in) :: qt(:, :), qdt(:, :), qddt(:, :), mut(:, :)
+        real(wp), intent(in) :: qt(:, :), qdt(:, :), qddt(:, :), mut(:, :), th(:)
+        integer, intent(in) :: grid(:)
         real(wp), intent(in) :: gq(:, :, :), gmu(:, :, :)
         real(wp), intent(in) :: dprop(:, :, :)
         real(wp), intent(out) :: grad(:, :), gprop(:, :, :)
@@ -57,8 +60,9 @@ contains
         real(wp), allocatable :: vals(:), fgrav(:), qb(:, :), qdb(:, :), qddb(:, :), ab(:, :)
         real(wp), allocatable :: apb(:, :), qhb(:, :), vhb(:, :), z(:, :), w(:, :), acc(:)
         logical, allocatable :: stiff(:), mass(:)
+        integer, allocatable :: gidx(:)
         real(wp) :: alpha_m, alpha_f, gamma, beta, h, betap, gammap, cf, kdyn, pdyn, t, k0
-        integer :: nf, nt, nv, j, f, e, v, st, ierr, n, nd, nc
+        integer :: nf, nt, nv, j, f, e, v, st, ierr, n, nd, nc, ncol
 
         status = GA_OK
         info = 0
@@ -70,16 +74,21 @@ contains
         nt = s%nsteps + 1
         nf = size(gq, 2)
         nv = size(dprop, 3)
+        ncol = 0
+        if (size(grid) >= nt .and. nt >= 1) ncol = grid(nt)
         if (.not. (s%h > 0) .or. s%rho_inf < 0 .or. s%rho_inf > 1 .or. s%nsteps < 0 .or. &
-            size(qt, 2) < nt .or. size(gq, 3) < nt .or. size(gmu, 2) /= nf .or. &
+            size(grid) < nt .or. ncol < nt .or. size(qt, 2) < ncol .or. size(th) < ncol .or. &
+            size(gq, 3) < nt .or. size(gmu, 2) /= nf .or. &
             size(grad, 1) /= nv .or. size(grad, 2) /= nf .or. size(gprop, 3) /= nf) then
             status = GA_BAD_INPUT
             return
         end if
+        if (grid(1) /= 1 .or. any(grid(2:nt) <= grid(1:nt - 1)) .or. &
+            .not. all(th(2:ncol) > 0)) then
+            status = GA_BAD_INPUT
+            return
+        end if
         call ga_coefficients(s%rho_inf, alpha_m, alpha_f, gamma, beta)
-        h = s%h
-        betap = (1 - alpha_m) / (beta * h**2 * (1 - alpha_f))
-        gammap = gamma / (beta * h)
         cf = (1 - alpha_f) / (1 - alpha_m)
 
         if (s%solver == SOLVER_KLU) then
@@ -95,7 +104,7 @@ contains
         end if
         allocate (vals(m%nnz), fgrav(nd), qb(nd, nf), qdb(nd, nf), qddb(nd, nf), ab(nd, nf), &
                   apb(nd, nf), qhb(nd, nf), vhb(nd, nf), z(n, nf), w(nd, nf), acc(nd), &
-                  stiff(max(m%nel, 1)), mass(max(m%nel, 1)), stat=ierr)
+                  stiff(max(m%nel, 1)), mass(max(m%nel, 1)), gidx(ncol), stat=ierr)
         if (ierr /= 0) then
             status = GA_NO_MEMORY
             info = [0.0_wp, 8.0_wp * (m%nnz + nd * (9.0_wp * nf + 2) + n * nf), 0.0_wp, 5.0_wp]
@@ -103,12 +112,18 @@ contains
             return
         end if
         call mass_times(m, m%gacc, fgrav)
+        ! grid index of every column (0: a sub-step of a cut step, no partials)
+        gidx = 0
+        do j = 1, nt
+            gidx(grid(j)) = j
+        end do
         do e = 1, m%nel
             stiff(e) = any(dprop(1:3, e, :) /= 0)
             mass(e) = any(dprop(4:5, e, :) /= 0)
         end do
         kdyn = s%kscale
-        if (.not. (kdyn > 0)) kdyn = diagonal_scale(m, qt(:, 1), betap, vals)
+        if (.not. (kdyn > 0)) kdyn = diagonal_scale(m, qt(:, 1), &
+            (1 - alpha_m) / (beta * s%h**2 * (1 - alpha_f)), vals)
         pdyn = s%penalty
         if (.not. (pdyn > 0)) pdyn = kdyn
 
@@ -117,9 +132,13 @@ contains
         qdb = 0
         qddb = 0
         ab = 0
-        do j = nt, 2, -1
+        t = s%nsteps * s%h
+        do j = ncol, 2, -1
             ! step from column j - 1 (state n) to column j (state n + 1), eqs. (A3)-(A7)
-            t = (j - 2) * h + h
+            h = th(j)
+            betap = (1 - alpha_m) / (beta * h**2 * (1 - alpha_f))
+            gammap = gamma / (beta * h)
+            if (gidx(j) > 0) t = (gidx(j) - 1) * s%h
             ! a_{n+1} = ap + cf qdd_{n+1}
             apb = ab
             qddb = qddb + cf * ab
@@ -127,7 +146,10 @@ contains
             vhb = qdb
             qhb = -gammap * qdb - betap * qddb
             z(1:nd, :) = qb + gammap * qdb + betap * qddb
-            if (nc > 0) z(nd + 1:, :) = kdyn * gmu(1:nc, :, j)
+            if (nc > 0) then
+                z(nd + 1:, :) = 0
+                if (gidx(j) > 0) z(nd + 1:, :) = kdyn * gmu(1:nc, :, gidx(j))
+            end if
             ! transposed solve with the iteration matrix at the converged state n + 1
             call iteration_matrix(m, qt(:, j), qdt(:, j), mut(1:nc, j), t, betap, 1.0_wp, gammap, &
                                   kdyn, pdyn, vals)
@@ -148,12 +170,14 @@ contains
             end do
             ! Qhat = q_n + h qd_n + h^2 ((1/2 - beta) a_n + beta ap),
             ! Vhat = qd_n + h ((1 - gamma) a_n + gamma ap), ap = (alpha_f qdd_n - alpha_m a_n) / (1 - alpha_m)
-            qb = qhb + gq(:, :, j - 1)
+            qb = qhb
+            if (gidx(j - 1) > 0) qb = qb + gq(:, :, gidx(j - 1))
             qdb = h * qhb + vhb
             ab = h**2 * (0.5_wp - beta) * qhb + h * (1 - gamma) * vhb
             apb = apb + h**2 * beta * qhb + h * gamma * vhb
             qddb = alpha_f / (1 - alpha_m) * apb
             ab = ab - alpha_m / (1 - alpha_m) * apb
+            t = t - h
         end do
 
         ! --- initial state: a_0 = qdd_0 ------------------------------------------------

@@ -116,7 +116,8 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
                     h, rho_inf, tol, max_iter, max_cuts, solver, newton, static_start, &
                     kscale, penalty, out_dofs, q_out, qd_out, qdd_out, mu_out, stats, status, info, &
                     nv, nva, nsens, dprop, sens_dofs, dq_out, &
-                    nsd, nsda, sd_dofs, sd_prop, map_sd, want_dmu, ndmu, dmu_out, polish)
+                    nsd, nsda, sd_dofs, sd_prop, map_sd, want_dmu, ndmu, dmu_out, polish, &
+                    ntape, tape_q, tape_qd, tape_qdd, tape_mu, tape_h, tape_grid, ntape_used)
     use iso_c_binding, only: c_double, c_int
     use model_data, only: mbs_model, model_from_arrays
     use generalized_alpha, only: ga_settings, ga_stats, ga_simulate, GA_NO_MEMORY, MEM_MODEL
@@ -160,12 +161,23 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     !> 1: modified Newton takes full Newton steps from each step's second iteration (states
     !! converged as for the direct method or the adjoint), 0: not
     integer(c_int), intent(in) :: polish
+    !> tape of every (sub-)step for the adjoint (generalized_alpha.f90): kept when ntape >=
+    !! nsteps + 1 (status 10 when the sub-steps need more columns); extent 1 otherwise
+    integer(c_int), intent(in) :: ntape
+    real(c_double), intent(out) :: tape_q(ndof, ntape), tape_qd(ndof, ntape), tape_qdd(ndof, ntape)
+    real(c_double), intent(out) :: tape_mu(nca, ntape), tape_h(ntape)
+    integer(c_int), intent(out) :: tape_grid(nsteps + 1)     !! column of every grid point
+    integer(c_int), intent(out) :: ntape_used                !! columns used
+    integer :: tgrid(nsteps + 1), tused
     type(mbs_model) :: m
     type(ga_settings) :: s
     type(ga_stats) :: st
     integer :: stat
     real(c_double) :: nbytes
     q_out = 0; qd_out = 0; qdd_out = 0; mu_out = 0; dq_out = 0; dmu_out = 0; stats = 0; info = 0
+    tape_q = 0; tape_qd = 0; tape_qdd = 0; tape_mu = 0; tape_h = 0; tape_grid = 0; ntape_used = 0
+    tgrid = 0
+    tused = 0
     call model_from_arrays(m, int(ndof), int(nc), int(nel), int(nload), int(nlaw), int(nnz), &
                            qref, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
                            ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, &
@@ -192,16 +204,22 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     if (nv > 0 .and. want_dmu /= 0 .and. ndmu >= nc) then
         call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
                          mu_out, st, stat, info, dprop(:, :, 1:nv), int(sens_dofs), dq_out(:, 1:nv, :), &
-                         dmu_out(:, 1:nv, :))
+                         dmu_out(:, 1:nv, :), tape_q=tape_q, tape_qd=tape_qd, tape_qdd=tape_qdd, &
+                         tape_mu=tape_mu, tape_h=tape_h, tape_grid=tgrid, ntape=tused)
     else if (nv > 0) then
         call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
-                         mu_out, st, stat, info, dprop(:, :, 1:nv), int(sens_dofs), dq_out(:, 1:nv, :))
+                         mu_out, st, stat, info, dprop(:, :, 1:nv), int(sens_dofs), dq_out(:, 1:nv, :), &
+                         tape_q=tape_q, tape_qd=tape_qd, tape_qdd=tape_qdd, tape_mu=tape_mu, &
+                         tape_h=tape_h, tape_grid=tgrid, ntape=tused)
     else
         dq_out = 0
         call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
-                         mu_out, st, stat, info)
+                         mu_out, st, stat, info, tape_q=tape_q, tape_qd=tape_qd, tape_qdd=tape_qdd, &
+                         tape_mu=tape_mu, tape_h=tape_h, tape_grid=tgrid, ntape=tused)
     end if
     status = int(stat, c_int)
+    tape_grid = int(tgrid, c_int)
+    ntape_used = int(tused, c_int)
     stats = int([st%newton_iterations, st%factorizations, st%residual_evaluations, &
                  st%step_cuts, st%static_iterations, st%steps, st%sensitivity_factorizations], &
                 c_int)
@@ -209,9 +227,10 @@ end subroutine simulate
 
 !> Discrete adjoint of a converged simulation (adjoint.f90, docs/adjoint.md): the design
 !! gradients grad(v, f) of nf functionals G_f = sum_j gq(:, f, j) . q_j + gmu(:, f, j) . mu_j
-!! of the solution, from the stored states of a forward run with the same model, settings,
-!! q0 and qd0 and every coordinate stored (qt, qdt, qddt, mut: its q_out, qd_out, qdd_out,
-!! mu_out). gprop(:, e, f) = dG_f/d[EA, kGA, EI, rhoA, rhoI]_e. status as `simulate`.
+!! of the solution, from the tape of a forward run with the same model, settings, q0 and
+!! qd0 (qt, qdt, qddt, mut, th, grid: its tape_q, tape_qd, tape_qdd, tape_mu, tape_h,
+!! tape_grid; ncol = ntape_used). gprop(:, e, f) = dG_f/d[EA, kGA, EI, rhoA, rhoI]_e.
+!! status as `simulate`.
 subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npts, nsteps, &
                    qref, q0, qd0, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
                    ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, c_c0, c_law, c_lawcoef, &
@@ -219,7 +238,8 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
                    map_el, map_diag, map_cq, map_qc, map_qq, nap, nai, ap, ai, &
                    h, rho_inf, tol, max_iter, max_cuts, solver, static_start, kscale, penalty, &
                    nsd, nsda, sd_dofs, sd_prop, map_sd, &
-                   qt, qdt, qddt, mut, nf, gq, gmu, nv, dprop, grad, gprop, status, info)
+                   ncol, qt, qdt, qddt, mut, th, grid, nf, gq, gmu, nv, dprop, grad, gprop, &
+                   status, info)
     use iso_c_binding, only: c_double, c_int
     use model_data, only: mbs_model, model_from_arrays
     use generalized_alpha, only: ga_settings, GA_NO_MEMORY, MEM_MODEL
@@ -247,8 +267,11 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
     integer(c_int), intent(in) :: sd_dofs(4, nsda)
     real(c_double), intent(in) :: sd_prop(4, nsda)
     integer(c_int), intent(in) :: map_sd(16, nsda)
-    real(c_double), intent(in) :: qt(ndof, nsteps + 1), qdt(ndof, nsteps + 1)   !! stored states
-    real(c_double), intent(in) :: qddt(ndof, nsteps + 1), mut(nca, nsteps + 1)
+    integer(c_int), intent(in) :: ncol                               !! tape columns
+    real(c_double), intent(in) :: qt(ndof, ncol), qdt(ndof, ncol)    !! the forward run's tape
+    real(c_double), intent(in) :: qddt(ndof, ncol), mut(nca, ncol)
+    real(c_double), intent(in) :: th(ncol)                           !! step leading to a column
+    integer(c_int), intent(in) :: grid(nsteps + 1)                   !! column of grid point j
     integer(c_int), intent(in) :: nf                                  !! functionals
     real(c_double), intent(in) :: gq(ndof, nf, nsteps + 1)           !! dG_f/dq_j
     real(c_double), intent(in) :: gmu(nca, nf, nsteps + 1)           !! dG_f/dmu_j
@@ -284,7 +307,7 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
     s%static_start = static_start /= 0
     s%kscale = kscale
     s%penalty = penalty
-    call ga_adjoint(m, s, int(ap), int(ai), q0, qd0, qt, qdt, qddt, mut, gq, gmu, &
+    call ga_adjoint(m, s, int(ap), int(ai), q0, qd0, qt, qdt, qddt, mut, th, int(grid), gq, gmu, &
                     dprop(:, 1:max(nel, 0), :), grad, gprop(:, 1:max(nel, 0), :), stat, info)
     status = int(stat, c_int)
 end subroutine simulate_adjoint

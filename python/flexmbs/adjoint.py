@@ -56,17 +56,17 @@ def check_adjoint_memory(ndof, nc, nt, nf, nel=0, memory_limit=None):
 
 
 def simulate_for_adjoint(model, t_end, h=5e-4, **kwargs):
-    """`simulate` with every coordinate stored (store='all') and the states converged as full
-    Newton's (polish=True: modified Newton's states, 1e-11 m off, made the adjoint's gradients
-    2e-8 to 7e-7 off on the robot), the states the backward pass needs; kwargs as `simulate`
-    (not store, polish, design_derivatives)."""
-    for key in ("store", "polish", "design_derivatives", "sensitivity_dofs",
+    """`simulate` keeping the tape of every converged (sub-)step (tape=True) with the states
+    converged as full Newton's (polish=True: modified Newton's states, 1e-11 m off, made the
+    adjoint's gradients 2e-8 to 7e-7 off on the robot): the states the backward pass needs.
+    kwargs as `simulate` (not tape, polish, design_derivatives)."""
+    for key in ("tape", "polish", "design_derivatives", "sensitivity_dofs",
                 "constraint_force_derivatives"):
         if key in kwargs:
-            raise ModelError(f"simulate_for_adjoint: {key}= is not allowed (the adjoint stores "
-                             "every coordinate, converges every step and needs no forward "
+            raise ModelError(f"simulate_for_adjoint: {key}= is not allowed (the adjoint keeps "
+                             "every state, converges every step and needs no forward "
                              "derivatives)")
-    return simulate(model, t_end, h, store="all", polish=True, **kwargs)
+    return simulate(model, t_end, h, tape=True, polish=True, **kwargs)
 
 
 def _seed(name, value, nt, rows, nf=None):
@@ -92,8 +92,8 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
     model : Model
         The model simulated (same design).
     result : Result
-        Its simulation with every coordinate stored (`simulate_for_adjoint`, or
-        simulate(..., store='all')), without step cuts.
+        Its simulation with the tape of every (sub-)step (`simulate_for_adjoint`, or
+        simulate(..., tape=True, polish=True)).
     design_derivatives : array (5, nel, nv)
         d[EA, kGA, EI, rhoA, rhoI]/dp of every element (as `simulate`'s).
     dG_dq : array (nt, ndof) or (nt, ndof, nf)
@@ -112,8 +112,8 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
 
     Raises
     ------
-    ModelError for inconsistent input, SimulationError when the forward run cut a step (the
-    backward pass follows the stored grid) or a transposed system is singular,
+    ModelError for inconsistent input (a run without its tape, or with modified Newton
+    states not polished), SimulationError when a transposed system is singular,
     ResourceError when the partials do not fit in memory.
     """
     if not isinstance(model, Model):
@@ -123,18 +123,14 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
                          f"{type(result).__name__}")
     cm = model.compile()
     st = result.settings
-    if result.dofs.size != cm.ndof or "q0" not in st:
-        raise ModelError(f"adjoint_gradient: result must store every coordinate "
-                         f"(simulate_for_adjoint or store='all'); it stores {result.dofs.size} "
-                         f"of {cm.ndof}")
+    tape = result.tape
+    if tape is None or "q0" not in st or tape["q"].shape[0] != cm.ndof:
+        raise ModelError("adjoint_gradient: result has no tape of its states: simulate with "
+                         "simulate_for_adjoint (or simulate(..., tape=True, polish=True))")
     if st.get("newton", "full") != "full" and not st.get("polish", False) and result.dq is None:
         raise ModelError(f"adjoint_gradient: result was simulated with newton={st['newton']!r} "
                          "without polish=True: its states are modified Newton's, not converged "
                          "enough for the adjoint (use simulate_for_adjoint, or polish=True)")
-    if result.stats.get("step_cuts", 0):
-        raise SimulationError(f"adjoint_gradient: the forward run cut {result.stats['step_cuts']} "
-                              "step(s); the backward pass needs every step on the stored grid: "
-                              "use a smaller step h or direct differentiation")
     nt = result.t.size
     dprop = np.asarray(design_derivatives, float)
     if dprop.ndim != 3 or dprop.shape[:2] != (5, cm.nel) or not np.all(np.isfinite(dprop)):
@@ -157,16 +153,18 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
     nel = cm.el_dofs.shape[1]
     dprop_f = np.zeros((5, nel, max(nv, 1)), order="F")
     dprop_f[:, :cm.nel, :nv] = dprop
-    mut = np.zeros((nca, nt), order="F")
-    mut[:cm.nc] = result.mu.T
+    ncol = tape["h"].size
+    mut = np.zeros((nca, ncol), order="F")
+    mut[:cm.nc] = tape["mu"]
     grad, gprop, status, info = _core.simulate_adjoint(
         **margs, nsteps=nt - 1, q0=np.asarray(st["q0"], float), qd0=np.asarray(st["qd0"], float),
         ap=pat["ap"], ai=pat["ai"], h=float(st["h"]), rho_inf=float(st["rho_inf"]),
         tol=float(st["tol"]), max_iter=int(st["max_iter"]), max_cuts=int(st["max_cuts"]),
         solver=_SOLVERS[solver], static_start=int(st["start"] == "static"),
         kscale=float(st["kscale"]), penalty=float(st["penalty"]),
-        qt=np.asfortranarray(result.q.T), qdt=np.asfortranarray(result.qd.T),
-        qddt=np.asfortranarray(result.qdd.T), mut=mut, nf=nf, gq=gq_f, gmu=gmu_f,
+        ncol=ncol, qt=np.asfortranarray(tape["q"]), qdt=np.asfortranarray(tape["qd"]),
+        qddt=np.asfortranarray(tape["qdd"]), mut=mut, th=np.asarray(tape["h"], float),
+        grid=np.asarray(tape["grid"], np.int32), nf=nf, gq=gq_f, gmu=gmu_f,
         nv=max(nv, 1), dprop=dprop_f)
     if status == 9:
         raise ResourceError(f"adjoint_gradient: an allocation failed in the core "

@@ -186,7 +186,7 @@ class Problem:
     def _needs_forces(self, names):
         return any(isinstance(self._resp[n], (Torque, Reaction)) for n in names)
 
-    def simulate(self, x=None, *, gradient=False, responses=None, store=None, polish=False):
+    def simulate(self, x=None, *, gradient=False, responses=None, store=None, tape=False):
         """Simulate design x (default: start); with gradient=True the design derivatives of
         the coordinates the responses need (all responses, or `responses`), and those of the
         constraint multipliers (Result.dmu) if a torque or reaction response is among them."""
@@ -202,8 +202,8 @@ class Problem:
             newton = "reuse" if ts.reuse_jacobian else "full"
         kw = dict(rho_inf=ts.rho_inf, start=ts.start, newton=newton, q0=q0,
                   qd0=None if ts.start == "static" else qd0)
-        if polish:
-            kw["polish"] = True
+        if tape:     # the discrete adjoint's forward run: every state kept, converged fully
+            kw.update(tape=True, polish=True)
         if store is None:
             store = nodes if nodes else "all"
         forces = self._needs_forces(names)
@@ -332,8 +332,7 @@ class Problem:
             gradient of every history, Evaluation.gradients), or the discrete adjoint
             (flexmbs.adjoint: the objective's and constraints' rows only, for about the cost
             of one more simulation whatever the number of variables; the histories'
-            gradients are None). Evaluation.gradient_method tells which was used; the adjoint
-            falls back to direct differentiation when the run cut a step."""
+            gradients are None). Evaluation.gradient_method tells which was used."""
         t0 = _time.perf_counter()
         mech = self.mechanism
         x = mech.start if x is None else mech.design_values(x)
@@ -341,9 +340,7 @@ class Problem:
         timed = [n for n, r in self._resp.items() if not isinstance(r, Mass)]
         chosen = self.gradient_method(method)
         if gradient and timed and chosen == "adjoint":
-            ev = self._evaluate_adjoint(x, timed, t0)
-            if ev is not None:
-                return ev
+            return self._evaluate_adjoint(x, timed, t0)
         result = self.simulate(x, gradient=gradient, responses=timed) if timed else None
         values, grads = {}, {}
         for name, r in self._resp.items():
@@ -364,8 +361,7 @@ class Problem:
 
     def _evaluate_adjoint(self, x, timed, t0):
         """evaluate() with the gradients of the objective and constraint rows by the discrete
-        adjoint; None when the forward run cut a step (the caller then differentiates
-        directly).
+        adjoint (its forward run keeps the tape of every (sub-)step).
 
         The responses are evaluated on the run with 'virtual' design variables: one per
         differentiated coordinate and constraint row (dq, dmu identities) and the real ones
@@ -381,9 +377,7 @@ class Problem:
         model = mech.set_design(x)
         cm = model.compile()
         check_adjoint_memory(cm.ndof, cm.nc, mech.t.size, self.gradient_functionals(), cm.nel)
-        result = self.simulate(x, gradient=False, responses=timed, store="all", polish=True)
-        if result.stats.get("step_cuts", 0):
-            return None
+        result = self.simulate(x, gradient=False, responses=timed, tape=True)
         nodes = self._nodes_needed(timed)
         sdofs = np.array([3 * n + k for n in (nodes or [0]) for k in range(3)])
         t = mech.t
