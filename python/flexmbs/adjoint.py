@@ -14,9 +14,14 @@ docs/adjoint.md; the result is the transpose of the direct differentiation that
 
 >>> import numpy as np
 >>> from flexmbs.adjoint import adjoint_gradient, simulate_for_adjoint
->>> # r = simulate_for_adjoint(model, t_end, h)               # every coordinate stored
->>> # gq = np.zeros((r.t.size, model.ndof, 1)); gq[-1, dof, 0] = 1.0    # G = q_dof(t_end)
->>> # adjoint_gradient(model, r, dprop, gq)[:, 0]            # dG/dp, (nv,)
+>>> from flexmbs.problem import Problem
+>>> mech = Problem("robot_2dof").mechanism
+>>> model = mech.set_design(mech.start)
+>>> r = simulate_for_adjoint(model, 0.05, 5e-4, start="static")   # the tape of every state
+>>> gq = np.zeros((r.t.size, model.ndof))
+>>> gq[-1, 0] = 1.0                                           # G = q_0(t_end)
+>>> adjoint_gradient(model, r, mech.element_property_derivatives(mech.start), gq).shape
+(4, 1)
 """
 from __future__ import annotations
 

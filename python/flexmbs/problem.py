@@ -11,7 +11,10 @@ Gradients are exact (direct differentiation of the discrete generalized-alpha eq
 Fortran core, one extra multi-right-hand-side solve per step); only the coordinates the
 responses need are stored and differentiated, the multipliers' derivatives (motor torques,
 joint reactions) are asked for only when such a response is evaluated, and nothing is
-differentiated when ``gradient=False``.
+differentiated when ``gradient=False``. ``evaluate(x, method="adjoint")`` computes the gradients
+of the objective and constraint rows by the discrete adjoint instead (docs/adjoint.md): about
+one more simulation whatever the number of variables; ``method="auto"`` picks it when the
+variables outnumber the aggregated rows (`Problem.gradient_method`).
 """
 from __future__ import annotations
 
