@@ -146,12 +146,17 @@ class Problem:
     overrides : dict, optional
         Case keys to replace before validation, by dotted path, e.g.
         ``{"time.t_end": 0.66, "bodies.arm1.elements": 8}`` (`flexmbs.casefile.apply_overrides`).
+    gradient_method : {'direct', 'adjoint', 'auto'}, default 'direct'
+        How `evaluate` computes gradients unless told otherwise (its `method`): what an
+        optimizer calling evaluate(x, gradient=True) gets.
     """
 
-    def __init__(self, case, overrides=None):
+    def __init__(self, case, overrides=None, gradient_method="direct"):
         self.description = _description(case, overrides)
         self.mechanism = Mechanism(self.description)
         self._resp = {r.name: r for r in self.description.responses}
+        _check_method(gradient_method, "gradient_method")
+        self.default_gradient_method = gradient_method
 
     # ------------------------------------------------------------------ design space
     @property
@@ -313,13 +318,14 @@ class Problem:
             n += bounds * (t.size if c.over == "every_step" else 1)
         return n
 
-    def gradient_method(self, method="direct"):
+    def gradient_method(self, method=None):
         """The method `evaluate` uses for gradients: 'direct' or 'adjoint'; 'auto' takes the
         adjoint when the design variables outnumber the aggregated functionals
-        (`gradient_functionals`) by ADJOINT_MARGIN times and at least ADJOINT_MIN_VARIABLES."""
-        if not isinstance(method, str) or method not in GRADIENT_METHODS:
-            raise ModelError(f"method must be one of {', '.join(map(repr, GRADIENT_METHODS))}, "
-                             f"got {method!r}")
+        (`gradient_functionals`) by ADJOINT_MARGIN times and at least ADJOINT_MIN_VARIABLES;
+        None: the problem's default_gradient_method."""
+        if method is None:
+            method = self.default_gradient_method
+        _check_method(method)
         if method != "auto":
             return method
         nv, nf = len(self.mechanism.variables), self.gradient_functionals()
@@ -327,10 +333,11 @@ class Problem:
             return "adjoint"
         return "direct"
 
-    def evaluate(self, x=None, gradient=True, method="direct"):
+    def evaluate(self, x=None, gradient=True, method=None):
         """Every response, the objective and the constraints at design x (user units).
 
-        method : {'direct', 'adjoint', 'auto'}, default 'direct'
+        method : {'direct', 'adjoint', 'auto'} or None (the problem's gradient_method,
+            'direct' unless given)
             How gradients are computed (`gradient_method`): direct differentiation (the
             gradient of every history, Evaluation.gradients), or the discrete adjoint
             (flexmbs.adjoint: the objective's and constraints' rows only, for about the cost
@@ -482,6 +489,12 @@ class Problem:
         limits = [c.upper for c in self.description.constraints
                   if c.upper is not None and isinstance(self._resp[c.response], Deviation)]
         return min(limits) if limits else None
+
+
+def _check_method(method, name="method"):
+    if not isinstance(method, str) or method not in GRADIENT_METHODS:
+        raise ModelError(f"{name} must be one of {', '.join(map(repr, GRADIENT_METHODS))}, "
+                         f"got {method!r}")
 
 
 def constraint_rows(description, values, gradients, t, nv, gradient=True):
