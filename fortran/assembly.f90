@@ -234,17 +234,26 @@ contains
         end do
     end subroutine spring_forces
 
-    !> y = (ck K_sd + cc C_sd) x: the spring-damper tangents at (q, qd) times x, matrix-free.
-    subroutine spring_times(m, q, qd, x, ck, cc, y)
+    !> y = (ck K_sd + cc C_sd) x: the spring-damper tangents at (q, qd) times x, matrix-free;
+    !! with transposed = .true., y = (ck K_sd + cc C_sd)^T x (the adjoint).
+    subroutine spring_times(m, q, qd, x, ck, cc, y, transposed)
         type(mbs_model), intent(in) :: m
         real(wp), intent(in) :: q(m%ndof), qd(m%ndof), x(m%ndof), ck, cc
         real(wp), intent(out) :: y(m%ndof)
+        logical, intent(in), optional :: transposed
         real(wp) :: fe(4), ke(4, 4), ce(4, 4), ye(4)
         integer :: i, a
+        logical :: tr
+        tr = .false.
+        if (present(transposed)) tr = transposed
         y = 0
         do i = 1, m%nsd
             call spring_damper(m%sd_prop(:, i), q(m%sd_dofs(:, i)), qd(m%sd_dofs(:, i)), fe, ke, ce)
-            ye = matmul(ck * ke + cc * ce, x(m%sd_dofs(:, i)))
+            if (tr) then
+                ye = matmul(transpose(ck * ke + cc * ce), x(m%sd_dofs(:, i)))
+            else
+                ye = matmul(ck * ke + cc * ce, x(m%sd_dofs(:, i)))
+            end if
             do a = 1, 4
                 y(m%sd_dofs(a, i)) = y(m%sd_dofs(a, i)) + ye(a)
             end do

@@ -116,7 +116,8 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
                     h, rho_inf, tol, max_iter, max_cuts, solver, newton, static_start, &
                     kscale, penalty, out_dofs, q_out, qd_out, qdd_out, mu_out, stats, status, info, &
                     nv, nva, nsens, dprop, sens_dofs, dq_out, &
-                    nsd, nsda, sd_dofs, sd_prop, map_sd, want_dmu, ndmu, dmu_out)
+                    nsd, nsda, sd_dofs, sd_prop, map_sd, want_dmu, ndmu, dmu_out, polish, &
+                    ntape, tape_q, tape_qd, tape_qdd, tape_mu, tape_h, tape_grid, ntape_used)
     use iso_c_binding, only: c_double, c_int
     use model_data, only: mbs_model, model_from_arrays
     use generalized_alpha, only: ga_settings, ga_stats, ga_simulate, GA_NO_MEMORY, MEM_MODEL
@@ -157,12 +158,26 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     integer(c_int), intent(in) :: want_dmu                  !! 1: return d(mu)/dp (needs nv > 0)
     integer(c_int), intent(in) :: ndmu                      !! extent: nca when want_dmu, else 1
     real(c_double), intent(out) :: dmu_out(ndmu, nva, nsteps + 1)  !! d(mu)/dp on the grid
+    !> 1: modified Newton takes full Newton steps from each step's second iteration (states
+    !! converged as for the direct method or the adjoint), 0: not
+    integer(c_int), intent(in) :: polish
+    !> tape of every (sub-)step for the adjoint (generalized_alpha.f90): kept when ntape >=
+    !! nsteps + 1 (status 10 when the sub-steps need more columns); extent 1 otherwise
+    integer(c_int), intent(in) :: ntape
+    real(c_double), intent(out) :: tape_q(ndof, ntape), tape_qd(ndof, ntape), tape_qdd(ndof, ntape)
+    real(c_double), intent(out) :: tape_mu(nca, ntape), tape_h(ntape)
+    integer(c_int), intent(out) :: tape_grid(nsteps + 1)     !! column of every grid point
+    integer(c_int), intent(out) :: ntape_used                !! columns used
+    integer :: tgrid(nsteps + 1), tused
     type(mbs_model) :: m
     type(ga_settings) :: s
     type(ga_stats) :: st
     integer :: stat
     real(c_double) :: nbytes
     q_out = 0; qd_out = 0; qdd_out = 0; mu_out = 0; dq_out = 0; dmu_out = 0; stats = 0; info = 0
+    tape_q = 0; tape_qd = 0; tape_qdd = 0; tape_mu = 0; tape_h = 0; tape_grid = 0; ntape_used = 0
+    tgrid = 0
+    tused = 0
     call model_from_arrays(m, int(ndof), int(nc), int(nel), int(nload), int(nlaw), int(nnz), &
                            qref, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
                            ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, &
@@ -185,23 +200,117 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     s%static_start = static_start /= 0
     s%kscale = kscale
     s%penalty = penalty
+    s%polish = polish /= 0
     if (nv > 0 .and. want_dmu /= 0 .and. ndmu >= nc) then
         call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
                          mu_out, st, stat, info, dprop(:, :, 1:nv), int(sens_dofs), dq_out(:, 1:nv, :), &
-                         dmu_out(:, 1:nv, :))
+                         dmu_out(:, 1:nv, :), tape_q=tape_q, tape_qd=tape_qd, tape_qdd=tape_qdd, &
+                         tape_mu=tape_mu, tape_h=tape_h, tape_grid=tgrid, ntape=tused)
     else if (nv > 0) then
         call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
-                         mu_out, st, stat, info, dprop(:, :, 1:nv), int(sens_dofs), dq_out(:, 1:nv, :))
+                         mu_out, st, stat, info, dprop(:, :, 1:nv), int(sens_dofs), dq_out(:, 1:nv, :), &
+                         tape_q=tape_q, tape_qd=tape_qd, tape_qdd=tape_qdd, tape_mu=tape_mu, &
+                         tape_h=tape_h, tape_grid=tgrid, ntape=tused)
     else
         dq_out = 0
         call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
-                         mu_out, st, stat, info)
+                         mu_out, st, stat, info, tape_q=tape_q, tape_qd=tape_qd, tape_qdd=tape_qdd, &
+                         tape_mu=tape_mu, tape_h=tape_h, tape_grid=tgrid, ntape=tused)
     end if
     status = int(stat, c_int)
+    tape_grid = int(tgrid, c_int)
+    ntape_used = int(tused, c_int)
     stats = int([st%newton_iterations, st%factorizations, st%residual_evaluations, &
                  st%step_cuts, st%static_iterations, st%steps, st%sensitivity_factorizations], &
                 c_int)
 end subroutine simulate
+
+!> Discrete adjoint of a converged simulation (adjoint.f90, docs/adjoint.md): the design
+!! gradients grad(v, f) of nf functionals G_f = sum_j gq(:, f, j) . q_j + gmu(:, f, j) . mu_j
+!! of the solution, from the tape of a forward run with the same model, settings, q0 and
+!! qd0 (qt, qdt, qddt, mut, th, grid: its tape_q, tape_qd, tape_qdd, tape_mu, tape_h,
+!! tape_grid; ncol = ntape_used). gprop(:, e, f) = dG_f/d[EA, kGA, EI, rhoA, rhoI]_e.
+!! status as `simulate`.
+subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npts, nsteps, &
+                   qref, q0, qd0, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
+                   ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, c_c0, c_law, c_lawcoef, &
+                   law_h, law_val, law_der, law_dd0, &
+                   map_el, map_diag, map_cq, map_qc, map_qq, nap, nai, ap, ai, &
+                   h, rho_inf, tol, max_iter, max_cuts, solver, static_start, kscale, penalty, &
+                   nsd, nsda, sd_dofs, sd_prop, map_sd, &
+                   ncol, qt, qdt, qddt, mut, th, grid, nf, gq, gmu, nv, dprop, grad, gprop, &
+                   status, info)
+    use iso_c_binding, only: c_double, c_int
+    use model_data, only: mbs_model, model_from_arrays
+    use generalized_alpha, only: ga_settings, GA_NO_MEMORY, MEM_MODEL
+    use adjoint, only: ga_adjoint
+    !f2py threadsafe
+    implicit none
+    integer(c_int), intent(in) :: ndof, nc, nel, nload, nlaw, nnz   !! true counts
+    integer(c_int), intent(in) :: nela, nca, nlda, nlawa, npts      !! array extents (>= 1)
+    integer(c_int), intent(in) :: nsteps
+    real(c_double), intent(in) :: qref(ndof), q0(ndof), qd0(ndof), lumped(ndof), gacc(ndof)
+    integer(c_int), intent(in) :: el_nen(nela), el_dofs(9, nela)
+    real(c_double), intent(in) :: el_len(nela), el_prop(5, nela)
+    integer(c_int), intent(in) :: ld_dof(nlda), ld_law(nlda)
+    real(c_double), intent(in) :: ld_amp(nlda)
+    integer(c_int), intent(in) :: c_kind(nca), c_dofs(5, nca), c_law(nca)
+    real(c_double), intent(in) :: c_coef(5, nca), c_c0(nca), c_lawcoef(nca)
+    real(c_double), intent(in) :: law_h, law_val(nlawa, npts), law_der(nlawa, npts), law_dd0(nlawa)
+    integer(c_int), intent(in) :: map_el(81, nela), map_diag(ndof)
+    integer(c_int), intent(in) :: map_cq(5, nca), map_qc(5, nca), map_qq(25, nca)
+    integer(c_int), intent(in) :: nap, nai
+    integer(c_int), intent(in) :: ap(nap), ai(nai)
+    real(c_double), intent(in) :: h, rho_inf, tol, kscale, penalty
+    integer(c_int), intent(in) :: max_iter, max_cuts, solver, static_start
+    integer(c_int), intent(in) :: nsd, nsda
+    integer(c_int), intent(in) :: sd_dofs(4, nsda)
+    real(c_double), intent(in) :: sd_prop(4, nsda)
+    integer(c_int), intent(in) :: map_sd(16, nsda)
+    integer(c_int), intent(in) :: ncol                               !! tape columns
+    real(c_double), intent(in) :: qt(ndof, ncol), qdt(ndof, ncol)    !! the forward run's tape
+    real(c_double), intent(in) :: qddt(ndof, ncol), mut(nca, ncol)
+    real(c_double), intent(in) :: th(ncol)                           !! step leading to a column
+    integer(c_int), intent(in) :: grid(nsteps + 1)                   !! column of grid point j
+    integer(c_int), intent(in) :: nf                                  !! functionals
+    real(c_double), intent(in) :: gq(ndof, nf, nsteps + 1)           !! dG_f/dq_j
+    real(c_double), intent(in) :: gmu(nca, nf, nsteps + 1)           !! dG_f/dmu_j
+    integer(c_int), intent(in) :: nv
+    real(c_double), intent(in) :: dprop(5, nela, nv)
+    real(c_double), intent(out) :: grad(nv, nf)
+    real(c_double), intent(out) :: gprop(5, nela, nf)
+    integer(c_int), intent(out) :: status
+    real(c_double), intent(out) :: info(4)
+    type(mbs_model) :: m
+    type(ga_settings) :: s
+    integer :: stat
+    real(c_double) :: nbytes
+    grad = 0; gprop = 0; info = 0
+    call model_from_arrays(m, int(ndof), int(nc), int(nel), int(nload), int(nlaw), int(nnz), &
+                           qref, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
+                           ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, &
+                           c_c0, c_law, c_lawcoef, law_h, law_val, law_der, law_dd0, &
+                           map_el, map_diag, map_cq, map_qc, map_qq, stat, nbytes, &
+                           int(nsd), int(sd_dofs), sd_prop, int(map_sd))
+    if (stat /= 0) then
+        status = int(GA_NO_MEMORY, c_int)
+        info = [0.0_c_double, nbytes, 0.0_c_double, real(MEM_MODEL, c_double)]
+        return
+    end if
+    s%h = h
+    s%rho_inf = rho_inf
+    s%tol = tol
+    s%nsteps = nsteps
+    s%max_iter = max_iter
+    s%max_cuts = max_cuts
+    s%solver = solver
+    s%static_start = static_start /= 0
+    s%kscale = kscale
+    s%penalty = penalty
+    call ga_adjoint(m, s, int(ap), int(ai), q0, qd0, qt, qdt, qddt, mut, th, int(grid), gq, gmu, &
+                    dprop(:, 1:max(nel, 0), :), grad, gprop(:, 1:max(nel, 0), :), stat, info)
+    status = int(stat, c_int)
+end subroutine simulate_adjoint
 
 !> Element internal forces and tangent of one beam (for the tangent checker).
 subroutine beam_element(nen, elen, stiff, qref, qe, fe, ke)

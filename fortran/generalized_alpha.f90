@@ -24,9 +24,12 @@ module generalized_alpha
     implicit none
     private
     public :: ga_settings, ga_stats, ga_simulate, ga_coefficients
+    ! for the adjoint (adjoint.f90): the static start and the scalings, recomputed exactly
+    public :: ga_state, static_equilibrium, mass_scale, diagonal_scale
     public :: NEWTON_FULL, NEWTON_REUSE, NEWTON_AUTO
     public :: GA_OK, GA_NEWTON_FAILED, GA_SINGULAR, GA_STATIC_FAILED, GA_INITIAL_SINGULAR, &
-              GA_INCONSISTENT_INITIAL, GA_NONFINITE, GA_BAD_INPUT, GA_LINEAR_SOLVER, GA_NO_MEMORY
+              GA_INCONSISTENT_INITIAL, GA_NONFINITE, GA_BAD_INPUT, GA_LINEAR_SOLVER, GA_NO_MEMORY, &
+              GA_TAPE_FULL
     public :: MEM_MATRIX, MEM_DENSE_LU, MEM_SPARSE_LU, MEM_STATE, MEM_SENSITIVITY, MEM_MODEL
 
     integer, parameter :: GA_OK = 0                   !! simulation completed
@@ -40,6 +43,8 @@ module generalized_alpha
     integer, parameter :: GA_LINEAR_SOLVER = 8        !! linear solver set-up failed
     !> an allocation failed; info = [time, bytes asked for (-1: unknown), 0, MEM_* what]
     integer, parameter :: GA_NO_MEMORY = 9
+    !> the tape of every (sub-)step (for the adjoint) has no room left: info = [time, columns, 0, 0]
+    integer, parameter :: GA_TAPE_FULL = 10
 
     ! Newton strategies (ga_settings%newton)
     integer, parameter :: NEWTON_FULL = 0   !! iteration matrix assembled and factored every iteration
@@ -93,6 +98,10 @@ module generalized_alpha
         logical :: static_start = .false.!! start from static equilibrium at t = 0
         real(wp) :: kscale = 0           !! scaling k of eq. (1); <= 0: automatic
         real(wp) :: penalty = 0          !! penalty p of eq. (1); <= 0: automatic (= k)
+        !> modified Newton (reuse, auto): full Newton steps from each step's second iteration,
+        !! as with design derivatives: the states converge as full Newton's do (the discrete
+        !! adjoint linearizes about them: adjoint.f90)
+        logical :: polish = .false.
     end type ga_settings
 
     !> Work counters returned with the result.
@@ -192,8 +201,15 @@ contains
     !! differentiation, see sens_step) and dq/dp of the coordinates `sens_dofs` is
     !! returned in dq_out(:, v, j+1); with `dmu_out`, d(mu)/dp of every constraint row
     !! (the multipliers' part of the same solve) in dmu_out(:, v, j+1).
+    !!
+    !! Tape (for the discrete adjoint, adjoint.f90): when tape_h holds at least nsteps + 1
+    !! columns, every converged state, of every sub-step of a cut step too, in order:
+    !! tape_q, tape_qd, tape_qdd (ndof, :), tape_mu (>= nc, :), tape_h (the step that led
+    !! to the column; 0 for the initial state), tape_grid(j+1) = column of grid point j,
+    !! ntape = columns used. GA_TAPE_FULL when the sub-steps need more columns.
     subroutine ga_simulate(m, s, ap, ai, q0, qd0, out_dofs, q_out, qd_out, qdd_out, mu_out, &
-                           stats, status, info, dprop, sens_dofs, dq_out, dmu_out)
+                           stats, status, info, dprop, sens_dofs, dq_out, dmu_out, &
+                           tape_q, tape_qd, tape_qdd, tape_mu, tape_h, tape_grid, ntape)
         type(mbs_model), intent(in) :: m
         type(ga_settings), intent(in) :: s
         integer, intent(in) :: ap(:), ai(:)           !! CSC pattern (0-based), KLU only
@@ -208,6 +224,12 @@ contains
         real(wp), intent(out), optional :: dq_out(:, :, :)   !! (nsens, nv, nsteps + 1)
         !> (nc, nv, nsteps + 1): d(mu)/dp of every constraint row, mu = k lambda (only when present)
         real(wp), intent(out), optional :: dmu_out(:, :, :)
+        real(wp), intent(inout), optional :: tape_q(:, :), tape_qd(:, :), tape_qdd(:, :)
+        real(wp), intent(inout), optional :: tape_mu(:, :), tape_h(:)
+        integer, intent(inout), optional :: tape_grid(:)
+        integer, intent(out), optional :: ntape
+        logical :: taping
+        integer :: ptr, ptr0
         type(linear_system) :: ls
         type(ga_state) :: x, xsave
         real(wp), allocatable :: fgrav(:), vals(:)
@@ -228,6 +250,10 @@ contains
         status = GA_OK
         info = 0
         q_out = 0; qd_out = 0; qdd_out = 0; mu_out = 0
+        taping = present(tape_h)
+        if (taping) taping = size(tape_h) >= s%nsteps + 1
+        ptr = 0
+        if (present(ntape)) ntape = 0
         if (.not. (s%h > 0) .or. s%rho_inf < 0 .or. s%rho_inf > 1 .or. s%nsteps < 0 .or. &
             s%newton < NEWTON_FULL .or. s%newton > NEWTON_AUTO) then
             status = GA_BAD_INPUT
@@ -308,6 +334,10 @@ contains
         end if
         x%a = x%qdd
         call store(0)
+        if (taping) then
+            call tape_store(0.0_wp, st)
+            tape_grid(1) = ptr
+        end if
 
         ! --- time loop ---------------------------------------------------------
         kdyn = s%kscale
@@ -327,16 +357,20 @@ contains
             nsub = 1
             icut = 0
             full_step = .not. modified
+            ptr0 = ptr
             do
                 hs = s%h / nsub
                 do isub = 1, nsub
                     call ga_step(t + (isub - 1) * hs, hs, st)
                     if (st /= GA_OK) exit
+                    if (taping) call tape_store(hs, st)
+                    if (st /= GA_OK) exit
                 end do
-                if (st == GA_OK .or. st == GA_NO_MEMORY) exit
+                if (st == GA_OK .or. st == GA_NO_MEMORY .or. st == GA_TAPE_FULL) exit
                 ! failure: restore the state at t_j; automatic: retry the step with full
                 ! Newton (its predictor and path) before cutting it; then cut the step
                 call copy_state(xsave, x)
+                ptr = ptr0
                 fact_valid = .false.
                 if (.not. full_step .and. s%newton == NEWTON_AUTO) then
                     full_step = .true.
@@ -354,14 +388,34 @@ contains
             end if
             stats%steps = j
             call store(j)
+            if (taping) tape_grid(j + 1) = ptr
             call copy_state(x, xsave)
         end do
 
 900     continue
         stats%factorizations = stats%factorizations + ls%factorizations
         call ls_free(ls)
+        if (present(ntape)) ntape = ptr
 
     contains
+
+        !> Append the converged state (reached with step hh) to the tape.
+        subroutine tape_store(hh, stat)
+            real(wp), intent(in) :: hh
+            integer, intent(out) :: stat
+            stat = GA_OK
+            if (ptr >= size(tape_h) .or. ptr >= size(tape_q, 2)) then
+                stat = GA_TAPE_FULL
+                info = [t, real(size(tape_h), wp), 0.0_wp, 0.0_wp]
+                return
+            end if
+            ptr = ptr + 1
+            tape_q(:, ptr) = x%q
+            tape_qd(:, ptr) = x%qd
+            tape_qdd(:, ptr) = x%qdd
+            if (m%nc > 0) tape_mu(1:m%nc, ptr) = x%mu
+            tape_h(ptr) = hh
+        end subroutine tape_store
 
         !> Report a failed allocation: info = [0, bytes (-1: unknown), 0, what].
         subroutine no_memory(nbytes, what)
@@ -434,7 +488,7 @@ contains
                 ! matrix (full Newton steps): the derivative solve needs the factored
                 ! tangent within the tolerance of the converged state anyway (sens_step),
                 ! and the step then converges like full Newton, in one factorization
-                if (nv > 0 .and. mod_step .and. it >= 2) refresh = .true.
+                if ((nv > 0 .or. s%polish) .and. mod_step .and. it >= 2) refresh = .true.
                 fresh = refresh .or. .not. fact_valid .or. fact_h /= hh
                 ! the iteration matrix is assembled with the residual, in one pass over the
                 ! elements, whenever it is factored

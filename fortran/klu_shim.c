@@ -114,6 +114,18 @@ int fx_klu_solve(void *handle, double *b, int nrhs)
     return 0;
 }
 
+/* Solve A^T x = b in place (the adjoint's transposed solves), same layout as fx_klu_solve. */
+int fx_klu_tsolve(void *handle, double *b, int nrhs)
+{
+    fx_klu *h = (fx_klu *) handle;
+    if (h == NULL || h->numeric == NULL) return 3;
+    if (!klu_tsolve(h->symbolic, h->numeric, h->n, nrhs, b, &h->common)) {
+        int s = map_status(&h->common);
+        return s == 0 ? 3 : s;
+    }
+    return 0;
+}
+
 /* Release everything the handle owns. Safe on NULL. */
 void fx_klu_free(void *handle)
 {

@@ -59,6 +59,13 @@ module linear_solver
             integer(c_int), value :: nrhs
             integer(c_int) :: fx_klu_solve
         end function fx_klu_solve
+        function fx_klu_tsolve(h, b, nrhs) bind(c, name='fx_klu_tsolve')
+            import :: c_ptr, c_int, c_double
+            type(c_ptr), value :: h
+            real(c_double), intent(inout) :: b(*)
+            integer(c_int), value :: nrhs
+            integer(c_int) :: fx_klu_tsolve
+        end function fx_klu_tsolve
         subroutine fx_klu_free(h) bind(c, name='fx_klu_free')
             import :: c_ptr
             type(c_ptr), value :: h
@@ -165,22 +172,31 @@ contains
         ls%factored = (status == LS_OK)
     end subroutine ls_factor
 
-    !> Solve A x = b in place for the columns of b, with the held factorization.
-    subroutine ls_solve(ls, b, status)
+    !> Solve A x = b (or A^T x = b with transposed = .true.: the adjoint's solves) in place
+    !! for the columns of b, with the held factorization.
+    subroutine ls_solve(ls, b, status, transposed)
         type(linear_system), intent(inout) :: ls  !! factored system
         real(wp), intent(inout) :: b(:, :)        !! right-hand sides in, solutions out
         integer, intent(out) :: status            !! LS_* code
+        logical, intent(in), optional :: transposed
         integer :: info
+        logical :: tr
+        tr = .false.
+        if (present(transposed)) tr = transposed
         if (.not. ls%factored) then
             status = LS_INVALID
             return
         end if
         select case (ls%kind)
         case (SOLVER_DENSE)
-            call dgetrs('N', ls%n, size(b, 2), ls%lu, ls%n, ls%ipiv, b, size(b, 1), info)
+            call dgetrs(merge('T', 'N', tr), ls%n, size(b, 2), ls%lu, ls%n, ls%ipiv, b, size(b, 1), info)
             status = merge(LS_OK, LS_INVALID, info == 0)
         case (SOLVER_KLU)
-            status = int(fx_klu_solve(ls%klu, b, int(size(b, 2), c_int)))
+            if (tr) then
+                status = int(fx_klu_tsolve(ls%klu, b, int(size(b, 2), c_int)))
+            else
+                status = int(fx_klu_solve(ls%klu, b, int(size(b, 2), c_int)))
+            end if
         case default
             status = LS_INVALID
         end select

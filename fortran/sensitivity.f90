@@ -103,14 +103,19 @@ contains
         end do
     end subroutine mass_design_derivative_times
 
-    !> y = (K_t(q) + sum_r mu_r Phi_r,qq) x, matrix-free (element by element).
-    subroutine stiffness_times(m, q, mu, x, y)
+    !> y = (K_t(q) + sum_r mu_r Phi_r,qq) x, matrix-free (element by element);
+    !! with transposed = .true., the transpose of that matrix times x (the adjoint).
+    subroutine stiffness_times(m, q, mu, x, y, transposed)
         type(mbs_model), intent(in) :: m
         real(wp), intent(in) :: q(m%ndof), mu(m%nc), x(m%ndof)
         real(wp), intent(out) :: y(m%ndof)
+        logical, intent(in), optional :: transposed
         real(wp) :: fe(MAX_EDOF), ke(MAX_EDOF, MAX_EDOF), qe(MAX_EDOF), qr(MAX_EDOF), xe(MAX_EDOF)
         real(wp) :: phi, grad(MAX_CDOF), hess(MAX_CDOF, MAX_CDOF)
         integer :: e, ne, a, b, r, d
+        logical :: tr
+        tr = .false.
+        if (present(transposed)) tr = transposed
         y = 0
         do e = 1, m%nel
             ne = 3 * m%el_nen(e)
@@ -122,7 +127,11 @@ contains
             end do
             call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), qr(1:ne), &
                                       qe(1:ne), fe(1:ne), ke(1:ne, 1:ne), eref=m%el_eref(:, :, e))
-            fe(1:ne) = matmul(ke(1:ne, 1:ne), xe(1:ne))
+            if (tr) then
+                fe(1:ne) = matmul(xe(1:ne), ke(1:ne, 1:ne))
+            else
+                fe(1:ne) = matmul(ke(1:ne, 1:ne), xe(1:ne))
+            end if
             do a = 1, ne
                 y(m%el_dofs(a, e)) = y(m%el_dofs(a, e)) + fe(a)
             end do

@@ -11,7 +11,10 @@ Gradients are exact (direct differentiation of the discrete generalized-alpha eq
 Fortran core, one extra multi-right-hand-side solve per step); only the coordinates the
 responses need are stored and differentiated, the multipliers' derivatives (motor torques,
 joint reactions) are asked for only when such a response is evaluated, and nothing is
-differentiated when ``gradient=False``.
+differentiated when ``gradient=False``. ``evaluate(x, method="adjoint")`` computes the gradients
+of the objective and constraint rows by the discrete adjoint instead (docs/adjoint.md): about
+one more simulation whatever the number of variables; ``method="auto"`` picks it when the
+variables outnumber the aggregated rows (`Problem.gradient_method`).
 """
 from __future__ import annotations
 
@@ -31,7 +34,19 @@ from flexmbs.responses.forces import constraint_force, joint_reaction
 from flexmbs.responses.stress import beam_stress
 from flexmbs.simulate import memory_estimate, simulate
 
-__all__ = ["Problem", "Evaluation", "load_problem", "constraint_rows"]
+__all__ = ["Problem", "Evaluation", "load_problem", "constraint_rows", "GRADIENT_METHODS"]
+
+#: Gradient methods of Problem.evaluate (see Problem.gradient_method).
+GRADIENT_METHODS = ("direct", "adjoint", "auto")
+#: 'auto' takes the adjoint when the variables outnumber the aggregated functionals this many
+#: times, and are at least ADJOINT_MIN_VARIABLES: below, direct differentiation's extra
+#: right-hand sides (the factorization is Newton's) cost less than the adjoint's forward run
+#: with every state stored and its factorization per step
+ADJOINT_MARGIN = 4
+ADJOINT_MIN_VARIABLES = 16
+#: the adjoint evaluates the responses' per-step partials on identity derivatives, in chunks of
+#: columns of at most this many bytes
+ADJOINT_CHUNK_BYTES = 32e6
 
 
 #: what an object needs to stand for a Problem in the optimizers (e.g. an analytic test problem)
@@ -86,6 +101,10 @@ class Evaluation:
     constraint_names: list
     stats: dict = field(default_factory=dict)
     wall_time: float = 0.0
+    #: how the gradients were computed: 'direct' (forward differentiation, every history's
+    #: gradient), 'adjoint' (the aggregated rows only: gradients of histories are None) or
+    #: None without gradients
+    gradient_method: str | None = None
 
     @property
     def feasible(self):
@@ -128,12 +147,17 @@ class Problem:
     overrides : dict, optional
         Case keys to replace before validation, by dotted path, e.g.
         ``{"time.t_end": 0.66, "bodies.arm1.elements": 8}`` (`flexmbs.casefile.apply_overrides`).
+    gradient_method : {'direct', 'adjoint', 'auto'}, default 'direct'
+        How `evaluate` computes gradients unless told otherwise (its `method`): what an
+        optimizer calling evaluate(x, gradient=True) gets.
     """
 
-    def __init__(self, case, overrides=None):
+    def __init__(self, case, overrides=None, gradient_method="direct"):
         self.description = _description(case, overrides)
         self.mechanism = Mechanism(self.description)
         self._resp = {r.name: r for r in self.description.responses}
+        _check_method(gradient_method, "gradient_method")
+        self.default_gradient_method = gradient_method
 
     # ------------------------------------------------------------------ design space
     @property
@@ -171,7 +195,7 @@ class Problem:
     def _needs_forces(self, names):
         return any(isinstance(self._resp[n], (Torque, Reaction)) for n in names)
 
-    def _run(self, x, gradient, responses, store, differentiate=None):
+    def _run(self, x, gradient, responses, store, differentiate=None, tape=False):
         """(model, t_end, h, keywords of `simulate`) of a simulation of design x (see
         `simulate`)."""
         mech = self.mechanism
@@ -187,6 +211,8 @@ class Problem:
             newton = "reuse" if ts.reuse_jacobian else "full"
         kw = dict(rho_inf=ts.rho_inf, start=ts.start, newton=newton, q0=q0,
                   qd0=None if ts.start == "static" else qd0)
+        if tape:     # the discrete adjoint's forward run: every state kept, converged fully
+            kw.update(tape=True, polish=True)
         if store is None:
             # only what the responses read: the multipliers (motor torques, joint reactions)
             # are kept at every step anyway, so without a node to read one node's coordinates
@@ -204,7 +230,7 @@ class Problem:
         return model, mech.t_end, ts.h, kw
 
     def simulate(self, x=None, *, gradient=False, responses=None, store=None,
-                 differentiate=None):
+                 differentiate=None, tape=False):
         """Simulate design x (default: start); with gradient=True the design derivatives of
         the coordinates the responses need (all responses, or `responses`; or only those of
         the responses named in `differentiate`), and those of the constraint multipliers
@@ -213,8 +239,9 @@ class Problem:
         store: None (default) keeps only the coordinates the responses read (the points of
         deviation responses, the nodes of stressed beams; one node when only motor torques or
         joint reactions are asked, which come from the multipliers); 'all' or a list of nodes
-        as in `flexmbs.simulate`."""
-        model, t_end, h, kw = self._run(x, gradient, responses, store, differentiate)
+        as in `flexmbs.simulate`. tape=True: the discrete adjoint's forward run (every
+        (sub-)step's converged state kept, Newton converged fully: flexmbs.adjoint)."""
+        model, t_end, h, kw = self._run(x, gradient, responses, store, differentiate, tape)
         return simulate(model, t_end, h, **kw)
 
     def memory_estimate(self, x=None, gradient=True, *, responses=None, store=None):
@@ -263,6 +290,11 @@ class Problem:
             vals, grads = [], []
             for b in r.bodies:
                 c, dc = mech.half_depths(x, b)
+                virtual = getattr(result, "_virtual", None)
+                if gradient and virtual is not None:
+                    # the adjoint's virtual variables: (coordinates, forces, design) columns
+                    front, cols = virtual
+                    dc = np.hstack([np.zeros((dc.shape[0], front)), dc])[:, cols]
                 bs = beam_stress(mech.model, result, b, dc=dc if gradient else None)
                 nt = bs.normal.shape[0]
                 vals.append(bs.normal.reshape(nt, -1))
@@ -328,7 +360,38 @@ class Problem:
             return [n for n in self._resp if n in gradient]
         return list(self._resp) if gradient else []
 
-    def evaluate(self, x=None, gradient=True):
+    def gradient_functionals(self):
+        """Number of aggregated time functionals of the objective and the constraints (rows of
+        a history aggregated over time, 'every_step' rows counting one per time step): the
+        right-hand sides of an adjoint pass."""
+        t = self.mechanism.t
+        n = 0
+        obj = self.description.objective
+        if obj is not None and not isinstance(self._resp[obj.response], Mass):
+            n += 1
+        for c in self.description.constraints:
+            if isinstance(self._resp[c.response], Mass):
+                continue
+            bounds = (c.upper is not None) + (c.lower is not None)
+            n += bounds * (t.size if c.over == "every_step" else 1)
+        return n
+
+    def gradient_method(self, method=None):
+        """The method `evaluate` uses for gradients: 'direct' or 'adjoint'; 'auto' takes the
+        adjoint when the design variables outnumber the aggregated functionals
+        (`gradient_functionals`) by ADJOINT_MARGIN times and at least ADJOINT_MIN_VARIABLES;
+        None: the problem's default_gradient_method."""
+        if method is None:
+            method = self.default_gradient_method
+        _check_method(method)
+        if method != "auto":
+            return method
+        nv, nf = len(self.mechanism.variables), self.gradient_functionals()
+        if nf and nv >= ADJOINT_MIN_VARIABLES and nv > ADJOINT_MARGIN * nf:
+            return "adjoint"
+        return "direct"
+
+    def evaluate(self, x=None, gradient=True, method=None):
         """Every response, the objective and the constraints at design x (user units).
 
         gradient : True (every response's gradient), False (none: nothing is differentiated),
@@ -336,13 +399,22 @@ class Problem:
             response names: only those gradients are computed, and the simulation
             differentiates only the coordinates and multipliers they read. d_objective and
             the constraints' jacobian are given when the gradients they need are.
-        """
+        method : {'direct', 'adjoint', 'auto'} or None (the problem's gradient_method,
+            'direct' unless given)
+            How gradients are computed (`gradient_method`): direct differentiation (the
+            gradient of every history, Evaluation.gradients), or the discrete adjoint
+            (flexmbs.adjoint: the objective's and constraints' rows only, for about the cost
+            of one more simulation whatever the number of variables; the histories'
+            gradients are None). Evaluation.gradient_method tells which was used."""
         t0 = _time.perf_counter()
         mech = self.mechanism
         x = mech.start if x is None else mech.design_values(x)
         want = self._gradient_names(gradient) if mech.variables else []
         gradient = bool(want)
         timed = [n for n, r in self._resp.items() if not isinstance(r, Mass)]
+        chosen = self.gradient_method(method)
+        if gradient and timed and chosen == "adjoint":
+            return self._evaluate_adjoint(x, timed, t0)
         result = self.simulate(x, gradient=gradient, responses=timed,
                                differentiate=[n for n in timed if n in want]) if timed else None
         values, grads = {}, {}
@@ -362,7 +434,101 @@ class Problem:
                           objective=f, d_objective=df if gradient else None, constraints=cons,
                           jacobian=jac, constraint_names=names,
                           stats=result.stats if result is not None else {},
-                          wall_time=_time.perf_counter() - t0)
+                          wall_time=_time.perf_counter() - t0,
+                          gradient_method="direct" if gradient else None)
+
+    def _evaluate_adjoint(self, x, timed, t0):
+        """evaluate() with the gradients of the objective and constraint rows by the discrete
+        adjoint (its forward run keeps the tape of every (sub-)step).
+
+        The responses are evaluated on the run with 'virtual' design variables: one per
+        differentiated coordinate and constraint row (dq, dmu identities) and the real ones
+        (explicit dependences, e.g. a stress's section depth): their gradients (nt, V) are
+        the per-step partials. The aggregation weights of each row over time come from
+        constraint_rows with identity gradients; weights times partials are the adjoint's
+        right-hand sides (flexmbs.adjoint.adjoint_gradient)."""
+        from dataclasses import replace
+
+        from flexmbs.adjoint import adjoint_gradient, check_adjoint_memory
+
+        mech = self.mechanism
+        model = mech.set_design(x)
+        cm = model.compile()
+        check_adjoint_memory(cm.ndof, cm.nc, mech.t.size, self.gradient_functionals(), cm.nel)
+        result = self.simulate(x, gradient=False, responses=timed, tape=True)
+        nodes = self._nodes_needed(timed)
+        sdofs = np.array([3 * n + k for n in (nodes or [0]) for k in range(3)])
+        t = mech.t
+        nt, nsens, nc, nv = t.size, sdofs.size, result.mu.shape[1], len(mech.variables)
+        nvirt = nsens + nc + nv
+        values, partials, grads = {}, {}, {}
+        for name, r in self._resp.items():
+            if isinstance(r, Mass):
+                values[name], grads[name] = self._response(r, x, None, True)
+            else:
+                partials[name] = []
+                grads[name] = np.zeros((nt, nv))
+        # the virtual columns in chunks of at most ADJOINT_CHUNK_BYTES of dq
+        width = max(1, min(nvirt, int(ADJOINT_CHUNK_BYTES // (8.0 * nt * max(nsens, nc, 1)))))
+        for c0 in range(0, nvirt, width):
+            cols = np.arange(c0, min(c0 + width, nvirt))
+            dq = np.zeros((nt, nsens, cols.size))
+            k = np.flatnonzero(cols < nsens)
+            dq[:, cols[k], k] = 1.0
+            dmu = np.zeros((nt, nc, cols.size))
+            k = np.flatnonzero((cols >= nsens) & (cols < nsens + nc))
+            dmu[:, cols[k] - nsens, k] = 1.0
+            vres = replace(result, sens_dofs=sdofs, dq=dq, dmu=dmu)
+            vres._virtual = (nsens + nc, cols)
+            for name in partials:
+                values[name], part = self._response(self._resp[name], x, vres, True)
+                partials[name].append(np.asarray(part, float).reshape(nt, cols.size))
+        partials = {n: np.concatenate(p, axis=1) for n, p in partials.items()}
+        # the scalar responses' part, then the weights over time of every row: the rows'
+        # gradients for identity gradients of the histories, in chunks of steps
+        cons, jac, names, _ = constraint_rows(self.description, values, grads, t, nv, True)
+        obj = self.description.objective
+        f = df = None
+        if obj is not None:
+            f, df = _scalar(values[obj.response], grads[obj.response], obj.over, None, t)
+        wrows = np.zeros((len(names), nt))
+        wobj = np.zeros(nt)
+        width = max(1, min(nt, int(ADJOINT_CHUNK_BYTES // (8.0 * nt))))
+        for c0 in range(0, nt, width):
+            c1 = min(c0 + width, nt)
+            block = np.zeros((nt, c1 - c0))
+            block[np.arange(c0, c1), np.arange(c1 - c0)] = 1.0
+            wgrads = {n: (block if n in partials else np.zeros(c1 - c0)) for n in self._resp}
+            _, wrows[:, c0:c1], _, _ = constraint_rows(self.description, values, wgrads, t,
+                                                       c1 - c0, True)
+            if obj is not None:
+                wobj[c0:c1] = _scalar(values[obj.response], wgrads[obj.response], obj.over,
+                                      None, t)[1]
+        rows = [(names[i], wrows[i]) for i in range(len(names))]
+        if obj is not None:
+            rows.append((obj.response, wobj))
+        live = [k for k, (n, w) in enumerate(rows) if n in partials and np.any(w)]
+        out = np.zeros((len(rows), nv))
+        if live:
+            gq = np.zeros((nt, cm.ndof, len(live)))
+            gmu = np.zeros((nt, nc, len(live)))
+            for i, k in enumerate(live):
+                n, w = rows[k]
+                p = partials[n]
+                gq[:, sdofs, i] = w[:, None] * p[:, :nsens]
+                gmu[:, :, i] = w[:, None] * p[:, nsens:nsens + nc]
+                out[k] = w @ p[:, nsens + nc:]
+            dprop = mech.element_property_derivatives(x)
+            out[live] += adjoint_gradient(model, result, dprop, gq, gmu).T
+        jac = jac + out[:len(names)]
+        if obj is not None:
+            df = np.asarray(df, float) + out[-1]
+        cons, jac, names = with_linear_rows(mech, x, cons, jac, names)
+        return Evaluation(x=x, t=t, values=values,
+                          gradients={n: (None if n in partials else g) for n, g in grads.items()},
+                          objective=f, d_objective=df, constraints=cons, jacobian=jac,
+                          constraint_names=names, stats=result.stats,
+                          wall_time=_time.perf_counter() - t0, gradient_method="adjoint")
 
 
     # ------------------------------------------------------------------ summaries
@@ -392,6 +558,12 @@ class Problem:
         limits = [c.upper for c in self.description.constraints
                   if c.upper is not None and isinstance(self._resp[c.response], Deviation)]
         return min(limits) if limits else None
+
+
+def _check_method(method, name="method"):
+    if not isinstance(method, str) or method not in GRADIENT_METHODS:
+        raise ModelError(f"{name} must be one of {', '.join(map(repr, GRADIENT_METHODS))}, "
+                         f"got {method!r}")
 
 
 def constraint_rows(description, values, gradients, t, nv, gradient=True):

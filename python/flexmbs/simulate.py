@@ -93,6 +93,9 @@ class Result:
         beams, constraint drift, energy of a free system); see simulate(validity=...).
     sens_dofs, dq : with design_derivatives: the coordinates and their dq/dp (nt, nsens, nv).
     dmu : with constraint_force_derivatives=True: d(mu)/dp (nt, nc, nv) of every constraint row.
+    tape : with tape=True: every converged (sub-)step's state for the discrete adjoint, a dict
+        of q, qd, qdd (ndof, ncol), mu (nc, ncol), h (ncol,) (the step that led to the column)
+        and grid (nt,) (the 1-based column of every time point).
     """
     t: np.ndarray
     q: np.ndarray
@@ -107,6 +110,7 @@ class Result:
     dq: np.ndarray | None = None
     validity: object = None
     dmu: np.ndarray | None = None
+    tape: dict | None = None
 
     def position_derivative(self, node):
         """(nt, 2, nv) design derivatives of a node's position (needs design_derivatives)."""
@@ -199,6 +203,7 @@ def _messages(model, status, info, max_cuts, diagnosis=""):
 
 
 _NO_MEMORY = 9     # GA_NO_MEMORY of generalized_alpha.f90: info = [t, bytes, 0, what]
+_TAPE_FULL = 10    # GA_TAPE_FULL: the tape has no room for the sub-steps of the cut steps
 
 
 def _no_memory_error(cm, solver, info):
@@ -342,7 +347,7 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
              solver="auto", newton="auto", reuse_jacobian=None, tol=1e-10, max_iter=20, max_cuts=6,
              kscale=None, penalty=None, q0=None, qd0=None, design_derivatives=None,
              sensitivity_dofs=None, constraint_force_derivatives=False, memory_limit=None,
-             validity="warn"):
+             validity="warn", polish=False, tape=False):
     """Simulate a model with generalized-alpha (eqs. 3-6) and Newton-Raphson (eq. 7).
 
     Parameters
@@ -419,6 +424,18 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         the warning limits, InvalidResultError above the failure limits; 'error': both raise;
         'off': no checks. Only stored coordinates are checked.
 
+    polish : bool, default False
+        With newton 'auto' or 'reuse': full Newton steps from each step's second iteration, as
+        design_derivatives implies, so that the states converge as full Newton's do (the
+        discrete adjoint, flexmbs.adjoint, linearizes about them: with modified Newton's
+        states, 1e-11 m off, its gradients were 2e-8 to 7e-7 off on the robot; 'reuse' 1e-4).
+    tape : bool, default False
+        Keep every converged state, of every sub-step of a cut step too, in Result.tape (what
+        the discrete adjoint runs backwards over: flexmbs.adjoint): 3 ndof + nc numbers per
+        (sub-)step, counted in the memory estimate (room for a quarter more sub-steps than
+        steps; a run that cuts more is repeated once with room for every step cut max_cuts
+        times).
+
     Returns
     -------
     Result
@@ -437,6 +454,8 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     limits = ValidityLimits.coerce(validity)
     _check_newton_settings(rho_inf, tol, max_iter, max_cuts)
     newton = newton_mode(newton, reuse_jacobian)
+    _check_flag("polish", polish)
+    _check_flag("tape", tape)
     if not isinstance(start, str) or start not in ("rest", "static"):
         raise ModelError(f"start must be 'rest' or 'static', got {start!r}")
     for name, v in (("kscale", kscale), ("penalty", penalty)):
@@ -460,6 +479,13 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         raise ModelError("constraint_force_derivatives=True needs design_derivatives=...")
     want_dmu = bool(constraint_force_derivatives)
     est = _estimate(model, nsteps, out, solver, design_derivatives, sensitivity_dofs, want_dmu)
+    ntape = nsteps + 1 + max(64, nsteps // 4) if tape else 1
+
+    def tape_bytes(ncol):
+        return 8.0 * ncol * (3 * model.ndof + max(len(model._rows), 1) + 1.5)
+
+    if tape:
+        est.parts["tape of every (sub-)step (adjoint)"] = tape_bytes(ntape)
     check_memory(est, memory_limit, what=f"simulate (solver={solver!r}, {n_unknowns} unknowns, "
                                          f"{nsteps} steps, {out.size} stored coordinates)")
 
@@ -497,8 +523,8 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     else:
         nv, sdofs = 0, np.zeros(1, int)
         dprop_f = np.zeros((5, nel, 1), order="F")
-    try:
-        q_out, qd_out, qdd_out, mu_out, stats, status, info, dq_out, dmu_out = call_with_stack(
+    def run(ncol):
+        return call_with_stack(
             _core.simulate, est.stack, **margs, nsteps=nsteps, q0=q_init, qd0=qd_init,
             ap=pat["ap"], ai=pat["ai"], h=float(h),
             rho_inf=float(rho_inf), tol=float(tol), max_iter=int(max_iter),
@@ -506,7 +532,19 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
             static_start=int(start == "static"), kscale=float(kscale or 0.0),
             penalty=float(penalty or 0.0), out_dofs=(out + 1).astype(np.int32),
             nv=nv, dprop=dprop_f, sens_dofs=(sdofs + 1).astype(np.int32),
-            want_dmu=int(want_dmu), ndmu=max(cm.nc, 1) if want_dmu else 1)
+            want_dmu=int(want_dmu), ndmu=max(cm.nc, 1) if want_dmu else 1, polish=int(polish),
+            ntape=ncol)
+
+    try:
+        (q_out, qd_out, qdd_out, mu_out, stats, status, info, dq_out, dmu_out, *tape_out) = \
+            run(ntape)
+        if status == _TAPE_FULL:
+            # more sub-steps than room: once more with room for every step cut max_cuts times
+            ntape = nsteps * 2 ** int(max_cuts) + 1
+            est.parts["tape of every (sub-)step (adjoint)"] = tape_bytes(ntape)
+            check_memory(est, memory_limit, what=f"simulate with a tape of {ntape} sub-steps")
+            (q_out, qd_out, qdd_out, mu_out, stats, status, info, dq_out, dmu_out,
+             *tape_out) = run(ntape)
     except MemoryError as exc:    # the wrapper could not allocate the output arrays
         if isinstance(exc, ResourceError):
             raise
@@ -534,10 +572,18 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     res = Result(t=t, q=q_out.T, qd=qd_out.T, qdd=qdd_out.T, mu=mu_out[:cm.nc].T, dofs=out,
                   stats=st, wall_time=time.perf_counter() - t_start,
                   settings=dict(h=h, t_end=t_end, rho_inf=rho_inf, start=start, solver=solver,
-                                newton=newton),
+                                newton=newton, tol=float(tol), max_iter=int(max_iter),
+                                max_cuts=int(max_cuts), kscale=float(kscale or 0.0),
+                                penalty=float(penalty or 0.0), q0=q_init, qd0=qd_init,
+                                polish=bool(polish)),
                   sens_dofs=sdofs if nv else None,
                   dq=np.transpose(dq_out[:, :nv, :], (2, 0, 1)) if nv else None,
                   dmu=np.transpose(dmu_out[:cm.nc, :nv, :], (2, 0, 1)) if want_dmu else None)
+    if tape:
+        tq, tqd, tqdd, tmu, th, tgrid, nused = tape_out
+        nused = int(nused)
+        res.tape = dict(q=tq[:, :nused], qd=tqd[:, :nused], qdd=tqdd[:, :nused],
+                        mu=tmu[:cm.nc, :nused], h=th[:nused], grid=np.asarray(tgrid))
     res.validity = check_result(model, res, limits, law_val=margs["law_val"], tol=float(tol),
                                 props=props)
     apply_validity(res.validity, res)
