@@ -54,6 +54,7 @@ Example
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from types import SimpleNamespace
 
@@ -62,15 +63,15 @@ from scipy.optimize import minimize
 
 from flexmbs.description import Beam, Deviation, Mass, PointMass, Stress, body_points
 from flexmbs.errors import CaseError, ModelError
-from flexmbs.esl import (BodyStiffness, ChordFrame, TangentFrame, equivalent_static_loads,
-                         esl_change, solve_static)
+from flexmbs.esl import (BodyStiffness, ChordFrame, EquivalentStaticLoads, TangentFrame,
+                         equivalent_static_loads, esl_change, solve_static)
 from flexmbs.optimize.result import HistoryWriter, OptimizationResult
 from flexmbs.optimize.cycles import (CycleControl, _progress_callback, check_cycle_options,
-                                     move_limited_bounds)
+                                     check_remedies, damped_update, move_limited_bounds)
 from flexmbs.problem import _scalar, constraint_rows, load_problem
 from flexmbs.responses.strain import raw_strain_derivatives, raw_strains, shape, gauss_points
 
-__all__ = ["optimize_weakly", "chains", "StaticModel"]
+__all__ = ["optimize_weakly", "chains", "StaticModel", "blend_loads"]
 
 #: at most this many chain combinations per deviation response (loops multiply them)
 MAX_VARIANTS = 16
@@ -528,6 +529,22 @@ def _optimize_static(static, x0, lower, upper, *, screen, ftol, maxiter, active_
 
 
 # ---------------------------------------------------------------------------- cycles
+def blend_loads(loads, previous, weight):
+    """ESL of the last two cycles averaged: g = (1 - weight) g_current + weight g_previous for
+    every body and time step (the frames' origins and angles are the current cycle's).
+    weight 0 or no previous loads: `loads` itself."""
+    if previous is None or weight == 0.0:
+        return loads
+    out = []
+    for b in loads:
+        p = previous[b.name]
+        if p.g_eq.shape != b.g_eq.shape:
+            raise ModelError(f"body {b.name!r}: ESL of different shapes {p.g_eq.shape} and "
+                             f"{b.g_eq.shape} (different time grids?)")
+        out.append(dataclasses.replace(b, g_eq=(1.0 - weight) * b.g_eq + weight * p.g_eq))
+    return EquivalentStaticLoads(out)
+
+
 def _dynamic(problem, x, result):
     """Dynamic responses of a simulated design: values, constraint rows, deviation history."""
     values = {}
@@ -549,7 +566,7 @@ def _active_rows(g, names, active_tol):
 def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles=1,
                     move_limit=None, frames=None, frame_kind="tangent", screen=0.3,
                     ftol=1e-8, max_inner=200, active_tol=1e-3, stop_on_oscillation=True,
-                    history=None, progress=None):
+                    damping=1.0, esl_blend=0.0, design_tol=None, history=None, progress=None):
     """Optimize a problem with the weakly coupled method (paper 5.3).
 
     Parameters
@@ -565,7 +582,8 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
     confirm_cycles : int, default 1
         Eq. (25) must hold in 1 + confirm_cycles consecutive cycles (0: the paper's test).
     move_limit : float, optional
-        Relative move limit per cycle (bounds clipped to x (1 -+ move_limit)).
+        Relative move limit per cycle (bounds clipped to x (1 -+ move_limit)); a remedy
+        against oscillation.
     frames : dict beam -> point, optional
         Frame point of a beam (default: where the chains enter it; stress-only beams: `from`).
     frame_kind : {'tangent', 'chord'}, default 'tangent'
@@ -582,7 +600,19 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
     active_tol : float, default 1e-3
         A row counts as active when g >= -active_tol (history's active_steps).
     stop_on_oscillation : bool, default True
-        Stop when the designs repeat with a period of 2 to 6 cycles (reason 'oscillation').
+        Stop when the designs repeat with a period of 2 to 6 cycles (diagnosis
+        'oscillating') or the ESL change grows cycle after cycle ('diverging').
+    damping : float in (0, 1], default 1
+        Damped design update x_next = x + damping (x_static_optimum - x) (1: the paper's
+        update); a remedy against oscillation.
+    esl_blend : float in [0, 1), default 0
+        The static problem (23) takes the ESL of the last two cycles averaged,
+        (1 - esl_blend) g_k + esl_blend g_(k-1) (0: the paper's, the current ESL only); a
+        remedy against oscillation. Test (25) always compares the cycles' own ESL.
+    design_tol : float, optional
+        Also converged when the largest relative change of a design variable between two
+        cycles is below design_tol and the cycle's design is feasible (simulated), in
+        1 + confirm_cycles consecutive cycles (OptiStruct's ESLM outer-loop criterion).
     history : str, path or HistoryWriter, optional
         File receiving one JSON line per cycle as the run goes.
     progress : callable, optional
@@ -592,9 +622,15 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
     -------
     flexmbs.optimize.OptimizationResult
         method 'weakly'; iterations = cycles (MBS analyses); inner_iterations = SLSQP
-        iterations summed; details: predicted_max_violation (static model, normalised g of
-        the final design), feasible, paper_test_cycle (the cycle at which eq. (25) first
-        held), static_optimizations, oscillation_period, esl_change, esl_bodies, frames.
+        iterations summed. A converged run returns its last design; a run that stops
+        oscillating, diverging or at the cycle cap returns the best feasible design seen
+        (lowest objective among the cycles whose simulation satisfied every constraint; the
+        last design when none did), its cycle in details best_feasible_cycle and the last
+        cycle's design in details last_design. details: diagnosis ('converged',
+        'oscillating', 'diverging' or 'cap'), predicted_max_violation (static model,
+        normalised g of the final design), feasible, paper_test_cycle (the cycle at which
+        eq. (25) first held), static_optimizations, oscillation_period, esl_change,
+        esl_bodies, frames, damping, esl_blend, design_tol.
     """
     t_start = time.perf_counter()
     problem = load_problem(problem)
@@ -607,6 +643,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
     eps, max_cycles, confirm_cycles, max_inner, ftol, active_tol, move_limit, screen = \
         check_cycle_options(eps, max_cycles, confirm_cycles, max_inner, ftol, active_tol,
                             move_limit, screen)
+    damping, esl_blend, design_tol = check_remedies(damping, esl_blend, design_tol)
     if not isinstance(frame_kind, str) or frame_kind not in ("tangent", "chord"):
         raise ModelError(f"frame_kind must be 'tangent' or 'chord', got {frame_kind!r}")
     if frames is not None and not isinstance(frames, dict):
@@ -626,7 +663,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
     writer = history if isinstance(history, HistoryWriter) else HistoryWriter(history)
     own_writer = not isinstance(history, HistoryWriter)
     prev_loads, pending = None, None
-    control = CycleControl(eps, confirm_cycles, max_cycles, stop_on_oscillation)
+    control = CycleControl(eps, confirm_cycles, max_cycles, stop_on_oscillation, design_tol)
     inner_total = n_static = 0
     change = None
     values = g_dyn = names = result = None
@@ -654,27 +691,40 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
                 active_steps=None if pending is None else pending.active_steps,
                 simulation_active_steps=_active_rows(g_dyn, names, active_tol),
                 static_message=None if pending is None or pending.success else pending.message)
-            control.observe(cycle, x, change, record)
+            control.observe(cycle, x, change, record, objective=record["objective"],
+                            violation=record["max_violation"],
+                            data=(record, values, g_dyn, names, dev))
             writer.write(record)
             if progress is not None:
                 progress(writer.records[-1])
             if control.stop(cycle):
                 break
             lo, hi = move_limited_bounds(x, lower, upper, move_limit)
-            static.set_loads(loads)
+            static.set_loads(blend_loads(loads, prev_loads, esl_blend))
             pending = _optimize_static(static, x, lo, hi, screen=screen, ftol=ftol,
                                        maxiter=max_inner, active_tol=active_tol)
             inner_total += pending.iterations
             n_static += 1
             prev_loads = loads
-            x = pending.x.copy()
+            x = damped_update(x, pending.x, damping)
     finally:
         if own_writer:
             writer.close()
+    last_design, last_record = x.copy(), record
+    best = control.best
+    use_best = (not control.converged and best is not None and best.cycle != len(control.designs))
+    if use_best:                  # the best feasible design seen: its own cycle's simulation
+        x = best.design.copy()
+        record, values, g_dyn, names, dev = best.data
     mech.set_design(x)
     final_violation = float(g_dyn.max()) if g_dyn.size else None
     feasible = final_violation is None or final_violation <= 1e-6
     reason = control.reason
+    if use_best:
+        reason += (f"; returned the best feasible design seen (cycle {best.cycle}, "
+                   f"{record['mass_kg']:.4g} kg; the last cycle's design, "
+                   f"{last_record['mass_kg']:.4g} kg, has the largest constraint value "
+                   f"{last_record['max_violation']:.3g})")
     unmodelled = [c.response for c in d.constraints if c.response in static.unmodelled]
     if unmodelled:
         reason += (f"; constraints with no static form, left out of the static optimization "
@@ -683,10 +733,18 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         worst = int(np.argmax(g_dyn))
         names = constraint_rows(d, values, {}, mech.t, len(problem.variables), False)[2]
         reason += (f"; the final design violates {names[worst]!r} by {final_violation:.3g} "
+                   "(relative to its limit, simulated; no cycle's design was feasible)"
+                   if best is None else
+                   f"; the final design violates {names[worst]!r} by {final_violation:.3g} "
                    "(relative to its limit, simulated)")
     details = dict(
-        predicted_max_violation=None if pending is None else pending.max_violation,
-        feasible=feasible,
+        predicted_max_violation=(None if pending is None or use_best
+                                 else pending.max_violation),
+        feasible=feasible, diagnosis=control.diagnosis,
+        best_feasible_cycle=None if best is None else best.cycle,
+        last_design=last_design.tolist(), last_mass_kg=last_record["mass_kg"],
+        last_max_violation=last_record["max_violation"],
+        damping=damping, esl_blend=esl_blend, design_tol=design_tol,
         constraints_checked_by_simulation=list(dict.fromkeys(unmodelled)),
         max_deviation_responses=[r.name for r in d.responses if isinstance(r, Deviation)
                                  and r.name in {c.response for c in d.constraints}],
@@ -696,7 +754,8 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         move_limit=move_limit, frame=frame_kind, frames=dict(static.entry),
         esl_bodies=[n for n, _ in static.frames], variables=list(mech.variables),
         t_end=float(mech.t[-1]),
-        active_steps=None if pending is None else pending.active_steps,
+        active_steps=(record["active_steps"] if use_best else
+                      None if pending is None else pending.active_steps),
         mass_responses=[r.name for r in mass_resp])
     return OptimizationResult(
         method="weakly", case=d.case.name, variables=list(mech.variables),
