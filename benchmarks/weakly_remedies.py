@@ -35,13 +35,18 @@ import numpy as np  # noqa: E402
 #: name -> options of optimize_weakly (beyond reproduce.WEAKLY_OPTIONS)
 REMEDIES = {
     "paper": {},
+    "paper-100cyc": dict(max_cycles=100),
     "move0.2": dict(move_limit=0.2),
     "move0.1": dict(move_limit=0.1),
+    "move0.05": dict(move_limit=0.05),
     "blend0.5": dict(esl_blend=0.5),
     "damping0.5": dict(damping=0.5),
+    "damping0.3": dict(damping=0.3),
     "damping0.5+blend0.5": dict(damping=0.5, esl_blend=0.5),
-    "damping0.5-60cyc": dict(damping=0.5, max_cycles=60),
-    "design_tol1e-3": dict(design_tol=1e-3),
+    "design_tol1e-2": dict(design_tol=1e-2),
+    "design_tol2e-2": dict(design_tol=2e-2),
+    "damping0.5+design_tol2e-2": dict(damping=0.5, design_tol=2e-2),
+    "move0.1+design_tol2e-2": dict(move_limit=0.1, design_tol=2e-2),
 }
 
 #: table -> (case, overrides, start)

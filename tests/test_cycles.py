@@ -64,12 +64,18 @@ def test_converging_alternation_is_not_an_oscillation():
 
 
 def test_diverging():
-    """ESL changes 0.1, 0.15, 0.25, 0.4, 0.8: grown in each of the last 4 cycles to 8x: the
-    diagnosis is 'diverging' at the fifth change. A slow growth (0.10 .. 0.14, under 2x) is
+    """ESL changes 0.1, 0.15, 0.25, 0.4, 0.8 (grown in each of the last 4 cycles, to 8x) with
+    the largest constraint value growing too: diagnosis 'diverging' at the fifth change
+    (cycle 6). The same ESL changes with constraint values going up and down (a bounded
+    oscillation, as the four-bar's cycles 9-13) or a slow growth (0.10 .. 0.14, under 2x) are
     not divergence."""
     designs = [np.array([50.0 + 3 * k, 40.0 - k]) for k in range(8)]
-    c, stopped = _run(designs, [None, 0.1, 0.15, 0.25, 0.4, 0.8, 1.6, 3.2])
+    growing = [None, 0.1, 0.15, 0.25, 0.4, 0.8, 1.6, 3.2]
+    c, stopped = _run(designs, growing, violations=[-0.5, -0.3, -0.1, 0.1, 0.3, 0.5, 1, 2])
     assert c.diagnosis == "diverging" and stopped == 6
+    c, stopped = _run(designs, growing, violations=[-0.5, -0.02, -0.05, 0.03, -0.05, 0.08,
+                                                    -0.1, 0.1], max_cycles=8)
+    assert c.diagnosis == "cap" and stopped == 8
     c, stopped = _run(designs, [None, 0.10, 0.11, 0.12, 0.13, 0.14, 0.145, 0.15], max_cycles=8)
     assert c.diagnosis == "cap" and stopped == 8
 
@@ -92,7 +98,8 @@ def test_design_change_criterion():
     """design_tol = 1e-3 (OptiStruct's ESLM: design change and constraint violation between
     cycles): designs changing by 0.05 % while feasible converge after 1 + 1 confirming cycles
     (cycle 3), although the ESL change 0.5 never meets eq. (25); the same designs infeasible
-    (g = 0.01) do not converge."""
+    (g = 0.01) do not converge, nor do they when the static optimization proposed steps of
+    5 % that a damped update shrank (`step`)."""
     designs = [np.array([100.0 * (1 + 5e-4) ** k, 50.0]) for k in range(6)]
     c, stopped = _run(designs, [None] + [0.5] * 5, violations=[-0.1] * 6, design_tol=1e-3,
                       max_cycles=6)
@@ -101,6 +108,12 @@ def test_design_change_criterion():
     c, stopped = _run(designs, [None] + [0.5] * 5, violations=[0.01] * 6, design_tol=1e-3,
                       max_cycles=6)
     assert not c.converged and c.diagnosis == "cap"
+    c = CycleControl(1e-2, 1, 6, True, 1e-3)
+    for k, x in enumerate(designs, start=1):
+        c.observe(k, x, None if k == 1 else 0.5, {}, objective=1.0, violation=-0.1,
+                  step=None if k == 1 else 0.05)
+        assert not c.stop(k) or k == 6
+    assert not c.converged and c.design_changes[-1] == 0.05
 
 
 def test_damped_update_and_move_limits():

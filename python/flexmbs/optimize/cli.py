@@ -5,7 +5,7 @@ Usage::
     flexmbs optimize CASE [--method weakly|fully] [--start X1,...] [--t-end T]
                           [--set KEY=VALUE ...] [--json] [--history FILE] [--plot FILE.png]
         weakly: [--eps E] [--max-cycles N] [--confirm-cycles N] [--move-limit F]
-                [--frame tangent|chord]
+                [--damping W] [--esl-blend B] [--design-tol TOL] [--frame tangent|chord]
         fully:  [--optimizer mma|sqp|slsqp|nlopt-mma|nlopt-ccsaq|nlopt-slsqp] [--kkt-tol TOL]
                 [--max-iterations N] [--design-rel-change TOL]
                 [--starts N [--candidates M] [--sampler sobol|lhs] [--seed S]
@@ -87,6 +87,14 @@ def add_weakly_options(p):
                    help="eq. (25) must also hold in N more cycles (0: the paper's test), default 1")
     g.add_argument("--move-limit", type=float, default=None, metavar="F",
                    help="relative move limit of the design per cycle (e.g. 0.1); default none")
+    g.add_argument("--damping", type=float, default=1.0, metavar="W",
+                   help="damped design update x + W (x* - x), 0 < W <= 1; default 1 (the paper)")
+    g.add_argument("--esl-blend", type=float, default=0.0, metavar="B",
+                   help="static problem on (1-B) ESL of this cycle + B ESL of the previous one; "
+                        "default 0 (the paper)")
+    g.add_argument("--design-tol", type=float, default=None, metavar="TOL",
+                   help="also converged when the design changes by less than TOL (relative) "
+                        "between cycles with the design feasible; default none")
     g.add_argument("--frame", choices=("tangent", "chord"), default="tangent",
                    help="corotational frame of the beams (default: tangent, as the paper)")
 
@@ -98,7 +106,8 @@ def run_weakly(args, problem):
     return optimize_weakly(problem, design_from_text(args.start, problem, "--start"),
                            eps=args.eps, max_cycles=args.max_cycles,
                            confirm_cycles=args.confirm_cycles, move_limit=args.move_limit,
-                           frame_kind=args.frame, history=args.history, progress=progress)
+                           damping=args.damping, esl_blend=args.esl_blend,
+                           design_tol=args.design_tol, frame_kind=args.frame, history=args.history, progress=progress)
 
 
 def _print_cycle(rec):

@@ -7,13 +7,16 @@ Every run ends with one diagnosis (`CycleControl.diagnosis`):
 
 * 'converged': the paper's test (25), relative ESL change below eps, in 1 + confirm_cycles
   consecutive cycles (the test can fire on an unstable fixed point, hence the confirmation);
-  or, when `design_tol` is given, the criterion of OptiStruct's ESLM outer loop: the relative
-  design change between two cycles below design_tol with the cycle's design feasible
-  (simulated), also in 1 + confirm_cycles consecutive cycles;
+  or, when `design_tol` is given, a criterion of the kind of OptiStruct's ESLM outer loop: the
+  relative design change between two cycles below design_tol with the cycle's design feasible
+  (simulated), also in 1 + confirm_cycles consecutive cycles. The design change is the step
+  the static optimization proposed (`observe`'s `step`), before damping: a damped update
+  shrinks the step without the cycles converging;
 * 'oscillating': the designs repeat with a period of 2 to 6 cycles (`_oscillation`; the
   paper's Table 5; OptiStruct stops when six objective values alternate around the optimum);
 * 'diverging': the ESL change of eq. (25) grew in each of the last `DIVERGING_CYCLES` cycles,
-  to at least twice its value before them (`_diverging`);
+  to at least twice its value before them, and the largest simulated constraint value grew in
+  each of them too (`_diverging`);
 * 'cap': the maximum number of cycles was reached.
 
 Whatever the diagnosis, the control keeps the best feasible design seen (`best`): the lightest
@@ -63,13 +66,18 @@ def _oscillation(designs, changes, period_max=6, ratio=0.2):
     return None
 
 
-def _diverging(changes, n=DIVERGING_CYCLES):
+def _diverging(changes, violations, n=DIVERGING_CYCLES):
     """Whether the ESL change (eq. 25) grew in each of the last n cycles, to at least twice
-    its value n cycles back (None entries: no change measured yet, never diverging)."""
+    its value n cycles back, while the largest simulated constraint value grew in each of them
+    too (the designs move away from feasibility; skipped when the constraint values are None).
+    A bounded oscillation whose ESL change happens to grow for a while is not divergence."""
     last = changes[-(n + 1):]
     if len(last) < n + 1 or any(c is None for c in last):
         return False
-    return all(b > a for a, b in zip(last, last[1:])) and last[-1] >= 2.0 * last[0]
+    if not (all(b > a for a, b in zip(last, last[1:])) and last[-1] >= 2.0 * last[0]):
+        return False
+    g = violations[-(n + 1):]
+    return any(v is None for v in g) or all(b > a for a, b in zip(g, g[1:]))
 
 
 def check_remedies(damping, esl_blend, design_tol):
@@ -140,21 +148,25 @@ class CycleControl:
         self.eps, self.confirm_cycles = eps, confirm_cycles
         self.max_cycles, self.stop_on_oscillation = max_cycles, stop_on_oscillation
         self.design_tol, self.feasibility_tol = design_tol, feasibility_tol
-        self.designs, self.changes, self.design_changes = [], [], []
+        self.designs, self.changes, self.design_changes, self.violations = [], [], [], []
         self.consecutive, self.paper_cycle, self.consecutive_design = 0, None, 0
         self.converged, self.reason, self.period = False, "", None
         self.diagnosis, self.best, self.diverging = "", None, False
 
-    def observe(self, cycle, design, change, record, objective=None, violation=None, data=None):
+    def observe(self, cycle, design, change, record, objective=None, violation=None, data=None,
+                step=None):
         """Take a cycle's design, ESL change and (simulated) objective and largest constraint
-        value; the design change, an oscillation or a divergence are noted in `record`."""
+        value; `step`: the largest relative change x* - x the last static optimization
+        proposed (default: the change from the previous design). The design change, an
+        oscillation or a divergence are noted in `record`."""
         x = np.array(design, float).copy()
-        dx = None
-        if self.designs:
+        dx = None if step is None else float(step)
+        if self.designs and dx is None:
             prev = self.designs[-1]
             dx = float(np.max(np.abs(x - prev) / np.maximum(np.abs(prev), 1e-300)))
         self.designs.append(x)
         self.changes.append(change)
+        self.violations.append(violation)
         self.design_changes.append(dx)
         record["design_change"] = dx
         feasible = violation is None or violation <= self.feasibility_tol
@@ -184,7 +196,7 @@ class CycleControl:
             self.period = _oscillation(self.designs, self.changes)
             if self.period is not None:
                 record["oscillation_period"] = self.period
-            self.diverging = _diverging(self.changes)
+            self.diverging = _diverging(self.changes, self.violations)
             if self.diverging:
                 record["diverging"] = True
 

@@ -662,7 +662,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
 
     writer = history if isinstance(history, HistoryWriter) else HistoryWriter(history)
     own_writer = not isinstance(history, HistoryWriter)
-    prev_loads, pending = None, None
+    prev_loads, pending, x_prev = None, None, x
     control = CycleControl(eps, confirm_cycles, max_cycles, stop_on_oscillation, design_tol)
     inner_total = n_static = 0
     change = None
@@ -693,7 +693,9 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
                 static_message=None if pending is None or pending.success else pending.message)
             control.observe(cycle, x, change, record, objective=record["objective"],
                             violation=record["max_violation"],
-                            data=(record, values, g_dyn, names, dev))
+                            data=(record, values, g_dyn, names, dev),
+                            step=None if pending is None else float(np.max(
+                                np.abs(pending.x - x_prev) / np.abs(x_prev))))
             writer.write(record)
             if progress is not None:
                 progress(writer.records[-1])
@@ -706,7 +708,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
             inner_total += pending.iterations
             n_static += 1
             prev_loads = loads
-            x = damped_update(x, pending.x, damping)
+            x_prev, x = x, damped_update(x, pending.x, damping)
     finally:
         if own_writer:
             writer.close()
