@@ -177,3 +177,12 @@ def test_damping_moves_part_of_the_way():
     assert np.max(np.abs(xs - x1) / x1) > 0.1                  # the step is not negligible
     np.testing.assert_allclose(r2.history[1]["design"], x1 + 0.5 * (xs - x1), rtol=1e-6)
     assert r2.details["damping"] == 0.5
+
+
+def test_cli_remedy_option_checked(capsys):
+    """``flexmbs optimize robot_2dof --method weakly --damping 1.5``: exit status 2 and one
+    line naming the option, the value and the allowed range (before any simulation)."""
+    from flexmbs.cli import main
+    assert main(["optimize", "robot_2dof", "--method", "weakly", "--damping", "1.5"]) == 2
+    err = capsys.readouterr().err
+    assert "damping must lie in (0, 1]" in err and "got 1.5" in err
