@@ -48,6 +48,16 @@ REMEDIES = {
     "design_tol2e-2": dict(design_tol=2e-2),
     "damping0.5+design_tol2e-2": dict(damping=0.5, design_tol=2e-2),
     "move0.1+design_tol2e-2": dict(move_limit=0.1, design_tol=2e-2),
+    # the four-bar's follower (pinned at both ends) in a chord frame C -> B: simply supported
+    "fchord": dict(frame_kind={"follower": "chord"}),
+    "fchord+damping0.5": dict(frame_kind={"follower": "chord"}, damping=0.5),
+    "fchord+damping0.3": dict(frame_kind={"follower": "chord"}, damping=0.3),
+    "fchord+move0.1": dict(frame_kind={"follower": "chord"}, move_limit=0.1),
+    "fchord+blend0.5": dict(frame_kind={"follower": "chord"}, esl_blend=0.5),
+    "fchord+damping0.5+blend0.5": dict(frame_kind={"follower": "chord"}, damping=0.5,
+                                       esl_blend=0.5),
+    "fchord+damping0.5-60cyc": dict(frame_kind={"follower": "chord"}, damping=0.5,
+                                    max_cycles=60),
 }
 
 #: table -> (case, overrides, start)

@@ -5,7 +5,8 @@ Usage::
     flexmbs optimize CASE [--method weakly|fully] [--start X1,...] [--t-end T]
                           [--set KEY=VALUE ...] [--json] [--history FILE] [--plot FILE.png]
         weakly: [--eps E] [--max-cycles N] [--confirm-cycles N] [--move-limit F]
-                [--damping W] [--esl-blend B] [--design-tol TOL] [--frame tangent|chord]
+                [--damping W] [--esl-blend B] [--design-tol TOL]
+                [--frame tangent|chord|BEAM=KIND,...]
         fully:  [--optimizer mma|sqp|slsqp|nlopt-mma|nlopt-ccsaq|nlopt-slsqp] [--kkt-tol TOL]
                 [--max-iterations N] [--design-rel-change TOL]
                 [--starts N [--candidates M] [--sampler sobol|lhs] [--seed S]
@@ -31,7 +32,7 @@ import sys
 
 from flexmbs.cli import (add_case_arguments, design_from_text, figure_file, output_file,
                          print_json, problem_from_args)
-from flexmbs.errors import CaseError
+from flexmbs.errors import CaseError, ModelError
 from flexmbs.optimize.fully import OPTIMIZERS
 from flexmbs.optimize.result import HistoryWriter
 
@@ -95,8 +96,22 @@ def add_weakly_options(p):
     g.add_argument("--design-tol", type=float, default=None, metavar="TOL",
                    help="also converged when the design changes by less than TOL (relative) "
                         "between cycles with the design feasible; default none")
-    g.add_argument("--frame", choices=("tangent", "chord"), default="tangent",
-                   help="corotational frame of the beams (default: tangent, as the paper)")
+    g.add_argument("--frame", default="tangent", metavar="KIND|BEAM=KIND,...",
+                   help="corotational frame of the beams, tangent or chord (default: tangent, as "
+                        "the paper), or per beam, e.g. follower=chord (others tangent)")
+
+
+def _frame_option(text):
+    """--frame: 'tangent', 'chord' or 'BEAM=KIND,...' -> optimize_weakly's frame_kind."""
+    if "=" not in text:
+        return text
+    kinds = {}
+    for item in text.split(","):
+        name, sep, kind = item.partition("=")
+        if not sep or not name.strip():
+            raise ModelError(f"--frame: {item!r} is not BEAM=KIND (e.g. follower=chord)")
+        kinds[name.strip()] = kind.strip()
+    return kinds
 
 
 def run_weakly(args, problem):
@@ -107,7 +122,7 @@ def run_weakly(args, problem):
                            eps=args.eps, max_cycles=args.max_cycles,
                            confirm_cycles=args.confirm_cycles, move_limit=args.move_limit,
                            damping=args.damping, esl_blend=args.esl_blend,
-                           design_tol=args.design_tol, frame_kind=args.frame, history=args.history, progress=progress)
+                           design_tol=args.design_tol, frame_kind=_frame_option(args.frame), history=args.history, progress=progress)
 
 
 def _print_cycle(rec):

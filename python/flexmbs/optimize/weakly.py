@@ -184,6 +184,26 @@ def _difference(chain, rel):
 
 
 # ---------------------------------------------------------------------------- static model
+def _frame_kinds(frame_kind, beams):
+    """{beam: 'tangent' | 'chord'} from one kind for all beams or a dict beam -> kind."""
+    ok = ("tangent", "chord")
+    if isinstance(frame_kind, str):
+        if frame_kind not in ok:
+            raise ModelError(f"frame_kind must be 'tangent' or 'chord', got {frame_kind!r} "
+                             "(or a dict beam -> kind)")
+        return dict.fromkeys(beams, frame_kind)
+    if not isinstance(frame_kind, dict):
+        raise ModelError(f"frame_kind must be 'tangent', 'chord' or a dict beam -> kind, got "
+                         f"{frame_kind!r}")
+    for name, kind in frame_kind.items():
+        if name not in beams:
+            raise CaseError(f"frame_kind: {name!r} is not a beam (beams: {', '.join(beams)})")
+        if kind not in ok:
+            raise ModelError(f"frame_kind of beam {name!r} must be 'tangent' or 'chord', got "
+                             f"{kind!r}")
+    return {n: frame_kind.get(n, "tangent") for n in beams}
+
+
 class StaticModel:
     """The static responses of a problem for one set of ESL (see the module docstring).
 
@@ -191,7 +211,8 @@ class StaticModel:
     ----------
     problem : Problem
     frames : dict body -> point, optional (frame point of a beam).
-    frame_kind : 'tangent' (default) or 'chord' (from the frame point to the beam's other end).
+    frame_kind : 'tangent' (default) or 'chord' (from the frame point to the beam's other end),
+        for every beam; or a dict beam -> kind (beams not named: 'tangent').
     """
 
     def __init__(self, problem, frames=None, frame_kind="tangent"):
@@ -200,6 +221,7 @@ class StaticModel:
         mech = problem.mechanism
         self.mech = mech
         beams = {b.name: b for b in d.bodies if isinstance(b, Beam)}
+        kinds = _frame_kinds(frame_kind, beams)
         frames = dict(frames or {})
         for name, pt in frames.items():
             if name not in beams:
@@ -287,10 +309,11 @@ class StaticModel:
             body = model.body(name)
             node = mech.node[(name, entry[name])]
             far = body.last if node == body.first else body.first
-            fr = TangentFrame(node) if frame_kind == "tangent" else ChordFrame(node, far)
+            fr = TangentFrame(node) if kinds[name] == "tangent" else ChordFrame(node, far)
             self.frames.append((name, fr))
             self.stiffness[name] = BodyStiffness(model, body, fr)
         self.entry = entry
+        self.kinds = {n: kinds[n] for n, _ in self.frames}
         self.loads = None
 
     # ------------------------------------------------------------------ loads
@@ -586,9 +609,11 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         against oscillation.
     frames : dict beam -> point, optional
         Frame point of a beam (default: where the chains enter it; stress-only beams: `from`).
-    frame_kind : {'tangent', 'chord'}, default 'tangent'
-        Corotational frame of every ESL beam at its frame point: tangent to the beam there,
-        or 'chord', from that point to the beam's other end.
+    frame_kind : {'tangent', 'chord'} or dict beam -> kind, default 'tangent'
+        Corotational frame of every ESL beam at its frame point: tangent to the beam there
+        (static load cases clamped at that point), or 'chord', from that point to the beam's
+        other end (simply supported); a dict sets it per beam (others: 'tangent'). The
+        four-bar's follower, pinned at both ends, with {'follower': 'chord'}: docs/optimizers.md.
     screen : float in [0, 1], default 0.3
         The static problem starts with the rows (time steps) whose value is at least
         `screen` times the current maximum of its constraint (0: all rows); rows found
@@ -644,8 +669,6 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         check_cycle_options(eps, max_cycles, confirm_cycles, max_inner, ftol, active_tol,
                             move_limit, screen)
     damping, esl_blend, design_tol = check_remedies(damping, esl_blend, design_tol)
-    if not isinstance(frame_kind, str) or frame_kind not in ("tangent", "chord"):
-        raise ModelError(f"frame_kind must be 'tangent' or 'chord', got {frame_kind!r}")
     if frames is not None and not isinstance(frames, dict):
         raise ModelError(f"frames must be a dict beam -> point or None, got {frames!r}")
     progress = _progress_callback(progress)
@@ -753,7 +776,8 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         paper_test_cycle=control.paper_cycle, static_optimizations=n_static,
         oscillation_period=control.period, esl_change=change, eps=eps,
         confirm_cycles=confirm_cycles,
-        move_limit=move_limit, frame=frame_kind, frames=dict(static.entry),
+        move_limit=move_limit, frame=frame_kind if isinstance(frame_kind, str) else "mixed",
+        frame_kinds=dict(static.kinds), frames=dict(static.entry),
         esl_bodies=[n for n, _ in static.frames], variables=list(mech.variables),
         t_end=float(mech.t[-1]),
         active_steps=(record["active_steps"] if use_best else
