@@ -635,9 +635,10 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         (1 - esl_blend) g_k + esl_blend g_(k-1) (0: the paper's, the current ESL only); a
         remedy against oscillation. Test (25) always compares the cycles' own ESL.
     design_tol : float, optional
-        Also converged when the largest relative change of a design variable between two
-        cycles is below design_tol and the cycle's design is feasible (simulated), in
-        1 + confirm_cycles consecutive cycles (OptiStruct's ESLM outer-loop criterion).
+        Also converged when the largest relative change of a design variable that the static
+        optimization proposed (x* - x, before damping) is below design_tol and the cycle's
+        design is feasible (simulated), in 1 + confirm_cycles consecutive cycles (a criterion
+        of the kind of OptiStruct's ESLM outer loop: design change and constraint violation).
     history : str, path or HistoryWriter, optional
         File receiving one JSON line per cycle as the run goes.
     progress : callable, optional
@@ -746,10 +747,11 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
     feasible = final_violation is None or final_violation <= 1e-6
     reason = control.reason
     if use_best:
+        lv = last_record["max_violation"]
         reason += (f"; returned the best feasible design seen (cycle {best.cycle}, "
-                   f"{record['mass_kg']:.4g} kg; the last cycle's design, "
-                   f"{last_record['mass_kg']:.4g} kg, has the largest constraint value "
-                   f"{last_record['max_violation']:.3g})")
+                   f"objective {record['objective']:.4g}; the last cycle's design: "
+                   f"{last_record['objective']:.4g}"
+                   + ("" if lv is None else f", largest constraint value {lv:.3g}") + ")")
     unmodelled = [c.response for c in d.constraints if c.response in static.unmodelled]
     if unmodelled:
         reason += (f"; constraints with no static form, left out of the static optimization "
