@@ -207,9 +207,9 @@ def test_table3_fully_seven_times_lighter(optimized):
     coupled method" (20.703 / 2.967 = 6.98). Asserted: flexmbs's ratio within 15 % of 6.98:
     5 % on each mass (FOURBAR_MASS_TOL), plus the wander of the unconverged weakly coupled
     cycles, whose mass moves between 29.5 and 32.9 kg (+-5.5 %) from cycle 6 to 30, so that a
-    different rounding can stop them anywhere in that band (ratio 6.38-7.10). Measured 6.58 (weakly: the best feasible design seen, 30.455 kg)
-    (both masses ~50 % above the paper's, test_table3_mass); the report of 2026-11-22 (older
-    code) had 6.79."""
+    different rounding can stop them anywhere in that band (ratio 6.38-7.10). Measured 6.58
+    (weakly: the best feasible design seen, 30.455 kg; both masses ~50 % above the paper's,
+    test_table3_mass); the report of 2026-11-22 (older code) had 6.79."""
     w = optimized(_run(3, "weakly"))
     f = optimized(_run(3, "fully"))
     ratio = w["mass_kg"] / f["mass_kg"]
