@@ -168,3 +168,37 @@ def test_bad_arguments_are_typed_errors():
         optimize_weakly(case, frames=["rod"])
     with pytest.raises(ModelError, match="frame_kind must be 'tangent' or 'chord', got 'arc'"):
         optimize_weakly(case, frame_kind="arc")
+
+
+def test_frame_kind_per_beam():
+    """frame_kind={'follower': 'chord'} on the four-bar: the follower (pinned at C and B) gets
+    a chord frame C -> B, the crank and the coupler keep tangent frames. By the chord frame's
+    definition B lies on its x axis, so the follower's static displacement at B has no
+    transverse component: (35)'s follower term is its axial stretch only (|u_y(B)| = 0, against
+    an axial |u_x(B)| > 0)."""
+    from flexmbs.esl import ChordFrame, TangentFrame
+    pb = Problem(GENERAL / "fourbar.toml")
+    x = pb.mechanism.design_values([70.0, 88.0, 40.0])
+    st = StaticModel(pb, frame_kind={"follower": "chord"})
+    kinds = {n: type(f) for n, f in st.frames}
+    assert kinds == {"crank": TangentFrame, "coupler": TangentFrame, "follower": ChordFrame}
+    model = pb.mechanism.set_design(x)
+    res = pb.simulate(x, store="all")
+    st.set_loads(equivalent_static_loads(model, res, st.frames, stiffness=st.stiffness,
+                                         props=model.element_properties()))
+    u, _, b = st._solutions(x, False)["follower"]
+    k = b.stiffness.nodes.index(pb.mechanism.node[("follower", "B")])
+    assert np.max(np.abs(u[:, 3 * k])) > 0
+    assert np.max(np.abs(u[:, 3 * k + 1])) == 0.0
+
+
+def test_frame_kind_per_beam_bad_input():
+    """A frame_kind dict naming no beam is a CaseError naming it and the beams; a kind other
+    than tangent/chord a ModelError naming the beam and the kind."""
+    from flexmbs.errors import ModelError
+    pb = Problem(GENERAL / "fourbar.toml")
+    with pytest.raises(CaseError, match="frame_kind: 'mass_A' is not a beam"):
+        StaticModel(pb, frame_kind={"mass_A": "chord"})
+    with pytest.raises(ModelError, match="frame_kind of beam 'follower' must be 'tangent' or "
+                                         "'chord', got 'arc'"):
+        StaticModel(pb, frame_kind={"follower": "arc"})

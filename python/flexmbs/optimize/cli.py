@@ -6,7 +6,8 @@ Usage::
                           [--set KEY=VALUE ...] [--json] [--history FILE [--resume]]
                           [--progress | --no-progress] [--plot FILE.png]
         weakly: [--eps E] [--max-cycles N] [--confirm-cycles N] [--move-limit F]
-                [--frame tangent|chord]
+                [--damping W] [--esl-blend B] [--design-tol TOL]
+                [--frame tangent|chord|BEAM=KIND,...]
         fully:  [--optimizer mma|sqp|slsqp|nlopt-mma|nlopt-ccsaq|nlopt-slsqp] [--kkt-tol TOL]
                 [--max-iterations N] [--design-rel-change TOL]
                 [--starts N [--candidates M] [--sampler sobol|lhs] [--seed S]
@@ -37,7 +38,7 @@ import sys
 
 from flexmbs.cli import (add_case_arguments, design_from_text, figure_file, output_file,
                          print_json, problem_from_args)
-from flexmbs.errors import CaseError
+from flexmbs.errors import CaseError, ModelError
 from flexmbs.optimize.fully import OPTIMIZERS
 from flexmbs.optimize.result import HistoryWriter
 
@@ -99,8 +100,30 @@ def add_weakly_options(p):
                    help="eq. (25) must also hold in N more cycles (0: the paper's test), default 1")
     g.add_argument("--move-limit", type=float, default=None, metavar="F",
                    help="relative move limit of the design per cycle (e.g. 0.1); default none")
-    g.add_argument("--frame", choices=("tangent", "chord"), default="tangent",
-                   help="corotational frame of the beams (default: tangent, as the paper)")
+    g.add_argument("--damping", type=float, default=1.0, metavar="W",
+                   help="damped design update x + W (x* - x), 0 < W <= 1; default 1 (the paper)")
+    g.add_argument("--esl-blend", type=float, default=0.0, metavar="B",
+                   help="static problem on (1-B) ESL of this cycle + B ESL of the previous one; "
+                        "default 0 (the paper)")
+    g.add_argument("--design-tol", type=float, default=None, metavar="TOL",
+                   help="also converged when the design changes by less than TOL (relative) "
+                        "between cycles with the design feasible; default none")
+    g.add_argument("--frame", default="tangent", metavar="KIND|BEAM=KIND,...",
+                   help="corotational frame of the beams, tangent or chord (default: tangent, as "
+                        "the paper), or per beam, e.g. follower=chord (others tangent)")
+
+
+def _frame_option(text):
+    """--frame: 'tangent', 'chord' or 'BEAM=KIND,...' -> optimize_weakly's frame_kind."""
+    if "=" not in text:
+        return text
+    kinds = {}
+    for item in text.split(","):
+        name, sep, kind = item.partition("=")
+        if not sep or not name.strip():
+            raise ModelError(f"--frame: {item!r} is not BEAM=KIND (e.g. follower=chord)")
+        kinds[name.strip()] = kind.strip()
+    return kinds
 
 
 def run_weakly(args, problem):
@@ -111,8 +134,9 @@ def run_weakly(args, problem):
         return optimize_weakly(problem, design_from_text(args.start, problem, "--start"),
                                eps=args.eps, max_cycles=args.max_cycles,
                                confirm_cycles=args.confirm_cycles, move_limit=args.move_limit,
-                               frame_kind=args.frame, history=args.history, progress=report,
-                               resume=args.resume)
+                               damping=args.damping, esl_blend=args.esl_blend,
+                               design_tol=args.design_tol, frame_kind=_frame_option(args.frame),
+                               history=args.history, progress=report, resume=args.resume)
 
 
 class _Reporter:

@@ -54,6 +54,7 @@ Example
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from types import SimpleNamespace
 
@@ -62,15 +63,16 @@ from scipy.optimize import minimize
 
 from flexmbs.description import Beam, Deviation, Mass, PointMass, Stress, body_points
 from flexmbs.errors import CaseError, ModelError
-from flexmbs.esl import (BodyStiffness, ChordFrame, TangentFrame, equivalent_static_loads,
-                         esl_change, solve_static)
+from flexmbs.esl import (BodyStiffness, ChordFrame, EquivalentStaticLoads, TangentFrame,
+                         equivalent_static_loads, esl_change, solve_static)
 from flexmbs.optimize.result import OptimizationResult, open_history
-from flexmbs.optimize.cycles import CycleControl, check_cycle_options, move_limited_bounds
+from flexmbs.optimize.cycles import (CycleControl, check_cycle_options, check_remedies,
+                                     damped_update, move_limited_bounds)
 from flexmbs.progress import check_progress, describe_cycle, reporter
 from flexmbs.problem import _scalar, constraint_rows, load_problem
 from flexmbs.responses.strain import raw_strain_derivatives, raw_strains, shape, gauss_points
 
-__all__ = ["optimize_weakly", "chains", "StaticModel"]
+__all__ = ["optimize_weakly", "chains", "StaticModel", "blend_loads"]
 
 #: at most this many chain combinations per deviation response (loops multiply them)
 MAX_VARIANTS = 16
@@ -183,6 +185,26 @@ def _difference(chain, rel):
 
 
 # ---------------------------------------------------------------------------- static model
+def _frame_kinds(frame_kind, beams):
+    """{beam: 'tangent' | 'chord'} from one kind for all beams or a dict beam -> kind."""
+    ok = ("tangent", "chord")
+    if isinstance(frame_kind, str):
+        if frame_kind not in ok:
+            raise ModelError(f"frame_kind must be 'tangent' or 'chord', got {frame_kind!r} "
+                             "(or a dict beam -> kind)")
+        return dict.fromkeys(beams, frame_kind)
+    if not isinstance(frame_kind, dict):
+        raise ModelError(f"frame_kind must be 'tangent', 'chord' or a dict beam -> kind, got "
+                         f"{frame_kind!r}")
+    for name, kind in frame_kind.items():
+        if name not in beams:
+            raise CaseError(f"frame_kind: {name!r} is not a beam (beams: {', '.join(beams)})")
+        if kind not in ok:
+            raise ModelError(f"frame_kind of beam {name!r} must be 'tangent' or 'chord', got "
+                             f"{kind!r}")
+    return {n: frame_kind.get(n, "tangent") for n in beams}
+
+
 class StaticModel:
     """The static responses of a problem for one set of ESL (see the module docstring).
 
@@ -190,7 +212,8 @@ class StaticModel:
     ----------
     problem : Problem
     frames : dict body -> point, optional (frame point of a beam).
-    frame_kind : 'tangent' (default) or 'chord' (from the frame point to the beam's other end).
+    frame_kind : 'tangent' (default) or 'chord' (from the frame point to the beam's other end),
+        for every beam; or a dict beam -> kind (beams not named: 'tangent').
     """
 
     def __init__(self, problem, frames=None, frame_kind="tangent"):
@@ -199,6 +222,7 @@ class StaticModel:
         mech = problem.mechanism
         self.mech = mech
         beams = {b.name: b for b in d.bodies if isinstance(b, Beam)}
+        kinds = _frame_kinds(frame_kind, beams)
         frames = dict(frames or {})
         for name, pt in frames.items():
             if name not in beams:
@@ -286,10 +310,11 @@ class StaticModel:
             body = model.body(name)
             node = mech.node[(name, entry[name])]
             far = body.last if node == body.first else body.first
-            fr = TangentFrame(node) if frame_kind == "tangent" else ChordFrame(node, far)
+            fr = TangentFrame(node) if kinds[name] == "tangent" else ChordFrame(node, far)
             self.frames.append((name, fr))
             self.stiffness[name] = BodyStiffness(model, body, fr)
         self.entry = entry
+        self.kinds = {n: kinds[n] for n, _ in self.frames}
         self.loads = None
 
     # ------------------------------------------------------------------ loads
@@ -538,6 +563,22 @@ def _optimize_static(static, x0, lower, upper, *, screen, ftol, maxiter, active_
 
 
 # ---------------------------------------------------------------------------- cycles
+def blend_loads(loads, previous, weight):
+    """ESL of the last two cycles averaged: g = (1 - weight) g_current + weight g_previous for
+    every body and time step (the frames' origins and angles are the current cycle's).
+    weight 0 or no previous loads: `loads` itself."""
+    if previous is None or weight == 0.0:
+        return loads
+    out = []
+    for b in loads:
+        p = previous[b.name]
+        if p.g_eq.shape != b.g_eq.shape:
+            raise ModelError(f"body {b.name!r}: ESL of different shapes {p.g_eq.shape} and "
+                             f"{b.g_eq.shape} (different time grids?)")
+        out.append(dataclasses.replace(b, g_eq=(1.0 - weight) * b.g_eq + weight * p.g_eq))
+    return EquivalentStaticLoads(out)
+
+
 def _dynamic(problem, x, result):
     """Dynamic responses of a simulated design: values, constraint rows, deviation history."""
     values = {}
@@ -559,7 +600,8 @@ def _active_rows(g, names, active_tol):
 def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles=1,
                     move_limit=None, frames=None, frame_kind="tangent", screen=0.3,
                     ftol=1e-8, max_inner=200, active_tol=1e-3, stop_on_oscillation=True,
-                    history=None, progress=None, resume=False):
+                    damping=1.0, esl_blend=0.0, design_tol=None, history=None, progress=None,
+                    resume=False):
     """Optimize a problem with the weakly coupled method (paper 5.3).
 
     Parameters
@@ -575,12 +617,15 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
     confirm_cycles : int, default 1
         Eq. (25) must hold in 1 + confirm_cycles consecutive cycles (0: the paper's test).
     move_limit : float, optional
-        Relative move limit per cycle (bounds clipped to x (1 -+ move_limit)).
+        Relative move limit per cycle (bounds clipped to x (1 -+ move_limit)); a remedy
+        against oscillation.
     frames : dict beam -> point, optional
         Frame point of a beam (default: where the chains enter it; stress-only beams: `from`).
-    frame_kind : {'tangent', 'chord'}, default 'tangent'
-        Corotational frame of every ESL beam at its frame point: tangent to the beam there,
-        or 'chord', from that point to the beam's other end.
+    frame_kind : {'tangent', 'chord'} or dict beam -> kind, default 'tangent'
+        Corotational frame of every ESL beam at its frame point: tangent to the beam there
+        (static load cases clamped at that point), or 'chord', from that point to the beam's
+        other end (simply supported); a dict sets it per beam (others: 'tangent'). The
+        four-bar's follower, pinned at both ends, with {'follower': 'chord'}: docs/optimizers.md.
     screen : float in [0, 1], default 0.3
         The static problem starts with the rows (time steps) whose value is at least
         `screen` times the current maximum of its constraint (0: all rows); rows found
@@ -592,7 +637,20 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
     active_tol : float, default 1e-3
         A row counts as active when g >= -active_tol (history's active_steps).
     stop_on_oscillation : bool, default True
-        Stop when the designs repeat with a period of 2 to 6 cycles (reason 'oscillation').
+        Stop when the designs repeat with a period of 2 to 6 cycles (diagnosis
+        'oscillating') or the ESL change grows cycle after cycle ('diverging').
+    damping : float in (0, 1], default 1
+        Damped design update x_next = x + damping (x_static_optimum - x) (1: the paper's
+        update); a remedy against oscillation.
+    esl_blend : float in [0, 1), default 0
+        The static problem (23) takes the ESL of the last two cycles averaged,
+        (1 - esl_blend) g_k + esl_blend g_(k-1) (0: the paper's, the current ESL only); a
+        remedy against oscillation. Test (25) always compares the cycles' own ESL.
+    design_tol : float, optional
+        Also converged when the largest relative change of a design variable that the static
+        optimization proposed (x* - x, before damping) is below design_tol and the cycle's
+        design is feasible (simulated), in 1 + confirm_cycles consecutive cycles (a criterion
+        of the kind of OptiStruct's ESLM outer loop: design change and constraint violation).
     history : str, path or HistoryWriter, optional
         File receiving one JSON line per cycle as the run goes.
     progress : bool, text stream or callable, optional
@@ -610,9 +668,15 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
     -------
     flexmbs.optimize.OptimizationResult
         method 'weakly'; iterations = cycles (MBS analyses); inner_iterations = SLSQP
-        iterations summed; details: predicted_max_violation (static model, normalised g of
-        the final design), feasible, paper_test_cycle (the cycle at which eq. (25) first
-        held), static_optimizations, oscillation_period, esl_change, esl_bodies, frames.
+        iterations summed. A converged run returns its last design; a run that stops
+        oscillating, diverging or at the cycle cap returns the best feasible design seen
+        (lowest objective among the cycles whose simulation satisfied every constraint; the
+        last design when none did), its cycle in details best_feasible_cycle and the last
+        cycle's design in details last_design. details: diagnosis ('converged',
+        'oscillating', 'diverging' or 'cap'), predicted_max_violation (static model,
+        normalised g of the final design), feasible, paper_test_cycle (the cycle at which
+        eq. (25) first held), static_optimizations, oscillation_period, esl_change,
+        esl_bodies, frames, damping, esl_blend, design_tol.
     """
     t_start = time.perf_counter()
     problem = load_problem(problem)
@@ -625,8 +689,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
     eps, max_cycles, confirm_cycles, max_inner, ftol, active_tol, move_limit, screen = \
         check_cycle_options(eps, max_cycles, confirm_cycles, max_inner, ftol, active_tol,
                             move_limit, screen)
-    if not isinstance(frame_kind, str) or frame_kind not in ("tangent", "chord"):
-        raise ModelError(f"frame_kind must be 'tangent' or 'chord', got {frame_kind!r}")
+    damping, esl_blend, design_tol = check_remedies(damping, esl_blend, design_tol)
     if frames is not None and not isinstance(frames, dict):
         raise ModelError(f"frames must be a dict beam -> point or None, got {frames!r}")
     check_progress(progress)
@@ -644,8 +707,8 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
     mass_resp = [r for r in d.responses if isinstance(r, Mass)]
 
     writer, own_writer = open_history(history, resume)
-    prev_loads, pending = None, None
-    control = CycleControl(eps, confirm_cycles, max_cycles, stop_on_oscillation)
+    prev_loads, pending, x_prev = None, None, x
+    control = CycleControl(eps, confirm_cycles, max_cycles, stop_on_oscillation, design_tol)
     inner_total = n_static = 0
     change = None
     values = g_dyn = names = result = None
@@ -654,7 +717,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
     first, resumed = 1, 0
     try:
         if resume and writer.previous:
-            first, x, prev_loads, pending, inner_total, n_static = _resume_cycles(
+            first, x, x_prev, prev_loads, pending, inner_total, n_static = _resume_cycles(
                 problem, static, writer, control, progress, x, max_cycles)
             resumed = first - 1
         for cycle in range(first, max_cycles + 1):
@@ -679,30 +742,49 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
                 predicted_max_violation=None if pending is None else pending.max_violation,
                 active_steps=None if pending is None else pending.active_steps,
                 simulation_active_steps=_active_rows(g_dyn, names, active_tol),
-                static_message=None if pending is None or pending.success else pending.message)
-            control.observe(cycle, x, change, record)
+                static_message=None if pending is None or pending.success else pending.message,
+                static_design=None if pending is None else pending.x)
+            control.observe(cycle, x, change, record, objective=record["objective"],
+                            violation=record["max_violation"],
+                            data=(record, values, g_dyn, names, dev),
+                            step=None if pending is None else float(np.max(
+                                np.abs(pending.x - x_prev) / np.abs(x_prev))))
             writer.write(record)
             if progress is not None:
                 progress(writer.records[-1])
             if control.stop(cycle):
                 break
             lo, hi = move_limited_bounds(x, lower, upper, move_limit)
-            static.set_loads(loads)
+            static.set_loads(blend_loads(loads, prev_loads, esl_blend))
             pending = _optimize_static(static, x, lo, hi, screen=screen, ftol=ftol,
                                        maxiter=max_inner, active_tol=active_tol)
             inner_total += pending.iterations
             n_static += 1
             prev_loads = loads
-            x = pending.x.copy()
+            x_prev, x = x, damped_update(x, pending.x, damping)
     finally:
         if own_writer:
             writer.close()
         if progress is not None:
             progress.close()
+    last_design, last_record = x.copy(), record
+    best = control.best
+    use_best = (not control.converged and best is not None and best.cycle != len(control.designs))
+    if use_best:                  # the best feasible design seen: its own cycle's simulation
+        x = best.design.copy()
+        if best.data is None:     # a cycle taken from the history of a resumed run
+            best.data = _cycle_data(problem, x, writer.records[best.cycle - 1])
+        record, values, g_dyn, names, dev = best.data
     mech.set_design(x)
     final_violation = float(g_dyn.max()) if g_dyn.size else None
     feasible = final_violation is None or final_violation <= 1e-6
     reason = control.reason
+    if use_best:
+        lv = last_record["max_violation"]
+        reason += (f"; returned the best feasible design seen (cycle {best.cycle}, "
+                   f"objective {record['objective']:.4g}; the last cycle's design: "
+                   f"{last_record['objective']:.4g}"
+                   + ("" if lv is None else f", largest constraint value {lv:.3g}") + ")")
     unmodelled = [c.response for c in d.constraints if c.response in static.unmodelled]
     if unmodelled:
         reason += (f"; constraints with no static form, left out of the static optimization "
@@ -711,20 +793,30 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         worst = int(np.argmax(g_dyn))
         names = constraint_rows(d, values, {}, mech.t, len(problem.variables), False)[2]
         reason += (f"; the final design violates {names[worst]!r} by {final_violation:.3g} "
+                   "(relative to its limit, simulated; no cycle's design was feasible)"
+                   if best is None else
+                   f"; the final design violates {names[worst]!r} by {final_violation:.3g} "
                    "(relative to its limit, simulated)")
     details = dict(
-        predicted_max_violation=None if pending is None else pending.max_violation,
-        feasible=feasible,
+        predicted_max_violation=(None if pending is None or use_best
+                                 else pending.max_violation),
+        feasible=feasible, diagnosis=control.diagnosis,
+        best_feasible_cycle=None if best is None else best.cycle,
+        last_design=last_design.tolist(), last_mass_kg=last_record["mass_kg"],
+        last_max_violation=last_record["max_violation"],
+        damping=damping, esl_blend=esl_blend, design_tol=design_tol,
         constraints_checked_by_simulation=list(dict.fromkeys(unmodelled)),
         max_deviation_responses=[r.name for r in d.responses if isinstance(r, Deviation)
                                  and r.name in {c.response for c in d.constraints}],
         paper_test_cycle=control.paper_cycle, static_optimizations=n_static,
         oscillation_period=control.period, esl_change=change, eps=eps,
         confirm_cycles=confirm_cycles,
-        move_limit=move_limit, frame=frame_kind, frames=dict(static.entry),
+        move_limit=move_limit, frame=frame_kind if isinstance(frame_kind, str) else "mixed",
+        frame_kinds=dict(static.kinds), frames=dict(static.entry),
         esl_bodies=[n for n, _ in static.frames], variables=list(mech.variables),
         t_end=float(mech.t[-1]),
-        active_steps=None if pending is None else pending.active_steps,
+        active_steps=(record["active_steps"] if use_best else
+                      None if pending is None else pending.active_steps),
         mass_responses=[r.name for r in mass_resp])
     if resume:
         details["resumed_cycles"] = resumed
@@ -748,8 +840,8 @@ def _resume_cycles(problem, static, writer, control, progress, x0, max_cycles):
     get their records), the design of cycle c-1 is simulated again for its ESL (eq. (25) of
     cycle c) and the static problem that produced cycle c's design is restored from cycle c's
     record; cycle c itself is run again (its record is checked against the file's).
-    Returns (c, design of cycle c, ESL of cycle c-1, static result, inner iterations so far,
-    static optimizations so far)."""
+    Returns (c, design of cycle c, design of cycle c-1, ESL of cycle c-1, static result,
+    inner iterations so far, static optimizations so far)."""
     recs = writer.previous[:max_cycles]
     if not np.array_equal(np.asarray(recs[0]["design"], float), x0):
         raise ModelError(f"history {writer.path!r} starts from design {recs[0]['design']}, "
@@ -757,13 +849,15 @@ def _resume_cycles(problem, static, writer, control, progress, x0, max_cycles):
     c = len(recs)
     for rec in recs[:-1]:
         control.observe(rec["iteration"], np.asarray(rec["design"], float),
-                        rec.get("esl_change"), dict(rec))
+                        rec.get("esl_change"), dict(rec), objective=rec.get("objective"),
+                        violation=rec.get("max_violation"), step=rec.get("design_change"))
         writer.write(rec)
         if progress is not None:
             progress(rec)
     last = recs[-1]
     x = np.asarray(last["design"], float).copy()
     prev_loads = pending = None
+    xp = x
     if c > 1:
         xp = np.asarray(recs[-2]["design"], float)
         result = problem.simulate(xp, store="all")
@@ -771,10 +865,20 @@ def _resume_cycles(problem, static, writer, control, progress, x0, max_cycles):
         prev_loads = equivalent_static_loads(model, result, static.frames,
                                              stiffness=static.stiffness,
                                              props=model.element_properties())
-        pending = SimpleNamespace(x=x, iterations=last.get("inner_iterations") or 0,
+        xs = last.get("static_design")       # the static optimum before damping
+        pending = SimpleNamespace(x=x if xs is None else np.asarray(xs, float),
+                                  iterations=last.get("inner_iterations") or 0,
                                   max_violation=last.get("predicted_max_violation"),
                                   active_steps=last.get("active_steps"),
                                   success=last.get("static_message") is None,
                                   message=last.get("static_message"))
     inner = sum(r.get("inner_iterations") or 0 for r in recs[1:])
-    return c, x, prev_loads, pending, inner, c - 1
+    return c, x, xp, prev_loads, pending, inner, c - 1
+
+
+def _cycle_data(problem, x, record):
+    """(record, values, g_dyn, names, deviation) of a cycle taken from a resumed run's history:
+    its design simulated again (the dynamic responses are not in the history)."""
+    result = problem.simulate(x, store="all")
+    values, g_dyn, names = _dynamic(problem, x, result)
+    return dict(record), values, g_dyn, names, problem.constrained_deviation(values)
