@@ -269,3 +269,23 @@ def test_optimization_with_the_adjoint():
     np.testing.assert_allclose(runs["adjoint"].design, runs["direct"].design, rtol=1e-6)
     with pytest.raises(ModelError, match="gradient_method must be one of .*got 'adj'"):
         Problem("robot_2dof", ov, gradient_method="adj")
+
+
+def test_elementwise_tubes_64_variables(monkeypatch):
+    """cases/robot_2dof_tapered_tubes.toml (16 elements per arm, diameter and wall per element:
+    64 variables; KS deviation and KS stress of both arms; the max_step rows): the adjoint's
+    Jacobian equals direct differentiation to 1e-8 relative per row (Newton tolerance 1e-12
+    for both, as in test_stress_responses), on a design with a different size per element so
+    that the largest stress moves between elements; 'auto' takes the adjoint (64 variables,
+    2 aggregated rows)."""
+    monkeypatch.setattr(problem_module, "simulate", functools.partial(simulate, tol=1e-12))
+    p = Problem("robot_2dof_tapered_tubes", overrides={"time.t_end": 0.05})
+    rng = np.random.default_rng(7)
+    x = p.start * (0.8 + 0.2 * rng.random(p.start.size))
+    direct = p.evaluate(x, method="direct")
+    adj = p.evaluate(x, method="auto")
+    assert adj.gradient_method == "adjoint" and direct.gradient_method == "direct"
+    assert adj.jacobian.shape == direct.jacobian.shape == (len(direct.constraints), 64)
+    for i, name in enumerate(direct.constraint_names):
+        scale = np.abs(direct.jacobian[i]).max()
+        assert np.abs(adj.jacobian[i] - direct.jacobian[i]).max() <= 1e-8 * scale, name

@@ -286,15 +286,13 @@ class Problem:
                 parts.append(deviation_terms(node, ref, result, t, frame, rel, gradient))
             return deviation(parts, gradient)
         if isinstance(r, Stress):
+            virtual = getattr(result, "_virtual", None)
+            if gradient and virtual is not None:
+                return self._stress_partials(r, x, result, virtual)
             # the largest normal stress over the beams' elements and stations, step by step
             vals, grads = [], []
             for b in r.bodies:
                 c, dc = mech.half_depths(x, b)
-                virtual = getattr(result, "_virtual", None)
-                if gradient and virtual is not None:
-                    # the adjoint's virtual variables: (coordinates, forces, design) columns
-                    front, cols = virtual
-                    dc = np.hstack([np.zeros((dc.shape[0], front)), dc])[:, cols]
                 bs = beam_stress(mech.model, result, b, dc=dc if gradient else None)
                 nt = bs.normal.shape[0]
                 vals.append(bs.normal.reshape(nt, -1))
@@ -315,6 +313,57 @@ class Problem:
             return self._reaction(self.description.joints[k], mech.joint_rows[k], r.component,
                                   result, gradient)
         raise ModelError(f"response {r.name!r}: type {r.type!r} cannot be evaluated")
+
+    def _stress_partials(self, r, x, result, virtual):
+        """A Stress response and its partials on the adjoint's virtual columns (`virtual` =
+        (number of coordinate and force columns, the chunk's column ids); coordinate column k
+        is result.sens_dofs[k], the design columns follow the forces): the value at each step
+        is the largest station's, so its partials are those of that station only, with respect
+        to its element's coordinates and half depth (beam_stress(local=True)): no identity
+        derivatives pushed through every element."""
+        front, cols = virtual
+        cache = getattr(result, "_cache", None)
+        if cache is not None and r.name in cache:
+            v, j, dloc, ddc, dofs, dcs = cache[r.name]
+        else:
+            v, j, dloc, ddc, dofs, dcs = self._stress_local(r, x, result)
+            if cache is not None:
+                cache[r.name] = (v, j, dloc, ddc, dofs, dcs)
+        rows = np.arange(v.shape[0])
+        pos = np.full(front + dcs.shape[1], -1)                        # virtual id -> column
+        pos[cols] = np.arange(cols.size)
+        out = np.zeros((v.shape[0], cols.size))
+        k = pos[np.searchsorted(np.asarray(result.sens_dofs), dofs)]   # coordinate columns
+        n_idx = np.broadcast_to(rows[:, None], k.shape)
+        ok = k >= 0
+        np.add.at(out, (n_idx[ok], k[ok]), dloc[ok])
+        kd = pos[front + np.arange(dcs.shape[1])]                      # design columns
+        okd = kd >= 0
+        out[:, kd[okd]] += ddc[:, None] * dcs[:, okd]
+        return v[rows, j], out
+
+    def _stress_local(self, r, x, result):
+        """(values, station index, its partials on its element's coordinates and half depth,
+        those coordinates, dc/dp of its element) at each step of a Stress response."""
+        mech = self.mechanism
+        vals, dloc, ddc, dofs, dcs = [], [], [], [], []
+        for b in r.bodies:
+            c, dc = mech.half_depths(x, b)
+            bs = beam_stress(mech.model, result, b, local=True)
+            nt, nel, nst = bs.normal.shape
+            vals.append(bs.normal.reshape(nt, -1))
+            dloc.append(bs.d_normal_local.reshape(nt, nel * nst, -1))
+            ddc.append(bs.d_normal_dc.reshape(nt, -1))
+            dofs.append(np.repeat(bs.dofs, nst, axis=0))             # (nel nst, 3 nen)
+            dcs.append(np.repeat(dc, nst, axis=0))                   # (nel nst, nv)
+        v = np.concatenate(vals, axis=1)
+        j = np.argmax(v, axis=1)
+        rows = np.arange(v.shape[0])
+        dloc = np.concatenate(dloc, axis=1)[rows, j]                   # (nt, 3 nen)
+        ddc = np.concatenate(ddc, axis=1)[rows, j]                     # (nt,)
+        dofs = np.concatenate(dofs, axis=0)[j]                         # (nt, 3 nen)
+        dcs = np.concatenate(dcs, axis=0)[j]                           # (nt, nv)
+        return v, j, dloc, ddc, dofs, dcs
 
     def _reaction(self, joint, rows, component, result, gradient):
         """Reaction of a joint on its first body's node, ground frame (see Reaction)."""
@@ -461,7 +510,7 @@ class Problem:
         t = mech.t
         nt, nsens, nc, nv = t.size, sdofs.size, result.mu.shape[1], len(mech.variables)
         nvirt = nsens + nc + nv
-        values, partials, grads = {}, {}, {}
+        values, partials, grads, cache = {}, {}, {}, {}
         for name, r in self._resp.items():
             if isinstance(r, Mass):
                 values[name], grads[name] = self._response(r, x, None, True)
@@ -480,6 +529,7 @@ class Problem:
             dmu[:, cols[k] - nsens, k] = 1.0
             vres = replace(result, sens_dofs=sdofs, dq=dq, dmu=dmu)
             vres._virtual = (nsens + nc, cols)
+            vres._cache = cache
             for name in partials:
                 values[name], part = self._response(self._resp[name], x, vres, True)
                 partials[name].append(np.asarray(part, float).reshape(nt, cols.size))

@@ -69,6 +69,9 @@ class BeamStress:
     normal : (nt, nel, nst) E (|eps| + c |kappa|): the larger |normal stress| of both fibres.
     shear, von_mises : (nt, nel, nst) G |gamma| and sqrt(normal^2 + 3 shear^2), or None.
     d_normal, d_shear, d_von_mises : (nt, nel, nst, nv) design derivatives, or None.
+    dofs : (nel, 3 nen) 0-based coordinates of each element (with local=True).
+    d_normal_local : (nt, nel, nst, 3 nen) d normal / d (the element's coordinates), or None.
+    d_normal_dc : (nt, nel, nst) d normal / d c (the element's half depth), or None.
     """
     t: np.ndarray
     elements: np.ndarray
@@ -83,6 +86,9 @@ class BeamStress:
     d_normal: np.ndarray | None = None
     d_shear: np.ndarray | None = None
     d_von_mises: np.ndarray | None = None
+    dofs: np.ndarray | None = None
+    d_normal_local: np.ndarray | None = None
+    d_normal_dc: np.ndarray | None = None
 
 
 def _stations(stations, nen):
@@ -100,7 +106,7 @@ def _stations(stations, nen):
     return xi
 
 
-def beam_stress(model, result, body, *, stations="gauss", shear=False, dc=None):
+def beam_stress(model, result, body, *, stations="gauss", shear=False, dc=None, local=False):
     """Stress histories of a beam's elements (see the module docstring for the formulas).
 
     Parameters
@@ -119,6 +125,10 @@ def beam_stress(model, result, body, *, stations="gauss", shear=False, dc=None):
         d c / d p of each element of the beam (root first) for nv design variables. When
         given, the design derivatives are returned; they need result.dq with every
         coordinate of the beam among result.sens_dofs.
+    local : bool, default False
+        Also the partial derivatives of `normal` with respect to each element's own
+        coordinates and half depth (d_normal_local, d_normal_dc; no design derivatives
+        needed): what the discrete adjoint's right-hand sides are made of.
 
     Returns
     -------
@@ -186,6 +196,13 @@ def beam_stress(model, result, body, *, stations="gauss", shear=False, dc=None):
     if shear:
         out.shear = float(mat.G) * np.abs(gam)
         out.von_mises = np.sqrt(normal ** 2 + 3.0 * out.shear ** 2)
+    if local:
+        eye = np.broadcast_to(np.eye(3 * nen), qe.shape + (3 * nen,))
+        de1, _, dkap = raw_strain_derivatives(qe, eye, n, dn, jac)     # (nt, nel, nst, 3 nen)
+        out.dofs = edofs
+        out.d_normal_local = E * (np.sign(eps)[..., None] * de1
+                                  + np.sign(kap)[..., None] * cc[..., None] * dkap)
+        out.d_normal_dc = E * np.abs(kap)
     if nv is not None:
         dqe = result.dq[:, scols, :]                                    # (nt, nel, 3 nen, nv)
         de1, de2, dkap = raw_strain_derivatives(qe, dqe, n, dn, jac)
