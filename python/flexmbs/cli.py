@@ -70,6 +70,14 @@ def add_case_arguments(parser):
                         help="override any key of the case file (repeatable) by its dotted "
                              "path, items of a table array by name: --set time.h=2e-4, "
                              "--set bodies.arm1.elements=4")
+    parser.add_argument("--gradient-method", choices=("direct", "adjoint", "auto"),
+                        default=None,
+                        help="how gradients are computed: direct differentiation (every "
+                             "response's gradient; the default of simulate and evaluate), the "
+                             "discrete adjoint (objective and constraint rows only, cost "
+                             "independent of the number of variables), or auto (the default of "
+                             "optimize: the adjoint when the variables are >= 16 and outnumber "
+                             "the aggregated rows 4 times; docs/adjoint.md)")
 
 
 def parse_set(items):
@@ -86,15 +94,17 @@ def parse_set(items):
     return out
 
 
-def problem_from_args(args):
-    """The Problem named by the arguments of `add_case_arguments`, with their overrides."""
+def problem_from_args(args, gradient_method="direct"):
+    """The Problem named by the arguments of `add_case_arguments`, with their overrides;
+    `gradient_method` unless --gradient-method is given."""
     from flexmbs.problem import Problem
 
     overrides = parse_set(args.set)
     for key, value in (("t_end", args.t_end), ("h", args.h), ("rho_inf", args.rho_inf)):
         if value is not None:
             overrides[f"time.{key}"] = value
-    return Problem(args.case, overrides=overrides or None)
+    return Problem(args.case, overrides=overrides or None,
+                   gradient_method=getattr(args, "gradient_method", None) or gradient_method)
 
 
 def parse_values(text, names, owner, option="--design"):

@@ -198,7 +198,7 @@ def _interrupted(args, writer):
 
 
 def run_optimize(args):
-    problem = problem_from_args(args)
+    problem = problem_from_args(args, gradient_method="auto")
     if getattr(args, "starts", None) is not None and args.method != "fully":
         raise CaseError(f"--starts {args.starts}: multi-start runs the fully coupled method; "
                         f"add --method fully (got --method {args.method})")

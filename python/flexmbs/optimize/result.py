@@ -286,12 +286,35 @@ class OptimizationResult:
 
     def plot(self, path, limit_m=None):
         """Figure (PNG/PDF by extension): objective per cycle/iteration and the constrained
-        deviation history of the final design (the paper's Figs. 5, 6, 8)."""
+        deviation history of the final design (the paper's Figs. 5, 6, 8); with element-wise
+        design variables (names ``D[k]``) a third panel draws each one's profile along its
+        beam (root element first), final and start."""
         import matplotlib
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+        profiles = {}
+        for k, name in enumerate(self.variables):
+            base, sep, _ = name.partition("[")
+            if sep:
+                profiles.setdefault(base, []).append(k)
+        ncol = 3 if profiles else 2
+        fig, axes = plt.subplots(1, ncol, figsize=(5 * ncol, 4))
+        ax1, ax2 = axes[0], axes[1]
+        if profiles:
+            ax3 = axes[2]
+            for i, (base, ks) in enumerate(profiles.items()):
+                color = f"C{i}"
+                idx = np.arange(1, len(ks) + 1)
+                ax3.step(idx, np.asarray(self.design)[ks], where="mid", color=color,
+                         label=f"{base} [{self.units[ks[0]]}]")
+                ax3.step(idx, np.asarray(self.start)[ks], where="mid", color=color, ls=":",
+                         lw=0.8)
+            ax3.set_xlabel("element (root first)")
+            ax3.set_ylabel("design value")
+            ax3.set_title("element-wise design (dotted: start)")
+            ax3.legend(loc="best", fontsize=8)
+            ax3.grid(True, alpha=0.3)
         its = [r.get("iteration", k + 1) for k, r in enumerate(self.history)]
         key = "mass_kg" if all(r.get("mass_kg") is not None for r in self.history) \
             else "objective"
