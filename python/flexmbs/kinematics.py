@@ -114,7 +114,11 @@ class _Poses:
             self.c0[g] = c
             self.count[g] = len(nodes)
             self.spread[g] = float(np.sum((pts - c) ** 2))
-        extent = np.abs(ref[:, :2] - ref[:, :2].mean(axis=0)).max() if nn else 0.0
+        with np.errstate(over="ignore", invalid="ignore"):
+            extent = np.abs(ref[:, :2] - ref[:, :2].mean(axis=0)).max() if nn else 0.0
+        if not np.isfinite(extent) or extent > 1e100:
+            raise ModelError(f"the mechanism's points span {float(extent):g} m: node coordinates "
+                             "must be finite and within 1e100 m of each other")
         self.length = max(float(extent), 1e-3)
         # metric of the node displacements in pose coordinates (rotation of a lone node: as if
         # it carried an arm of 10 % of the model's size)
