@@ -85,7 +85,7 @@ class TimeLaw:
                 raise ValueError("shape")
         except ModelError as exc:
             raise ModelError(f"time law {self.name!r}: {exc}") from None
-        except (TypeError, ValueError, IndexError):
+        except (TypeError, ValueError, IndexError, ArithmeticError):
             # a function of one time (a Python `if`, math.sin): evaluate it time by time
             try:
                 out = np.array([float(f(float(tk))) for tk in ta.ravel()]).reshape(ta.shape)
