@@ -21,7 +21,7 @@ module adjoint
     use constraints, only: MAX_CDOF
     use model_data, only: mbs_model
     use assembly, only: iteration_matrix, mass_times, constraint_values, spring_times
-    use sensitivity, only: stiffness_times
+    use sensitivity, only: stiffness_times, add_curvature_times
     use linear_solver, only: linear_system, ls_init_dense, ls_init_sparse, ls_factor, &
                              ls_solve, ls_free, SOLVER_KLU, LS_OK, LS_NO_MEMORY
     use generalized_alpha, only: ga_settings, ga_stats, ga_state, ga_coefficients, &
@@ -199,7 +199,8 @@ contains
                 qdb(:, f) = qdb(:, f) - w(:, f)
             end if
             if (nc > 0) then
-                call curvature_times(m, qt(:, 1), z(nd + 1:, f), qdt(:, 1), w(:, f))
+                w(:, f) = 0
+                call add_curvature_times(m, qt(:, 1), z(nd + 1:, f), qdt(:, 1), w(:, f))
                 qdb(:, f) = qdb(:, f) - 2 * k0 * w(:, f)
             end if
             if (s%static_start) then
@@ -211,7 +212,8 @@ contains
                     qb(:, f) = qb(:, f) - w(:, f)
                 end if
                 if (nc > 0) then
-                    call curvature_times(m, qt(:, 1), z(nd + 1:, f), qddt(:, 1), w(:, f))
+                    w(:, f) = 0
+                    call add_curvature_times(m, qt(:, 1), z(nd + 1:, f), qddt(:, 1), w(:, f))
                     qb(:, f) = qb(:, f) - k0 * w(:, f)
                 end if
             end if
@@ -225,7 +227,8 @@ contains
         call contract(qt(:, 1), acc, z(1:nd, :), velocity=.true.)
         if (s%static_start .and. nc > 0) then
             do f = 1, nf
-                call curvature_times(m, qt(:, 1), z(nd + 1:, f), qdt(:, 1), w(:, f))
+                w(:, f) = 0
+                call add_curvature_times(m, qt(:, 1), z(nd + 1:, f), qdt(:, 1), w(:, f))
                 qb(:, f) = qb(:, f) - k0 * w(:, f)
             end do
         end if
@@ -349,26 +352,5 @@ contains
         end subroutine static_adjoint
 
     end subroutine ga_adjoint
-
-    !> y = sum_r c(r) Phi_r,qq(q) x (the constraint Hessians are symmetric).
-    subroutine curvature_times(m, q, c, x, y)
-        type(mbs_model), intent(in) :: m
-        real(wp), intent(in) :: q(m%ndof), c(m%nc), x(m%ndof)
-        real(wp), intent(out) :: y(m%ndof)
-        real(wp) :: phi, grad(MAX_CDOF), hess(MAX_CDOF, MAX_CDOF)
-        integer :: a, b, r
-        y = 0
-        if (m%linear_constraints) return
-        do r = 1, m%nc
-            call constraint_values(m, r, q, 0.0_wp, phi, grad, hess)
-            do a = 1, MAX_CDOF
-                if (m%c_dofs(a, r) <= 0) cycle
-                do b = 1, MAX_CDOF
-                    if (m%c_dofs(b, r) <= 0) cycle
-                    y(m%c_dofs(a, r)) = y(m%c_dofs(a, r)) + c(r) * hess(a, b) * x(m%c_dofs(b, r))
-                end do
-            end do
-        end do
-    end subroutine curvature_times
 
 end module adjoint

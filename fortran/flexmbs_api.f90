@@ -189,18 +189,10 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
         info = [0.0_c_double, nbytes, 0.0_c_double, real(MEM_MODEL, c_double)]
         return
     end if
-    s%h = h
-    s%rho_inf = rho_inf
-    s%tol = tol
-    s%nsteps = nsteps
-    s%max_iter = max_iter
-    s%max_cuts = max_cuts
-    s%solver = solver
-    s%newton = newton
-    s%static_start = static_start /= 0
-    s%kscale = kscale
-    s%penalty = penalty
-    s%polish = polish /= 0
+    s = ga_settings(h=h, rho_inf=rho_inf, tol=tol, nsteps=int(nsteps), max_iter=int(max_iter), &
+                    max_cuts=int(max_cuts), solver=int(solver), newton=int(newton), &
+                    static_start=static_start /= 0, kscale=kscale, penalty=penalty, &
+                    polish=polish /= 0)
     if (nv > 0 .and. want_dmu /= 0 .and. ndmu >= nc) then
         call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
                          mu_out, st, stat, info, dprop(:, :, 1:nv), int(sens_dofs), dq_out(:, 1:nv, :), &
@@ -297,16 +289,9 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
         info = [0.0_c_double, nbytes, 0.0_c_double, real(MEM_MODEL, c_double)]
         return
     end if
-    s%h = h
-    s%rho_inf = rho_inf
-    s%tol = tol
-    s%nsteps = nsteps
-    s%max_iter = max_iter
-    s%max_cuts = max_cuts
-    s%solver = solver
-    s%static_start = static_start /= 0
-    s%kscale = kscale
-    s%penalty = penalty
+    s = ga_settings(h=h, rho_inf=rho_inf, tol=tol, nsteps=int(nsteps), max_iter=int(max_iter), &
+                    max_cuts=int(max_cuts), solver=int(solver), static_start=static_start /= 0, &
+                    kscale=kscale, penalty=penalty)
     call ga_adjoint(m, s, int(ap), int(ai), q0, qd0, qt, qdt, qddt, mut, th, int(grid), gq, gmu, &
                     dprop(:, 1:max(nel, 0), :), grad, gprop(:, 1:max(nel, 0), :), stat, info)
     status = int(stat, c_int)

@@ -15,7 +15,8 @@ module sensitivity
     use assembly, only: constraint_values
     implicit none
     private
-    public :: mass_design_derivative_times, stiffness_times, constraint_curvature, step_design_rhs
+    public :: mass_design_derivative_times, stiffness_times, add_curvature_times, &
+              constraint_curvature, step_design_rhs
 
 contains
 
@@ -111,8 +112,7 @@ contains
         real(wp), intent(out) :: y(m%ndof)
         logical, intent(in), optional :: transposed
         real(wp) :: fe(MAX_EDOF), ke(MAX_EDOF, MAX_EDOF), qe(MAX_EDOF), qr(MAX_EDOF), xe(MAX_EDOF)
-        real(wp) :: phi, grad(MAX_CDOF), hess(MAX_CDOF, MAX_CDOF)
-        integer :: e, ne, a, b, r, d
+        integer :: e, ne, a, d
         logical :: tr
         tr = .false.
         if (present(transposed)) tr = transposed
@@ -136,6 +136,17 @@ contains
                 y(m%el_dofs(a, e)) = y(m%el_dofs(a, e)) + fe(a)
             end do
         end do
+        call add_curvature_times(m, q, mu, x, y)
+    end subroutine stiffness_times
+
+    !> y = y + sum_r c(r) Phi_r,qq(q) x (the constraint Hessians are symmetric, so this is
+    !! also the transposed product).
+    subroutine add_curvature_times(m, q, c, x, y)
+        type(mbs_model), intent(in) :: m
+        real(wp), intent(in) :: q(m%ndof), c(m%nc), x(m%ndof)
+        real(wp), intent(inout) :: y(m%ndof)
+        real(wp) :: phi, grad(MAX_CDOF), hess(MAX_CDOF, MAX_CDOF)
+        integer :: a, b, r
         if (m%linear_constraints) return
         do r = 1, m%nc
             call constraint_values(m, r, q, 0.0_wp, phi, grad, hess)
@@ -143,11 +154,11 @@ contains
                 if (m%c_dofs(a, r) <= 0) cycle
                 do b = 1, MAX_CDOF
                     if (m%c_dofs(b, r) <= 0) cycle
-                    y(m%c_dofs(a, r)) = y(m%c_dofs(a, r)) + mu(r) * hess(a, b) * x(m%c_dofs(b, r))
+                    y(m%c_dofs(a, r)) = y(m%c_dofs(a, r)) + c(r) * hess(a, b) * x(m%c_dofs(b, r))
                 end do
             end do
         end do
-    end subroutine stiffness_times
+    end subroutine add_curvature_times
 
     !> c(r) = u^T Phi_r,qq w for every constraint row (0 for linear rows).
     subroutine constraint_curvature(m, q, u, w, c)

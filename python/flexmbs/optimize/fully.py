@@ -157,21 +157,9 @@ class ScaledProblem:
         eigenvalues are replaced by their absolute values, floored at 1e-3 times the largest
         (the QP needs a positive definite matrix; for solid sections nothing changes)."""
         if getattr(self, "_hessian", None) is None:
-            prob = self.problem
-            obj = prob.description.objective.response
-            r = prob._resp[obj]
-            from flexmbs.description import Mass
-            if isinstance(r, Mass):
-                def grad(x):
-                    p = self.design(x)
-                    prob.mechanism.set_design(p)
-                    return prob._response(r, p, None, True)[1] * self.scale / self.f_ref
-                H = np.zeros((self.nv, self.nv))
-                for i in range(self.nv):
-                    e = np.zeros(self.nv)
-                    e[i] = 1e-4
-                    H[:, i] = (grad(1.0 + e) - grad(1.0 - e)) / 2e-4
-                w, V = np.linalg.eigh(0.5 * (H + H.T))
+            H = self.mass_hessian()
+            if H is not None:
+                w, V = np.linalg.eigh(H)
                 w = np.abs(w)
                 w = np.maximum(w, 1e-3 * w.max() if w.max() > 0 else 1.0)
                 self._hessian = (V * w) @ V.T
@@ -179,6 +167,28 @@ class ScaledProblem:
                 g0 = self.evaluate(np.ones(self.nv), gradient=True).df
                 self._hessian = np.eye(self.nv) * max(float(np.abs(g0).max()), 1e-12)
         return self._hessian
+
+    def mass_hessian(self):
+        """The exact Hessian of a mass objective (scaled) at the start, symmetrized: central
+        differences (step 1e-4) of its exact gradient, no simulation; None when the objective
+        is not a mass."""
+        from flexmbs.description import Mass
+
+        prob = self.problem
+        r = prob._resp[prob.description.objective.response]
+        if not isinstance(r, Mass):
+            return None
+
+        def grad(x):
+            p = self.design(x)
+            prob.mechanism.set_design(p)
+            return prob._response(r, p, None, True)[1] * self.scale / self.f_ref
+        H = np.zeros((self.nv, self.nv))
+        for i in range(self.nv):
+            e = np.zeros(self.nv)
+            e[i] = 1e-4
+            H[:, i] = (grad(1.0 + e) - grad(1.0 - e)) / 2e-4
+        return 0.5 * (H + H.T)
 
     def design(self, x):
         """The design (user units) of a scaled design."""
