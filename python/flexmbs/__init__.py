@@ -18,6 +18,7 @@ from flexmbs.errors import (CaseError, FlexmbsError, InvalidResultError, ModelEr
                             ResourceError, SimulationError, ValidityWarning)
 from flexmbs.laws import TimeLaw
 from flexmbs.model import Body, Model
+from flexmbs.optimize import OptimizationResult, optimize_fully, optimize_weakly
 from flexmbs.problem import Problem, load_problem
 from flexmbs.sections import Circle, GivenSection, Material, Rectangle, Tube
 from flexmbs.simulate import Result, simulate
@@ -30,21 +31,3 @@ __all__ = [
     "InvalidResultError", "ValidityWarning",
 ]
 __version__ = "0.1.0"
-
-#: imported on first use (PEP 562): the optimizers pull in scipy.optimize and more, which a
-#: simulation or a batch worker evaluating designs does not need (about half of the import time)
-_LAZY = {"OptimizationResult": "flexmbs.optimize", "optimize_fully": "flexmbs.optimize",
-         "optimize_weakly": "flexmbs.optimize"}
-
-
-def __getattr__(name):
-    if name in _LAZY:
-        import importlib
-        value = getattr(importlib.import_module(_LAZY[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module 'flexmbs' has no attribute {name!r}")
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_LAZY))

@@ -48,7 +48,6 @@ import time
 
 import numpy as np
 from scipy.linalg import cho_solve, solve_triangular
-from scipy.optimize import linprog, minimize, nnls
 
 from flexmbs.errors import ModelError, SimulationError
 from flexmbs.sections import real_number, whole_number
@@ -74,6 +73,8 @@ def solve_qp(c, H, A, b):
     ValueError
         If the constraints are incompatible.
     """
+    from scipy.optimize import nnls
+
     H = np.asarray(H, float)
     A = np.asarray(A, float)
     b = np.asarray(b, float)
@@ -123,6 +124,8 @@ def kkt_residual(df, g, dg, x, lower, upper, active_tol=1e-3):
     -------
     residual : float; lam : (m,) the multipliers (zero for the constraints left out).
     """
+    from scipy.optimize import nnls
+
     df = np.asarray(df, float)
     g = np.asarray(g, float)
     n = df.size
@@ -287,6 +290,8 @@ def _floor_eigenvalues(B, ratio=1e-4):
 
 def _least_violation(ev, lo, hi):
     """The smallest linearized violation max(0, max(g + J d)) within lo <= d <= hi (an LP)."""
+    from scipy.optimize import linprog
+
     n = lo.size
     m = ev.g.size
     A = np.hstack([ev.dg, -np.ones((m, 1))])
@@ -435,6 +440,8 @@ def _run_mma(P, mon, x0, opt, max_inner=20):
 
 def _run_slsqp(P, mon, x0, ftol=1e-10):
     """scipy's SLSQP without move limits; iterates recorded where the Jacobian is requested."""
+    from scipy.optimize import minimize
+
     def fun(x):
         ev = P.evaluate(x, gradient=False)
         return ev.f

@@ -59,7 +59,6 @@ import time
 from types import SimpleNamespace
 
 import numpy as np
-from scipy.optimize import minimize
 
 from flexmbs.description import Beam, Deviation, Mass, PointMass, Stress, body_points
 from flexmbs.errors import CaseError, ModelError
@@ -509,6 +508,8 @@ class StaticModel:
 # ---------------------------------------------------------------------------- static optimum
 def _optimize_static(static, x0, lower, upper, *, screen, ftol, maxiter, active_tol):
     """Solve (23) with SLSQP on z = x / upper, objective f / |f(x0)|, screening the rows."""
+    from scipy.optimize import minimize
+
     scale = np.asarray(upper, float)
     f0, _, _, _, _, _ = static.evaluate(x0, gradient=False)
     fs = abs(f0) if f0 else 1.0
