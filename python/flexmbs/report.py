@@ -425,11 +425,10 @@ def _md_variants(report, table):
                      + " | ".join(_pct(x) for x in (v.design_differences or [None] * nv)) + " |")
     L.append("")
     for v in vrows:
-        how = (f"multi-start, {v.variant.options_text}" if v.is_multistart
-               else f"from {_start_text(v.variant.start_mm)}{f' {unit}' if unit else ''}, "
-                    f"{v.variant.options_text}")
-        L.append(f"- {v.label} ({v.method} coupled, {how}; job `jobs/variants/"
-                 f"{v.variant.name}.json`): {v.status()}.")
+        how = (f"multi-start: {v.variant.options_text}" if v.is_multistart
+               else f"from {_start_text(v.variant.start_mm)}{f' {unit}' if unit else ''}; "
+                    f"options: {v.variant.options_text}")
+        L.append(f"- {v.label} (`jobs/variants/{v.variant.name}.json`; {how}): {v.status()}.")
     names = {v.variant.name for v in vrows}
     for v in spec.variants:
         if v.name not in names:

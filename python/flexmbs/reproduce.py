@@ -733,8 +733,9 @@ def _variant_check(c, v):
         else:
             got = (f"local optima {sp['best']:.4f}-{sp['worst']:.4f} kg; {sp['reached_best']} of "
                    f"{sp['starts']} within {100 * sp['best_tolerance']:g} % of the best"
-                   + ("" if pm is None else f", {v.within_paper(0.003)} within 0.3 % of the "
-                      f"paper or lighter") + f"; {sp['feasible']} of {sp['starts']} feasible")
+                   + ("" if pm is None else f", {v.within_paper(sp['best_tolerance'])} within "
+                      f"{100 * sp['best_tolerance']:g} % of the paper or lighter")
+                   + f"; {sp['feasible']} of {sp['starts']} feasible")
         return Check(n, f"{tag}: {c.what or 'spread of the local optima'}",
                      c.paper or ("-" if pm is None else f"{pm:.3f} kg"), got, None)
     raise ModelError(f"unknown variant check type {c.type!r}")    # pragma: no cover
