@@ -11,7 +11,10 @@ is one job of `flexmbs.batch.run_batch`: local worker processes by default, a Da
 an address is given), compares the results with the published numbers and returns a `Report`;
 `flexmbs.report.publish(report)` draws the figures and writes ``out/README.md``, a report a
 reader can check without running anything. Every job's result is saved under ``out/jobs/``
-as soon as it finishes; running the same command again skips what is done.
+as soon as it finishes; running the same command again skips what is done. A table's
+variants (extra rows with other options, or a multi-start, `flexmbs.study.Variant`) run after
+the table runs, stored under ``out/jobs/variants/``, and are reported as `VariantRow`s beside
+the published optimum of their method, with their own checks (`variant_checks`).
 
 The command line is ``flexmbs reproduce`` (flexmbs/cli_reproduce.py).
 

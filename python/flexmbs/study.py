@@ -2,8 +2,8 @@
 numbers and reports, as data (a TOML file; every key in ``docs/study-format.md``).
 
 A study declares tables (a case, overrides, starting designs, methods, optimizer options,
-where the published numbers are, the checks of the published findings), design-domain maps and
-figures. `load_study()` reads and validates one (pydantic, as `flexmbs.description` does for
+where the published numbers are, the checks of the published findings, extra rows run with
+other options or as a multi-start, `Variant`), design-domain maps and figures. `load_study()` reads and validates one (pydantic, as `flexmbs.description` does for
 cases; errors are `CaseError` naming the file and the key) into a `Study`. The shipped study
 (``cases/studies/paper.toml``, installed in ``flexmbs/cases_data/studies``) is the paper's;
 a user's study file reproduces any other published results the same way
