@@ -398,6 +398,45 @@ def _md_table(report, table):
     return "\n".join(lines) + "\n"
 
 
+def _md_variants(report, table):
+    """A table's variants (`[[tables.N.variants]]`): each beside the published optimum of its
+    method, then one line per variant (its options, status and, for a multi-start, the spread
+    of the local optima)."""
+    spec = report.study.tables[table]
+    vrows = report.variants.get(table) or []
+    if not spec.variants:
+        return ""
+    nv = len(spec.variables)
+    unit = spec.units[0] if len(set(spec.units)) == 1 and spec.units[0] else ""
+    L = ["Variants: the same problem run with other options, beside the paper's optimum of "
+         "the method (extra rows; the rows above are the paper's settings).", "",
+         "| variant | method | | mass (kg) | " + " | ".join(spec.variables) + " |",
+         "|" + "---|" * (4 + nv)]
+    for v in vrows:
+        pp = v.paper.get("p") or [None] * nv
+        L.append(f"| {v.label} | {v.method} | paper | {_num(v.paper.get('mass'), '.3f')} | "
+                 + " | ".join(_num(x, ".2f") for x in pp) + " |")
+        d = v.design_mm
+        L.append("| | | **flexmbs** | " + ("–" if v.mass_kg is None else f"**{v.mass_kg:.4f}**")
+                 + " | " + " | ".join("–" if d is None else f"**{x:.2f}**"
+                                      for x in (d if d is not None else [None] * nv)) + " |")
+        if v.mass_difference is not None:
+            L.append("| | | Δ % | " + _pct(v.mass_difference) + " | "
+                     + " | ".join(_pct(x) for x in (v.design_differences or [None] * nv)) + " |")
+    L.append("")
+    for v in vrows:
+        how = (f"multi-start: {v.variant.options_text}" if v.is_multistart
+               else f"from {_start_text(v.variant.start_mm)}{f' {unit}' if unit else ''}; "
+                    f"options: {v.variant.options_text}")
+        L.append(f"- {v.label} (`jobs/variants/{v.variant.name}.json`; {how}): {v.status()}.")
+    names = {v.variant.name for v in vrows}
+    for v in spec.variants:
+        if v.name not in names:
+            L.append(f"- **no result** for variant {v.label} ({v.name}): "
+                     f"{report.failures.get(v.name, 'not run')}")
+    return "\n".join(L) + "\n"
+
+
 def _md_scan(spec, scan):
     """A table's scan (`flexmbs.reproduce.design_scan`): maximum deviation over one design
     variable, one line per setting of the others."""
@@ -494,6 +533,8 @@ def markdown(report):
             L.append("")
             continue
         L.append(_md_table(report, t))
+        if spec.variants:
+            L.append(_md_variants(report, t))
         if spec.scan is not None and report.extra.get(scan_key(spec)):
             L.append(_md_scan(spec, report.extra[scan_key(spec)]))
         ch = report.checks.get(t)
@@ -515,6 +556,10 @@ def markdown(report):
     for t in report.row_tables:
         runs = {r.name for r in study.tables[t].runs()}
         L.append(f"| {t} | {len(runs)} | {report.table_time(t):.1f} |")
+        vrows = report.variants.get(t) or []
+        if vrows:
+            L.append(f"| {t}, variants | {len(vrows)} | "
+                     f"{sum(float(v.result.get('wall_time_s') or 0.0) for v in vrows):.1f} |")
     L.append("")
     if report.timings:
         L += ["", "| phase | jobs computed | elapsed (s) | executor | when |", "|---|---|---|---|---|"]
@@ -546,6 +591,7 @@ def write_report(report):
         tables=report.tables, settings=report.settings, elapsed_s=report.elapsed,
         timings=report.timings, extra=report.extra,
         rows={str(t): [r.to_dict() for r in rows] for t, rows in report.rows.items()},
+        variants={str(t): [v.to_dict() for v in rows] for t, rows in report.variants.items()},
         checks=[dict(table=c.table, what=c.what, paper=c.paper, flexmbs=c.flexmbs, ok=c.ok)
                 for c in report.all_checks],
         **{f"table{t}": report.active_steps.get(t) for t, spec in report.study.tables.items()

@@ -11,7 +11,10 @@ is one job of `flexmbs.batch.run_batch`: local worker processes by default, a Da
 an address is given), compares the results with the published numbers and returns a `Report`;
 `flexmbs.report.publish(report)` draws the figures and writes ``out/README.md``, a report a
 reader can check without running anything. Every job's result is saved under ``out/jobs/``
-as soon as it finishes; running the same command again skips what is done.
+as soon as it finishes; running the same command again skips what is done. A table's
+variants (extra rows with other options, or a multi-start, `flexmbs.study.Variant`) run after
+the table runs, stored under ``out/jobs/variants/``, and are reported as `VariantRow`s beside
+the published optimum of their method, with their own checks (`variant_checks`).
 
 The command line is ``flexmbs reproduce`` (flexmbs/cli_reproduce.py).
 
@@ -34,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from flexmbs.errors import ModelError
-from flexmbs.study import MapSpec, Run, Study, TableSpec, load_study
+from flexmbs.study import MapSpec, Run, Study, TableSpec, Variant, load_study
 
 # TABLES and MAPS (the shipped study's tables and maps) are read when first used (__getattr__)
 __all__ = ["reproduce", "Report", "Row", "TableSpec", "Run", "paper_tables",
@@ -42,7 +45,8 @@ __all__ = ["reproduce", "Report", "Row", "TableSpec", "Run", "paper_tables",
            "MapSpec", "MapResult", "REGIONS", "Check", "table_checks", "paper_row",
            "build_rows", "design_spread", "active_steps_rows", "format_table",
            "format_active_steps", "simulate_paper_designs", "paper_design_text",
-           "design_scan", "scan_key"]
+           "design_scan", "scan_key", "VariantRow", "variant_checks", "multistart_job",
+           "variant_paper", "Variant"]
 
 
 def __getattr__(name):
@@ -114,6 +118,38 @@ def optimization_job(case, method, start, overrides=None, options=None):
     d["h_s"] = float(prob.description.time.h)
     d["case_overrides"] = dict(overrides or {})
     d["case_name"] = case
+    return d
+
+
+def multistart_job(case, overrides=None, options=None, multistart=None, workers=None,
+                   dask=None, store=None, progress=None):
+    """Run a multi-start (`flexmbs.optimize.multistart.multistart`: its starts through the
+    batch layer, on `workers` local processes or a Dask scheduler, each stored in `store` as it
+    finishes) and return its result as a JSON-ready dict: `MultistartResult.to_dict()` plus,
+    for the best feasible design re-simulated here, ``mass_kg``, ``design``,
+    ``max_deviation_m``, ``t_at_max_s``, ``limit_m`` and ``feasible``; ``mass_kg`` None when
+    no start ended feasible.
+
+    multistart : dict of multistart's settings {starts, optimizer, sampler, seed, candidates,
+        best_tolerance}; options : keyword arguments of `optimize_fully` for every start.
+    """
+    from flexmbs.batch import max_deviation_job
+    from flexmbs.optimize.multistart import multistart as run_multistart
+    from flexmbs.problem import Problem
+
+    ms = dict(multistart or {})
+    starts = ms.pop("starts", 8)
+    prob = Problem(case, overrides=overrides or None)
+    res = run_multistart(prob, starts, workers=workers, dask=dask, store=store,
+                         progress=progress, **ms, **(options or {}))
+    d = res.to_dict()
+    d.update(mass_kg=None, design=None, max_deviation_m=None, feasible=False,
+             case_overrides=dict(overrides or {}), case_name=case)
+    if res.best is not None:
+        chk = max_deviation_job(case, res.best["design"], overrides or None)
+        d.update(mass_kg=chk["mass_kg"], design=chk["design"],
+                 max_deviation_m=chk["max_deviation_m"], t_at_max_s=chk["t_at_max_s"],
+                 limit_m=chk["limit_m"], feasible=bool(res.best["feasible"]))
     return d
 
 
@@ -518,6 +554,221 @@ def table_checks(table, rows, study=None):
     return out
 
 
+# ============================================================================ variants
+def variant_paper(variant, data=None, study=None):
+    """The published row of a variant's method (dict): the table's row from the variant's
+    start, or from the table's first start when that is not a published start (a
+    multi-start)."""
+    study = load_study(study)
+    spec = study.tables[variant.table]
+    data = study.published_data() if data is None else data
+    tab = _published(spec, data)
+    entry = tab[variant.method]
+    if isinstance(entry, list):
+        starts = [list(map(float, s)) for s in tab["starts"]]
+        start = list(variant.start_mm or spec.starts[0])
+        entry = entry[starts.index(start) if start in starts else 0]
+    return dict(entry)
+
+
+@dataclass
+class VariantRow:
+    """An extra row of a table (`flexmbs.study.Variant`) beside the published numbers of its
+    method.
+
+    result: `optimization_job`'s result (a single run) or `multistart_job`'s (a multi-start:
+    the best feasible design, every start's local optimum under 'optima')."""
+    variant: Variant
+    paper: dict
+    result: dict
+
+    label = property(lambda self: self.variant.label)
+    method = property(lambda self: self.variant.method)
+    is_multistart = property(lambda self: self.variant.multistart is not None)
+
+    @property
+    def mass_kg(self):
+        """The design's mass (a multi-start: the best feasible one's; None without any)."""
+        m = self.result.get("mass_kg")
+        return None if m is None else float(m)
+
+    @property
+    def design_mm(self):
+        d = self.result.get("design")
+        return None if d is None else np.asarray(d, float)
+
+    @property
+    def feasible(self):
+        """The design is feasible: the run's own re-simulated verdict (``feasible``), else
+        its maximum violation <= 1e-6."""
+        if "feasible" in self.result and self.result["feasible"] is not None:
+            return bool(self.result["feasible"])
+        v = self.result.get("max_violation")
+        return v is not None and float(v) <= 1e-6
+
+    @property
+    def mass_difference(self):
+        m = self.paper.get("mass")
+        return None if m is None or self.mass_kg is None else (self.mass_kg - m) / m
+
+    @property
+    def design_differences(self):
+        p, d = self.paper.get("p"), self.design_mm
+        if d is None:
+            return []
+        if p is None:
+            return [None] * len(d)
+        return [None if q is None else (v - q) / q for v, q in zip(d, p)]
+
+    def spread(self):
+        """A multi-start's local optima: dict(starts, feasible, best, worst (feasible masses,
+        kg), reached_best (within best_tolerance of the best), best_tolerance, within_paper
+        {rel: count} is added by the checks); None for a single run."""
+        if not self.is_multistart:
+            return None
+        opt = self.result.get("optima") or []
+        f = [float(o["objective"]) for o in opt if o.get("feasible")]
+        return dict(starts=len(opt), feasible=len(f), best=min(f) if f else None,
+                    worst=max(f) if f else None,
+                    reached_best=int(self.result.get("reached_best") or 0),
+                    best_tolerance=float(self.result.get("best_tolerance") or 0.0))
+
+    def within_paper(self, rel):
+        """How many starts (a multi-start) or whether the run (1/0) ended feasible at most
+        (1 + rel) x the published mass."""
+        pm = self.paper.get("mass")
+        if pm is None:
+            return 0
+        if self.is_multistart:
+            return sum(1 for o in self.result.get("optima") or []
+                       if o.get("feasible") and float(o["objective"]) <= pm * (1 + rel))
+        return int(self.feasible and self.mass_kg is not None and self.mass_kg <= pm * (1 + rel))
+
+    def status(self):
+        """One line: converged / feasibility, deviation, simulations, time (and the spread)."""
+        r = self.result
+        dev = r.get("max_deviation_m")
+        dev_txt = "-" if dev is None else f"{float(dev) * 1e3:.4f} mm"
+        if self.is_multistart:
+            sp = self.spread()
+            tol = 100 * sp["best_tolerance"]
+            head = (f"{sp['starts']} starts ({r.get('sampler')}, optimizer {r.get('optimizer')}"
+                    + (f", the {sp['starts']} best of {r.get('candidates')} candidates"
+                       if r.get("candidates") else "") + f"): {sp['feasible']} of "
+                    f"{sp['starts']} ended feasible (re-simulated)")
+            if sp["best"] is None:
+                return head + f"; no feasible design; {r.get('simulations')} simulations, " \
+                    f"{float(r.get('wall_time_s', 0.0)):.1f} s"
+            return (head + f"; local optima {sp['best']:.4f}-{sp['worst']:.4f} kg; "
+                    f"{sp['reached_best']} of {sp['starts']} within {tol:g} % of the best; "
+                    f"maximum deviation of the best design {dev_txt}; {r.get('simulations')} "
+                    f"simulations, {float(r.get('wall_time_s', 0.0)):.1f} s")
+        conv = "converged" if r.get("converged") else "not converged"
+        return (f"{conv} ({r.get('reason')}); {'feasible' if self.feasible else 'INFEASIBLE'}, "
+                f"maximum deviation {dev_txt}; {r.get('simulations')} simulations, "
+                f"{float(r.get('wall_time_s', 0.0)):.1f} s")
+
+    def to_dict(self):
+        return dict(table=self.variant.table, key=self.variant.key, label=self.label,
+                    method=self.method, job=self.variant.name, options=self.variant.options,
+                    multistart=self.variant.multistart,
+                    start_mm=None if self.variant.start_mm is None else list(self.variant.start_mm),
+                    paper=self.paper,
+                    flexmbs=dict(mass_kg=self.mass_kg,
+                                 design_mm=None if self.design_mm is None
+                                 else self.design_mm.tolist(),
+                                 feasible=self.feasible,
+                                 max_deviation_m=self.result.get("max_deviation_m"),
+                                 converged=self.result.get("converged"),
+                                 reason=self.result.get("reason"),
+                                 iterations=self.result.get("iterations"),
+                                 simulations=self.result.get("simulations"),
+                                 wall_time_s=self.result.get("wall_time_s")),
+                    spread=self.spread(), mass_difference=self.mass_difference,
+                    design_differences=self.design_differences)
+
+
+def _variant_check(c, v):
+    """A check of a variant row (a Check)."""
+    n = v.variant.table
+    tag = f"variant {v.label}"
+    pm = v.paper.get("mass")
+    if c.type == "mass_at_most":
+        what = "best feasible mass" if v.is_multistart else "mass"
+        if v.mass_kg is None:
+            return Check(n, f"{tag}: {c.what or f'{what} within {100 * c.rel:g} % of the paper or lighter'}",
+                         c.paper or ("-" if pm is None else f"{pm:.3f} kg"),
+                         "no feasible design", False)
+        if pm is None:
+            return None
+        lim = pm * (1 + c.rel)
+        return Check(n, f"{tag}: {c.what or f'{what} within {100 * c.rel:g} % of the paper or lighter'}",
+                     c.paper or f"{pm:.3f} kg (at most {lim:.4f} kg)",
+                     f"{v.mass_kg:.4f} kg ({_pct(v.mass_difference)})", v.mass_kg <= lim)
+    if c.type == "feasible":
+        dev = v.result.get("max_deviation_m")
+        lim = v.result.get("limit_m")
+        got = ("feasible" if v.feasible else "INFEASIBLE") + (
+            "" if dev is None else f", maximum deviation {float(dev) * 1e3:.4f} mm"
+            + ("" if lim is None else f" (limit {float(lim) * 1e3:g} mm)"))
+        if v.is_multistart:
+            sp = v.spread()
+            got += f"; {sp['feasible']} of {sp['starts']} starts feasible"
+        return Check(n, f"{tag}: {c.what or 'feasible (re-simulated)'}",
+                     c.paper or "-", got, v.feasible)
+    sp = v.spread()
+    if c.type == "reached_by_at_least":
+        if c.rel is None:
+            k = sp["reached_best"]
+            what = (f"at least {c.n} of {sp['starts']} starts reach the best design (within "
+                    f"{100 * sp['best_tolerance']:g} %)")
+        else:
+            if pm is None:
+                return None
+            k = v.within_paper(c.rel)
+            what = (f"at least {c.n} of {sp['starts']} starts feasible within {100 * c.rel:g} % "
+                    f"of the paper or lighter")
+        return Check(n, f"{tag}: {c.what or what}", c.paper or "-",
+                     f"{k} of {sp['starts']}", k >= c.n)
+    if c.type == "spread_reported":
+        if sp["best"] is None:
+            got = f"no feasible design from {sp['starts']} starts"
+        else:
+            got = (f"local optima {sp['best']:.4f}-{sp['worst']:.4f} kg; {sp['reached_best']} of "
+                   f"{sp['starts']} within {100 * sp['best_tolerance']:g} % of the best"
+                   + ("" if pm is None else f", {v.within_paper(sp['best_tolerance'])} within "
+                      f"{100 * sp['best_tolerance']:g} % of the paper or lighter")
+                   + f"; {sp['feasible']} of {sp['starts']} feasible")
+        return Check(n, f"{tag}: {c.what or 'spread of the local optima'}",
+                     c.paper or ("-" if pm is None else f"{pm:.3f} kg"), got, None)
+    raise ModelError(f"unknown variant check type {c.type!r}")    # pragma: no cover
+
+
+def variant_checks(rows):
+    """The checks of variant rows (list of Check), each row's in its study's order."""
+    out = []
+    for v in rows:
+        for c in v.variant.checks:
+            ck = _variant_check(c, v)
+            if ck is not None:
+                out.append(ck)
+    return out
+
+
+def format_variants(rows, unit="mm"):
+    """The terminal lines of a table's variant rows."""
+    lines = []
+    for v in rows:
+        pm = v.paper.get("mass")
+        d = v.design_mm
+        p = "-" if d is None else _list(d) + (f" {unit}" if unit else "")
+        m = "-" if v.mass_kg is None else f"{v.mass_kg:.4f} kg ({_pct(v.mass_difference)})"
+        lines.append(f"variant {v.label} ({v.method} coupled, {v.variant.options_text}): "
+                     f"flexmbs {m}, {p}; paper {_fmt(pm, '.3f')} kg")
+        lines.append(f"    {v.status()}")
+    return lines
+
+
 # ============================================================================ text output
 def _pct_text(v):
     """A relative difference in per cent with its sign ('+0.00' for a zero), '-' for None."""
@@ -656,7 +907,8 @@ class Report:
         The output folder (README.md, comparison.json, figures/, jobs/).
     tables : list of int
     rows : dict table -> list of Row
-    checks : dict table -> list of Check
+    checks : dict table -> list of Check (the variants' checks last)
+    variants : dict table -> list of VariantRow (the table's ``[[tables.N.variants]]``)
     active_steps : dict table -> list of tuples (`active_steps_rows`), for the tables of kind
         'active_steps'
     maps : dict key -> MapResult
@@ -674,6 +926,7 @@ class Report:
     tables: list
     rows: dict = field(default_factory=dict)
     checks: dict = field(default_factory=dict)
+    variants: dict = field(default_factory=dict)
     active_steps: dict = field(default_factory=dict)
     maps: dict = field(default_factory=dict)
     figures: dict = field(default_factory=dict)
@@ -701,10 +954,18 @@ class Report:
         rows = self.rows.get(table, [])
         missing = [r.name for r in spec.runs() if r.name not in self.results]
         unit = spec.units[0] if len(set(spec.units)) == 1 else ""
-        txt = (format_table(table, rows, self.checks.get(table), spec.title, spec.variables,
-                            unit) if rows else f"Table {table}:")
+        txt = (format_table(table, rows, None, spec.title, spec.variables, unit) if rows
+               else f"Table {table}:")
         for name in missing:
             txt += f"\n  [NO RESULT] {name}: {self.failures.get(name, 'not run')}"
+        vrows = self.variants.get(table) or []
+        if vrows:
+            txt += "\n" + "\n".join(format_variants(vrows, unit))
+        for v in spec.variants:
+            if v.name not in {r.variant.name for r in vrows}:
+                txt += f"\n  [NO RESULT] variant {v.label}: {self.failures.get(v.name, 'not run')}"
+        for c in self.checks.get(table) or []:
+            txt += f"\n  [{c.verdict}] {c.what}: paper {c.paper}, flexmbs {c.flexmbs}"
         return txt
 
     @property
@@ -736,6 +997,52 @@ def _resolve_dask(dask, workers):
                                processes=True, dashboard_address=None)
         return cluster.scheduler_address, cluster
     return dask, None
+
+
+def _run_variants(variants, vstore, report, workers, address, progress, say):
+    """The variants' jobs, stored under ``jobs/variants/``: the single runs in one batch, then
+    each multi-start in turn (its starts a batch of their own, each start stored in
+    ``jobs/variants/NAME/``). Returns {name: result}; failures go to report.failures."""
+    from flexmbs.batch import read_stored, run_batch, write_atomic
+    report.settings["stored_variants"] = [v.name for v in variants
+                                          if read_stored(vstore / f"{v.name}.json") is not None]
+    single = {v.name: v.job() for v in variants if v.multistart is None}
+    out = {}
+    if single:
+        say(f"{len(single)} variant optimization(s); results in {vstore}")
+        try:
+            out.update(run_batch(optimization_job, single, workers=workers, dask=address,
+                                 store=vstore, progress=progress, label="variants"))
+        except Exception as exc:    # noqa: BLE001 - report what finished, name what did not
+            for n in single:
+                v = read_stored(vstore / f"{n}.json")
+                if v is not None:
+                    out[n] = v
+                else:
+                    report.failures[n] = f"{type(exc).__name__}: {exc} (first error of the batch)"
+            say(f"some variant optimizations failed: {type(exc).__name__}: {exc}")
+    for v in variants:
+        if v.multistart is None:
+            continue
+        f = vstore / f"{v.name}.json"
+        stored = read_stored(f)
+        if stored is not None:
+            out[v.name] = stored
+            continue
+        say(f"variant {v.name}: multi-start of {v.multistart['starts']} starts; each start "
+            f"stored in {vstore / v.name}")
+        try:
+            res = multistart_job(**v.job(), workers=workers, dask=address, store=vstore / v.name,
+                                 progress=progress)
+        except Exception as exc:    # noqa: BLE001 - the report names the failed variant
+            report.failures[v.name] = f"{type(exc).__name__}: {exc}"
+            say(f"variant {v.name} failed: {type(exc).__name__}: {exc}")
+            continue
+        from flexmbs.optimize.result import jsonable
+        vstore.mkdir(parents=True, exist_ok=True)
+        write_atomic(f, json.dumps(jsonable(res)))
+        out[v.name] = res
+    return out
 
 
 def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=41, maps=True,
@@ -800,9 +1107,16 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
     check_disk_space(out, 500e3 * len(runs) + 2e3 * n_map + 20e6,
                      f"output folder {str(out)!r}")
     store = out / "jobs" / "optimizations"
+    vstore = out / "jobs" / "variants"
+    variants = [v for t in tables for v in all_tables[t].variants]
     if force:
+        import shutil
         for r in runs:
             (store / f"{r.name}.json").unlink(missing_ok=True)
+        for v in variants:
+            (vstore / f"{v.name}.json").unlink(missing_ok=True)
+            if (vstore / v.name).is_dir():
+                shutil.rmtree(vstore / v.name)
     data = study.published_data()
     report = Report(out=out, tables=tables, study=study)
     tfile = out / "jobs" / "timings.json"
@@ -834,6 +1148,17 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
         _record_timing(report, "optimizations",
                        len(results) - len(report.settings["stored_runs"]),
                        report.elapsed["optimizations"])
+        if variants:
+            t0 = time.perf_counter()
+            vresults = _run_variants(variants, vstore, report, workers, address, progress, say)
+            report.elapsed["variants"] = time.perf_counter() - t0
+            _record_timing(report, "variants",
+                           len(vresults) - len(report.settings["stored_variants"]),
+                           report.elapsed["variants"])
+            for v in variants:
+                if v.name in vresults:
+                    report.variants.setdefault(v.table, []).append(
+                        VariantRow(v, variant_paper(v, data, study), vresults[v.name]))
         for t in tables:
             spec = all_tables[t]
             if spec.kind != "rows":
@@ -842,7 +1167,8 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
                     for r in spec.runs() if r.name in results]
             simulate_paper_designs(rows)
             report.rows[t] = rows
-            report.checks[t] = table_checks(spec, rows)
+            report.checks[t] = table_checks(spec, rows) + variant_checks(
+                report.variants.get(t, []))
         for t in tables:
             spec = all_tables[t]
             if spec.scan is not None:

@@ -2,8 +2,8 @@
 numbers and reports, as data (a TOML file; every key in ``docs/study-format.md``).
 
 A study declares tables (a case, overrides, starting designs, methods, optimizer options,
-where the published numbers are, the checks of the published findings), design-domain maps and
-figures. `load_study()` reads and validates one (pydantic, as `flexmbs.description` does for
+where the published numbers are, the checks of the published findings, extra rows run with
+other options or as a multi-start, `Variant`), design-domain maps and figures. `load_study()` reads and validates one (pydantic, as `flexmbs.description` does for
 cases; errors are `CaseError` naming the file and the key) into a `Study`. The shipped study
 (``cases/studies/paper.toml``, installed in ``flexmbs/cases_data/studies``) is the paper's;
 a user's study file reproduces any other published results the same way
@@ -29,8 +29,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from flexmbs.errors import CaseError
 
-__all__ = ["load_study", "study_path", "Study", "TableSpec", "MapSpec", "Run", "METHODS",
-           "ROW_CHECKS", "DEFAULT_STUDY"]
+__all__ = ["load_study", "study_path", "Study", "TableSpec", "MapSpec", "Run", "Variant",
+           "METHODS", "ROW_CHECKS", "VARIANT_CHECKS", "DEFAULT_STUDY"]
 
 #: The optimization methods a study runs.
 METHODS = ("weakly", "fully")
@@ -131,10 +131,43 @@ class VariablesOffBound(_Check):
 CheckSpec = Annotated[Union[MassWithin, DesignWithin, NotConverged, LocalOptimumReported,
                             Converges, StartsAgreeWithin, StartsDifferMore, MassesRatioAtLeast,
                             VariablesAtBound, VariablesOffBound], Field(discriminator="type")]
+class MassAtMost(_Check):
+    """A variant's mass (a multi-start's best feasible one) at most (1 + rel) x the published
+    mass of its method: within rel of the paper or lighter."""
+    type: Literal["mass_at_most"]
+    rel: NonNegative = 0.0
+
+
+class Feasible(_Check):
+    """A variant's design is feasible, re-checked by a simulation (a multi-start: a start ended
+    feasible)."""
+    type: Literal["feasible"]
+
+
+class ReachedByAtLeast(_Check):
+    """At least n starts of a multi-start variant reached the best design (within its
+    best_tolerance), or, with rel, ended feasible at most (1 + rel) x the published mass."""
+    type: Literal["reached_by_at_least"]
+    n: Annotated[int, Field(ge=1)]
+    rel: NonNegative | None = None
+
+
+class SpreadReported(_Check):
+    """A multi-start variant's local optima reported (best, worst, how many starts reached the
+    best, how many ended feasible), no criterion."""
+    type: Literal["spread_reported"]
+
+
+VariantCheckSpec = Annotated[Union[MassAtMost, Feasible, ReachedByAtLeast, SpreadReported],
+                             Field(discriminator="type")]
+#: Check types of a table's variants (`[[tables.N.variants]]`).
+VARIANT_CHECKS = ("mass_at_most", "feasible", "reached_by_at_least", "spread_reported")
+
 #: Check types applied to every row (the others apply once per table).
 ROW_CHECKS = ("mass_within", "design_within", "not_converged", "local_optimum_reported")
 _CHECK_TAGS = ROW_CHECKS + ("converges", "starts_agree_within", "starts_differ_more",
-                            "masses_ratio_at_least", "variables_at_bound", "variables_off_bound")
+                            "masses_ratio_at_least", "variables_at_bound", "variables_off_bound") \
+    + VARIANT_CHECKS
 
 
 # ----------------------------------------------------------------------------- the file
@@ -144,6 +177,32 @@ class Scan(_Strict):
     values: Annotated[list[Finite], Field(min_length=1)]
     others: Annotated[list[list[Finite]], Field(min_length=1)]
     caption: str = ""
+
+
+Option = Union[Scalar, dict[str, Scalar]]
+Slug = Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9_\-][A-Za-z0-9_.\-]*$")]
+
+
+class MultistartFile(_Strict):
+    """`flexmbs.optimize.multistart.multistart` settings of a variant."""
+    starts: Annotated[int, Field(ge=1)] = 8
+    optimizer: str = "nlopt-mma"
+    sampler: Literal["sobol", "lhs"] = "sobol"
+    seed: Annotated[int, Field(ge=0)] = 0
+    candidates: Annotated[int, Field(ge=1)] | None = None
+    best_tolerance: NonNegative = 0.003
+
+
+class VariantFile(_Strict):
+    """An extra row of a table: the table's case run with other options (or a multi-start),
+    reported beside the paper's rows, with its own checks."""
+    key: Slug
+    label: str
+    method: Method
+    options: dict[str, Option] = {}
+    start: Design | None = None
+    multistart: MultistartFile | None = None
+    checks: list[VariantCheckSpec] = []
 
 
 class TableFile(_Strict):
@@ -159,6 +218,7 @@ class TableFile(_Strict):
     cost: Positive = 1.0
     checks: list[CheckSpec] = []
     scan: Scan | None = None
+    variants: list[VariantFile] = []
 
 
 class MapFile(_Strict):
@@ -275,6 +335,53 @@ class Run:
                     overrides=dict(self.overrides), options=dict(self.options))
 
 
+def _option_text(v):
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k} = {_option_text(x)}" for k, x in v.items()) + "}"
+    return f'"{v}"' if isinstance(v, str) else f"{v}"
+
+
+@dataclass(frozen=True)
+class Variant:
+    """An extra row of a table (``[[tables.N.variants]]``): the table's case (and overrides)
+    optimized by `method` with the variant's own `options` (over the optimizer's defaults,
+    not the study's or the table's), from `start`, or from the multi-start's drawn starts
+    (`multistart`: {starts, optimizer, sampler, seed, candidates, best_tolerance}).
+
+    Its job is stored under ``jobs/variants/NAME.json`` (`name`), apart from the table runs
+    (``jobs/optimizations/``), so no variant can take a table run's name."""
+    table: int
+    key: str
+    label: str
+    method: str
+    case: str
+    overrides: tuple            # sorted (key, value) pairs of the table
+    start_mm: tuple | None      # None for a multi-start
+    options: dict = field(default_factory=dict, hash=False, compare=True)
+    multistart: dict | None = field(default=None, hash=False, compare=True)
+    checks: tuple = ()
+
+    @property
+    def name(self):
+        """The job name: ``tableN-KEY`` (under jobs/variants/)."""
+        return f"table{self.table}-{self.key}"
+
+    @property
+    def options_text(self):
+        """The options as the study file gives them, e.g. 'move_limit = 0.1'."""
+        opts = dict(self.multistart or {}, **self.options)
+        return ", ".join(f"{k} = {_option_text(v)}" for k, v in opts.items()) or "defaults"
+
+    def job(self):
+        """Keyword arguments of `flexmbs.reproduce.optimization_job` (a single run) or of
+        `flexmbs.reproduce.multistart_job` (a multi-start, without its workers and store)."""
+        if self.multistart is not None:
+            return dict(case=self.case, overrides=dict(self.overrides),
+                        options=dict(self.options), multistart=dict(self.multistart))
+        return dict(case=self.case, method=self.method, start=list(self.start_mm),
+                    overrides=dict(self.overrides), options=dict(self.options))
+
+
 @dataclass(frozen=True)
 class TableSpec:
     """A table of a study: its case, its rows (one run per method and start), the optimizer
@@ -299,6 +406,7 @@ class TableSpec:
     lower: tuple = ()
     upper: tuple = ()
     units: tuple = ()
+    variants: tuple = ()        # Variant, in the study file's order
 
     def run(self, method, start=None):
         """The run of `method` from `start` (default: the first start)."""
@@ -483,6 +591,12 @@ def _table_spec(n, t, defaults, folder, source, published):
                                 f"{len(names) - 1} values (the variables but "
                                 f"{t.scan.variable}), got {o}")
     opts = {m: {**defaults.get(m, {}), **t.options.get(m, {})} for m in t.methods}
+    variants = tuple(_variant(n, k, v, t, case, names, source) for k, v in enumerate(t.variants))
+    keys = [v.key for v in variants]
+    for k, key in enumerate(keys):
+        if key in keys[:k]:
+            raise CaseError(f"{source}: key '{where}.variants[{k}].key': {key!r} is used twice "
+                            f"in table {n}")
     return TableSpec(
         number=n, title=t.title, case=case, overrides=tuple(sorted(t.overrides.items())),
         published=tuple(t.published), starts=tuple(tuple(map(float, s)) for s in t.starts),
@@ -490,7 +604,66 @@ def _table_spec(n, t, defaults, folder, source, published):
                                                 for m, o in opts.items()),
         kind=t.kind, heading=t.heading or t.title, cost=float(t.cost), checks=tuple(t.checks),
         scan=t.scan, variables=names, lower=tuple(v.lower for v in dv),
-        upper=tuple(v.upper for v in dv), units=tuple(v.unit or "" for v in dv))
+        upper=tuple(v.upper for v in dv), units=tuple(v.unit or "" for v in dv),
+        variants=variants)
+
+
+#: multistart()'s own keywords: not optimizer options of a multi-start variant
+_MULTISTART_OWN = ("optimizer", "sampler", "seed", "candidates", "best_tolerance", "starts",
+                   "workers", "dask", "store", "progress", "resume", "history", "start_range")
+
+
+def _variant(n, k, v, t, case, names, source):
+    """A table's variant (`Variant`), checked: its method's options, its start, its multi-start
+    settings."""
+    where = f"tables.{n}.variants[{k}]"
+    allowed = _optimizer_keywords(v.method)
+    for k in v.options:
+        if k not in allowed:
+            raise CaseError(f"{source}: key '{where}.options.{k}' is not an option of the "
+                            f"{v.method} coupled optimizer, got {k!r}; allowed: "
+                            f"{', '.join(allowed)}")
+    for opt in ("history", "progress", "resume"):
+        if opt in v.options:
+            raise CaseError(f"{source}: key '{where}.options.{opt}': a study's runs are stored "
+                            f"by `flexmbs reproduce`, got {opt} = {v.options[opt]!r}; allowed: "
+                            f"the optimizer's other options")
+    ms = None
+    if v.multistart is not None:
+        from flexmbs.optimize.fully import OPTIMIZERS
+        m = v.multistart
+        if v.method != "fully":
+            raise CaseError(f"{source}: key '{where}.multistart': a multi-start runs the fully "
+                            f"coupled method, got method {v.method!r}")
+        if v.start is not None:
+            raise CaseError(f"{source}: key '{where}.start': a multi-start draws its starting "
+                            f"designs; leave 'start' out (got {v.start})")
+        if m.optimizer not in OPTIMIZERS:
+            raise CaseError(f"{source}: key '{where}.multistart.optimizer' must be one of "
+                            f"{', '.join(OPTIMIZERS)}, got {m.optimizer!r}")
+        if m.candidates is not None and m.candidates < m.starts:
+            raise CaseError(f"{source}: key '{where}.multistart.candidates' must be >= starts "
+                            f"({m.starts}), got {m.candidates}")
+        for opt in v.options:
+            if opt in _MULTISTART_OWN:
+                raise CaseError(f"{source}: key '{where}.options.{opt}' is a setting of the "
+                                f"multi-start: give it in '{where}.multistart' (keys: starts, "
+                                f"optimizer, sampler, seed, candidates, best_tolerance)")
+        ms = m.model_dump()
+    else:
+        for c, chk in enumerate(v.checks):
+            if chk.type in ("reached_by_at_least", "spread_reported"):
+                raise CaseError(f"{source}: key '{where}.checks[{c}]': {chk.type!r} needs a "
+                                f"multi-start variant (key '{where}.multistart')")
+    start = None
+    if ms is None:
+        start = tuple(float(x) for x in (v.start if v.start is not None else t.starts[0]))
+        if len(start) != len(names):
+            raise CaseError(f"{source}: key '{where}.start' must have {len(names)} values "
+                            f"({', '.join(names)}), got {list(start)}")
+    return Variant(table=n, key=v.key, label=v.label, method=v.method, case=case,
+                   overrides=tuple(sorted(t.overrides.items())), start_mm=start,
+                   options=dict(v.options), multistart=ms, checks=tuple(v.checks))
 
 
 def _format_errors(exc, source):
