@@ -258,8 +258,8 @@ def test_table4_weakly_keeps_links_2_and_3(optimized):
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason=(
     "not converged: flexmbs's weakly coupled cycles on the four-bar without lumped masses stop "
-    "at the 30-cycle cap with the ESL change (25) above eps = 1e-2; they return the best "
-    "feasible design seen, 31.02 kg, p = [67.2, 93.9, 80.2] mm (cycle 17); the paper says the "
+    "at cycle 21 on a period-5 oscillation with the ESL change (25) above eps = 1e-2; they "
+    "return the best feasible design seen, 30.99 kg (docs/reproduction); the paper says the "
     "method 'also converges' (design_tol=0.02 converges it, docs/optimizers.md)"))
 def test_table4_weakly_converges(optimized):
     """Table 4, paper 7.3: "the weakly coupled method also converges" (test (25), eps = 1e-2)."""
