@@ -515,7 +515,8 @@ class Problem:
             f"{nf} functionals over {nt} time points need about {format_bytes(need)} "
             f"({est.largest()}), more than {limit_source()} ({format_bytes(avail)}): use "
             "method='direct' (gradient_method='direct', --gradient-method direct: no tape), a "
-            "coarser step h or a shorter t_end, or fewer aggregated constraints",
+            "coarser step h or a shorter t_end, or fewer functionals (constraints aggregated "
+            "over time, over = 'ks' or 'pnorm', instead of 'every_step': one per step)",
             required=need, available=avail)
 
     def _evaluate_adjoint(self, x, timed, t0):
