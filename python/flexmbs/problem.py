@@ -26,12 +26,13 @@ import numpy as np
 
 from flexmbs.casefile import description_from_dict, read_description
 from flexmbs.description import GROUND, Deviation, Description, Mass, Reaction, Stress, Torque
-from flexmbs.errors import CaseError, ModelError
+from flexmbs.errors import CaseError, ModelError, ResourceError
 from flexmbs.mechanism import Mechanism
 from flexmbs.responses.aggregate import aggregate
 from flexmbs.responses.deviation import deviation, deviation_terms
 from flexmbs.responses.forces import constraint_force, joint_reaction
 from flexmbs.responses.stress import beam_stress
+from flexmbs.resources import format_bytes, limit_source, memory_limit
 from flexmbs.simulate import memory_estimate, simulate
 
 __all__ = ["Problem", "Evaluation", "load_problem", "constraint_rows", "GRADIENT_METHODS"]
@@ -47,6 +48,9 @@ ADJOINT_MIN_VARIABLES = 16
 #: the adjoint evaluates the responses' per-step partials on identity derivatives, in chunks of
 #: columns of at most this many bytes
 ADJOINT_CHUNK_BYTES = 32e6
+#: The part of an adjoint's MemoryEstimate (Problem.memory_estimate) holding the per-step
+#: partials of the backward pass (flexmbs.adjoint.adjoint_memory).
+ADJOINT_PART = "adjoint's per-step partials"
 
 
 #: what an object needs to stand for a Problem in the optimizers (e.g. an analytic test problem)
@@ -244,17 +248,28 @@ class Problem:
         model, t_end, h, kw = self._run(x, gradient, responses, store, differentiate, tape)
         return simulate(model, t_end, h, **kw)
 
-    def memory_estimate(self, x=None, gradient=True, *, responses=None, store=None):
+    def memory_estimate(self, x=None, gradient=True, *, responses=None, store=None,
+                        method=None):
         """The memory (flexmbs.resources.MemoryEstimate) of the simulation that
-        `evaluate(x, gradient)` runs (gradient as there; of `simulate(x, ...)` with
-        `responses` or `store`),
+        `evaluate(x, gradient, method)` runs (gradient and method as there; of
+        `simulate(x, ...)` with `responses` or `store`),
         without running it; None when no response needs a simulation. What is stored over
-        the time grid is the responses' coordinates only (see `simulate`)."""
+        the time grid is the responses' coordinates only (see `simulate`). With gradients by
+        the adjoint: its forward run's (the tape of every step, flexmbs.simulate.TAPE_PART)
+        and the backward pass's per-step partials (ADJOINT_PART, flexmbs.adjoint.adjoint_memory)."""
         if responses is None:
             responses = [n for n, r in self._resp.items() if not isinstance(r, Mass)]
             if not responses and store is None:
                 return None
         want = self._gradient_names(gradient) if self.mechanism.variables else []
+        if want and self.gradient_method(method) == "adjoint":
+            from flexmbs.adjoint import adjoint_memory
+            model, t_end, h, kw = self._run(x, False, responses, store, tape=True)
+            est = memory_estimate(model, t_end, h, **kw)
+            cm = model.compile()
+            est.parts[ADJOINT_PART] = adjoint_memory(cm.ndof, cm.nc, self.mechanism.t.size,
+                                                     self.gradient_functionals(), cm.nel)
+            return est
         model, t_end, h, kw = self._run(x, bool(want), responses, store,
                                         [n for n in responses if n in want])
         return memory_estimate(model, t_end, h, **kw)
@@ -486,6 +501,24 @@ class Problem:
                           wall_time=_time.perf_counter() - t0,
                           gradient_method="direct" if gradient else None)
 
+    def _check_adjoint_memory(self, x, timed):
+        """ResourceError, naming what to change, when the adjoint's forward run (its tape)
+        and backward pass (the per-step partials) together exceed the memory limit
+        (flexmbs.resources.memory_limit: FLEXMBS_MEMORY_LIMIT, else the memory available)."""
+        est = self.memory_estimate(x, True, responses=timed, method="adjoint")
+        need, avail = est.total, memory_limit()
+        if need <= avail:
+            return
+        nt, nf = self.mechanism.t.size, self.gradient_functionals()
+        raise ResourceError(
+            f"evaluate(method='adjoint'): the tape of every state and the per-step partials of "
+            f"{nf} functionals over {nt} time points need about {format_bytes(need)} "
+            f"({est.largest()}), more than {limit_source()} ({format_bytes(avail)}): use "
+            "method='direct' (gradient_method='direct', --gradient-method direct: no tape), a "
+            "coarser step h or a shorter t_end, or fewer functionals (constraints aggregated "
+            "over time, over = 'ks' or 'pnorm', instead of 'every_step': one per step)",
+            required=need, available=avail)
+
     def _evaluate_adjoint(self, x, timed, t0):
         """evaluate() with the gradients of the objective and constraint rows by the discrete
         adjoint (its forward run keeps the tape of every (sub-)step).
@@ -498,12 +531,12 @@ class Problem:
         right-hand sides (flexmbs.adjoint.adjoint_gradient)."""
         from dataclasses import replace
 
-        from flexmbs.adjoint import adjoint_gradient, check_adjoint_memory
+        from flexmbs.adjoint import adjoint_gradient
 
         mech = self.mechanism
+        self._check_adjoint_memory(x, timed)
         model = mech.set_design(x)
         cm = model.compile()
-        check_adjoint_memory(cm.ndof, cm.nc, mech.t.size, self.gradient_functionals(), cm.nel)
         result = self.simulate(x, gradient=False, responses=timed, tape=True)
         nodes = self._nodes_needed(timed)
         sdofs = np.array([3 * n + k for n in (nodes or [0]) for k in range(3)])

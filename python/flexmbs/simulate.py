@@ -312,6 +312,22 @@ def stored_dofs(model, store="all"):
     return out
 
 
+#: The part of a MemoryEstimate holding the adjoint's tape (simulate(tape=True)).
+TAPE_PART = "tape of every (sub-)step (adjoint)"
+
+
+def tape_columns(nsteps):
+    """Columns a tape is first allocated with: every grid point and room for a quarter more
+    sub-steps (at least 64) than steps."""
+    return nsteps + 1 + max(64, nsteps // 4)
+
+
+def _tape_bytes(model, ncol):
+    """Bytes of a tape of ncol columns: q, qd, qdd of every coordinate, every multiplier
+    (3 ndof + nc numbers), the step h and the grid index (1.5)."""
+    return 8.0 * ncol * (3 * model.ndof + max(len(model._rows), 1) + 1.5)
+
+
 def _estimate(model, nsteps, out, solver, design_derivatives, sensitivity_dofs, want_dmu):
     nv = 0
     if design_derivatives is not None:
@@ -325,11 +341,13 @@ def _estimate(model, nsteps, out, solver, design_derivatives, sensitivity_dofs, 
 
 def memory_estimate(model: Model, t_end, h=5e-4, *, store="all", solver="auto",
                     design_derivatives=None, sensitivity_dofs=None,
-                    constraint_force_derivatives=False, **settings):
+                    constraint_force_derivatives=False, tape=False, **settings):
     """The memory `simulate(model, t_end, h, ...)` with these arguments would need, without
-    running it (flexmbs.resources.MemoryEstimate: `total` bytes and its `parts`). Only the
-    arguments that change it are read; `settings` (simulate's other keywords) are accepted and
-    ignored, so that the same keywords can be passed to both."""
+    running it (flexmbs.resources.MemoryEstimate: `total` bytes and its `parts`; with
+    tape=True the part TAPE_PART, as first allocated: a run cutting more steps than a quarter
+    of them needs more). Only the arguments that change it are read; `settings` (simulate's
+    other keywords) are accepted and ignored, so that the same keywords can be passed to
+    both."""
     if not isinstance(model, Model):
         raise ModelError(f"memory_estimate expects a flexmbs Model, got {type(model).__name__}")
     nsteps = time_steps(t_end, h, math.inf)
@@ -339,8 +357,11 @@ def memory_estimate(model: Model, t_end, h=5e-4, *, store="all", solver="auto",
     if not isinstance(solver, str) or solver not in _SOLVERS:
         raise ModelError(f"solver must be 'auto', 'dense' or 'klu', got {solver!r}")
     want_dmu = bool(constraint_force_derivatives) and design_derivatives is not None
-    return _estimate(model, nsteps, stored_dofs(model, store), solver, design_derivatives,
-                     sensitivity_dofs, want_dmu)
+    est = _estimate(model, nsteps, stored_dofs(model, store), solver, design_derivatives,
+                    sensitivity_dofs, want_dmu)
+    if tape:
+        est.parts[TAPE_PART] = _tape_bytes(model, tape_columns(nsteps))
+    return est
 
 
 def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="all",
@@ -479,13 +500,13 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         raise ModelError("constraint_force_derivatives=True needs design_derivatives=...")
     want_dmu = bool(constraint_force_derivatives)
     est = _estimate(model, nsteps, out, solver, design_derivatives, sensitivity_dofs, want_dmu)
-    ntape = nsteps + 1 + max(64, nsteps // 4) if tape else 1
+    ntape = tape_columns(nsteps) if tape else 1
 
     def tape_bytes(ncol):
-        return 8.0 * ncol * (3 * model.ndof + max(len(model._rows), 1) + 1.5)
+        return _tape_bytes(model, ncol)
 
     if tape:
-        est.parts["tape of every (sub-)step (adjoint)"] = tape_bytes(ntape)
+        est.parts[TAPE_PART] = tape_bytes(ntape)
     check_memory(est, memory_limit, what=f"simulate (solver={solver!r}, {n_unknowns} unknowns, "
                                          f"{nsteps} steps, {out.size} stored coordinates)")
 
@@ -541,7 +562,7 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         if status == _TAPE_FULL:
             # more sub-steps than room: once more with room for every step cut max_cuts times
             ntape = nsteps * 2 ** int(max_cuts) + 1
-            est.parts["tape of every (sub-)step (adjoint)"] = tape_bytes(ntape)
+            est.parts[TAPE_PART] = tape_bytes(ntape)
             check_memory(est, memory_limit, what=f"simulate with a tape of {ntape} sub-steps")
             (q_out, qd_out, qdd_out, mu_out, stats, status, info, dq_out, dmu_out,
              *tape_out) = run(ntape)
