@@ -76,7 +76,7 @@ def add_case_arguments(parser):
                              "response's gradient; the default of simulate and evaluate), the "
                              "discrete adjoint (objective and constraint rows only, cost "
                              "independent of the number of variables), or auto (the default of "
-                             "optimize: the adjoint when the variables are >= 16 and outnumber "
+                             "optimize: the adjoint when the variables are >= 32 and outnumber "
                              "the aggregated rows 4 times; docs/adjoint.md)")
 
 

@@ -44,7 +44,7 @@ GRADIENT_METHODS = ("direct", "adjoint", "auto")
 #: right-hand sides (the factorization is Newton's) cost less than the adjoint's forward run
 #: with every state stored and its factorization per step
 ADJOINT_MARGIN = 4
-ADJOINT_MIN_VARIABLES = 16
+ADJOINT_MIN_VARIABLES = 32     # docs/adjoint.md 4d: direct is faster below ~32
 #: the adjoint evaluates the responses' per-step partials on identity derivatives, in chunks of
 #: columns of at most this many bytes
 ADJOINT_CHUNK_BYTES = 32e6
