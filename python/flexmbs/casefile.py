@@ -239,24 +239,34 @@ def case_folders():
 
 def available_cases():
     """Names of the shipped case files."""
-    return sorted({p.name[:-5] for folder in case_folders() for p in folder.iterdir()
-                   if p.name.endswith(".toml")})
+    return shipped_names()
+
+
+def shipped_names(subfolder=""):
+    """Names (stems) of the shipped .toml files of the shipped folders (or their `subfolder`)."""
+    return sorted({p.stem for folder in case_folders() if (folder / subfolder).is_dir()
+                   for p in (folder / subfolder).glob("*.toml")})
 
 
 def case_path(name):
     """An existing file path, or a shipped case by name (with or without .toml); CaseError
     naming the shipped cases if neither."""
+    return shipped_path(name, "case")
+
+
+def shipped_path(name, kind, subfolder=""):
+    """An existing file path, or the shipped `kind` (a case; a study in subfolder 'studies')
+    of that name (with or without .toml); CaseError listing the shipped ones if neither."""
     if not isinstance(name, (str, Path)):
-        raise CaseError(f"a case is a path to a .toml file or the name of a shipped case, "
+        raise CaseError(f"a {kind} is a path to a .toml file or the name of a shipped {kind}, "
                         f"got {name!r} ({type(name).__name__})")
     p = Path(name)
     if p.is_file():
         return p
     if len(p.parts) == 1:
-        stem = p.name.removesuffix(".toml")
         for folder in case_folders():
-            f = folder / f"{stem}.toml"
+            f = folder / subfolder / f"{p.name.removesuffix('.toml')}.toml"
             if f.is_file():
                 return f
-    raise CaseError(f"case {str(name)!r} not found: give a path to a .toml file or one of the "
-                    f"shipped cases: {', '.join(available_cases()) or 'none found'}")
+    raise CaseError(f"{kind} {str(name)!r} not found: give a path to a .toml file or one of the "
+                    f"shipped {kind}s: {', '.join(shipped_names(subfolder)) or 'none found'}")

@@ -479,29 +479,11 @@ class Study:
 
 
 # ----------------------------------------------------------------------------- loading
-def _study_folders():
-    from flexmbs.casefile import case_folders
-    return [f / "studies" for f in case_folders() if (f / "studies").is_dir()]
-
-
 def study_path(study=None):
     """The file of a study: an existing path, or the name of a shipped study (default
     'paper'); CaseError naming the shipped studies if neither."""
-    study = DEFAULT_STUDY if study is None else study
-    if not isinstance(study, (str, Path)):
-        raise CaseError(f"a study is a path to a .toml file or the name of a shipped study, "
-                        f"got {study!r} ({type(study).__name__})")
-    p = Path(study)
-    if p.is_file():
-        return p
-    if len(p.parts) == 1:
-        for folder in _study_folders():
-            f = folder / f"{p.name.removesuffix('.toml')}.toml"
-            if f.is_file():
-                return f
-    names = sorted({f.stem for d in _study_folders() for f in d.glob("*.toml")})
-    raise CaseError(f"study {str(study)!r}: no such file, and not a shipped study "
-                    f"(shipped: {', '.join(names) or 'none'})")
+    from flexmbs.casefile import shipped_path
+    return shipped_path(DEFAULT_STUDY if study is None else study, "study", "studies")
 
 
 def _published_file(name, folder, source):
