@@ -580,14 +580,16 @@ def blend_loads(loads, previous, weight):
     return EquivalentStaticLoads(out)
 
 
-def _dynamic(problem, x, result):
-    """Dynamic responses of a simulated design: values, constraint rows, deviation history."""
+def _simulate_design(problem, x):
+    """Simulate design x (every coordinate stored, for the ESL): (result, response values,
+    constraint rows g, their names, the constrained deviation history)."""
+    result = problem.simulate(x, store="all")
     values = {}
     for r in problem.description.responses:
         values[r.name], _ = problem._response(r, x, result, False)
     g, _, names, _ = constraint_rows(problem.description, values, {}, problem.mechanism.t,
                                      len(problem.variables), False)
-    return values, g, names
+    return result, values, g, names, problem.constrained_deviation(values)
 
 
 def _active_rows(g, names, active_tol):
@@ -722,9 +724,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
                 problem, static, writer, control, progress, x, max_cycles)
             resumed = first - 1
         for cycle in range(first, max_cycles + 1):
-            result = problem.simulate(x, store="all")
-            values, g_dyn, names = _dynamic(problem, x, result)
-            dev = problem.constrained_deviation(values)
+            result, values, g_dyn, names, dev = _simulate_design(problem, x)
             model = mech.set_design(x)
             loads = equivalent_static_loads(model, result, static.frames,
                                             stiffness=static.stiffness,
@@ -880,6 +880,4 @@ def _resume_cycles(problem, static, writer, control, progress, x0, max_cycles):
 def _cycle_data(problem, x, record):
     """(record, values, g_dyn, names, deviation) of a cycle taken from a resumed run's history:
     its design simulated again (the dynamic responses are not in the history)."""
-    result = problem.simulate(x, store="all")
-    values, g_dyn, names = _dynamic(problem, x, result)
-    return dict(record), values, g_dyn, names, problem.constrained_deviation(values)
+    return (dict(record),) + _simulate_design(problem, x)[1:]
