@@ -124,6 +124,16 @@ def test_auto_picks_the_adjoint_past_the_margin(monkeypatch):
     assert p.evaluate(p.start, method="auto").gradient_method == "adjoint"
 
 
+def test_the_automatic_choice_is_reported():
+    """The choice of 'auto' is said with its reason (issue 18: "the choice is automatic and
+    reported"): the robot's 4 variables and 1 KS row give direct, and an explicit method is
+    reported as asked."""
+    p = _problem("robot_2dof", 0.02, "ks")
+    why = p.gradient_method_reason("auto")
+    assert why.startswith("direct (auto: 4 design variables, 1 aggregated row;"), why
+    assert p.gradient_method_reason("adjoint") == "adjoint (as asked)"
+
+
 def test_bad_input():
     """Typed errors naming the argument: an unknown method, a run that did not store every
     coordinate, partials of the wrong shape, a memory limit the partials exceed."""

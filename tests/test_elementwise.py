@@ -319,3 +319,14 @@ def test_a_design_of_the_wrong_length_names_the_components():
     with pytest.raises(ModelError, match=r"design must be 6 finite numbers "
                                          r"\(d_arm1\[1\.\.3\], d_arm2\[1\.\.3\]\), got \[40, 30\]"):
         p.evaluate([40, 30])
+
+
+def test_progress_line_summarizes_many_variables():
+    """A progress line of `flexmbs optimize` lists a design of up to 8 variables and gives the
+    count and range of a larger one (a line with 64 numbers per iteration is unreadable)."""
+    from flexmbs.optimize.cli import _iteration_line
+    rec = dict(iteration=3, objective=0.5, max_violation=0.0, kkt_residual=1e-2, simulations=4)
+    few = _iteration_line(dict(rec, design=[39.29, 28.33]))
+    assert "x = [39.29, 28.33]" in few
+    many = _iteration_line(dict(rec, design=list(np.linspace(0.5, 60.0, 64))))
+    assert "x = (64 values in [0.5, 60])" in many

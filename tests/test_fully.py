@@ -360,6 +360,8 @@ def test_cli_optimizes_the_press(press_default, capsys):
     out = json.loads(capsys.readouterr().out)
     assert out["objective_name"] == "rod_mass" and out["converged"]
     assert out["design"][0] == pytest.approx(press_default.design[0], rel=1e-6)
+    # the automatic gradient method is reported: 1 variable, so direct differentiation
+    assert out["gradient_method_reason"].startswith("direct (auto: 1 design variable,")
     assert main(["optimize", str(CASES / "slider_crank_press.toml"), "--method", "weakly",
                  "--frame", "chord", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)

@@ -455,6 +455,19 @@ class Problem:
             return "adjoint"
         return "direct"
 
+    def gradient_method_reason(self, method=None):
+        """The method `gradient_method` takes and why, for people: e.g. "adjoint (auto: 64
+        design variables, 2 aggregated rows)"."""
+        chosen = self.gradient_method(method)
+        given = self.default_gradient_method if method is None else method
+        if given != "auto":
+            return f"{chosen} (as asked)"
+        nv, nf = len(self.mechanism.variables), self.gradient_functionals()
+        rule = (f"the adjoint from {ADJOINT_MIN_VARIABLES} variables and more than "
+                f"{ADJOINT_MARGIN} x the aggregated rows")
+        return (f"{chosen} (auto: {nv} design variable{'s' * (nv != 1)}, {nf} aggregated "
+                f"row{'s' * (nf != 1)}; {rule})")
+
     def evaluate(self, x=None, gradient=True, method=None):
         """Every response, the objective and the constraints at design x (user units).
 

@@ -167,13 +167,26 @@ class _Reporter:
             self.bar.close()
 
 
+#: a progress line lists the design when it has at most this many variables, else its range
+LINE_VARIABLES = 8
+
+
+def _design_text(design):
+    """The design for a progress line: every value up to LINE_VARIABLES, else the count and
+    the range (a line per iteration with 128 numbers is read by nobody)."""
+    d = [float(v) for v in design]
+    if len(d) <= LINE_VARIABLES:
+        return "[" + ", ".join(f"{v:.4g}" for v in d) + "]"
+    return f"({len(d)} values in [{min(d):.4g}, {max(d):.4g}])"
+
+
 def _cycle_line(rec):
-    p = ", ".join(f"{v:.4g}" for v in rec["design"])
+    p = _design_text(rec["design"])
     ch = rec.get("esl_change")
     chg = "-" if ch is None else f"{ch:.3g}"
     inner = rec.get("inner_iterations")
     viol = rec.get("max_violation")
-    return (f"cycle {rec['iteration']:3d}  x = [{p}]  objective {rec['objective']:.6g}  "
+    return (f"cycle {rec['iteration']:3d}  x = {p}  objective {rec['objective']:.6g}  "
             + ("" if viol is None else f"max g {viol:+.2e}  ")
             + f"ESL change {chg}" + ("" if inner is None else f"  inner {inner}"))
 
@@ -301,8 +314,8 @@ def run_fully(args, problem):
 
 
 def _iteration_line(rec):
-    p = ", ".join(f"{v:.4g}" for v in rec["design"])
-    return (f"iteration {rec['iteration']:3d}  x = [{p}]  objective {rec['objective']:.6g}  "
+    p = _design_text(rec["design"])
+    return (f"iteration {rec['iteration']:3d}  x = {p}  objective {rec['objective']:.6g}  "
             f"violation {rec['max_violation']:.1e}  KKT {rec['kkt_residual']:.1e}  "
             f"simulations {rec['simulations']}")
 

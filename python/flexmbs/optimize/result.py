@@ -279,6 +279,8 @@ class OptimizationResult:
                     f", constraint violation {self.max_violation:.2e} (simulated)"),
                  f"  {self.iterations} iterations{inner}, {self.simulations} simulations, "
                  f"{self.wall_time_s:.2f} s"]
+        if self.details.get("gradient_method_reason"):
+            lines.append(f"  gradients: {self.details['gradient_method_reason']}")
         if self.max_deviation_m is not None:
             lines.append(f"  max deviation in the full simulation "
                          f"{self.max_deviation_m * 1e3:.4f} mm")
