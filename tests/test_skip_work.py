@@ -4,6 +4,7 @@ differentiates nothing without gradients; the rigid reference's position analysi
 constraint rows' nodes only, whatever the number of elements.
 
 Work is checked by counting (what is stored, which functions run), not by timing."""
+import json
 import math
 import tomllib
 
@@ -207,7 +208,8 @@ def test_gradients_of_the_used_responses_only(monkeypatch):
 def test_cli_simulate_stores_everything_only_for_out(monkeypatch, tmp_path, capsys):
     """`flexmbs simulate` keeps every coordinate only when --out (or --plot) asks for them:
     without it its one simulation stores the 3 coordinates of the four-bar's point A; with
-    --out one more run stores all of them (the .npz holds every coordinate)."""
+    --out its one simulation stores all of them (the .npz holds every coordinate) and the
+    responses are those of the lean run (the deviation history to 1e-12 m)."""
     import flexmbs.problem as problem_module
     from flexmbs.cli import main
     stored = []
@@ -219,12 +221,16 @@ def test_cli_simulate_stores_everything_only_for_out(monkeypatch, tmp_path, caps
         return res
 
     monkeypatch.setattr(problem_module, "simulate", spy)
-    assert main(["simulate", "fourbar", "--set", "time.t_end=0.05"]) == 0
+    assert main(["simulate", "fourbar", "--set", "time.t_end=0.05", "--json"]) == 0
     assert stored == [3]
+    lean = json.loads(capsys.readouterr().out)["responses"]
     stored.clear()
     out = tmp_path / "r.npz"
     assert main(["simulate", "fourbar", "--set", "time.t_end=0.05", "--out", str(out)]) == 0
     ndof = Problem("fourbar", overrides={"time.t_end": 0.05}).mechanism.model.ndof
-    assert sorted(stored) == [3, ndof]
-    assert np.load(out)["q"].shape[1] == ndof
+    assert stored == [ndof]
+    with np.load(out) as d:
+        assert d["q"].shape[1] == ndof
+        name = next(k for k in d.files if k.startswith("response_deviation"))
+        assert abs(d[name].max() - lean[name[len("response_"):]]["max"]) < 1e-12
     capsys.readouterr()

@@ -109,6 +109,9 @@ class Evaluation:
     #: gradient), 'adjoint' (the aggregated rows only: gradients of histories are None) or
     #: None without gradients
     gradient_method: str | None = None
+    #: the simulation itself (flexmbs.simulate.Result) when evaluate was asked to store
+    #: coordinates (store='all' or nodes), else None
+    result: object = field(default=None, repr=False)
 
     @property
     def feasible(self):
@@ -468,7 +471,7 @@ class Problem:
         return (f"{chosen} (auto: {nv} design variable{'s' * (nv != 1)}, {nf} aggregated "
                 f"row{'s' * (nf != 1)}; {rule})")
 
-    def evaluate(self, x=None, gradient=True, method=None):
+    def evaluate(self, x=None, gradient=True, method=None, store=None):
         """Every response, the objective and the constraints at design x (user units).
 
         gradient : True (every response's gradient), False (none: nothing is differentiated),
@@ -482,7 +485,11 @@ class Problem:
             gradient of every history, Evaluation.gradients), or the discrete adjoint
             (flexmbs.adjoint: the objective's and constraints' rows only, for about the cost
             of one more simulation whatever the number of variables; the histories'
-            gradients are None). Evaluation.gradient_method tells which was used."""
+            gradients are None). Evaluation.gradient_method tells which was used.
+        store : None (default: only the coordinates the responses read) or as `simulate`'s
+            ('all', or a list of nodes): those coordinates are kept too, and the run is
+            returned in Evaluation.result (one simulation for the responses and for a plot or
+            a file of the motion). Not with gradients by the adjoint (its own tape)."""
         t0 = _time.perf_counter()
         mech = self.mechanism
         x = mech.start if x is None else mech.design_values(x)
@@ -491,8 +498,14 @@ class Problem:
         timed = [n for n, r in self._resp.items() if not isinstance(r, Mass)]
         chosen = self.gradient_method(method)
         if gradient and timed and chosen == "adjoint":
+            if store is not None:
+                raise ModelError("evaluate: store= is not available with gradients by the "
+                                 "adjoint (method='direct', or evaluate without gradients)")
             return self._evaluate_adjoint(x, timed, t0)
-        result = self.simulate(x, gradient=gradient, responses=timed,
+        if store is not None and not timed:
+            raise ModelError("evaluate: store= asks for coordinates, but no response of this "
+                             "problem needs a simulation")
+        result = self.simulate(x, gradient=gradient, responses=timed, store=store,
                                differentiate=[n for n in timed if n in want]) if timed else None
         values, grads = {}, {}
         for name, r in self._resp.items():
@@ -512,7 +525,8 @@ class Problem:
                           jacobian=jac, constraint_names=names,
                           stats=result.stats if result is not None else {},
                           wall_time=_time.perf_counter() - t0,
-                          gradient_method="direct" if gradient else None)
+                          gradient_method="direct" if gradient else None,
+                          result=None if store is None else result)
 
     def _check_adjoint_memory(self, x, timed):
         """ResourceError, naming what to change, when the adjoint's forward run (its tape)
