@@ -699,8 +699,8 @@ def with_linear_rows(mechanism, x, g, jacobian, names):
 
 
 def _scalar(v, dv, how, parameter, t):
-    """A scalar of a response: itself (scalar responses), or max / ks / pnorm / final of a
-    history, with its gradient."""
+    """A scalar of a response: itself (scalar responses), or max / ks / pnorm / final /
+    integral (trapezoid rule over t) of a history, with its gradient."""
     if np.ndim(v) == 0:
         return float(v), dv
     if how == "final":
