@@ -42,7 +42,7 @@ from flexmbs.model import Model
 from flexmbs.resources import STACK_BYTES_PER_UNKNOWN, call_with_stack, format_bytes, limit_source
 from flexmbs.resources import memory_limit as _memory_limit
 from flexmbs.simulate import (NEWTON_MODES, Result, _tape_bytes, checkpoint_bytes,
-                              checkpoint_rows, simulate, tape_columns)
+                              checkpoint_rows, simulate)
 
 __all__ = ["adjoint_gradient", "simulate_for_adjoint", "adjoint_memory", "check_adjoint_memory",
            "checkpoint_memory", "checkpoint_interval"]
@@ -76,29 +76,33 @@ def checkpoint_memory(model, nsteps, every):
     with a checkpoint every `every` time points:
 
         8 (nsteps // every + 1) (5 ndof + nc + 3)                  the checkpoints
-        8 (K + 1 + max(64, K // 4)) (3 ndof + nc + 1.5),  K = min(every, nsteps)
+        8 (K + 1 + max(8, K // 4)) (3 ndof + nc + 1.5),   K = min(every, nsteps)
                                                                   one segment's tape
 
     (a segment cutting more steps than its room is re-run once with room for every step cut
     max_cuts times, as `simulate`'s tape)."""
     every = int(every)
     return (checkpoint_bytes(model, nsteps, every),
-            _tape_bytes(model, tape_columns(min(every, nsteps))))
+            _tape_bytes(model, segment_columns(min(every, nsteps))))
+
+
+def segment_columns(nseg):
+    """Columns a segment's tape is first allocated with: its nseg + 1 time points and room for
+    a quarter more sub-steps (at least 8); a segment cutting more is re-run once with room
+    for every step cut max_cuts times."""
+    return nseg + 1 + max(8, nseg // 4)
 
 
 def checkpoint_interval(model, nsteps, available=None):
     """Time points between checkpoints: ceil(sqrt(nsteps)) (about the least memory,
     `checkpoint_memory`: both parts ~ sqrt(nsteps)) when `available` is None; else the largest
     interval (the fewest segments) whose checkpoints and segment tape fit in `available`
-    bytes, or None when none does."""
+    bytes, or None when ceil(sqrt(nsteps)) does not."""
     k_sqrt = max(1, int(np.ceil(np.sqrt(nsteps))))
     if available is None:
         return k_sqrt
     if sum(checkpoint_memory(model, nsteps, k_sqrt)) > available:
-        # the least memory is near sqrt(nsteps); try a few neighbours before giving up
-        best = min(range(max(1, k_sqrt // 4), 4 * k_sqrt + 1),
-                   key=lambda k: sum(checkpoint_memory(model, nsteps, k)))
-        return best if sum(checkpoint_memory(model, nsteps, best)) <= available else None
+        return None
     lo, hi = k_sqrt, max(k_sqrt, nsteps)       # the memory grows with K above sqrt(nsteps)
     while lo < hi:
         mid = (lo + hi + 1) // 2
@@ -293,7 +297,7 @@ def _segment_tape(model, result, margs, pat, x_start, j0, nseg):
     st = result.settings
     nel = cm.el_dofs.shape[1]
     nca = max(cm.nc, 1)
-    ncol = tape_columns(nseg)
+    ncol = segment_columns(nseg)
     for attempt in range(2):
         out = call_with_stack(
             _core.simulate, STACK_BYTES_PER_UNKNOWN * cm.n, **margs, nsteps=nseg,
