@@ -355,9 +355,11 @@ contains
         call mass_times(m, m%gacc, fgrav)
 
         ! --- initial state -----------------------------------------------------
-        if (restart) then
+        if (restart) then     ! a segment of a checkpointed run: its checkpoint's state
             call unpack_start()
-        else if (s%static_start) then
+            goto 100
+        end if
+        if (s%static_start) then
             call static_equilibrium(m, s, ls, vals, fgrav, x, stats, status, info, ks, ps)
             if (status /= GA_OK) goto 900
             if (nv > 0) then
@@ -369,17 +371,16 @@ contains
             call check_initial(m, x%q, status, info)
             if (status /= GA_OK) goto 900
         end if
-        if (.not. restart) then
-            call initial_rates(m, ls, vals, fgrav, x, stats, status, info)
+        call initial_rates(m, ls, vals, fgrav, x, stats, status, info)
+        if (status /= GA_OK) goto 900
+        if (nv > 0) then
+            call sens_initial(m, dprop, ls, qd0, x, status)
+            if (status == GA_NO_MEMORY) call no_memory(8.0_wp * nv * (m%n + 2.0_wp * m%ndof), MEM_SENSITIVITY)
             if (status /= GA_OK) goto 900
-            if (nv > 0) then
-                call sens_initial(m, dprop, ls, qd0, x, status)
-                if (status == GA_NO_MEMORY) call no_memory(8.0_wp * nv * (m%n + 2.0_wp * m%ndof), MEM_SENSITIVITY)
-                if (status /= GA_OK) goto 900
-                x%da = x%dqdd
-            end if
-            x%a = x%qdd
+            x%da = x%dqdd
         end if
+        x%a = x%qdd
+100     continue
         call store(0)
         if (taping) then
             call tape_store(0.0_wp, st)
