@@ -43,8 +43,18 @@ contains
     !! (>= nc, nf, nsteps + 1): dG_f/dq_j and dG_f/dmu_j on the grid. Out: grad(v, f) =
     !! dG_f/dp_v and gprop(:, e, f) = dG_f/dprop_e. status: GA_* codes; info = [time, 0, 0,
     !! extra] on failure.
+    !!
+    !! Segments (checkpointing, flexmbs/adjoint.py): with j_start, the tape is that of the
+    !! s%nsteps steps from grid point j_start on (a run restarted from a checkpoint,
+    !! ga_simulate x_start), grid its columns, and gq, gmu the partials of the whole run
+    !! (grid point j in column j + 1); adj_in (ndof, nf, 4) the adjoint state [qb, qdb,
+    !! qddb, ab] at the segment's last state from the later segment (absent: the last
+    !! segment), adj_out the same at its first state for the earlier one; with accumulate,
+    !! gprop holds the later segments' sums and is added to. The initial state's part
+    !! (A8)-(A10) runs only in the segment with j_start = 0. s%kscale and s%penalty must be
+    !! the run's (its checkpoints') when j_start > 0.
     subroutine ga_adjoint(m, s, ap, ai, q0, qd0, qt, qdt, qddt, mut, th, grid, gq, gmu, dprop, &
-                          grad, gprop, status, info)
+                          grad, gprop, status, info, j_start, adj_in, adj_out, accumulate)
         type(mbs_model), intent(in) :: m
         type(ga_settings), intent(in) :: s
         integer, intent(in) :: ap(:), ai(:)
@@ -53,21 +63,33 @@ contains
         integer, intent(in) :: grid(:)
         real(wp), intent(in) :: gq(:, :, :), gmu(:, :, :)
         real(wp), intent(in) :: dprop(:, :, :)
-        real(wp), intent(out) :: grad(:, :), gprop(:, :, :)
+        real(wp), intent(out) :: grad(:, :)
+        real(wp), intent(inout) :: gprop(:, :, :)
         integer, intent(out) :: status
         real(wp), intent(out) :: info(4)
+        integer, intent(in), optional :: j_start
+        real(wp), intent(in), optional :: adj_in(:, :, :)
+        real(wp), intent(out), optional :: adj_out(:, :, :)
+        logical, intent(in), optional :: accumulate
         type(linear_system) :: ls
         real(wp), allocatable :: vals(:), fgrav(:), qb(:, :), qdb(:, :), qddb(:, :), ab(:, :)
         real(wp), allocatable :: apb(:, :), qhb(:, :), vhb(:, :), z(:, :), w(:, :), acc(:)
         logical, allocatable :: stiff(:), mass(:)
         integer, allocatable :: gidx(:)
         real(wp) :: alpha_m, alpha_f, gamma, beta, h, betap, gammap, cf, kdyn, pdyn, t, k0
-        integer :: nf, nt, nv, j, f, e, v, st, ierr, n, nd, nc, ncol
+        integer :: nf, nt, nv, j, f, e, v, st, ierr, n, nd, nc, ncol, j0
 
         status = GA_OK
         info = 0
         grad = 0
-        gprop = 0
+        if (present(accumulate)) then
+            if (.not. accumulate) gprop = 0
+        else
+            gprop = 0
+        end if
+        if (present(adj_out)) adj_out = 0
+        j0 = 0
+        if (present(j_start)) j0 = j_start
         nd = m%ndof
         nc = m%nc
         n = m%n
@@ -78,10 +100,23 @@ contains
         if (size(grid) >= nt .and. nt >= 1) ncol = grid(nt)
         if (.not. (s%h > 0) .or. s%rho_inf < 0 .or. s%rho_inf > 1 .or. s%nsteps < 0 .or. &
             size(grid) < nt .or. ncol < nt .or. size(qt, 2) < ncol .or. size(th) < ncol .or. &
-            size(gq, 3) < nt .or. size(gmu, 2) /= nf .or. &
-            size(grad, 1) /= nv .or. size(grad, 2) /= nf .or. size(gprop, 3) /= nf) then
+            size(gq, 3) < j0 + nt .or. size(gmu, 2) /= nf .or. size(gmu, 3) < j0 + nt .or. &
+            size(grad, 1) /= nv .or. size(grad, 2) /= nf .or. size(gprop, 3) /= nf .or. &
+            j0 < 0 .or. (j0 > 0 .and. .not. (s%kscale > 0 .and. s%penalty > 0))) then
             status = GA_BAD_INPUT
             return
+        end if
+        if (present(adj_in)) then
+            if (size(adj_in, 1) /= nd .or. size(adj_in, 2) /= nf .or. size(adj_in, 3) < 4) then
+                status = GA_BAD_INPUT
+                return
+            end if
+        end if
+        if (present(adj_out)) then
+            if (size(adj_out, 1) /= nd .or. size(adj_out, 2) /= nf .or. size(adj_out, 3) < 4) then
+                status = GA_BAD_INPUT
+                return
+            end if
         end if
         if (grid(1) /= 1 .or. any(grid(2:nt) <= grid(1:nt - 1)) .or. &
             .not. all(th(2:ncol) > 0)) then
@@ -127,18 +162,25 @@ contains
         pdyn = s%penalty
         if (.not. (pdyn > 0)) pdyn = kdyn
 
-        ! adjoint of the last state: only its own partials
-        qb = gq(:, :, nt)
-        qdb = 0
-        qddb = 0
-        ab = 0
-        t = s%nsteps * s%h
+        ! adjoint of the last state: only its own partials (a segment: the later segments')
+        if (present(adj_in)) then
+            qb = adj_in(:, :, 1)
+            qdb = adj_in(:, :, 2)
+            qddb = adj_in(:, :, 3)
+            ab = adj_in(:, :, 4)
+        else
+            qb = gq(:, :, j0 + nt)
+            qdb = 0
+            qddb = 0
+            ab = 0
+        end if
+        t = (j0 + s%nsteps) * s%h
         do j = ncol, 2, -1
             ! step from column j - 1 (state n) to column j (state n + 1), eqs. (A3)-(A7)
             h = th(j)
             betap = (1 - alpha_m) / (beta * h**2 * (1 - alpha_f))
             gammap = gamma / (beta * h)
-            if (gidx(j) > 0) t = (gidx(j) - 1) * s%h
+            if (gidx(j) > 0) t = (j0 + gidx(j) - 1) * s%h
             ! a_{n+1} = ap + cf qdd_{n+1}
             apb = ab
             qddb = qddb + cf * ab
@@ -148,7 +190,7 @@ contains
             z(1:nd, :) = qb + gammap * qdb + betap * qddb
             if (nc > 0) then
                 z(nd + 1:, :) = 0
-                if (gidx(j) > 0) z(nd + 1:, :) = kdyn * gmu(1:nc, :, gidx(j))
+                if (gidx(j) > 0) z(nd + 1:, :) = kdyn * gmu(1:nc, :, j0 + gidx(j))
             end if
             ! transposed solve with the iteration matrix at the converged state n + 1
             call iteration_matrix(m, qt(:, j), qdt(:, j), mut(1:nc, j), t, betap, 1.0_wp, gammap, &
@@ -171,7 +213,7 @@ contains
             ! Qhat = q_n + h qd_n + h^2 ((1/2 - beta) a_n + beta ap),
             ! Vhat = qd_n + h ((1 - gamma) a_n + gamma ap), ap = (alpha_f qdd_n - alpha_m a_n) / (1 - alpha_m)
             qb = qhb
-            if (gidx(j - 1) > 0) qb = qb + gq(:, :, gidx(j - 1))
+            if (gidx(j - 1) > 0) qb = qb + gq(:, :, j0 + gidx(j - 1))
             qdb = h * qhb + vhb
             ab = h**2 * (0.5_wp - beta) * qhb + h * (1 - gamma) * vhb
             apb = apb + h**2 * beta * qhb + h * gamma * vhb
@@ -179,6 +221,13 @@ contains
             ab = ab - alpha_m / (1 - alpha_m) * apb
             t = t - h
         end do
+        if (present(adj_out)) then
+            adj_out(:, :, 1) = qb
+            adj_out(:, :, 2) = qdb
+            adj_out(:, :, 3) = qddb
+            adj_out(:, :, 4) = ab
+        end if
+        if (j0 > 0) goto 800      ! an earlier segment holds the initial state
 
         ! --- initial state: a_0 = qdd_0 ------------------------------------------------
         qddb = qddb + ab
@@ -238,6 +287,7 @@ contains
         end if
 
         ! --- contraction with the section derivatives -------------------------------------
+800     continue
         do f = 1, nf
             do v = 1, nv
                 grad(v, f) = sum(gprop(:, 1:m%nel, f) * dprop(:, 1:m%nel, v))

@@ -117,10 +117,12 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
                     kscale, penalty, out_dofs, q_out, qd_out, qdd_out, mu_out, stats, status, info, &
                     nv, nva, nsens, dprop, sens_dofs, dq_out, &
                     nsd, nsda, sd_dofs, sd_prop, map_sd, want_dmu, ndmu, dmu_out, polish, &
-                    ntape, tape_q, tape_qd, tape_qdd, tape_mu, tape_h, tape_grid, ntape_used)
+                    ntape, tape_q, tape_qd, tape_qdd, tape_mu, tape_h, tape_grid, ntape_used, &
+                    nckr, nck, ckpt_every, ckpt, restart, x_start, j_start)
     use iso_c_binding, only: c_double, c_int
     use model_data, only: mbs_model, model_from_arrays
-    use generalized_alpha, only: ga_settings, ga_stats, ga_simulate, GA_NO_MEMORY, MEM_MODEL
+    use generalized_alpha, only: ga_settings, ga_stats, ga_simulate, GA_NO_MEMORY, MEM_MODEL, &
+                                 GA_BAD_INPUT
     !f2py threadsafe
     implicit none
     integer(c_int), intent(in) :: ndof, nc, nel, nload, nlaw, nnz   !! true counts
@@ -168,6 +170,13 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     real(c_double), intent(out) :: tape_mu(nca, ntape), tape_h(ntape)
     integer(c_int), intent(out) :: tape_grid(nsteps + 1)     !! column of every grid point
     integer(c_int), intent(out) :: ntape_used                !! columns used
+    !> checkpoints (generalized_alpha.f90 ga_simulate, ckpt_rows = 5 ndof + nc + 3 numbers
+    !! each): with ckpt_every > 0 the full state at every ckpt_every-th grid point, in
+    !! ckpt(:, j / ckpt_every + 1); with restart = 1 the run starts from the state x_start
+    !! at grid point j_start (a segment of a checkpointed run; not with nv > 0)
+    integer(c_int), intent(in) :: nckr, nck, ckpt_every, restart, j_start
+    real(c_double), intent(out) :: ckpt(nckr, nck)
+    real(c_double), intent(in) :: x_start(nckr)
     integer :: tgrid(nsteps + 1), tused
     type(mbs_model) :: m
     type(ga_settings) :: s
@@ -176,6 +185,7 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     real(c_double) :: nbytes
     q_out = 0; qd_out = 0; qdd_out = 0; mu_out = 0; dq_out = 0; dmu_out = 0; stats = 0; info = 0
     tape_q = 0; tape_qd = 0; tape_qdd = 0; tape_mu = 0; tape_h = 0; tape_grid = 0; ntape_used = 0
+    ckpt = 0
     tgrid = 0
     tused = 0
     call model_from_arrays(m, int(ndof), int(nc), int(nel), int(nload), int(nlaw), int(nnz), &
@@ -203,12 +213,20 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
                          mu_out, st, stat, info, dprop(:, :, 1:nv), int(sens_dofs), dq_out(:, 1:nv, :), &
                          tape_q=tape_q, tape_qd=tape_qd, tape_qdd=tape_qdd, tape_mu=tape_mu, &
                          tape_h=tape_h, tape_grid=tgrid, ntape=tused)
+    else if (restart /= 0) then
+        dq_out = 0
+        call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
+                         mu_out, st, stat, info, tape_q=tape_q, tape_qd=tape_qd, tape_qdd=tape_qdd, &
+                         tape_mu=tape_mu, tape_h=tape_h, tape_grid=tgrid, ntape=tused, &
+                         ckpt_every=int(ckpt_every), ckpt=ckpt, x_start=x_start, j_start=int(j_start))
     else
         dq_out = 0
         call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
                          mu_out, st, stat, info, tape_q=tape_q, tape_qd=tape_qd, tape_qdd=tape_qdd, &
-                         tape_mu=tape_mu, tape_h=tape_h, tape_grid=tgrid, ntape=tused)
+                         tape_mu=tape_mu, tape_h=tape_h, tape_grid=tgrid, ntape=tused, &
+                         ckpt_every=int(ckpt_every), ckpt=ckpt)
     end if
+    if (restart /= 0 .and. nv > 0) stat = GA_BAD_INPUT
     status = int(stat, c_int)
     tape_grid = int(tgrid, c_int)
     ntape_used = int(tused, c_int)
@@ -222,7 +240,10 @@ end subroutine simulate
 !! of the solution, from the tape of a forward run with the same model, settings, q0 and
 !! qd0 (qt, qdt, qddt, mut, th, grid: its tape_q, tape_qd, tape_qdd, tape_mu, tape_h,
 !! tape_grid; ncol = ntape_used). gprop(:, e, f) = dG_f/d[EA, kGA, EI, rhoA, rhoI]_e.
-!! status as `simulate`.
+!! status as `simulate`. Segments of a checkpointed run (adjoint.f90 ga_adjoint): the tape
+!! of the nsteps steps from grid point j_start, gq and gmu over the whole run's ntot points,
+!! with have_in = 1 the adjoint state adj_in from the later segment, adj_out for the earlier
+!! one, gprop_in the later segments' gprop (added to).
 subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npts, nsteps, &
                    qref, q0, qd0, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
                    ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, c_c0, c_law, c_lawcoef, &
@@ -231,7 +252,7 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
                    h, rho_inf, tol, max_iter, max_cuts, solver, static_start, kscale, penalty, &
                    nsd, nsda, sd_dofs, sd_prop, map_sd, &
                    ncol, qt, qdt, qddt, mut, th, grid, nf, gq, gmu, nv, dprop, grad, gprop, &
-                   status, info)
+                   status, info, ntot, j_start, have_in, adj_in, adj_out, gprop_in)
     use iso_c_binding, only: c_double, c_int
     use model_data, only: mbs_model, model_from_arrays
     use generalized_alpha, only: ga_settings, GA_NO_MEMORY, MEM_MODEL
@@ -265,19 +286,24 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
     real(c_double), intent(in) :: th(ncol)                           !! step leading to a column
     integer(c_int), intent(in) :: grid(nsteps + 1)                   !! column of grid point j
     integer(c_int), intent(in) :: nf                                  !! functionals
-    real(c_double), intent(in) :: gq(ndof, nf, nsteps + 1)           !! dG_f/dq_j
-    real(c_double), intent(in) :: gmu(nca, nf, nsteps + 1)           !! dG_f/dmu_j
+    integer(c_int), intent(in) :: ntot                                !! grid points of the run
+    real(c_double), intent(in) :: gq(ndof, nf, ntot)                 !! dG_f/dq_j
+    real(c_double), intent(in) :: gmu(nca, nf, ntot)                 !! dG_f/dmu_j
     integer(c_int), intent(in) :: nv
     real(c_double), intent(in) :: dprop(5, nela, nv)
     real(c_double), intent(out) :: grad(nv, nf)
     real(c_double), intent(out) :: gprop(5, nela, nf)
     integer(c_int), intent(out) :: status
     real(c_double), intent(out) :: info(4)
+    integer(c_int), intent(in) :: j_start, have_in
+    real(c_double), intent(in) :: adj_in(ndof, nf, 4)
+    real(c_double), intent(out) :: adj_out(ndof, nf, 4)
+    real(c_double), intent(in) :: gprop_in(5, nela, nf)
     type(mbs_model) :: m
     type(ga_settings) :: s
     integer :: stat
     real(c_double) :: nbytes
-    grad = 0; gprop = 0; info = 0
+    grad = 0; gprop = gprop_in; info = 0; adj_out = 0
     call model_from_arrays(m, int(ndof), int(nc), int(nel), int(nload), int(nlaw), int(nnz), &
                            qref, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
                            ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, &
@@ -292,8 +318,15 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
     s = ga_settings(h=h, rho_inf=rho_inf, tol=tol, nsteps=int(nsteps), max_iter=int(max_iter), &
                     max_cuts=int(max_cuts), solver=int(solver), static_start=static_start /= 0, &
                     kscale=kscale, penalty=penalty)
-    call ga_adjoint(m, s, int(ap), int(ai), q0, qd0, qt, qdt, qddt, mut, th, int(grid), gq, gmu, &
-                    dprop(:, 1:max(nel, 0), :), grad, gprop(:, 1:max(nel, 0), :), stat, info)
+    if (have_in /= 0) then
+        call ga_adjoint(m, s, int(ap), int(ai), q0, qd0, qt, qdt, qddt, mut, th, int(grid), gq, gmu, &
+                        dprop(:, 1:max(nel, 0), :), grad, gprop(:, 1:max(nel, 0), :), stat, info, &
+                        j_start=int(j_start), adj_in=adj_in, adj_out=adj_out, accumulate=.true.)
+    else
+        call ga_adjoint(m, s, int(ap), int(ai), q0, qd0, qt, qdt, qddt, mut, th, int(grid), gq, gmu, &
+                        dprop(:, 1:max(nel, 0), :), grad, gprop(:, 1:max(nel, 0), :), stat, info, &
+                        j_start=int(j_start), adj_out=adj_out, accumulate=.true.)
+    end if
     status = int(stat, c_int)
 end subroutine simulate_adjoint
 

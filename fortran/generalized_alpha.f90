@@ -26,6 +26,8 @@ module generalized_alpha
     public :: ga_settings, ga_stats, ga_simulate, ga_coefficients
     ! for the adjoint (adjoint.f90): the static start and the scalings, recomputed exactly
     public :: ga_state, static_equilibrium, mass_scale, diagonal_scale
+    ! checkpoints of a run (the adjoint's segments, flexmbs/adjoint.py)
+    public :: ckpt_rows
     public :: NEWTON_FULL, NEWTON_REUSE, NEWTON_AUTO
     public :: GA_OK, GA_NEWTON_FAILED, GA_SINGULAR, GA_STATIC_FAILED, GA_INITIAL_SINGULAR, &
               GA_INCONSISTENT_INITIAL, GA_NONFINITE, GA_BAD_INPUT, GA_LINEAR_SOLVER, GA_NO_MEMORY, &
@@ -128,6 +130,14 @@ module generalized_alpha
 
 contains
 
+    !> Numbers of one checkpoint of ga_simulate (ckpt, x_start): q, qd, qdd, a, qdd_prev
+    !! (ndof each), mu (nc), then h_prev and the run's scalings k and p of eq. (1).
+    pure function ckpt_rows(ndof, nc) result(nr)
+        integer, intent(in) :: ndof, nc
+        integer :: nr
+        nr = 5 * ndof + nc + 3
+    end function ckpt_rows
+
     !> Coefficients of eq. (6) from the spectral radius rho_inf.
     pure subroutine ga_coefficients(rho_inf, alpha_m, alpha_f, gamma, beta)
         real(wp), intent(in) :: rho_inf
@@ -207,9 +217,20 @@ contains
     !! tape_q, tape_qd, tape_qdd (ndof, :), tape_mu (>= nc, :), tape_h (the step that led
     !! to the column; 0 for the initial state), tape_grid(j+1) = column of grid point j,
     !! ntape = columns used. GA_TAPE_FULL when the sub-steps need more columns.
+    !!
+    !! Checkpoints (the adjoint's segments, flexmbs/adjoint.py): with ckpt_every = K > 0,
+    !! the full integration state at the grid points j = 0, K, 2K, ... (counted from the
+    !! run's start, j_start included) in ckpt(:, j / K + 1) (layout: ckpt_rows); with
+    !! x_start (such a column) and j_start, the run starts from that state at t = j_start h
+    !! instead of its initial state (no static start, no initial rates; the grid and the
+    !! outputs are the segment's, nsteps steps), with the scalings k, p of the column:
+    !! the step after a checkpoint starts with a fresh iteration matrix in both runs, so
+    !! the re-run repeats the first run's iterations (its states agree to rounding; the
+    !! sparse LU's pivots may be chosen afresh). Not with design derivatives (GA_BAD_INPUT).
     subroutine ga_simulate(m, s, ap, ai, q0, qd0, out_dofs, q_out, qd_out, qdd_out, mu_out, &
                            stats, status, info, dprop, sens_dofs, dq_out, dmu_out, &
-                           tape_q, tape_qd, tape_qdd, tape_mu, tape_h, tape_grid, ntape)
+                           tape_q, tape_qd, tape_qdd, tape_mu, tape_h, tape_grid, ntape, &
+                           ckpt_every, ckpt, x_start, j_start)
         type(mbs_model), intent(in) :: m
         type(ga_settings), intent(in) :: s
         integer, intent(in) :: ap(:), ai(:)           !! CSC pattern (0-based), KLU only
@@ -228,8 +249,12 @@ contains
         real(wp), intent(inout), optional :: tape_mu(:, :), tape_h(:)
         integer, intent(inout), optional :: tape_grid(:)
         integer, intent(out), optional :: ntape
-        logical :: taping
-        integer :: ptr, ptr0
+        integer, intent(in), optional :: ckpt_every          !! checkpoint every this many grid points
+        real(wp), intent(inout), optional :: ckpt(:, :)     !! (ckpt_rows, nsteps / ckpt_every + 1)
+        real(wp), intent(in), optional :: x_start(:)        !! (ckpt_rows): start from this state
+        integer, intent(in), optional :: j_start            !! ... at grid point j_start
+        logical :: taping, restart
+        integer :: ptr, ptr0, kck, j0
         type(linear_system) :: ls
         type(ga_state) :: x, xsave
         real(wp), allocatable :: fgrav(:), vals(:)
@@ -258,6 +283,24 @@ contains
             s%newton < NEWTON_FULL .or. s%newton > NEWTON_AUTO) then
             status = GA_BAD_INPUT
             return
+        end if
+        restart = present(x_start) .and. present(j_start)
+        j0 = 0
+        if (restart) j0 = j_start
+        kck = 0
+        if (present(ckpt_every) .and. present(ckpt)) kck = max(ckpt_every, 0)
+        if (restart) then
+            if (size(x_start) < ckpt_rows(m%ndof, m%nc) .or. j0 < 0 .or. present(dprop)) then
+                status = GA_BAD_INPUT
+                return
+            end if
+        end if
+        if (kck > 0) then
+            if (size(ckpt, 1) < ckpt_rows(m%ndof, m%nc) .or. &
+                size(ckpt, 2) < (j0 + s%nsteps) / kck + 1) then
+                status = GA_BAD_INPUT
+                return
+            end if
         end if
         call ga_coefficients(s%rho_inf, alpha_m, alpha_f, gamma, beta)
 
@@ -312,6 +355,10 @@ contains
         call mass_times(m, m%gacc, fgrav)
 
         ! --- initial state -----------------------------------------------------
+        if (restart) then     ! a segment of a checkpointed run: its checkpoint's state
+            call unpack_start()
+            goto 100
+        end if
         if (s%static_start) then
             call static_equilibrium(m, s, ls, vals, fgrav, x, stats, status, info, ks, ps)
             if (status /= GA_OK) goto 900
@@ -333,6 +380,7 @@ contains
             x%da = x%dqdd
         end if
         x%a = x%qdd
+100     continue
         call store(0)
         if (taping) then
             call tape_store(0.0_wp, st)
@@ -340,10 +388,20 @@ contains
         end if
 
         ! --- time loop ---------------------------------------------------------
-        kdyn = s%kscale
-        if (.not. (kdyn > 0)) kdyn = diagonal_scale(m, x%q, (1 - alpha_m) / (beta * s%h**2 * (1 - alpha_f)), vals)
-        pdyn = s%penalty
-        if (.not. (pdyn > 0)) pdyn = kdyn
+        if (restart) then
+            kdyn = x_start(ckpt_rows(m%ndof, m%nc) - 1)
+            pdyn = x_start(ckpt_rows(m%ndof, m%nc))
+        else
+            kdyn = s%kscale
+            if (.not. (kdyn > 0)) kdyn = diagonal_scale(m, x%q, (1 - alpha_m) / (beta * s%h**2 * (1 - alpha_f)), vals)
+            pdyn = s%penalty
+            if (.not. (pdyn > 0)) pdyn = kdyn
+        end if
+        if (.not. (kdyn > 0 .and. pdyn > 0)) then
+            status = GA_BAD_INPUT
+            goto 900
+        end if
+        if (kck > 0 .and. mod(j0, kck) == 0) call ckpt_store(j0)
         modified = s%newton /= NEWTON_FULL
         full_step = .not. modified
         stale = .false.
@@ -353,7 +411,7 @@ contains
         fact_h = 0
         call copy_state(x, xsave)
         do j = 1, s%nsteps
-            t = (j - 1) * s%h
+            t = (j0 + j - 1) * s%h
             nsub = 1
             icut = 0
             full_step = .not. modified
@@ -389,6 +447,7 @@ contains
             stats%steps = j
             call store(j)
             if (taping) tape_grid(j + 1) = ptr
+            if (kck > 0 .and. mod(j0 + j, kck) == 0) call ckpt_store(j0 + j)
             call copy_state(x, xsave)
         end do
 
@@ -398,6 +457,40 @@ contains
         if (present(ntape)) ntape = ptr
 
     contains
+
+        !> The full state at grid point jj (and the scalings) into checkpoint jj / kck + 1.
+        subroutine ckpt_store(jj)
+            integer, intent(in) :: jj
+            integer :: c, nd
+            nd = m%ndof
+            c = jj / kck + 1
+            ckpt(1:nd, c) = x%q
+            ckpt(nd + 1:2 * nd, c) = x%qd
+            ckpt(2 * nd + 1:3 * nd, c) = x%qdd
+            ckpt(3 * nd + 1:4 * nd, c) = x%a
+            ckpt(4 * nd + 1:5 * nd, c) = x%qdd_prev
+            if (m%nc > 0) ckpt(5 * nd + 1:5 * nd + m%nc, c) = x%mu
+            ckpt(5 * nd + m%nc + 1, c) = x%h_prev
+            ckpt(5 * nd + m%nc + 2, c) = kdyn
+            ckpt(5 * nd + m%nc + 3, c) = pdyn
+            ! the next step starts with a fresh iteration matrix, as a segment re-run from
+            ! this checkpoint does: the re-run then repeats this run's iterations exactly
+            fact_valid = .false.
+            stale = .false.
+        end subroutine ckpt_store
+
+        !> The state of x_start (a checkpoint column) into x.
+        subroutine unpack_start()
+            integer :: nd
+            nd = m%ndof
+            x%q = x_start(1:nd)
+            x%qd = x_start(nd + 1:2 * nd)
+            x%qdd = x_start(2 * nd + 1:3 * nd)
+            x%a = x_start(3 * nd + 1:4 * nd)
+            x%qdd_prev = x_start(4 * nd + 1:5 * nd)
+            if (m%nc > 0) x%mu = x_start(5 * nd + 1:5 * nd + m%nc)
+            x%h_prev = x_start(5 * nd + m%nc + 1)
+        end subroutine unpack_start
 
         !> Append the converged state (reached with step hh) to the tape.
         subroutine tape_store(hh, stat)

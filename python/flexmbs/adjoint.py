@@ -12,6 +12,14 @@ functionals at once, whatever the number of design variables. The derivation is 
 docs/adjoint.md; the result is the transpose of the direct differentiation that
 `simulate(design_derivatives=...)` carries forward, so both agree to the Newton tolerance.
 
+Checkpointing (docs/adjoint.md section 3b): `simulate_for_adjoint(..., checkpoints=K)` keeps
+the full integration state at every K-th time point instead of the tape of every state;
+`adjoint_gradient` then processes the run in segments of K steps from the last to the first,
+re-running each forward from its checkpoint with the tape (about one more forward run in all)
+and carrying the adjoint state from one segment to the previous one. Memory: the checkpoints
+and one segment's tape (`checkpoint_memory`), ~sqrt(N) for N steps with K ~ sqrt(N)
+(`checkpoint_interval`).
+
 >>> import numpy as np
 >>> from flexmbs.adjoint import adjoint_gradient, simulate_for_adjoint
 >>> from flexmbs.problem import Problem
@@ -31,13 +39,16 @@ from flexmbs import _core
 from flexmbs.core import core_model_args
 from flexmbs.errors import ModelError, ResourceError, SimulationError
 from flexmbs.model import Model
-from flexmbs.resources import format_bytes, limit_source
+from flexmbs.resources import STACK_BYTES_PER_UNKNOWN, call_with_stack, format_bytes, limit_source
 from flexmbs.resources import memory_limit as _memory_limit
-from flexmbs.simulate import Result, simulate
+from flexmbs.simulate import (NEWTON_MODES, Result, _tape_bytes, checkpoint_bytes,
+                              checkpoint_rows, simulate)
 
-__all__ = ["adjoint_gradient", "simulate_for_adjoint", "adjoint_memory", "check_adjoint_memory"]
+__all__ = ["adjoint_gradient", "simulate_for_adjoint", "adjoint_memory", "check_adjoint_memory",
+           "checkpoint_memory", "checkpoint_interval"]
 
 _SOLVERS = {"dense": 1, "klu": 2}
+_TAPE_FULL = 10    # GA_TAPE_FULL of generalized_alpha.f90
 
 
 def adjoint_memory(ndof, nc, nt, nf, nel=0):
@@ -60,10 +71,59 @@ def check_adjoint_memory(ndof, nc, nt, nf, nel=0, memory_limit=None):
                             required=need, available=avail)
 
 
-def simulate_for_adjoint(model, t_end, h=5e-4, **kwargs):
+def checkpoint_memory(model, nsteps, every):
+    """(checkpoints, one segment's tape) in bytes of a checkpointed adjoint over nsteps steps
+    with a checkpoint every `every` time points:
+
+        8 (nsteps // every + 1) (5 ndof + nc + 3)                  the checkpoints
+        8 (K + 1 + max(8, K // 4)) (3 ndof + nc + 1.5),   K = min(every, nsteps)
+                                                                  one segment's tape
+
+    (a segment cutting more steps than its room is re-run once with room for every step cut
+    max_cuts times, as `simulate`'s tape)."""
+    every = int(every)
+    return (checkpoint_bytes(model, nsteps, every),
+            _tape_bytes(model, segment_columns(min(every, nsteps))))
+
+
+def segment_columns(nseg):
+    """Columns a segment's tape is first allocated with: its nseg + 1 time points and room for
+    a quarter more sub-steps (at least 8); a segment cutting more is re-run once with room
+    for every step cut max_cuts times."""
+    return nseg + 1 + max(8, nseg // 4)
+
+
+def checkpoint_interval(model, nsteps, available=None):
+    """Time points between checkpoints: ceil(sqrt(nsteps)) (about the least memory,
+    `checkpoint_memory`: both parts ~ sqrt(nsteps)) when `available` is None; else the largest
+    interval (the fewest segments) whose checkpoints and segment tape fit in `available`
+    bytes, or None when ceil(sqrt(nsteps)) does not."""
+    k_sqrt = max(1, int(np.ceil(np.sqrt(nsteps))))
+    if available is None:
+        return k_sqrt
+    if sum(checkpoint_memory(model, nsteps, k_sqrt)) > available:
+        return None
+    lo, hi = k_sqrt, max(k_sqrt, nsteps)       # the memory grows with K above sqrt(nsteps)
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if sum(checkpoint_memory(model, nsteps, mid)) <= available:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo
+
+
+def simulate_for_adjoint(model, t_end, h=5e-4, *, checkpoints=None, **kwargs):
     """`simulate` keeping the tape of every converged (sub-)step (tape=True) with the states
     converged as full Newton's (polish=True: modified Newton's states, 1e-11 m off, made the
     adjoint's gradients 2e-8 to 7e-7 off on the robot): the states the backward pass needs.
+
+    checkpoints : None, int or 'auto'
+        None: the tape of every state. K (>= 1): only the full state at every K-th time
+        point (simulate(checkpoints=K)); `adjoint_gradient` re-runs the segments between
+        them with the tape (about one more forward run). 'auto': K = `checkpoint_interval`
+        (ceil(sqrt(nsteps))).
+
     kwargs as `simulate` (not tape, polish, design_derivatives)."""
     for key in ("tape", "polish", "design_derivatives", "sensitivity_dofs",
                 "constraint_force_derivatives"):
@@ -71,7 +131,15 @@ def simulate_for_adjoint(model, t_end, h=5e-4, **kwargs):
             raise ModelError(f"simulate_for_adjoint: {key}= is not allowed (the adjoint keeps "
                              "every state, converges every step and needs no forward "
                              "derivatives)")
-    return simulate(model, t_end, h, tape=True, polish=True, **kwargs)
+    if isinstance(checkpoints, str):
+        if checkpoints != "auto":
+            raise ModelError(f"checkpoints must be None, 'auto' or an integer >= 1, got "
+                             f"{checkpoints!r}")
+        from flexmbs.simulate import time_steps
+        checkpoints = checkpoint_interval(model, time_steps(t_end, h, np.inf))
+    if checkpoints is None:
+        return simulate(model, t_end, h, tape=True, polish=True, **kwargs)
+    return simulate(model, t_end, h, polish=True, checkpoints=checkpoints, **kwargs)
 
 
 def _seed(name, value, nt, rows, nf=None):
@@ -98,7 +166,10 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
         The model simulated (same design).
     result : Result
         Its simulation with the tape of every (sub-)step (`simulate_for_adjoint`, or
-        simulate(..., tape=True, polish=True)).
+        simulate(..., tape=True, polish=True)), or with checkpoints
+        (simulate_for_adjoint(..., checkpoints=K)): then the backward pass runs over the
+        segments between them from the last to the first, each re-run forward from its
+        checkpoint with the tape first (one segment's tape in memory at a time).
     design_derivatives : array (5, nel, nv)
         d[EA, kGA, EI, rhoA, rhoI]/dp of every element (as `simulate`'s).
     dG_dq : array (nt, ndof) or (nt, ndof, nf)
@@ -129,7 +200,12 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
     cm = model.compile()
     st = result.settings
     tape = result.tape
-    if tape is None or "q0" not in st or tape["q"].shape[0] != cm.ndof:
+    ck = getattr(result, "checkpoints", None)
+    if tape is not None and (tape["q"].shape[0] != cm.ndof):
+        tape = None
+    if ck is not None and ck["states"].shape[0] != checkpoint_rows(cm.ndof, cm.nc):
+        ck = None
+    if (tape is None and ck is None) or "q0" not in st:
         raise ModelError("adjoint_gradient: result has no tape of its states: simulate with "
                          "simulate_for_adjoint (or simulate(..., tape=True, polish=True))")
     if st.get("newton", "full") != "full" and not st.get("polish", False) and result.dq is None:
@@ -158,29 +234,98 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
     nel = cm.el_dofs.shape[1]
     dprop_f = np.zeros((5, nel, max(nv, 1)), order="F")
     dprop_f[:, :cm.nel, :nv] = dprop
-    ncol = tape["h"].size
-    mut = np.zeros((nca, ncol), order="F")
-    mut[:cm.nc] = tape["mu"]
-    grad, gprop, status, info = _core.simulate_adjoint(
-        **margs, nsteps=nt - 1, q0=np.asarray(st["q0"], float), qd0=np.asarray(st["qd0"], float),
-        ap=pat["ap"], ai=pat["ai"], h=float(st["h"]), rho_inf=float(st["rho_inf"]),
-        tol=float(st["tol"]), max_iter=int(st["max_iter"]), max_cuts=int(st["max_cuts"]),
-        solver=_SOLVERS[solver], static_start=int(st["start"] == "static"),
-        kscale=float(st["kscale"]), penalty=float(st["penalty"]),
-        ncol=ncol, qt=np.asfortranarray(tape["q"]), qdt=np.asfortranarray(tape["qd"]),
-        qddt=np.asfortranarray(tape["qdd"]), mut=mut, th=np.asarray(tape["h"], float),
-        grid=np.asarray(tape["grid"], np.int32), nf=nf, gq=gq_f, gmu=gmu_f,
-        nv=max(nv, 1), dprop=dprop_f)
-    if status == 9:
-        raise ResourceError(f"adjoint_gradient: an allocation failed in the core "
-                            f"({format_bytes(info[1]) if info[1] > 0 else 'size unknown'})",
-                            required=float(info[1]) if info[1] > 0 else None)
-    if status != 0:
-        raise SimulationError(f"adjoint_gradient: the backward pass failed at t = {info[0]:.6g} s "
-                              f"(core status {int(status)}, code {int(info[3])}): a singular "
-                              "transposed iteration matrix", time=float(info[0]),
-                              code=int(status))
+    gprop = np.zeros((5, nel, nf), order="F")
+    adj = np.zeros((cm.ndof, nf, 4), order="F")
+
+    def backward(tp, j0, nseg, have_in, kscale, penalty):
+        """The backward pass over the tape tp of the nseg steps from time point j0."""
+        ncol = tp["h"].size
+        mut = np.zeros((nca, ncol), order="F")
+        mut[:cm.nc] = tp["mu"]
+        grad, gp, status, info, adj_out = _core.simulate_adjoint(
+            **margs, nsteps=nseg, q0=np.asarray(st["q0"], float),
+            qd0=np.asarray(st["qd0"], float),
+            ap=pat["ap"], ai=pat["ai"], h=float(st["h"]), rho_inf=float(st["rho_inf"]),
+            tol=float(st["tol"]), max_iter=int(st["max_iter"]), max_cuts=int(st["max_cuts"]),
+            solver=_SOLVERS[solver], static_start=int(st["start"] == "static"),
+            kscale=float(kscale), penalty=float(penalty),
+            ncol=ncol, qt=np.asfortranarray(tp["q"]), qdt=np.asfortranarray(tp["qd"]),
+            qddt=np.asfortranarray(tp["qdd"]), mut=mut, th=np.asarray(tp["h"], float),
+            grid=np.asarray(tp["grid"], np.int32), nf=nf, gq=gq_f, gmu=gmu_f,
+            nv=max(nv, 1), dprop=dprop_f, ntot=nt, j_start=j0, have_in=int(have_in),
+            adj_in=adj, gprop_in=gprop)
+        if status == 9:
+            raise ResourceError(f"adjoint_gradient: an allocation failed in the core "
+                                f"({format_bytes(info[1]) if info[1] > 0 else 'size unknown'})",
+                                required=float(info[1]) if info[1] > 0 else None)
+        if status != 0:
+            raise SimulationError(f"adjoint_gradient: the backward pass failed at t = "
+                                  f"{info[0]:.6g} s (core status {int(status)}, code "
+                                  f"{int(info[3])}): a singular transposed iteration matrix",
+                                  time=float(info[0]), code=int(status))
+        return grad, gp, adj_out
+
+    if tape is not None:
+        grad, gprop, _ = backward(tape, 0, nt - 1, False, st["kscale"], st["penalty"])
+    else:
+        every, states = int(ck["every"]), np.asarray(ck["states"], float)
+        nsteps = nt - 1
+        nseg = -(-nsteps // every)
+        for k in range(nseg - 1, -1, -1):       # the segments from the last to the first
+            j0 = k * every
+            n_k = min(every, nsteps - j0)
+            xs = np.ascontiguousarray(states[:, k])
+            tp = _segment_tape(model, result, margs, pat, xs, j0, n_k)
+            # the run's scalings k, p; the first segment recomputes them (and the static
+            # start's, from the settings) as the first run did
+            kp = (st["kscale"], st["penalty"]) if j0 == 0 else (xs[-2], xs[-1])
+            grad, gprop, adj = backward(tp, j0, n_k, k < nseg - 1, *kp)
+            adj = np.asfortranarray(adj)
+            gprop = np.asfortranarray(gprop)
     grad = np.array(grad[:nv])
     if return_properties:
         return grad, np.array(gprop[:, :cm.nel])
     return grad
+
+
+def _segment_tape(model, result, margs, pat, x_start, j0, nseg):
+    """The tape of the nseg steps from time point j0 of a checkpointed run (result), re-run
+    from its checkpoint x_start with the run's settings (a fresh iteration matrix at the
+    segment's start: the states agree with the first run's to the Newton tolerance; bitwise
+    with full Newton)."""
+    cm = model.compile()
+    st = result.settings
+    nel = cm.el_dofs.shape[1]
+    nca = max(cm.nc, 1)
+    ncol = segment_columns(nseg)
+    for attempt in range(2):
+        out = call_with_stack(
+            _core.simulate, STACK_BYTES_PER_UNKNOWN * cm.n, **margs, nsteps=nseg,
+            q0=np.asarray(st["q0"], float), qd0=np.asarray(st["qd0"], float),
+            ap=pat["ap"], ai=pat["ai"], h=float(st["h"]), rho_inf=float(st["rho_inf"]),
+            tol=float(st["tol"]), max_iter=int(st["max_iter"]), max_cuts=int(st["max_cuts"]),
+            solver=_SOLVERS[st["solver"]], newton=NEWTON_MODES[st["newton"]], static_start=0,
+            kscale=float(x_start[-2]), penalty=float(x_start[-1]),
+            out_dofs=np.ones(1, np.int32), nv=0, dprop=np.zeros((5, nel, 1), order="F"),
+            sens_dofs=np.ones(1, np.int32), want_dmu=0, ndmu=1,
+            polish=int(st.get("polish", False)), ntape=ncol, nckr=x_start.size, nck=1,
+            ckpt_every=0, restart=1, x_start=x_start, j_start=int(j0))
+        status, info = int(out[5]), out[6]
+        if status == _TAPE_FULL and attempt == 0:
+            ncol = nseg * 2 ** int(st["max_cuts"]) + 1
+            continue
+        break
+    if status == 9:
+        raise ResourceError(f"adjoint_gradient: an allocation failed in the core while "
+                            f"re-running the segment from t = {j0 * st['h']:.6g} s "
+                            f"({format_bytes(info[1]) if info[1] > 0 else 'size unknown'})",
+                            required=float(info[1]) if info[1] > 0 else None)
+    if status != 0:
+        raise SimulationError(f"adjoint_gradient: the re-run of the segment from its checkpoint "
+                              f"at t = {j0 * st['h']:.6g} s failed at t = {info[0]:.6g} s (core "
+                              f"status {status}), although the first run converged",
+                              time=float(info[0]), code=status)
+    tq, tqd, tqdd, tmu, th, tgrid, nused = out[9:16]
+    nused = int(nused)
+    return dict(q=tq[:, :nused], qd=tqd[:, :nused], qdd=tqdd[:, :nused],
+                mu=tmu[:nca, :nused][:cm.nc], h=th[:nused], grid=np.asarray(tgrid))

@@ -447,13 +447,23 @@ Response = Annotated[Union[Deviation, Mass, Stress, Torque, Reaction],
 
 class Constraint(_Strict):
     """response <= upper (and/or >= lower) over time: at every step (the paper's local
-    constraints), its maximum, a KS or p-norm aggregate (eq. 22), optionally in a window."""
+    constraints), its maximum, a KS or p-norm aggregate (eq. 22), its time integral
+    (trapezoid rule on the output grid: the bounds are then in the response's units times
+    s), optionally in a window."""
     response: Name
     upper: Finite | None = None
     lower: Finite | None = None
-    over: Literal["every_step", "max", "ks", "pnorm"] = "every_step"
+    over: Literal["every_step", "max", "ks", "pnorm", "integral"] = "every_step"
     parameter: Positive | None = None       # KS rho (default 100) or p-norm P (default 50)
     window: Pair | None = None
+
+    @field_validator("parameter")
+    @classmethod
+    def _parameter_taken(cls, v, info):
+        if v is not None and info.data.get("over") == "integral":
+            raise ValueError("is not taken by over = 'integral' (the trapezoid rule has no "
+                             "parameter; only 'ks' and 'pnorm' take one): remove it")
+        return v
 
     @model_validator(mode="after")
     def _bound(self):
@@ -463,9 +473,10 @@ class Constraint(_Strict):
 
 
 class Objective(_Strict):
-    """The response to minimize (a scalar one: mass, or an aggregate)."""
+    """The response to minimize (a scalar one: mass, or an aggregate of a history: its
+    maximum, KS or p-norm, final value or time integral)."""
     response: Name
-    over: Literal["max", "ks", "pnorm", "final"] = "max"
+    over: Literal["max", "ks", "pnorm", "final", "integral"] = "max"
 
 
 class TimeSettings(_Strict):

@@ -33,7 +33,7 @@ from flexmbs.responses.deviation import deviation, deviation_terms
 from flexmbs.responses.forces import constraint_force, joint_reaction
 from flexmbs.responses.stress import beam_stress
 from flexmbs.resources import format_bytes, limit_source, memory_limit
-from flexmbs.simulate import memory_estimate, simulate
+from flexmbs.simulate import CHECKPOINT_PART, TAPE_PART, memory_estimate, simulate
 
 __all__ = ["Problem", "Evaluation", "load_problem", "constraint_rows", "GRADIENT_METHODS"]
 
@@ -51,6 +51,10 @@ ADJOINT_CHUNK_BYTES = 32e6
 #: The part of an adjoint's MemoryEstimate (Problem.memory_estimate) holding the per-step
 #: partials of the backward pass (flexmbs.adjoint.adjoint_memory).
 ADJOINT_PART = "adjoint's per-step partials"
+#: The part of a checkpointed adjoint's MemoryEstimate holding one segment's tape (the
+#: checkpoints are flexmbs.simulate.CHECKPOINT_PART; flexmbs.adjoint.checkpoint_memory).
+SEGMENT_PART = "adjoint's segment tape"
+_DEFAULT = object()      # memory_estimate(checkpoints=...): the problem's
 
 
 #: what an object needs to stand for a Problem in the optimizers (e.g. an analytic test problem)
@@ -157,14 +161,22 @@ class Problem:
     gradient_method : {'direct', 'adjoint', 'auto'}, default 'direct'
         How `evaluate` computes gradients unless told otherwise (its `method`): what an
         optimizer calling evaluate(x, gradient=True) gets.
+    checkpoints : None, 'auto' or int, default None
+        The adjoint's forward run (docs/adjoint.md 3b): None keeps the tape of every state
+        when it fits in the memory limit and checkpoints otherwise (every K time points, K
+        the largest that fits: `flexmbs.adjoint.checkpoint_interval`); 'auto' always
+        checkpoints, every ceil(sqrt(N)) of N steps (about the least memory); K (>= 1) every
+        K time points. Checkpointing costs about one more forward run.
     """
 
-    def __init__(self, case, overrides=None, gradient_method="direct"):
+    def __init__(self, case, overrides=None, gradient_method="direct", checkpoints=None):
         self.description = _description(case, overrides)
         self.mechanism = Mechanism(self.description)
         self._resp = {r.name: r for r in self.description.responses}
         _check_method(gradient_method, "gradient_method")
         self.default_gradient_method = gradient_method
+        _check_checkpoints(checkpoints)
+        self.adjoint_checkpoints = checkpoints
 
     # ------------------------------------------------------------------ design space
     @property
@@ -202,7 +214,8 @@ class Problem:
     def _needs_forces(self, names):
         return any(isinstance(self._resp[n], (Torque, Reaction)) for n in names)
 
-    def _run(self, x, gradient, responses, store, differentiate=None, tape=False):
+    def _run(self, x, gradient, responses, store, differentiate=None, tape=False,
+             checkpoints=None):
         """(model, t_end, h, keywords of `simulate`) of a simulation of design x (see
         `simulate`)."""
         mech = self.mechanism
@@ -220,6 +233,8 @@ class Problem:
                   qd0=None if ts.start == "static" else qd0)
         if tape:     # the discrete adjoint's forward run: every state kept, converged fully
             kw.update(tape=True, polish=True)
+        elif checkpoints:     # ... or the full state every `checkpoints` time points
+            kw.update(checkpoints=int(checkpoints), polish=True)
         if store is None:
             # only what the responses read: the multipliers (motor torques, joint reactions)
             # are kept at every step anyway, so without a node to read one node's coordinates
@@ -237,7 +252,7 @@ class Problem:
         return model, mech.t_end, ts.h, kw
 
     def simulate(self, x=None, *, gradient=False, responses=None, store=None,
-                 differentiate=None, tape=False):
+                 differentiate=None, tape=False, checkpoints=None):
         """Simulate design x (default: start); with gradient=True the design derivatives of
         the coordinates the responses need (all responses, or `responses`; or only those of
         the responses named in `differentiate`), and those of the constraint multipliers
@@ -247,32 +262,34 @@ class Problem:
         deviation responses, the nodes of stressed beams; one node when only motor torques or
         joint reactions are asked, which come from the multipliers); 'all' or a list of nodes
         as in `flexmbs.simulate`. tape=True: the discrete adjoint's forward run (every
-        (sub-)step's converged state kept, Newton converged fully: flexmbs.adjoint)."""
-        model, t_end, h, kw = self._run(x, gradient, responses, store, differentiate, tape)
+        (sub-)step's converged state kept, Newton converged fully: flexmbs.adjoint);
+        checkpoints=K instead: the full state at every K-th time point only (its segments
+        are re-run by flexmbs.adjoint.adjoint_gradient)."""
+        model, t_end, h, kw = self._run(x, gradient, responses, store, differentiate, tape,
+                                        checkpoints)
         return simulate(model, t_end, h, **kw)
 
     def memory_estimate(self, x=None, gradient=True, *, responses=None, store=None,
-                        method=None):
+                        method=None, checkpoints=_DEFAULT):
         """The memory (flexmbs.resources.MemoryEstimate) of the simulation that
         `evaluate(x, gradient, method)` runs (gradient and method as there; of
         `simulate(x, ...)` with `responses` or `store`),
         without running it; None when no response needs a simulation. What is stored over
         the time grid is the responses' coordinates only (see `simulate`). With gradients by
         the adjoint: its forward run's (the tape of every step, flexmbs.simulate.TAPE_PART)
-        and the backward pass's per-step partials (ADJOINT_PART, flexmbs.adjoint.adjoint_memory)."""
+        and the backward pass's per-step partials (ADJOINT_PART, flexmbs.adjoint.adjoint_memory);
+        checkpointed (when the tape does not fit, or as `checkpoints` asks: as Problem's
+        checkpoints, default the problem's), the checkpoints (flexmbs.simulate.CHECKPOINT_PART)
+        and one segment's tape (SEGMENT_PART) instead of the tape
+        (flexmbs.adjoint.checkpoint_memory); est.checkpoints tells the interval (None: the
+        tape of every state)."""
         if responses is None:
             responses = [n for n, r in self._resp.items() if not isinstance(r, Mass)]
             if not responses and store is None:
                 return None
         want = self._gradient_names(gradient) if self.mechanism.variables else []
         if want and self.gradient_method(method) == "adjoint":
-            from flexmbs.adjoint import adjoint_memory
-            model, t_end, h, kw = self._run(x, False, responses, store, tape=True)
-            est = memory_estimate(model, t_end, h, **kw)
-            cm = model.compile()
-            est.parts[ADJOINT_PART] = adjoint_memory(cm.ndof, cm.nc, self.mechanism.t.size,
-                                                     self.gradient_functionals(), cm.nel)
-            return est
+            return self._adjoint_plan(x, responses, store, checkpoints)[1]
         model, t_end, h, kw = self._run(x, bool(want), responses, store,
                                         [n for n in responses if n in want])
         return memory_estimate(model, t_end, h, **kw)
@@ -528,22 +545,58 @@ class Problem:
                           gradient_method="direct" if gradient else None,
                           result=None if store is None else result)
 
+    def _adjoint_plan(self, x, responses, store=None, checkpoints=_DEFAULT):
+        """(K, MemoryEstimate) of the adjoint's runs: K None for the tape of every state,
+        else the checkpoint interval (see Problem's `checkpoints`; as the problem's unless
+        given). When nothing fits, K is ceil(sqrt(N)), about the least memory."""
+        from flexmbs.adjoint import adjoint_memory, checkpoint_interval, checkpoint_memory
+        if checkpoints is _DEFAULT:
+            checkpoints = self.adjoint_checkpoints
+        _check_checkpoints(checkpoints)
+        model, t_end, h, kw = self._run(x, False, responses, store, tape=True)
+        est = memory_estimate(model, t_end, h, **kw)
+        cm = model.compile()
+        nsteps = self.mechanism.t.size - 1
+        est.parts[ADJOINT_PART] = adjoint_memory(cm.ndof, cm.nc, nsteps + 1,
+                                                 self.gradient_functionals(), cm.nel)
+        if checkpoints is None:
+            avail = memory_limit()
+            if est.total <= avail:
+                est.checkpoints = None
+                return None, est
+            rest = est.total - est.parts[TAPE_PART]
+            k = checkpoint_interval(model, nsteps, avail - rest) or \
+                checkpoint_interval(model, nsteps)
+        elif checkpoints == "auto":
+            k = checkpoint_interval(model, nsteps)
+        else:
+            k = int(checkpoints)
+        del est.parts[TAPE_PART]
+        est.parts[CHECKPOINT_PART], est.parts[SEGMENT_PART] = checkpoint_memory(model, nsteps, k)
+        est.checkpoints = k
+        return k, est
+
     def _check_adjoint_memory(self, x, timed):
-        """ResourceError, naming what to change, when the adjoint's forward run (its tape)
-        and backward pass (the per-step partials) together exceed the memory limit
-        (flexmbs.resources.memory_limit: FLEXMBS_MEMORY_LIMIT, else the memory available)."""
-        est = self.memory_estimate(x, True, responses=timed, method="adjoint")
+        """The checkpoint interval of the adjoint's forward run (None: the tape of every
+        state; `_adjoint_plan`), or ResourceError, naming what to change, when its memory
+        (the tape, or the checkpoints and one segment's tape, and the backward pass's
+        per-step partials) exceeds the memory limit (flexmbs.resources.memory_limit:
+        FLEXMBS_MEMORY_LIMIT, else the memory available)."""
+        k, est = self._adjoint_plan(x, timed)
         need, avail = est.total, memory_limit()
         if need <= avail:
-            return
+            return k
         nt, nf = self.mechanism.t.size, self.gradient_functionals()
+        what = "the tape of every state" if k is None else \
+            f"checkpoints every {k} time points, one segment's tape"
         raise ResourceError(
-            f"evaluate(method='adjoint'): the tape of every state and the per-step partials of "
+            f"evaluate(method='adjoint'): {what} and the per-step partials of "
             f"{nf} functionals over {nt} time points need about {format_bytes(need)} "
             f"({est.largest()}), more than {limit_source()} ({format_bytes(avail)}): use "
             "method='direct' (gradient_method='direct', --gradient-method direct: no tape), a "
             "coarser step h or a shorter t_end, or fewer functionals (constraints aggregated "
-            "over time, over = 'ks' or 'pnorm', instead of 'every_step': one per step)",
+            "over time, over = 'ks' or 'pnorm', instead of 'every_step': one per step)"
+            + ("" if k is not None else ", or checkpoints ('auto' or an interval)"),
             required=need, available=avail)
 
     def _evaluate_adjoint(self, x, timed, t0):
@@ -561,10 +614,12 @@ class Problem:
         from flexmbs.adjoint import adjoint_gradient
 
         mech = self.mechanism
-        self._check_adjoint_memory(x, timed)
+        ckpt = self._check_adjoint_memory(x, timed)
         model = mech.set_design(x)
         cm = model.compile()
-        result = self.simulate(x, gradient=False, responses=timed, tape=True)
+        result = self.simulate(x, gradient=False, responses=timed, tape=ckpt is None,
+                               checkpoints=ckpt)
+        result.stats["adjoint_checkpoints"] = ckpt
         nodes = self._nodes_needed(timed)
         sdofs = np.array([3 * n + k for n in (nodes or [0]) for k in range(3)])
         t = mech.t
@@ -670,6 +725,16 @@ class Problem:
         return min(limits) if limits else None
 
 
+def _check_checkpoints(checkpoints, name="checkpoints"):
+    ok = checkpoints is None or (isinstance(checkpoints, str) and checkpoints == "auto") or (
+        isinstance(checkpoints, (int, np.integer)) and not isinstance(checkpoints, bool)
+        and checkpoints >= 1)
+    if not ok:
+        raise ModelError(f"{name} must be None (checkpoints only when the tape does not fit), "
+                         f"'auto' or an integer >= 1 (time points between checkpoints), got "
+                         f"{checkpoints!r}")
+
+
 def _check_method(method, name="method"):
     if not isinstance(method, str) or method not in GRADIENT_METHODS:
         raise ModelError(f"{name} must be one of {', '.join(map(repr, GRADIENT_METHODS))}, "
@@ -726,8 +791,8 @@ def with_linear_rows(mechanism, x, g, jacobian, names):
 
 
 def _scalar(v, dv, how, parameter, t):
-    """A scalar of a response: itself (scalar responses), or max / ks / pnorm / final of a
-    history, with its gradient."""
+    """A scalar of a response: itself (scalar responses), or max / ks / pnorm / final /
+    integral (trapezoid rule over t) of a history, with its gradient."""
     if np.ndim(v) == 0:
         return float(v), dv
     if how == "final":

@@ -96,6 +96,11 @@ class Result:
     tape : with tape=True: every converged (sub-)step's state for the discrete adjoint, a dict
         of q, qd, qdd (ndof, ncol), mu (nc, ncol), h (ncol,) (the step that led to the column)
         and grid (nt,) (the 1-based column of every time point).
+    checkpoints : with checkpoints=K: the full integration state at every K-th time point,
+        a dict of every (K) and states (checkpoint_rows(ndof, nc), nsteps // K + 1): q, qd,
+        qdd, a, the predictor's previous qdd (ndof each), mu (nc), the previous step and the
+        scalings k, p of eq. (1) (what a segment of the run is restarted from:
+        flexmbs.adjoint).
     """
     t: np.ndarray
     q: np.ndarray
@@ -111,6 +116,7 @@ class Result:
     validity: object = None
     dmu: np.ndarray | None = None
     tape: dict | None = None
+    checkpoints: dict | None = None
 
     def position_derivative(self, node):
         """(nt, 2, nv) design derivatives of a node's position (needs design_derivatives)."""
@@ -314,6 +320,24 @@ def stored_dofs(model, store="all"):
 
 #: The part of a MemoryEstimate holding the adjoint's tape (simulate(tape=True)).
 TAPE_PART = "tape of every (sub-)step (adjoint)"
+#: The part of a MemoryEstimate holding a checkpointed run's states (simulate(checkpoints=K)).
+CHECKPOINT_PART = "checkpoints of the full state (adjoint)"
+
+
+def checkpoint_rows(ndof, nc):
+    """Numbers of one checkpoint (simulate(checkpoints=K), generalized_alpha.f90 ckpt_rows):
+    q, qd, qdd, a, the predictor's previous qdd, mu, the previous step, k and p."""
+    return 5 * ndof + nc + 3
+
+
+def checkpoint_count(nsteps, every):
+    """Checkpoints of a run of nsteps steps kept every `every` time points (t = 0 included)."""
+    return nsteps // every + 1
+
+
+def checkpoint_bytes(model, nsteps, every):
+    """Bytes of the checkpoints of simulate(checkpoints=every) over nsteps steps."""
+    return 8.0 * checkpoint_count(nsteps, every) * checkpoint_rows(model.ndof, len(model._rows))
 
 
 def tape_columns(nsteps):
@@ -341,13 +365,13 @@ def _estimate(model, nsteps, out, solver, design_derivatives, sensitivity_dofs, 
 
 def memory_estimate(model: Model, t_end, h=5e-4, *, store="all", solver="auto",
                     design_derivatives=None, sensitivity_dofs=None,
-                    constraint_force_derivatives=False, tape=False, **settings):
+                    constraint_force_derivatives=False, tape=False, checkpoints=None, **settings):
     """The memory `simulate(model, t_end, h, ...)` with these arguments would need, without
     running it (flexmbs.resources.MemoryEstimate: `total` bytes and its `parts`; with
     tape=True the part TAPE_PART, as first allocated: a run cutting more steps than a quarter
-    of them needs more). Only the arguments that change it are read; `settings` (simulate's
-    other keywords) are accepted and ignored, so that the same keywords can be passed to
-    both."""
+    of them needs more; with checkpoints=K the part CHECKPOINT_PART, `checkpoint_bytes`).
+    Only the arguments that change it are read; `settings` (simulate's other keywords) are
+    accepted and ignored, so that the same keywords can be passed to both."""
     if not isinstance(model, Model):
         raise ModelError(f"memory_estimate expects a flexmbs Model, got {type(model).__name__}")
     nsteps = time_steps(t_end, h, math.inf)
@@ -361,6 +385,8 @@ def memory_estimate(model: Model, t_end, h=5e-4, *, store="all", solver="auto",
                     sensitivity_dofs, want_dmu)
     if tape:
         est.parts[TAPE_PART] = _tape_bytes(model, tape_columns(nsteps))
+    if checkpoints:
+        est.parts[CHECKPOINT_PART] = checkpoint_bytes(model, nsteps, int(checkpoints))
     return est
 
 
@@ -368,7 +394,7 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
              solver="auto", newton="auto", reuse_jacobian=None, tol=1e-10, max_iter=20, max_cuts=6,
              kscale=None, penalty=None, q0=None, qd0=None, design_derivatives=None,
              sensitivity_dofs=None, constraint_force_derivatives=False, memory_limit=None,
-             validity="warn", polish=False, tape=False):
+             validity="warn", polish=False, tape=False, checkpoints=None):
     """Simulate a model with generalized-alpha (eqs. 3-6) and Newton-Raphson (eq. 7).
 
     Parameters
@@ -456,6 +482,11 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         (sub-)step, counted in the memory estimate (room for a quarter more sub-steps than
         steps; a run that cuts more is repeated once with room for every step cut max_cuts
         times).
+    checkpoints : int, optional
+        Keep the full integration state at every `checkpoints`-th time point (t = 0 included)
+        in Result.checkpoints, `checkpoint_rows` numbers each (counted in the memory
+        estimate): what the discrete adjoint restarts segments of the run from instead of a
+        tape (flexmbs.adjoint, checkpointing). Not with tape or design_derivatives.
 
     Returns
     -------
@@ -477,6 +508,15 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     newton = newton_mode(newton, reuse_jacobian)
     _check_flag("polish", polish)
     _check_flag("tape", tape)
+    if checkpoints is not None:
+        if isinstance(checkpoints, (bool, np.bool_)) or not isinstance(checkpoints, (int, np.integer)) \
+                or checkpoints < 1:
+            raise ModelError(f"checkpoints must be an integer >= 1 (time points between "
+                             f"checkpoints) or None, got {checkpoints!r}")
+        if tape or design_derivatives is not None:
+            raise ModelError("checkpoints= is not allowed with tape=True or design_derivatives "
+                             "(a checkpointed run replaces the tape of the adjoint)")
+        checkpoints = int(checkpoints)
     if not isinstance(start, str) or start not in ("rest", "static"):
         raise ModelError(f"start must be 'rest' or 'static', got {start!r}")
     for name, v in (("kscale", kscale), ("penalty", penalty)):
@@ -507,6 +547,10 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
 
     if tape:
         est.parts[TAPE_PART] = tape_bytes(ntape)
+    nckr = checkpoint_rows(model.ndof, len(model._rows))
+    nck = checkpoint_count(nsteps, checkpoints) if checkpoints else 1
+    if checkpoints:
+        est.parts[CHECKPOINT_PART] = checkpoint_bytes(model, nsteps, checkpoints)
     check_memory(est, memory_limit, what=f"simulate (solver={solver!r}, {n_unknowns} unknowns, "
                                          f"{nsteps} steps, {out.size} stored coordinates)")
 
@@ -554,18 +598,19 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
             penalty=float(penalty or 0.0), out_dofs=(out + 1).astype(np.int32),
             nv=nv, dprop=dprop_f, sens_dofs=(sdofs + 1).astype(np.int32),
             want_dmu=int(want_dmu), ndmu=max(cm.nc, 1) if want_dmu else 1, polish=int(polish),
-            ntape=ncol)
+            ntape=ncol, nckr=nckr, nck=nck, ckpt_every=int(checkpoints or 0), restart=0,
+            x_start=np.zeros(nckr), j_start=0)
 
     try:
-        (q_out, qd_out, qdd_out, mu_out, stats, status, info, dq_out, dmu_out, *tape_out) = \
-            run(ntape)
+        (q_out, qd_out, qdd_out, mu_out, stats, status, info, dq_out, dmu_out, *tape_out,
+         ckpt_out) = run(ntape)
         if status == _TAPE_FULL:
             # more sub-steps than room: once more with room for every step cut max_cuts times
             ntape = nsteps * 2 ** int(max_cuts) + 1
             est.parts[TAPE_PART] = tape_bytes(ntape)
             check_memory(est, memory_limit, what=f"simulate with a tape of {ntape} sub-steps")
             (q_out, qd_out, qdd_out, mu_out, stats, status, info, dq_out, dmu_out,
-             *tape_out) = run(ntape)
+             *tape_out, ckpt_out) = run(ntape)
     except MemoryError as exc:    # the wrapper could not allocate the output arrays
         if isinstance(exc, ResourceError):
             raise
@@ -605,6 +650,8 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         nused = int(nused)
         res.tape = dict(q=tq[:, :nused], qd=tqd[:, :nused], qdd=tqdd[:, :nused],
                         mu=tmu[:cm.nc, :nused], h=th[:nused], grid=np.asarray(tgrid))
+    if checkpoints:
+        res.checkpoints = dict(every=checkpoints, states=ckpt_out)
     res.validity = check_result(model, res, limits, law_val=margs["law_val"], tol=float(tol),
                                 props=props)
     apply_validity(res.validity, res)

@@ -14,6 +14,11 @@ paper suggest. `aggregate` offers:
 - 'pnorm': (sum_n |r_n|^P)^(1/P), computed as m (sum (|r_n| / m)^P)^(1/P), m = max |r_n|.
   Smooth where no r_n is zero; max |r| <= PN <= N^(1/P) max |r|. Meant for magnitudes
   (r_n >= 0: stresses, deviations over their limits).
+- 'integral': the time integral of the history by the trapezoid rule on its time grid t
+  (`integral`): sum_n w_n r_n with w_n = (t_{n+1} - t_{n-1}) / 2 inside, half a step at the
+  ends; in r's units times seconds. Linear, so its gradient is the same sum of the gradients.
+  With a window, over the time points inside it (the window's ends snapped inwards to the
+  grid). One sample per time step; takes no parameter.
 
 A history may carry more than one sample per time step (r of shape (nt, m): the stations of a
 beam's elements, say); the aggregate then runs over every sample of every step in the window.
@@ -29,11 +34,11 @@ import numpy as np
 
 from flexmbs.errors import ModelError
 
-__all__ = ["aggregate", "ks", "pnorm", "window_mask", "aggregate_constraints", "AGGREGATES",
-           "DEFAULT_PARAMETER"]
+__all__ = ["aggregate", "ks", "pnorm", "integral", "trapezoid_weights", "window_mask",
+           "aggregate_constraints", "AGGREGATES", "DEFAULT_PARAMETER"]
 
 #: Names accepted by `aggregate(how=...)`.
-AGGREGATES = ("every_step", "max", "ks", "pnorm")
+AGGREGATES = ("every_step", "max", "ks", "pnorm", "integral")
 #: Default rho of KS and P of the p-norm (for responses normalized by their limits).
 DEFAULT_PARAMETER = {"ks": 100.0, "pnorm": 50.0}
 
@@ -75,6 +80,39 @@ def pnorm(r, dr=None, p=DEFAULT_PARAMETER["pnorm"]):
     return float(m * norm), w @ np.asarray(dr, float).reshape(r.size, -1)
 
 
+def trapezoid_weights(t):
+    """Weights w (nt,) of the trapezoid rule on the times t (increasing): integral of r over
+    [t_0, t_end] ~ w . r, w_n = (t_{n+1} - t_{n-1}) / 2 inside, (t_1 - t_0) / 2 and
+    (t_end - t_{end-1}) / 2 at the ends; zero for a single time point."""
+    t = np.asarray(t, float)
+    w = np.zeros(t.shape)
+    if t.size >= 2:
+        dt = np.diff(t)
+        w[:-1] += dt / 2
+        w[1:] += dt / 2
+    return w
+
+
+def integral(r, dr=None, t=None):
+    """Time integral of a history r (nt,) on its times t (nt,) by the trapezoid rule
+    (`trapezoid_weights`), and its gradient from dr (nt, nv). Returns (value, (nv,) or None)."""
+    r = np.asarray(r, float)
+    if t is None:
+        raise ModelError("aggregation 'integral' needs the times t of the history")
+    t = np.asarray(t, float)
+    if r.ndim != 1:
+        raise ModelError(f"aggregation 'integral' takes one sample per time step (a history of "
+                         f"shape (nt,)), got shape {r.shape}")
+    if t.shape != r.shape or (t.size > 1 and not np.all(np.diff(t) > 0)):
+        raise ModelError(f"t must be increasing times of shape {r.shape} for 'integral', got "
+                         f"shape {t.shape}")
+    w = trapezoid_weights(t)
+    val = float(w @ r)
+    if dr is None:
+        return val, None
+    return val, w @ np.asarray(dr, float).reshape(r.size, -1)
+
+
 def window_mask(t, window):
     """Boolean mask of the times t (nt,) inside window = (t0, t1), both ends included (to
     1e-9 of the time span, so that grid points on the ends count); None: every time."""
@@ -104,12 +142,13 @@ def aggregate(r, dr=None, how="max", *, parameter=None, t=None, window=None):
         The history: one or more samples per time step.
     dr : r.shape + (nv,) array, optional
         Its derivatives with respect to nv design variables.
-    how : {'every_step', 'max', 'ks', 'pnorm'}, default 'max'
+    how : {'every_step', 'max', 'ks', 'pnorm', 'integral'}, default 'max'
         See the module docstring.
     parameter : float, optional
-        rho of 'ks' (> 0, default 100) or P of 'pnorm' (> 1, default 50); ignored otherwise.
+        rho of 'ks' (> 0, default 100) or P of 'pnorm' (> 1, default 50); ignored by 'max'
+        and 'every_step'; 'integral' takes none (ModelError).
     t : (nt,) array, optional
-        Times of the history; required with `window`.
+        Times of the history; required with `window` and by 'integral'.
     window : (t0, t1), optional
         Only the steps with t0 <= t <= t1 count (default: all).
 
@@ -130,15 +169,25 @@ def aggregate(r, dr=None, how="max", *, parameter=None, t=None, window=None):
         dr = np.asarray(dr, float)
         if dr.ndim != r.ndim + 1 or dr.shape[:-1] != r.shape:
             raise ModelError(f"dr must have shape {r.shape} + (nv,), got {dr.shape}")
-    if window is not None:
+    if how == "integral":
+        if parameter is not None:
+            raise ModelError(f"parameter of 'integral' must not be given (the trapezoid rule "
+                             f"takes none), got {parameter!r}")
         if t is None:
-            raise ModelError("window needs the times t of the history")
+            raise ModelError("aggregation 'integral' needs the times t of the history")
+    if t is not None and (window is not None or how == "integral"):
         t = np.asarray(t, float)
         if t.shape != (r.shape[0],):
             raise ModelError(f"t must have shape ({r.shape[0]},) like r's first axis, got {t.shape}")
+    if window is not None:
+        if t is None:
+            raise ModelError("window needs the times t of the history")
         mask = window_mask(t, window)
         r = r[mask]
         dr = None if dr is None else dr[mask]
+        t = t[mask]
+    if how == "integral":
+        return integral(r, dr, t)
     if how == "every_step":
         return r, dr
     if how == "max":
