@@ -28,7 +28,7 @@ from flexmbs.casefile import description_from_dict, read_description
 from flexmbs.description import GROUND, Deviation, Description, Mass, Reaction, Stress, Torque
 from flexmbs.errors import CaseError, ModelError, ResourceError
 from flexmbs.mechanism import Mechanism
-from flexmbs.responses.aggregate import aggregate
+from flexmbs.responses.aggregate import aggregate, aggregate_weights
 from flexmbs.responses.deviation import deviation, deviation_terms
 from flexmbs.responses.forces import constraint_force, joint_reaction
 from flexmbs.responses.stress import beam_stress
@@ -275,12 +275,15 @@ class Problem:
         return memory_estimate(model, t_end, h, **kw)
 
     # ------------------------------------------------------------------ responses
-    def _response(self, r, x, result, gradient):
+    def _response(self, r, x, result, gradient, dprop=None):
+        """Value and gradient (or None) of response r at design x on simulation `result`;
+        dprop: mechanism.element_property_derivatives(x) when already computed (Mass)."""
         mech = self.mechanism
         if isinstance(r, Mass):
             bodies = r.bodies if r.bodies is not None else mech.beams
             m = mech.model
-            dprop = mech.element_property_derivatives(x) if gradient else None
+            if gradient and dprop is None:
+                dprop = mech.element_property_derivatives(x)
             props = m.element_properties()
             value, grad = 0.0, np.zeros(len(mech.variables))
             for b in bodies:
@@ -542,11 +545,15 @@ class Problem:
         sdofs = np.array([3 * n + k for n in (nodes or [0]) for k in range(3)])
         t = mech.t
         nt, nsens, nc, nv = t.size, sdofs.size, result.mu.shape[1], len(mech.variables)
-        nvirt = nsens + nc + nv
+        dprop = mech.element_property_derivatives(x)
+        # design columns only for responses depending on the design explicitly (a stress's
+        # section depth); the others' partials there are zero
+        explicit = any(isinstance(r, Stress) for r in self._resp.values())
+        nvirt = nsens + nc + (nv if explicit else 0)
         values, partials, grads, cache = {}, {}, {}, {}
         for name, r in self._resp.items():
             if isinstance(r, Mass):
-                values[name], grads[name] = self._response(r, x, None, True)
+                values[name], grads[name] = self._response(r, x, None, True, dprop)
             else:
                 partials[name] = []
                 grads[name] = np.zeros((nt, nv))
@@ -567,26 +574,16 @@ class Problem:
                 values[name], part = self._response(self._resp[name], x, vres, True)
                 partials[name].append(np.asarray(part, float).reshape(nt, cols.size))
         partials = {n: np.concatenate(p, axis=1) for n, p in partials.items()}
-        # the scalar responses' part, then the weights over time of every row: the rows'
-        # gradients for identity gradients of the histories, in chunks of steps
+        # the scalar responses' part, then the weights over time of every row (the rows'
+        # gradients are these weights times the histories' gradients)
         cons, jac, names, _ = constraint_rows(self.description, values, grads, t, nv, True)
         obj = self.description.objective
         f = df = None
         if obj is not None:
             f, df = _scalar(values[obj.response], grads[obj.response], obj.over, None, t)
-        wrows = np.zeros((len(names), nt))
-        wobj = np.zeros(nt)
-        width = max(1, min(nt, int(ADJOINT_CHUNK_BYTES // (8.0 * nt))))
-        for c0 in range(0, nt, width):
-            c1 = min(c0 + width, nt)
-            block = np.zeros((nt, c1 - c0))
-            block[np.arange(c0, c1), np.arange(c1 - c0)] = 1.0
-            wgrads = {n: (block if n in partials else np.zeros(c1 - c0)) for n in self._resp}
-            _, wrows[:, c0:c1], _, _ = constraint_rows(self.description, values, wgrads, t,
-                                                       c1 - c0, True)
-            if obj is not None:
-                wobj[c0:c1] = _scalar(values[obj.response], wgrads[obj.response], obj.over,
-                                      None, t)[1]
+        wrows = constraint_weights(self.description, values, t)
+        if obj is not None:
+            wobj = _scalar_weights(values[obj.response], obj.over, t)
         rows = [(names[i], wrows[i]) for i in range(len(names))]
         if obj is not None:
             rows.append((obj.response, wobj))
@@ -600,8 +597,8 @@ class Problem:
                 p = partials[n]
                 gq[:, sdofs, i] = w[:, None] * p[:, :nsens]
                 gmu[:, :, i] = w[:, None] * p[:, nsens:nsens + nc]
-                out[k] = w @ p[:, nsens + nc:]
-            dprop = mech.element_property_derivatives(x)
+                if explicit:
+                    out[k] = w @ p[:, nsens + nc:]
             out[live] += adjoint_gradient(model, result, dprop, gq, gmu).T
         jac = jac + out[:len(names)]
         if obj is not None:
@@ -683,6 +680,40 @@ def constraint_rows(description, values, gradients, t, nv, gradient=True):
     cons = np.concatenate(g_rows) if g_rows else np.zeros(0)
     jac = (np.vstack(j_rows) if j_rows else np.zeros((0, nv))) if gradient else None
     return cons, jac, names, np.asarray(groups, int)
+
+
+def constraint_weights(description, values, t):
+    """The weights over time of the rows of `constraint_rows`: (ng, nt), row i's gradient is
+    weights[i] @ (the gradient of its response's history); zero rows for scalar responses.
+    What the adjoint's right-hand sides need, without identity gradients (O(nt) per row)."""
+    nt = np.asarray(t).size
+    out = []
+    for c in description.constraints:
+        v = values[c.response]
+        for bound, sign in ((c.upper, 1.0), (c.lower, -1.0)):
+            if bound is None:
+                continue
+            s = abs(bound) if bound != 0 else 1.0
+            r = sign * np.asarray(v, float) / s
+            if np.ndim(r):
+                _, w = aggregate_weights(r, c.over, parameter=c.parameter, t=t, window=c.window)
+                out.append((sign / s) * w.reshape(w.shape[0], nt, -1).sum(axis=2))
+            else:
+                out.append(np.zeros((1, nt)))
+    return np.vstack(out) if out else np.zeros((0, nt))
+
+
+def _scalar_weights(v, how, t):
+    """The weights over time of `_scalar(v, dv, how, None, t)`'s gradient (zeros: a scalar)."""
+    nt = np.asarray(t).size
+    if np.ndim(v) == 0:
+        return np.zeros(nt)
+    if how == "final":
+        w = np.zeros(nt)
+        w[-1] = 1.0
+        return w
+    _, w = aggregate_weights(v, how, t=t)
+    return w.reshape(nt, -1).sum(axis=1)
 
 
 def with_linear_rows(mechanism, x, g, jacobian, names):
