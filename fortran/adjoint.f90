@@ -9,13 +9,9 @@
 !! contraction gprop(5, nel, f) = dG_f/d[EA, kGA, EI, rhoA, rhoI]_e, contracted with the
 !! section derivatives dprop once at the end.
 !!
-!! The transposed solve of every step is with the iteration matrix at the stored converged
-!! state. Where the forward run kept the factorization of the step's last Newton iteration (a
-!! factor store, klu_shim.c; the one the direct method solves with): if that iteration's
-!! increment was at the rounding level, that factorization as it is; else it serves one
-!! sweep of iterative refinement against the matrix assembled at the converged state (y =
-!! y1 + S1^-T (b - S^T y1): the error of y1, of the order of S - S1, i.e. of the last
-!! increment, is squared; no factorization). Elsewhere the matrix is assembled and factored. The states are those of
+!! The iteration matrix of every step is assembled and factored again at the stored
+!! converged state (the exact tangent: the direct method uses the factorization of the
+!! step's last Newton iteration, within the Newton tolerance of it). The states are those of
 !! every (sub-)step of the forward run, in order (its tape: a cut step's sub-steps too), with
 !! the step that led to each; the partials are given on the output grid. Nothing is printed;
 !! every allocation is checked.
@@ -26,9 +22,8 @@ module adjoint
     use model_data, only: mbs_model
     use assembly, only: iteration_matrix, mass_times, constraint_values, spring_times
     use sensitivity, only: stiffness_times, add_curvature_times
-    use iso_c_binding, only: c_ptr, c_null_ptr
     use linear_solver, only: linear_system, ls_init_dense, ls_init_sparse, ls_factor, &
-                             ls_solve, ls_free, ls_use_kept, SOLVER_KLU, LS_OK, LS_NO_MEMORY
+                             ls_solve, ls_free, SOLVER_KLU, LS_OK, LS_NO_MEMORY
     use generalized_alpha, only: ga_settings, ga_stats, ga_state, ga_coefficients, &
                                  static_equilibrium, mass_scale, diagonal_scale, GA_OK, &
                                  GA_SINGULAR, GA_NONFINITE, GA_BAD_INPUT, GA_LINEAR_SOLVER, &
@@ -47,10 +42,9 @@ contains
     !! to column c; grid(j + 1): the column of grid point j. gq (ndof, nf, nsteps + 1), gmu
     !! (>= nc, nf, nsteps + 1): dG_f/dq_j and dG_f/dmu_j on the grid. Out: grad(v, f) =
     !! dG_f/dp_v and gprop(:, e, f) = dG_f/dprop_e. status: GA_* codes; info = [time, 0, 0,
-    !! extra] on failure. fstore: the factor store the forward run filled (optional; reused
-    !! columns counted in nreused).
+    !! extra] on failure.
     subroutine ga_adjoint(m, s, ap, ai, q0, qd0, qt, qdt, qddt, mut, th, grid, gq, gmu, dprop, &
-                          grad, gprop, status, info, fstore, nreused)
+                          grad, gprop, status, info)
         type(mbs_model), intent(in) :: m
         type(ga_settings), intent(in) :: s
         integer, intent(in) :: ap(:), ai(:)
@@ -62,12 +56,6 @@ contains
         real(wp), intent(out) :: grad(:, :), gprop(:, :, :)
         integer, intent(out) :: status
         real(wp), intent(out) :: info(4)
-        type(c_ptr), intent(in), optional :: fstore
-        integer, intent(out), optional :: nreused
-        type(c_ptr) :: store
-        logical :: kept, exact
-        real(wp), allocatable :: zb(:, :)
-        integer :: nkept
         type(linear_system) :: ls
         real(wp), allocatable :: vals(:), fgrav(:), qb(:, :), qdb(:, :), qddb(:, :), ab(:, :)
         real(wp), allocatable :: apb(:, :), qhb(:, :), vhb(:, :), z(:, :), w(:, :), acc(:)
@@ -80,10 +68,6 @@ contains
         info = 0
         grad = 0
         gprop = 0
-        store = c_null_ptr
-        if (present(fstore)) store = fstore
-        nkept = 0
-        if (present(nreused)) nreused = 0
         nd = m%ndof
         nc = m%nc
         n = m%n
@@ -120,7 +104,7 @@ contains
         end if
         allocate (vals(m%nnz), fgrav(nd), qb(nd, nf), qdb(nd, nf), qddb(nd, nf), ab(nd, nf), &
                   apb(nd, nf), qhb(nd, nf), vhb(nd, nf), z(n, nf), w(nd, nf), acc(nd), &
-                  stiff(max(m%nel, 1)), mass(max(m%nel, 1)), gidx(ncol), zb(n, nf), stat=ierr)
+                  stiff(max(m%nel, 1)), mass(max(m%nel, 1)), gidx(ncol), stat=ierr)
         if (ierr /= 0) then
             status = GA_NO_MEMORY
             info = [0.0_wp, 8.0_wp * (m%nnz + nd * (9.0_wp * nf + 2) + n * nf), 0.0_wp, 5.0_wp]
@@ -166,25 +150,10 @@ contains
                 z(nd + 1:, :) = 0
                 if (gidx(j) > 0) z(nd + 1:, :) = kdyn * gmu(1:nc, :, gidx(j))
             end if
-            ! transposed solve with the iteration matrix at the converged state n + 1: the
-            ! factorization kept by the forward run, else assembled and factored here
-            call ls_use_kept(ls, store, j, kept, exact)
-            if (kept .and. exact) then
-                nkept = nkept + 1
-                call solve_only(t)
-            else if (kept) then
-                nkept = nkept + 1
-                call iteration_matrix(m, qt(:, j), qdt(:, j), mut(1:nc, j), t, betap, 1.0_wp, &
-                                      gammap, kdyn, pdyn, vals)
-                zb = z
-                call solve_only(t)
-                if (status /= GA_OK) goto 900
-                call refine(zb)
-            else
-                call iteration_matrix(m, qt(:, j), qdt(:, j), mut(1:nc, j), t, betap, 1.0_wp, &
-                                      gammap, kdyn, pdyn, vals)
-                call factor_solve(t)
-            end if
+            ! transposed solve with the iteration matrix at the converged state n + 1
+            call iteration_matrix(m, qt(:, j), qdt(:, j), mut(1:nc, j), t, betap, 1.0_wp, gammap, &
+                                  kdyn, pdyn, vals)
+            call factor_solve(t)
             if (status /= GA_OK) goto 900
             ! rhs = -dr/dp + beta' M Qhat + C_t (gamma' Qhat - Vhat)
             acc = qddt(:, j) - m%gacc
@@ -277,7 +246,6 @@ contains
 
 900     continue
         call ls_free(ls)
-        if (present(nreused)) nreused = nkept
 
     contains
 
@@ -296,41 +264,6 @@ contains
             end if
             call solve_only(tt)
         end subroutine factor_solve
-
-        !> One sweep of iterative refinement of the transposed solve held in z, whose right-
-        !! hand sides are b: z += S1^-T (b - S^T z), S = vals (the matrix of the converged
-        !! state), S1 the held factorization. b is overwritten.
-        subroutine refine(b)
-            real(wp), intent(inout) :: b(:, :)
-            integer :: c, k, ff
-            real(wp) :: acc1
-            if (s%solver == SOLVER_KLU) then
-                ! vals: CSC values of the pattern (ap, ai 0-based); (S^T z)_c = column c . z
-                do ff = 1, nf
-                    do c = 1, n
-                        acc1 = 0
-                        do k = ap(c) + 1, ap(c + 1)
-                            acc1 = acc1 + vals(k) * z(ai(k) + 1, ff)
-                        end do
-                        b(c, ff) = b(c, ff) - acc1
-                    end do
-                end do
-            else
-                ! dense, column-major n x n
-                do ff = 1, nf
-                    do c = 1, n
-                        b(c, ff) = b(c, ff) - dot_product(vals((c - 1) * n + 1:c * n), z(:, ff))
-                    end do
-                end do
-            end if
-            call ls_solve(ls, b, k, transposed=.true.)
-            if (k /= LS_OK) then
-                status = GA_NONFINITE
-                info = [t, 0.0_wp, 0.0_wp, real(k, wp)]
-                return
-            end if
-            z = z + b
-        end subroutine refine
 
         subroutine solve_only(tt)
             real(wp), intent(in) :: tt

@@ -117,9 +117,8 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
                     kscale, penalty, out_dofs, q_out, qd_out, qdd_out, mu_out, stats, status, info, &
                     nv, nva, nsens, dprop, sens_dofs, dq_out, &
                     nsd, nsda, sd_dofs, sd_prop, map_sd, want_dmu, ndmu, dmu_out, polish, &
-                    ntape, tape_q, tape_qd, tape_qdd, tape_mu, tape_h, tape_grid, ntape_used, &
-                    fstore)
-    use iso_c_binding, only: c_double, c_int, c_int64_t, c_ptr
+                    ntape, tape_q, tape_qd, tape_qdd, tape_mu, tape_h, tape_grid, ntape_used)
+    use iso_c_binding, only: c_double, c_int
     use model_data, only: mbs_model, model_from_arrays
     use generalized_alpha, only: ga_settings, ga_stats, ga_simulate, GA_NO_MEMORY, MEM_MODEL
     !f2py threadsafe
@@ -169,10 +168,6 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     real(c_double), intent(out) :: tape_mu(nca, ntape), tape_h(ntape)
     integer(c_int), intent(out) :: tape_grid(nsteps + 1)     !! column of every grid point
     integer(c_int), intent(out) :: ntape_used                !! columns used
-    !> a factor store (factor_store_create; 0: none): with the tape, the factorizations of the
-    !! steps are kept in it for the adjoint's backward pass (within its budget)
-    integer(c_int64_t), intent(in) :: fstore
-    type(c_ptr) :: fs
     integer :: tgrid(nsteps + 1), tused
     type(mbs_model) :: m
     type(ga_settings) :: s
@@ -183,7 +178,6 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     tape_q = 0; tape_qd = 0; tape_qdd = 0; tape_mu = 0; tape_h = 0; tape_grid = 0; ntape_used = 0
     tgrid = 0
     tused = 0
-    fs = transfer(fstore, fs)
     call model_from_arrays(m, int(ndof), int(nc), int(nel), int(nload), int(nlaw), int(nnz), &
                            qref, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
                            ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, &
@@ -203,17 +197,17 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
         call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
                          mu_out, st, stat, info, dprop(:, :, 1:nv), int(sens_dofs), dq_out(:, 1:nv, :), &
                          dmu_out(:, 1:nv, :), tape_q=tape_q, tape_qd=tape_qd, tape_qdd=tape_qdd, &
-                         tape_mu=tape_mu, tape_h=tape_h, tape_grid=tgrid, ntape=tused, fstore=fs)
+                         tape_mu=tape_mu, tape_h=tape_h, tape_grid=tgrid, ntape=tused)
     else if (nv > 0) then
         call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
                          mu_out, st, stat, info, dprop(:, :, 1:nv), int(sens_dofs), dq_out(:, 1:nv, :), &
                          tape_q=tape_q, tape_qd=tape_qd, tape_qdd=tape_qdd, tape_mu=tape_mu, &
-                         tape_h=tape_h, tape_grid=tgrid, ntape=tused, fstore=fs)
+                         tape_h=tape_h, tape_grid=tgrid, ntape=tused)
     else
         dq_out = 0
         call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
                          mu_out, st, stat, info, tape_q=tape_q, tape_qd=tape_qd, tape_qdd=tape_qdd, &
-                         tape_mu=tape_mu, tape_h=tape_h, tape_grid=tgrid, ntape=tused, fstore=fs)
+                         tape_mu=tape_mu, tape_h=tape_h, tape_grid=tgrid, ntape=tused)
     end if
     status = int(stat, c_int)
     tape_grid = int(tgrid, c_int)
@@ -237,8 +231,8 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
                    h, rho_inf, tol, max_iter, max_cuts, solver, static_start, kscale, penalty, &
                    nsd, nsda, sd_dofs, sd_prop, map_sd, &
                    ncol, qt, qdt, qddt, mut, th, grid, nf, gq, gmu, nv, dprop, grad, gprop, &
-                   status, info, fstore, nreused)
-    use iso_c_binding, only: c_double, c_int, c_int64_t, c_ptr
+                   status, info)
+    use iso_c_binding, only: c_double, c_int
     use model_data, only: mbs_model, model_from_arrays
     use generalized_alpha, only: ga_settings, GA_NO_MEMORY, MEM_MODEL
     use adjoint, only: ga_adjoint
@@ -279,16 +273,11 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
     real(c_double), intent(out) :: gprop(5, nela, nf)
     integer(c_int), intent(out) :: status
     real(c_double), intent(out) :: info(4)
-    !> the factor store of the forward run (0: none): its kept factorizations are solved with
-    integer(c_int64_t), intent(in) :: fstore
-    integer(c_int), intent(out) :: nreused                          !! columns that reused one
     type(mbs_model) :: m
     type(ga_settings) :: s
-    integer :: stat, nre
+    integer :: stat
     real(c_double) :: nbytes
-    type(c_ptr) :: fs
-    grad = 0; gprop = 0; info = 0; nreused = 0
-    fs = transfer(fstore, fs)
+    grad = 0; gprop = 0; info = 0
     call model_from_arrays(m, int(ndof), int(nc), int(nel), int(nload), int(nlaw), int(nnz), &
                            qref, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
                            ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, &
@@ -304,65 +293,9 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
                     max_cuts=int(max_cuts), solver=int(solver), static_start=static_start /= 0, &
                     kscale=kscale, penalty=penalty)
     call ga_adjoint(m, s, int(ap), int(ai), q0, qd0, qt, qdt, qddt, mut, th, int(grid), gq, gmu, &
-                    dprop(:, 1:max(nel, 0), :), grad, gprop(:, 1:max(nel, 0), :), stat, info, &
-                    fstore=fs, nreused=nre)
+                    dprop(:, 1:max(nel, 0), :), grad, gprop(:, 1:max(nel, 0), :), stat, info)
     status = int(stat, c_int)
-    nreused = int(nre, c_int)
 end subroutine simulate_adjoint
-
-!> A factor store (klu_shim.c) of ncol tape columns holding at most budget bytes of
-!! factorizations: handle (0: no memory). Owned by the caller, released by factor_store_free
-!! (flexmbs.adjoint.FactorStore does both).
-subroutine factor_store_create(ncol, budget, handle)
-    use iso_c_binding, only: c_int, c_double, c_int64_t, c_ptr
-    implicit none
-    integer(c_int), intent(in) :: ncol
-    real(c_double), intent(in) :: budget
-    integer(c_int64_t), intent(out) :: handle
-    interface
-        function fx_store_create(n, b) bind(c, name='fx_store_create')
-            import :: c_int, c_double, c_ptr
-            integer(c_int), value :: n
-            real(c_double), value :: b
-            type(c_ptr) :: fx_store_create
-        end function fx_store_create
-    end interface
-    handle = transfer(fx_store_create(ncol, budget), handle)
-end subroutine factor_store_create
-
-!> Release a factor store (a handle of factor_store_create; 0 or a freed one: nothing).
-subroutine factor_store_free(handle)
-    use iso_c_binding, only: c_int64_t, c_ptr
-    implicit none
-    integer(c_int64_t), intent(in) :: handle
-    interface
-        subroutine fx_store_free(p) bind(c, name='fx_store_free')
-            import :: c_ptr
-            type(c_ptr), value :: p
-        end subroutine fx_store_free
-    end interface
-    type(c_ptr) :: p
-    p = transfer(handle, p)
-    call fx_store_free(p)
-end subroutine factor_store_free
-
-!> [factorizations kept, bytes held, budget, columns] of a factor store.
-subroutine factor_store_info(handle, info)
-    use iso_c_binding, only: c_int64_t, c_ptr, c_double
-    implicit none
-    integer(c_int64_t), intent(in) :: handle
-    real(c_double), intent(out) :: info(4)
-    interface
-        subroutine fx_store_info(p, out) bind(c, name='fx_store_info')
-            import :: c_ptr, c_double
-            type(c_ptr), value :: p
-            real(c_double), intent(out) :: out(4)
-        end subroutine fx_store_info
-    end interface
-    type(c_ptr) :: p
-    p = transfer(handle, p)
-    call fx_store_info(p, info)
-end subroutine factor_store_info
 
 !> Element internal forces and tangent of one beam (for the tangent checker).
 subroutine beam_element(nen, elen, stiff, qref, qe, fe, ke)

@@ -18,10 +18,9 @@ module generalized_alpha
                         external_forces, constraint_values, spring_forces, spring_times
     use sensitivity, only: mass_design_derivative_times, stiffness_times, &
                            constraint_curvature, step_design_rhs
-    use iso_c_binding, only: c_ptr, c_associated
     use linear_solver, only: linear_system, ls_init_dense, ls_init_sparse, ls_factor, &
                              ls_solve, ls_free, dense_bytes, SOLVER_DENSE, SOLVER_KLU, LS_OK, &
-                             LS_NO_MEMORY, ls_keep, store_reset
+                             LS_NO_MEMORY
     implicit none
     private
     public :: ga_settings, ga_stats, ga_simulate, ga_coefficients
@@ -77,14 +76,6 @@ module generalized_alpha
     !> scaled increment at the rounding level of the coordinates (~45 epsilon): accepted
     !! whatever the contraction, whose estimate is noise there
     real(wp), parameter :: round_floor = 1.0e-14_wp
-    !> a factorization kept for the adjoint (fstore) counts as the converged state's own when
-    !! the step's last scaled increment is at most this: only when it vanished. Else the
-    !! backward pass refines its solve with the matrix of the converged state (adjoint.f90):
-    !! on the robot of the paper (KS deviation) the last increments, 1e-15 to 1e-11, left
-    !! between the two matrices changed the adjoint gradient by 1.2e-8 relative without
-    !! refinement, and by 8e-11 when those up to the rounding level (1e-14) were used as they
-    !! are; refined, 1e-11 (rounding)
-    real(wp), parameter :: keep_floor = 0.0_wp
 
     ! what was being allocated when GA_NO_MEMORY is returned (info(4))
     integer, parameter :: MEM_MATRIX = 1       !! iteration matrix values (nnz) and load vector
@@ -216,14 +207,9 @@ contains
     !! tape_q, tape_qd, tape_qdd (ndof, :), tape_mu (>= nc, :), tape_h (the step that led
     !! to the column; 0 for the initial state), tape_grid(j+1) = column of grid point j,
     !! ntape = columns used. GA_TAPE_FULL when the sub-steps need more columns.
-    !! With a factor store `fstore` (klu_shim.c, owned by the caller; taping only): the
-    !! factorization of every step whose last Newton iteration factored (with polish, every
-    !! step but those converged in a first, modified, iteration) is kept for the tape column,
-    !! while the store's budget allows: the adjoint's backward pass solves with it instead of
-    !! assembling and factoring again (adjoint.f90).
     subroutine ga_simulate(m, s, ap, ai, q0, qd0, out_dofs, q_out, qd_out, qdd_out, mu_out, &
                            stats, status, info, dprop, sens_dofs, dq_out, dmu_out, &
-                           tape_q, tape_qd, tape_qdd, tape_mu, tape_h, tape_grid, ntape, fstore)
+                           tape_q, tape_qd, tape_qdd, tape_mu, tape_h, tape_grid, ntape)
         type(mbs_model), intent(in) :: m
         type(ga_settings), intent(in) :: s
         integer, intent(in) :: ap(:), ai(:)           !! CSC pattern (0-based), KLU only
@@ -242,10 +228,7 @@ contains
         real(wp), intent(inout), optional :: tape_mu(:, :), tape_h(:)
         integer, intent(inout), optional :: tape_grid(:)
         integer, intent(out), optional :: ntape
-        type(c_ptr), intent(in), optional :: fstore
-        logical :: taping, keeping, kept
-        !> scaled size of the last Newton increment of the step just converged
-        real(wp) :: last_err
+        logical :: taping
         integer :: ptr, ptr0
         type(linear_system) :: ls
         type(ga_state) :: x, xsave
@@ -271,10 +254,6 @@ contains
         if (taping) taping = size(tape_h) >= s%nsteps + 1
         ptr = 0
         if (present(ntape)) ntape = 0
-        keeping = .false.
-        last_err = huge(1.0_wp)
-        if (taping .and. present(fstore)) keeping = c_associated(fstore)
-        if (keeping) call store_reset(fstore)
         if (.not. (s%h > 0) .or. s%rho_inf < 0 .or. s%rho_inf > 1 .or. s%nsteps < 0 .or. &
             s%newton < NEWTON_FULL .or. s%newton > NEWTON_AUTO) then
             status = GA_BAD_INPUT
@@ -386,9 +365,6 @@ contains
                     if (st /= GA_OK) exit
                     if (taping) call tape_store(hs, st)
                     if (st /= GA_OK) exit
-                    ! a column re-filled after a failed attempt drops what it held
-                    if (keeping) call ls_keep(ls, fstore, ptr, last_err <= keep_floor, kept, &
-                                              drop=.not. fact_exact)
                 end do
                 if (st == GA_OK .or. st == GA_NO_MEMORY .or. st == GA_TAPE_FULL) exit
                 ! failure: restore the state at t_j; automatic: retry the step with full
@@ -591,7 +567,6 @@ contains
                         if (rate / (1 - rate) * err <= max(s%tol**2, auto_floor)) stat = GA_OK
                     end if
                     if (stat == GA_OK) then
-                        last_err = err
                         fact_exact = fresh
                         vals_exact = assemble
                         stale = auto_step .and. it >= auto_stale .and. .not. fresh

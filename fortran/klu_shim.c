@@ -26,43 +26,7 @@ typedef struct {
     klu_common common;
     klu_symbolic *symbolic;
     klu_numeric *numeric;
-    klu_numeric *active;  /* a kept factorization (fx_store_use) the solves use, else NULL */
-    void *active_work;    /* the store's workspace for it */
 } fx_klu;
-
-/*
- * Factor store: the factorizations a forward run keeps for the adjoint's backward pass (one
- * per tape column, where it fits a byte budget), owned by the caller (Python: an integer
- * handle wrapped in an object that frees it; flexmbs.adjoint.FactorStore). Columns without a
- * kept factorization are refactored by the backward pass. Dense: LU values and pivots; KLU: a
- * deep copy of the numeric object (its structure and values; the solve workspace is the
- * store's), valid with the symbolic analysis recorded at the first put (checked at use).
- */
-#define FX_STORE_MAGIC 0x46584653  /* "FXFS" */
-
-typedef struct {
-    int kind;             /* 1 dense, 2 KLU */
-    void *lu;             /* dense: n*n doubles; KLU: klu_numeric * (deep copy) */
-    int *ipiv;            /* dense pivots */
-    int exact;            /* 1: the matrix of the converged state (to rounding), 0: of the
-                             last Newton iterate (within the tolerance of it) */
-    double bytes;
-} fx_entry;
-
-typedef struct {
-    int magic;
-    int ncol;
-    int n;                /* order of the factored matrices (0: none put yet) */
-    double budget;        /* bytes allowed */
-    double used;          /* bytes held */
-    int kept;             /* entries held */
-    fx_entry *e;          /* ncol entries */
-    /* KLU: the symbolic analysis the numerics belong to */
-    int nblocks;
-    int *Q, *R;
-    void *work;           /* solve workspace shared by the kept numerics */
-    size_t worksize;
-} fx_store;
 
 static int map_status(const klu_common *c)
 {
@@ -117,7 +81,6 @@ int fx_klu_factor(void *handle, const double *ax)
     fx_klu *h = (fx_klu *) handle;
     int k;
     if (h == NULL) return 3;
-    h->active = NULL;
     for (k = 0; k < h->nnz; ++k) {
         if (!isfinite(ax[k])) return 4;
     }
@@ -139,27 +102,12 @@ int fx_klu_factor(void *handle, const double *ax)
     return 0;
 }
 
-/* The numeric object the solves use: a kept one (fx_store_use) or the handle's own. */
-static klu_numeric *solve_numeric(fx_klu *h)
-{
-    if (h->active != NULL) {
-        h->active->Work = h->active_work;
-        h->active->Xwork = h->active_work;
-        h->active->Iwork = (int *) h->active_work;
-        return h->active;
-    }
-    return h->numeric;
-}
-
 /* Solve A x = b in place for nrhs right-hand sides stored column by column (leading dim n). */
 int fx_klu_solve(void *handle, double *b, int nrhs)
 {
     fx_klu *h = (fx_klu *) handle;
-    klu_numeric *num;
-    if (h == NULL) return 3;
-    num = solve_numeric(h);
-    if (num == NULL) return 3;
-    if (!klu_solve(h->symbolic, num, h->n, nrhs, b, &h->common)) {
+    if (h == NULL || h->numeric == NULL) return 3;
+    if (!klu_solve(h->symbolic, h->numeric, h->n, nrhs, b, &h->common)) {
         int s = map_status(&h->common);
         return s == 0 ? 3 : s;
     }
@@ -170,11 +118,8 @@ int fx_klu_solve(void *handle, double *b, int nrhs)
 int fx_klu_tsolve(void *handle, double *b, int nrhs)
 {
     fx_klu *h = (fx_klu *) handle;
-    klu_numeric *num;
-    if (h == NULL) return 3;
-    num = solve_numeric(h);
-    if (num == NULL) return 3;
-    if (!klu_tsolve(h->symbolic, num, h->n, nrhs, b, &h->common)) {
+    if (h == NULL || h->numeric == NULL) return 3;
+    if (!klu_tsolve(h->symbolic, h->numeric, h->n, nrhs, b, &h->common)) {
         int s = map_status(&h->common);
         return s == 0 ? 3 : s;
     }
@@ -191,267 +136,6 @@ void fx_klu_free(void *handle)
     free(h->ap);
     free(h->ai);
     free(h);
-}
-
-/* ---- factor store ----------------------------------------------------------------- */
-
-static fx_store *store_of(void *p)
-{
-    fx_store *s = (fx_store *) p;
-    return (s != NULL && s->magic == FX_STORE_MAGIC) ? s : NULL;
-}
-
-static void free_numeric_copy(klu_numeric *c)
-{
-    int b;
-    if (c == NULL) return;
-    free(c->Pnum); free(c->Pinv); free(c->Lip); free(c->Uip); free(c->Llen); free(c->Ulen);
-    if (c->LUbx != NULL) {
-        for (b = 0; b < c->nblocks; ++b) free(c->LUbx[b]);
-    }
-    free(c->LUbx); free(c->LUsize); free(c->Udiag); free(c->Rs);
-    free(c->Offp); free(c->Offi); free(c->Offx);
-    free(c);
-}
-
-static void entry_clear(fx_store *s, int col)
-{
-    fx_entry *e = &s->e[col];
-    if (e->kind == 1) {
-        free(e->lu);
-        free(e->ipiv);
-    } else if (e->kind == 2) {
-        free_numeric_copy((klu_numeric *) e->lu);
-    }
-    if (e->kind != 0) {
-        s->used -= e->bytes;
-        s->kept -= 1;
-    }
-    e->kind = 0;
-    e->exact = 0;
-    e->lu = NULL;
-    e->ipiv = NULL;
-    e->bytes = 0;
-}
-
-/* A store of ncol (>= 1) columns holding at most budget bytes of factors; NULL: no memory. */
-void *fx_store_create(int ncol, double budget)
-{
-    fx_store *s;
-    if (ncol < 1) return NULL;
-    s = (fx_store *) calloc(1, sizeof(fx_store));
-    if (s == NULL) return NULL;
-    s->e = (fx_entry *) calloc((size_t) ncol, sizeof(fx_entry));
-    if (s->e == NULL) { free(s); return NULL; }
-    s->magic = FX_STORE_MAGIC;
-    s->ncol = ncol;
-    s->budget = budget;
-    return (void *) s;
-}
-
-/* Drop what column col (0-based) holds. */
-void fx_store_drop(void *p, int col)
-{
-    fx_store *s = store_of(p);
-    if (s == NULL || col < 0 || col >= s->ncol) return;
-    entry_clear(s, col);
-}
-
-/* Drop every kept factorization (a new forward run). */
-void fx_store_reset(void *p)
-{
-    fx_store *s = store_of(p);
-    int k;
-    if (s == NULL) return;
-    for (k = 0; k < s->ncol; ++k) entry_clear(s, k);
-    free(s->Q); free(s->R); free(s->work);
-    s->Q = s->R = NULL;
-    s->work = NULL;
-    s->worksize = 0;
-    s->n = 0;
-    s->nblocks = 0;
-    s->used = 0;
-    s->kept = 0;
-}
-
-void fx_store_free(void *p)
-{
-    fx_store *s = store_of(p);
-    if (s == NULL) return;
-    fx_store_reset(p);
-    free(s->e);
-    s->magic = 0;
-    free(s);
-}
-
-/* [entries kept, bytes held, budget, columns] */
-void fx_store_info(void *p, double *out)
-{
-    fx_store *s = store_of(p);
-    out[0] = out[1] = out[2] = out[3] = 0;
-    if (s == NULL) return;
-    out[0] = s->kept;
-    out[1] = s->used;
-    out[2] = s->budget;
-    out[3] = s->ncol;
-}
-
-/* Whether column col (0-based) holds a factorization of order n and kind. */
-int fx_store_has(void *p, int col, int kind, int n)
-{
-    fx_store *s = store_of(p);
-    if (s == NULL || col < 0 || col >= s->ncol || s->n != n) return 0;
-    return s->e[col].kind == kind;
-}
-
-/* Keep a dense LU (n x n, column-major) and its pivots in column col (exact: see fx_entry).
- * 0: kept, 1: no room. */
-int fx_store_put_dense(void *p, int col, int n, const double *lu, const int *ipiv, int exact)
-{
-    fx_store *s = store_of(p);
-    double bytes = 8.0 * (double) n * n + 4.0 * n;
-    fx_entry *e;
-    if (s == NULL || col < 0 || col >= s->ncol) return 1;
-    entry_clear(s, col);
-    if (s->n != 0 && s->n != n) return 1;
-    if (s->used + bytes > s->budget) return 1;
-    e = &s->e[col];
-    e->lu = malloc(sizeof(double) * (size_t) n * (size_t) n);
-    e->ipiv = (int *) malloc(sizeof(int) * (size_t) n);
-    if (e->lu == NULL || e->ipiv == NULL) {
-        free(e->lu); free(e->ipiv);
-        e->lu = NULL; e->ipiv = NULL;
-        return 1;
-    }
-    memcpy(e->lu, lu, sizeof(double) * (size_t) n * (size_t) n);
-    memcpy(e->ipiv, ipiv, sizeof(int) * (size_t) n);
-    e->kind = 1;
-    e->exact = exact;
-    e->bytes = bytes;
-    s->n = n;
-    s->used += bytes;
-    s->kept += 1;
-    return 0;
-}
-
-/* Copy the dense LU and pivots of column col back. -1: none kept there; else its exact flag. */
-int fx_store_get_dense(void *p, int col, int n, double *lu, int *ipiv)
-{
-    fx_store *s = store_of(p);
-    if (!fx_store_has(p, col, 1, n)) return -1;
-    memcpy(lu, s->e[col].lu, sizeof(double) * (size_t) n * (size_t) n);
-    memcpy(ipiv, s->e[col].ipiv, sizeof(int) * (size_t) n);
-    return s->e[col].exact;
-}
-
-static void *dup(const void *src, size_t bytes)
-{
-    void *d;
-    if (src == NULL) return NULL;
-    d = malloc(bytes > 0 ? bytes : 1);
-    if (d != NULL) memcpy(d, src, bytes);
-    return d;
-}
-
-/* Keep a deep copy of the handle's current KLU factorization in column col (exact: see
- * fx_entry). 0: kept, 1: no room (budget or memory) or no factorization held. */
-int fx_klu_keep(void *handle, void *p, int col, int exact)
-{
-    fx_klu *h = (fx_klu *) handle;
-    fx_store *s = store_of(p);
-    klu_numeric *a, *c;
-    double bytes;
-    size_t n, nb, units = 0;
-    int b, nzoff;
-    if (h == NULL || s == NULL || h->numeric == NULL || col < 0 || col >= s->ncol) return 1;
-    entry_clear(s, col);
-    a = h->numeric;
-    n = (size_t) a->n;
-    nb = (size_t) a->nblocks;
-    nzoff = a->nzoff;
-    /* LUsize is set only for the blocks with factors (not for 1 x 1 blocks) */
-    for (b = 0; b < a->nblocks; ++b) if (a->LUbx[b] != NULL) units += a->LUsize[b];
-    bytes = 8.0 * units + 4.0 * (6.0 * n + (n + 1) + nzoff) + 8.0 * (2.0 * n + nzoff)
-            + 16.0 * nb + sizeof(klu_numeric);
-    if (s->n != 0 && s->n != h->n) return 1;
-    if (s->used + bytes > s->budget) return 1;
-    if (s->Q == NULL) {
-        /* the symbolic analysis these numerics belong to (checked by fx_store_use) */
-        s->Q = (int *) dup(h->symbolic->Q, sizeof(int) * n);
-        s->R = (int *) dup(h->symbolic->R, sizeof(int) * (nb + 1));
-        if (s->Q == NULL || s->R == NULL) {
-            free(s->Q); free(s->R); s->Q = s->R = NULL;
-            return 1;
-        }
-        s->nblocks = h->symbolic->nblocks;
-    }
-    if (a->worksize > s->worksize) {
-        void *w = realloc(s->work, a->worksize);
-        if (w == NULL) return 1;
-        s->work = w;
-        s->worksize = a->worksize;
-    }
-    c = (klu_numeric *) calloc(1, sizeof(klu_numeric));
-    if (c == NULL) return 1;
-    *c = *a;
-    c->Pnum = c->Pinv = c->Lip = c->Uip = c->Llen = c->Ulen = NULL;
-    c->LUbx = NULL; c->LUsize = NULL; c->Udiag = NULL; c->Rs = NULL;
-    c->Offp = c->Offi = NULL; c->Offx = NULL;
-    c->Work = c->Xwork = NULL; c->Iwork = NULL;
-    c->worksize = 0;
-    c->Pnum = (int *) dup(a->Pnum, sizeof(int) * n);
-    c->Pinv = (int *) dup(a->Pinv, sizeof(int) * n);
-    c->Lip = (int *) dup(a->Lip, sizeof(int) * n);
-    c->Uip = (int *) dup(a->Uip, sizeof(int) * n);
-    c->Llen = (int *) dup(a->Llen, sizeof(int) * n);
-    c->Ulen = (int *) dup(a->Ulen, sizeof(int) * n);
-    c->LUsize = (size_t *) dup(a->LUsize, sizeof(size_t) * nb);
-    c->LUbx = (void **) calloc(nb > 0 ? nb : 1, sizeof(void *));
-    c->Udiag = dup(a->Udiag, sizeof(double) * n);
-    c->Rs = (double *) dup(a->Rs, sizeof(double) * n);
-    c->Offp = (int *) dup(a->Offp, sizeof(int) * (n + 1));
-    c->Offi = (int *) dup(a->Offi, sizeof(int) * (size_t) nzoff);
-    c->Offx = dup(a->Offx, sizeof(double) * (size_t) nzoff);
-    if (c->Pnum == NULL || c->Pinv == NULL || c->Lip == NULL || c->Uip == NULL
-        || c->Llen == NULL || c->Ulen == NULL || c->LUsize == NULL || c->LUbx == NULL
-        || c->Udiag == NULL || (a->Rs != NULL && c->Rs == NULL) || c->Offp == NULL
-        || c->Offi == NULL || c->Offx == NULL) {
-        free_numeric_copy(c);
-        return 1;
-    }
-    for (b = 0; b < a->nblocks; ++b) {
-        if (a->LUbx[b] == NULL) continue;
-        c->LUbx[b] = dup(a->LUbx[b], 8 * a->LUsize[b]);
-        if (c->LUbx[b] == NULL) {
-            free_numeric_copy(c);
-            return 1;
-        }
-    }
-    s->e[col].kind = 2;
-    s->e[col].exact = exact;
-    s->e[col].lu = (void *) c;
-    s->e[col].bytes = bytes;
-    s->n = h->n;
-    s->used += bytes;
-    s->kept += 1;
-    return 0;
-}
-
-/* Make the handle's solves use the factorization kept in column col (until the next
- * fx_klu_factor). -1: none kept there, or kept with another symbolic analysis; else its
- * exact flag. */
-int fx_klu_use(void *handle, void *p, int col)
-{
-    fx_klu *h = (fx_klu *) handle;
-    fx_store *s = store_of(p);
-    int k;
-    if (h == NULL || s == NULL || !fx_store_has(p, col, 2, h->n)) return -1;
-    if (s->nblocks != h->symbolic->nblocks) return -1;
-    for (k = 0; k < h->n; ++k) if (s->Q[k] != h->symbolic->Q[k]) return -1;
-    for (k = 0; k <= s->nblocks; ++k) if (s->R[k] != h->symbolic->R[k]) return -1;
-    h->active = (klu_numeric *) s->e[col].lu;
-    h->active_work = s->work;
-    return s->e[col].exact;
 }
 
 #ifdef FLEXMBS_HAVE_OPENBLAS

@@ -12,8 +12,6 @@ module linear_solver
     implicit none
     private
     public :: linear_system, ls_init_dense, ls_init_sparse, ls_factor, ls_solve, ls_free, dense_bytes
-    ! factorizations kept for the adjoint's backward pass (a store owned by the caller, klu_shim.c)
-    public :: ls_keep, ls_use_kept, store_reset
     public :: SOLVER_DENSE, SOLVER_KLU
     public :: LS_OK, LS_SINGULAR, LS_NO_MEMORY, LS_INVALID, LS_NONFINITE
 
@@ -72,43 +70,6 @@ module linear_solver
             import :: c_ptr
             type(c_ptr), value :: h
         end subroutine fx_klu_free
-        function fx_klu_keep(h, store, col, exact) bind(c, name='fx_klu_keep')
-            import :: c_ptr, c_int
-            type(c_ptr), value :: h, store
-            integer(c_int), value :: col, exact
-            integer(c_int) :: fx_klu_keep
-        end function fx_klu_keep
-        function fx_klu_use(h, store, col) bind(c, name='fx_klu_use')
-            import :: c_ptr, c_int
-            type(c_ptr), value :: h, store
-            integer(c_int), value :: col
-            integer(c_int) :: fx_klu_use
-        end function fx_klu_use
-        function fx_store_put_dense(store, col, n, lu, ipiv, exact) bind(c, name='fx_store_put_dense')
-            import :: c_ptr, c_int, c_double
-            type(c_ptr), value :: store
-            integer(c_int), value :: col, n, exact
-            real(c_double), intent(in) :: lu(*)
-            integer(c_int), intent(in) :: ipiv(*)
-            integer(c_int) :: fx_store_put_dense
-        end function fx_store_put_dense
-        function fx_store_get_dense(store, col, n, lu, ipiv) bind(c, name='fx_store_get_dense')
-            import :: c_ptr, c_int, c_double
-            type(c_ptr), value :: store
-            integer(c_int), value :: col, n
-            real(c_double), intent(inout) :: lu(*)
-            integer(c_int), intent(inout) :: ipiv(*)
-            integer(c_int) :: fx_store_get_dense
-        end function fx_store_get_dense
-        subroutine fx_store_drop(store, col) bind(c, name='fx_store_drop')
-            import :: c_ptr, c_int
-            type(c_ptr), value :: store
-            integer(c_int), value :: col
-        end subroutine fx_store_drop
-        subroutine fx_store_reset(store) bind(c, name='fx_store_reset')
-            import :: c_ptr
-            type(c_ptr), value :: store
-        end subroutine fx_store_reset
     end interface
 
 contains
@@ -243,71 +204,6 @@ contains
             if (.not. all(abs(b) <= huge(1.0_wp))) status = LS_NONFINITE
         end if
     end subroutine ls_solve
-
-    !> Keep a copy of the held factorization in column col (1-based) of the factor store
-    !! (klu_shim.c: owned by the caller; a full store keeps nothing). kept: whether it did.
-    !! drop = .true.: only drop what the column held. exact: the factored matrix is that of the
-    !! state the column holds (to rounding), else of a Newton iterate within the tolerance.
-    subroutine ls_keep(ls, store, col, exact, kept, drop)
-        type(linear_system), intent(inout) :: ls
-        type(c_ptr), intent(in) :: store
-        integer, intent(in) :: col
-        logical, intent(in) :: exact
-        logical, intent(out) :: kept
-        logical, intent(in), optional :: drop
-        integer(c_int) :: ex
-        kept = .false.
-        ex = merge(1_c_int, 0_c_int, exact)
-        if (.not. c_associated(store)) return
-        if (present(drop)) then
-            if (drop) then
-                call fx_store_drop(store, int(col - 1, c_int))
-                return
-            end if
-        end if
-        if (.not. ls%factored) then
-            call fx_store_drop(store, int(col - 1, c_int))
-            return
-        end if
-        select case (ls%kind)
-        case (SOLVER_DENSE)
-            kept = fx_store_put_dense(store, int(col - 1, c_int), int(ls%n, c_int), ls%lu, &
-                                      int(ls%ipiv, c_int), ex) == 0
-        case (SOLVER_KLU)
-            kept = fx_klu_keep(ls%klu, store, int(col - 1, c_int), ex) == 0
-        end select
-    end subroutine ls_keep
-
-    !> Take the factorization kept in column col of the store as the held one (solves use it
-    !! until the next ls_factor). ok: whether one of this system's kind and order was there;
-    !! exact: its flag (ls_keep).
-    subroutine ls_use_kept(ls, store, col, ok, exact)
-        type(linear_system), intent(inout) :: ls
-        type(c_ptr), intent(in) :: store
-        integer, intent(in) :: col
-        logical, intent(out) :: ok, exact
-        integer(c_int) :: piv(max(ls%n, 1)), r
-        ok = .false.
-        exact = .false.
-        if (.not. c_associated(store)) return
-        r = -1
-        select case (ls%kind)
-        case (SOLVER_DENSE)
-            r = fx_store_get_dense(store, int(col - 1, c_int), int(ls%n, c_int), ls%lu, piv)
-            if (r >= 0) ls%ipiv = int(piv(1:ls%n))
-        case (SOLVER_KLU)
-            r = fx_klu_use(ls%klu, store, int(col - 1, c_int))
-        end select
-        ok = r >= 0
-        exact = r == 1
-        if (ok) ls%factored = .true.
-    end subroutine ls_use_kept
-
-    !> Drop every factorization a store holds (the start of a forward run that fills it).
-    subroutine store_reset(store)
-        type(c_ptr), intent(in) :: store
-        if (c_associated(store)) call fx_store_reset(store)
-    end subroutine store_reset
 
     !> Release the factorization and the KLU handle.
     subroutine ls_free(ls)

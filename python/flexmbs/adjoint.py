@@ -33,11 +33,9 @@ from flexmbs.errors import ModelError, ResourceError, SimulationError
 from flexmbs.model import Model
 from flexmbs.resources import format_bytes, limit_source
 from flexmbs.resources import memory_limit as _memory_limit
-from flexmbs.simulate import (FactorStore, Result, factor_bytes, memory_estimate, simulate,
-                              tape_columns, time_steps)
+from flexmbs.simulate import Result, simulate
 
-__all__ = ["adjoint_gradient", "simulate_for_adjoint", "adjoint_memory", "check_adjoint_memory",
-           "FactorStore", "factor_store_for", "factor_bytes"]
+__all__ = ["adjoint_gradient", "simulate_for_adjoint", "adjoint_memory", "check_adjoint_memory"]
 
 _SOLVERS = {"dense": 1, "klu": 2}
 
@@ -62,35 +60,18 @@ def check_adjoint_memory(ndof, nc, nt, nf, nel=0, memory_limit=None):
                             required=need, available=avail)
 
 
-def factor_store_for(model, t_end, h=5e-4, *, reserve=0.0, memory_limit=None, **kwargs):
-    """A FactorStore for the adjoint's forward run of `model` (simulate's t_end, h, solver and
-    other keywords): as many columns as the tape, and a budget of what the memory limit
-    leaves beyond that run (its memory_estimate with the tape) and `reserve` bytes (the
-    backward pass's partials): the steps whose factorization does not fit are refactored by
-    the backward pass."""
-    est = memory_estimate(model, t_end, h, tape=True, **kwargs)
-    room = _memory_limit(memory_limit) - est.total - float(reserve)
-    return FactorStore(tape_columns(time_steps(t_end, h, float("inf"))), max(room, 0.0))
-
-
-def simulate_for_adjoint(model, t_end, h=5e-4, *, keep_factors=True, **kwargs):
+def simulate_for_adjoint(model, t_end, h=5e-4, **kwargs):
     """`simulate` keeping the tape of every converged (sub-)step (tape=True) with the states
     converged as full Newton's (polish=True: modified Newton's states, 1e-11 m off, made the
-    adjoint's gradients 2e-8 to 7e-7 off on the robot): the states the backward pass needs;
-    with keep_factors (default), also the factorization of every step's last (full) Newton
-    iteration, as far as the memory limit allows (`factor_store_for`; Result.tape['factors']):
-    the backward pass solves with them instead of assembling and factoring again.
+    adjoint's gradients 2e-8 to 7e-7 off on the robot): the states the backward pass needs.
     kwargs as `simulate` (not tape, polish, design_derivatives)."""
     for key in ("tape", "polish", "design_derivatives", "sensitivity_dofs",
-                "constraint_force_derivatives", "factor_store"):
+                "constraint_force_derivatives"):
         if key in kwargs:
             raise ModelError(f"simulate_for_adjoint: {key}= is not allowed (the adjoint keeps "
                              "every state, converges every step and needs no forward "
                              "derivatives)")
-    if not isinstance(keep_factors, (bool, np.bool_)):
-        raise ModelError(f"keep_factors must be True or False, got {keep_factors!r}")
-    store = factor_store_for(model, t_end, h, **kwargs) if keep_factors else None
-    return simulate(model, t_end, h, tape=True, polish=True, factor_store=store, **kwargs)
+    return simulate(model, t_end, h, tape=True, polish=True, **kwargs)
 
 
 def _seed(name, value, nt, rows, nf=None):
@@ -108,7 +89,7 @@ def _seed(name, value, nt, rows, nf=None):
 
 
 def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG_dmu=None, *,
-                     memory_limit=None, return_properties=False, reuse_factors=True):
+                     memory_limit=None, return_properties=False):
     """Design gradients of functionals of a simulation by the discrete adjoint.
 
     Parameters
@@ -128,10 +109,6 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
     memory_limit : as `simulate`'s.
     return_properties : bool
         Also return dG_f/d[EA, kGA, EI, rhoA, rhoI]_e, (5, nel, nf).
-    reuse_factors : bool, default True
-        Solve with the factorizations the forward run kept (result.tape['factors'], see
-        `simulate_for_adjoint`) where it kept one; False: assemble and factor every step's
-        iteration matrix again at its converged state.
 
     Returns
     -------
@@ -184,11 +161,7 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
     ncol = tape["h"].size
     mut = np.zeros((nca, ncol), order="F")
     mut[:cm.nc] = tape["mu"]
-    if not isinstance(reuse_factors, (bool, np.bool_)):
-        raise ModelError(f"reuse_factors must be True or False, got {reuse_factors!r}")
-    store = tape.get("factors") if reuse_factors else None
-    fhandle = store.handle if store is not None else 0
-    grad, gprop, status, info, nreused = _core.simulate_adjoint(
+    grad, gprop, status, info = _core.simulate_adjoint(
         **margs, nsteps=nt - 1, q0=np.asarray(st["q0"], float), qd0=np.asarray(st["qd0"], float),
         ap=pat["ap"], ai=pat["ai"], h=float(st["h"]), rho_inf=float(st["rho_inf"]),
         tol=float(st["tol"]), max_iter=int(st["max_iter"]), max_cuts=int(st["max_cuts"]),
@@ -197,8 +170,7 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
         ncol=ncol, qt=np.asfortranarray(tape["q"]), qdt=np.asfortranarray(tape["qd"]),
         qddt=np.asfortranarray(tape["qdd"]), mut=mut, th=np.asarray(tape["h"], float),
         grid=np.asarray(tape["grid"], np.int32), nf=nf, gq=gq_f, gmu=gmu_f,
-        nv=max(nv, 1), dprop=dprop_f, fstore=fhandle)
-    result.stats["adjoint_reused_factorizations"] = int(nreused)
+        nv=max(nv, 1), dprop=dprop_f)
     if status == 9:
         raise ResourceError(f"adjoint_gradient: an allocation failed in the core "
                             f"({format_bytes(info[1]) if info[1] > 0 else 'size unknown'})",

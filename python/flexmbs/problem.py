@@ -33,8 +33,7 @@ from flexmbs.responses.deviation import deviation, deviation_terms
 from flexmbs.responses.forces import constraint_force, joint_reaction
 from flexmbs.responses.stress import beam_stress
 from flexmbs.resources import format_bytes, limit_source, memory_limit
-from flexmbs.simulate import (FACTORS_PART, FactorStore, factor_bytes, memory_estimate, simulate,
-                              tape_columns)
+from flexmbs.simulate import memory_estimate, simulate
 
 __all__ = ["Problem", "Evaluation", "load_problem", "constraint_rows", "GRADIENT_METHODS"]
 
@@ -155,17 +154,7 @@ class Problem:
     gradient_method : {'direct', 'adjoint', 'auto'}, default 'direct'
         How `evaluate` computes gradients unless told otherwise (its `method`): what an
         optimizer calling evaluate(x, gradient=True) gets.
-
-    Attributes
-    ----------
-    keep_factors : bool, default True
-        The adjoint's forward run keeps every step's factorization for the backward pass, as
-        far as the memory limit leaves room (flexmbs.simulate.FactorStore); False: the
-        backward pass assembles and factors every step again.
     """
-
-    #: see the class docstring
-    keep_factors = True
 
     def __init__(self, case, overrides=None, gradient_method="direct"):
         self.description = _description(case, overrides)
@@ -245,7 +234,7 @@ class Problem:
         return model, mech.t_end, ts.h, kw
 
     def simulate(self, x=None, *, gradient=False, responses=None, store=None,
-                 differentiate=None, tape=False, factor_store=None):
+                 differentiate=None, tape=False):
         """Simulate design x (default: start); with gradient=True the design derivatives of
         the coordinates the responses need (all responses, or `responses`; or only those of
         the responses named in `differentiate`), and those of the constraint multipliers
@@ -255,11 +244,8 @@ class Problem:
         deviation responses, the nodes of stressed beams; one node when only motor torques or
         joint reactions are asked, which come from the multipliers); 'all' or a list of nodes
         as in `flexmbs.simulate`. tape=True: the discrete adjoint's forward run (every
-        (sub-)step's converged state kept, Newton converged fully: flexmbs.adjoint), with
-        factor_store (flexmbs.simulate.FactorStore) the steps' factorizations kept in it."""
+        (sub-)step's converged state kept, Newton converged fully: flexmbs.adjoint)."""
         model, t_end, h, kw = self._run(x, gradient, responses, store, differentiate, tape)
-        if factor_store is not None:
-            kw["factor_store"] = factor_store
         return simulate(model, t_end, h, **kw)
 
     def memory_estimate(self, x=None, gradient=True, *, responses=None, store=None,
@@ -283,10 +269,6 @@ class Problem:
             cm = model.compile()
             est.parts[ADJOINT_PART] = adjoint_memory(cm.ndof, cm.nc, self.mechanism.t.size,
                                                      self.gradient_functionals(), cm.nel)
-            # the factorizations the forward run keeps for the backward pass: as many as the
-            # limit leaves room for (the others are refactored), so not in the total
-            est.optional[FACTORS_PART] = factor_bytes(model, est.solver) * \
-                tape_columns(self.mechanism.t.size - 1)
             return est
         model, t_end, h, kw = self._run(x, bool(want), responses, store,
                                         [n for n in responses if n in want])
@@ -525,12 +507,11 @@ class Problem:
     def _check_adjoint_memory(self, x, timed):
         """ResourceError, naming what to change, when the adjoint's forward run (its tape)
         and backward pass (the per-step partials) together exceed the memory limit
-        (flexmbs.resources.memory_limit: FLEXMBS_MEMORY_LIMIT, else the memory available).
-        Returns the bytes left for the factorizations kept for the backward pass."""
+        (flexmbs.resources.memory_limit: FLEXMBS_MEMORY_LIMIT, else the memory available)."""
         est = self.memory_estimate(x, True, responses=timed, method="adjoint")
         need, avail = est.total, memory_limit()
         if need <= avail:
-            return avail - need
+            return
         nt, nf = self.mechanism.t.size, self.gradient_functionals()
         raise ResourceError(
             f"evaluate(method='adjoint'): the tape of every state and the per-step partials of "
@@ -549,29 +530,17 @@ class Problem:
         differentiated coordinate and constraint row (dq, dmu identities) and the real ones
         (explicit dependences, e.g. a stress's section depth): their gradients (nt, V) are
         the per-step partials. The aggregation weights of each row over time come from
-        constraint_weights; weights times partials are the adjoint's right-hand sides
-        (flexmbs.adjoint.adjoint_gradient). The forward run keeps its factorizations for the
-        backward pass as far as the memory limit leaves room (keep_factors)."""
-        mech = self.mechanism
-        room = self._check_adjoint_memory(x, timed)
-        model = mech.set_design(x)
-        cm = model.compile()
-        store = FactorStore(tape_columns(mech.t.size - 1), room) if self.keep_factors else None
-        try:
-            return self._adjoint_evaluation(x, timed, t0, model, cm, store)
-        finally:
-            if store is not None:
-                store.free()
-
-    def _adjoint_evaluation(self, x, timed, t0, model, cm, store):
-        """The body of `_evaluate_adjoint` (its forward run fills `store`)."""
+        constraint_rows with identity gradients; weights times partials are the adjoint's
+        right-hand sides (flexmbs.adjoint.adjoint_gradient)."""
         from dataclasses import replace
 
         from flexmbs.adjoint import adjoint_gradient
 
         mech = self.mechanism
-        result = self.simulate(x, gradient=False, responses=timed, tape=True,
-                               factor_store=store)
+        self._check_adjoint_memory(x, timed)
+        model = mech.set_design(x)
+        cm = model.compile()
+        result = self.simulate(x, gradient=False, responses=timed, tape=True)
         nodes = self._nodes_needed(timed)
         sdofs = np.array([3 * n + k for n in (nodes or [0]) for k in range(3)])
         t = mech.t

@@ -135,9 +135,6 @@ class MemoryEstimate:
     solver: str = "klu"
     stack: float = 0.0
     seconds: float = 0.0      #: rough run time (see `estimate_memory`)
-    #: parts used only as far as the memory limit leaves room (not in `total`): the
-    #: factorizations the adjoint's forward run keeps (flexmbs.simulate.FACTORS_PART)
-    optional: dict = field(default_factory=dict)
 
     @property
     def total(self):

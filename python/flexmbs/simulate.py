@@ -4,7 +4,6 @@ from __future__ import annotations
 import math
 import time
 import warnings
-import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -19,8 +18,7 @@ from flexmbs.resources import memory_limit as _memory_limit
 from flexmbs.validity import ValidityLimits, apply_validity, check_result, diagnose_failure
 
 __all__ = ["simulate", "Result", "DENSE_MAX_UNKNOWNS", "NEWTON_MODES", "time_grid", "time_steps",
-           "system_matrices", "core_model_args", "newton_mode", "stored_dofs", "memory_estimate",
-           "FactorStore", "factor_bytes", "tape_columns"]
+           "system_matrices", "core_model_args", "newton_mode", "stored_dofs", "memory_estimate"]
 
 #: Largest system solved with dense LU when solver="auto" (KLU above). benchmarks/scaling.py
 #: measured KLU faster than LAPACK's dense LU at every size from 18 unknowns up (1.5x at 18,
@@ -97,8 +95,7 @@ class Result:
     dmu : with constraint_force_derivatives=True: d(mu)/dp (nt, nc, nv) of every constraint row.
     tape : with tape=True: every converged (sub-)step's state for the discrete adjoint, a dict
         of q, qd, qdd (ndof, ncol), mu (nc, ncol), h (ncol,) (the step that led to the column)
-        and grid (nt,) (the 1-based column of every time point); with factor_store=, also
-        factors: the FactorStore holding the steps' factorizations.
+        and grid (nt,) (the 1-based column of every time point).
     """
     t: np.ndarray
     q: np.ndarray
@@ -317,55 +314,6 @@ def stored_dofs(model, store="all"):
 
 #: The part of a MemoryEstimate holding the adjoint's tape (simulate(tape=True)).
 TAPE_PART = "tape of every (sub-)step (adjoint)"
-#: The part of a MemoryEstimate holding the factorizations kept for the adjoint's backward pass
-#: (simulate(factor_store=...)): optional, kept as far as the memory limit allows.
-FACTORS_PART = "factorizations kept for the backward pass (adjoint)"
-
-
-def factor_bytes(model, solver="klu"):
-    """Bytes of one kept factorization of the iteration matrix (a FactorStore column): dense,
-    the LU values and pivots (8 n^2 + 4 n); KLU, an estimate from the pattern (its L and U,
-    measured at 2.0 to 2.6 times the matrix's nonzeros on the beam models, with their row
-    indices, 12 bytes each, and 7 vectors of n)."""
-    n = model.ndof + len(model._rows)
-    if solver == "dense":
-        return 8.0 * n * n + 4.0 * n
-    nnz = model.pattern("klu")["ap"][-1]
-    return 12.0 * 2.6 * nnz + 44.0 * n + 256.0
-
-
-class FactorStore:
-    """Factorizations a forward run keeps for the adjoint's backward pass, one per tape
-    column (the iteration matrix of the step's last Newton iteration), as far as `budget`
-    bytes allow (the backward pass assembles and factors the others again). Memory outside
-    Python (the core's), released by `free()` or when the object is collected.
-    `simulate(..., tape=True, factor_store=...)` fills it, `flexmbs.adjoint.adjoint_gradient`
-    uses it."""
-
-    def __init__(self, columns, budget):
-        if isinstance(columns, bool) or not isinstance(columns, (int, np.integer)) or columns < 1:
-            raise ModelError(f"FactorStore: columns must be an integer >= 1, got {columns!r}")
-        budget = _numeric_array("budget", budget)
-        if budget.ndim != 0 or not budget >= 0:
-            raise ModelError(f"FactorStore: budget must be a number of bytes >= 0, got {budget!r}")
-        self.columns = int(columns)
-        self.budget = float(min(budget, 1e18))
-        self.handle = int(_core.factor_store_create(self.columns, self.budget))
-        if self.handle == 0:
-            raise ResourceError("FactorStore: could not allocate its table", required=None)
-        self._finalizer = weakref.finalize(self, _core.factor_store_free, self.handle)
-
-    def free(self):
-        """Release every kept factorization (the store is empty and unusable afterwards)."""
-        self._finalizer()
-        self.handle = 0
-
-    def info(self):
-        """dict(kept=factorizations held, bytes=their size, budget=..., columns=...)."""
-        if not self.handle:
-            return dict(kept=0, bytes=0.0, budget=self.budget, columns=self.columns)
-        v = _core.factor_store_info(self.handle)
-        return dict(kept=int(v[0]), bytes=float(v[1]), budget=float(v[2]), columns=int(v[3]))
 
 
 def tape_columns(nsteps):
@@ -420,7 +368,7 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
              solver="auto", newton="auto", reuse_jacobian=None, tol=1e-10, max_iter=20, max_cuts=6,
              kscale=None, penalty=None, q0=None, qd0=None, design_derivatives=None,
              sensitivity_dofs=None, constraint_force_derivatives=False, memory_limit=None,
-             validity="warn", polish=False, tape=False, factor_store=None):
+             validity="warn", polish=False, tape=False):
     """Simulate a model with generalized-alpha (eqs. 3-6) and Newton-Raphson (eq. 7).
 
     Parameters
@@ -508,11 +456,6 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         (sub-)step, counted in the memory estimate (room for a quarter more sub-steps than
         steps; a run that cuts more is repeated once with room for every step cut max_cuts
         times).
-    factor_store : FactorStore, optional
-        With tape=True: keep the factorization of every step's last Newton iteration (with
-        polish=True, that of a full Newton step within the tolerance of the converged state)
-        in it, as far as its budget allows, for the adjoint's backward pass
-        (flexmbs.adjoint.simulate_for_adjoint makes one). Its columns must cover the tape.
 
     Returns
     -------
@@ -567,19 +510,6 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     check_memory(est, memory_limit, what=f"simulate (solver={solver!r}, {n_unknowns} unknowns, "
                                          f"{nsteps} steps, {out.size} stored coordinates)")
 
-    if factor_store is not None:
-        if not isinstance(factor_store, FactorStore) or not factor_store.handle:
-            raise ModelError(f"factor_store must be a FactorStore (not freed), got "
-                             f"{type(factor_store).__name__}")
-        if not tape:
-            raise ModelError("factor_store=... needs tape=True (it keeps a factorization per "
-                             "tape column)")
-        if factor_store.columns < ntape:
-            raise ModelError(f"factor_store has {factor_store.columns} columns, the tape "
-                             f"{ntape}: FactorStore(tape_columns(nsteps) or more, ...)")
-    fhandle = factor_store.handle if factor_store is not None else 0
-    filled = []           # whether the run kept its factorizations (its tape fits the store)
-
     t = h * np.arange(nsteps + 1)
     cm = model.compile()
     pat = model.pattern(solver)
@@ -615,7 +545,6 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         nv, sdofs = 0, np.zeros(1, int)
         dprop_f = np.zeros((5, nel, 1), order="F")
     def run(ncol):
-        filled[:] = [bool(fhandle) and ncol <= factor_store.columns]
         return call_with_stack(
             _core.simulate, est.stack, **margs, nsteps=nsteps, q0=q_init, qd0=qd_init,
             ap=pat["ap"], ai=pat["ai"], h=float(h),
@@ -625,7 +554,7 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
             penalty=float(penalty or 0.0), out_dofs=(out + 1).astype(np.int32),
             nv=nv, dprop=dprop_f, sens_dofs=(sdofs + 1).astype(np.int32),
             want_dmu=int(want_dmu), ndmu=max(cm.nc, 1) if want_dmu else 1, polish=int(polish),
-            ntape=ncol, fstore=fhandle if filled[0] else 0)
+            ntape=ncol)
 
     try:
         (q_out, qd_out, qdd_out, mu_out, stats, status, info, dq_out, dmu_out, *tape_out) = \
@@ -676,8 +605,6 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         nused = int(nused)
         res.tape = dict(q=tq[:, :nused], qd=tqd[:, :nused], qdd=tqdd[:, :nused],
                         mu=tmu[:cm.nc, :nused], h=th[:nused], grid=np.asarray(tgrid))
-        if filled[0]:
-            res.tape["factors"] = factor_store
     res.validity = check_result(model, res, limits, law_val=margs["law_val"], tol=float(tol),
                                 props=props)
     apply_validity(res.validity, res)
