@@ -263,13 +263,7 @@ class Problem:
                 return None
         want = self._gradient_names(gradient) if self.mechanism.variables else []
         if want and self.gradient_method(method) == "adjoint":
-            from flexmbs.adjoint import adjoint_memory
-            model, t_end, h, kw = self._run(x, False, responses, store, tape=True)
-            est = memory_estimate(model, t_end, h, **kw)
-            cm = model.compile()
-            est.parts[ADJOINT_PART] = adjoint_memory(cm.ndof, cm.nc, self.mechanism.t.size,
-                                                     self.gradient_functionals(), cm.nel)
-            return est
+            return self._adjoint_estimate(self._run(x, False, responses, store, tape=True))
         model, t_end, h, kw = self._run(x, bool(want), responses, store,
                                         [n for n in responses if n in want])
         return memory_estimate(model, t_end, h, **kw)
@@ -504,11 +498,22 @@ class Problem:
                           wall_time=_time.perf_counter() - t0,
                           gradient_method="direct" if gradient else None)
 
-    def _check_adjoint_memory(self, x, timed):
+    def _adjoint_estimate(self, run):
+        """memory_estimate of the adjoint's forward run `run` (`_run`'s (model, t_end, h,
+        keywords) with tape=True) and of its backward pass (ADJOINT_PART)."""
+        from flexmbs.adjoint import adjoint_memory
+        model, t_end, h, kw = run
+        est = memory_estimate(model, t_end, h, **kw)
+        cm = model.compile()
+        est.parts[ADJOINT_PART] = adjoint_memory(cm.ndof, cm.nc, self.mechanism.t.size,
+                                                 self.gradient_functionals(), cm.nel)
+        return est
+
+    def _check_adjoint_memory(self, est):
         """ResourceError, naming what to change, when the adjoint's forward run (its tape)
-        and backward pass (the per-step partials) together exceed the memory limit
-        (flexmbs.resources.memory_limit: FLEXMBS_MEMORY_LIMIT, else the memory available)."""
-        est = self.memory_estimate(x, True, responses=timed, method="adjoint")
+        and backward pass (the per-step partials) together, `est` (`_adjoint_estimate`),
+        exceed the memory limit (flexmbs.resources.memory_limit: FLEXMBS_MEMORY_LIMIT, else
+        the memory available)."""
         need, avail = est.total, memory_limit()
         if need <= avail:
             return
@@ -529,18 +534,20 @@ class Problem:
         The responses are evaluated on the run with 'virtual' design variables: one per
         differentiated coordinate and constraint row (dq, dmu identities) and the real ones
         (explicit dependences, e.g. a stress's section depth): their gradients (nt, V) are
-        the per-step partials. The aggregation weights of each row over time come from
-        constraint_rows with identity gradients; weights times partials are the adjoint's
-        right-hand sides (flexmbs.adjoint.adjoint_gradient)."""
+        the per-step partials (the design columns only for responses that depend on the
+        design explicitly: a stress). The aggregation weights of each row over time come from
+        constraint_weights; weights times partials are the adjoint's right-hand sides
+        (flexmbs.adjoint.adjoint_gradient)."""
         from dataclasses import replace
 
         from flexmbs.adjoint import adjoint_gradient
 
         mech = self.mechanism
-        self._check_adjoint_memory(x, timed)
-        model = mech.set_design(x)
+        run = self._run(x, False, timed, None, tape=True)      # the design set once
+        self._check_adjoint_memory(self._adjoint_estimate(run))
+        model, t_end, h, kw = run
         cm = model.compile()
-        result = self.simulate(x, gradient=False, responses=timed, tape=True)
+        result = simulate(model, t_end, h, **kw)
         nodes = self._nodes_needed(timed)
         sdofs = np.array([3 * n + k for n in (nodes or [0]) for k in range(3)])
         t = mech.t
