@@ -48,6 +48,10 @@ ADJOINT_MIN_VARIABLES = 32     # docs/adjoint.md 4d: direct is faster below ~32
 #: the adjoint evaluates the responses' per-step partials on identity derivatives, in chunks of
 #: columns of at most this many bytes
 ADJOINT_CHUNK_BYTES = 32e6
+#: response types whose values depend on the design directly, not only through the motion (a
+#: stress through the section depth): the adjoint evaluates their partials with respect to the
+#: design variables too; a new response type of that kind must be listed here
+EXPLICIT_DESIGN_RESPONSES = (Stress,)
 #: The part of an adjoint's MemoryEstimate (Problem.memory_estimate) holding the per-step
 #: partials of the backward pass (flexmbs.adjoint.adjoint_memory).
 ADJOINT_PART = "adjoint's per-step partials"
@@ -555,7 +559,7 @@ class Problem:
         dprop = mech.element_property_derivatives(x)
         # design columns only for responses depending on the design explicitly (a stress's
         # section depth); the others' partials there are zero
-        explicit = any(isinstance(r, Stress) for r in self._resp.values())
+        explicit = any(isinstance(r, EXPLICIT_DESIGN_RESPONSES) for r in self._resp.values())
         nvirt = nsens + nc + (nv if explicit else 0)
         values, partials, grads, cache = {}, {}, {}, {}
         for name, r in self._resp.items():
