@@ -1,33 +1,45 @@
 """Cost of a gradient against the number of variables: finite differences, direct
 differentiation and the discrete adjoint, through `Problem.evaluate` (issue 18's table).
 
-The hollow tapered robot (cases/robot_2dof_tapered_tubes.toml: an outer diameter and a wall
-thickness per element of each arm) with its KS-aggregated deviation (28) as the only
-constraint (1 functional; the stress response is dropped: direct differentiation of a stress
-stores the derivatives of every node of the arms, nv x 3 (4 E + 2) per step, gigabytes at
-nv = 512) and E elements per arm (overrides bodies.arm1.elements = bodies.arm2.elements =
-E), so nv = 4 E variables; the model grows with E too (3 (4 E + 2) coordinates), so every
-column is also given relative to the simulation of the same model. For each E it times (best
-of a few repeats; one for the largest):
+Rows:
+
+- robot_2dof (the paper's robot, 4 diameters) with its own constraint, the deviation (28) at
+  every step (1301 rows: as many adjoint right-hand sides per step, the case direct
+  differentiation is meant for), and with that deviation KS-aggregated (1 functional);
+- the hollow tapered robot (cases/robot_2dof_tapered_tubes.toml: an outer diameter and a wall
+  thickness per element of each arm) with its KS-aggregated deviation (28) as the only
+  constraint (1 functional; the stress response is dropped: direct differentiation of a
+  stress stores the derivatives of every node of the arms, nv x 3 (4 E + 2) per step,
+  gigabytes at nv = 512) and E elements per arm (overrides bodies.arm1.elements =
+  bodies.arm2.elements = E), so nv = 4 E variables; the model grows with E too (3 (4 E + 2)
+  coordinates), so every column is also given relative to the simulation of the same model.
+
+For each row it times (wall time, best of a few repeats; one for the largest):
 
 - sim: `evaluate(x, gradient=False)`, the simulation and the responses;
 - direct: `evaluate(x, gradient='used', method='direct')` (nv right-hand sides per step);
-- adjoint: `evaluate(x, gradient='used', method='adjoint')` (forward run with the tape, one
-  backward pass with 1 right-hand side per step, the responses' per-step partials);
-- FD: forward finite differences, (nv + 1) simulations: reported as (nv + 1) x sim; measured
-  (nv + 1 evaluations without gradient) at the smallest E only, to confirm the estimate.
+- adjoint: `evaluate(x, gradient='used', method='adjoint')`, and its split (of the best
+  repeat): fwd, the core's forward run with the tape (polished: full Newton steps from each
+  step's second iteration); bwd, the core's backward pass (`_core.simulate_adjoint`); py, the
+  rest (model set-up, responses and their per-step partials, memory checks);
+- FD: forward finite differences, (nv + 1) simulations: reported as (nv + 1) x sim.
 
-Direct differentiation is not run beyond --direct-max variables (default 512; at 2048 it
-would take some 15 minutes: its cost grows like nv x elements).
+Direct differentiation is not run beyond --direct-max variables (default 128; at 512 it takes
+about a minute, at 2048 some 15 minutes: its cost grows like nv x elements).
 
-    nice .venv/bin/python benchmarks/gradient_cost.py [--t-end 0.65] [E ...]   # default 4 8 16 32 64 128 512
+    nice .venv/bin/python benchmarks/gradient_cost.py [--t-end 0.65] [E ...]   # default 1 8 32 128 512
 """
 import argparse
+import importlib
 import time
 
 import numpy as np
 
 from flexmbs.problem import Problem
+
+# the modules (flexmbs.simulate is also the name of a function in the package's namespace)
+simulate_module = importlib.import_module("flexmbs.simulate")
+adjoint_module = importlib.import_module("flexmbs.adjoint")
 
 
 RESPONSES = [
@@ -39,6 +51,43 @@ RESPONSES = [
 CONSTRAINT = {"response": "deviation_28", "upper": 1.0e-3, "over": "ks", "parameter": 200.0}
 
 
+class _CoreTimer:
+    """Wall time of the core's forward runs and backward passes during a call (the modules'
+    `_core` replaced by a proxy for its duration)."""
+
+    def __init__(self):
+        self.fwd = self.bwd = 0.0
+
+    def __enter__(self):
+        real = simulate_module._core
+        timer = self
+
+        class Proxy:
+            def __getattr__(self, name):
+                return getattr(real, name)
+
+            def simulate(self, *a, **kw):
+                t0 = time.perf_counter()
+                try:
+                    return real.simulate(*a, **kw)
+                finally:
+                    timer.fwd += time.perf_counter() - t0
+
+            def simulate_adjoint(self, *a, **kw):
+                t0 = time.perf_counter()
+                try:
+                    return real.simulate_adjoint(*a, **kw)
+                finally:
+                    timer.bwd += time.perf_counter() - t0
+
+        self._real = real
+        simulate_module._core = adjoint_module._core = Proxy()
+        return self
+
+    def __exit__(self, *exc):
+        simulate_module._core = adjoint_module._core = self._real
+
+
 def best(f, repeat):
     ts = []
     for _ in range(repeat):
@@ -48,59 +97,72 @@ def best(f, repeat):
     return min(ts)
 
 
+def best_split(f, repeat):
+    """(total, fwd, bwd) of the fastest of `repeat` calls of f."""
+    out = None
+    for _ in range(repeat):
+        with _CoreTimer() as ct:
+            t0 = time.perf_counter()
+            f()
+            total = time.perf_counter() - t0
+        if out is None or total < out[0]:
+            out = (total, ct.fwd, ct.bwd)
+    return out
+
+
+def row(label, p, repeat, direct_max):
+    x = p.start
+    nv = x.size
+    ndof = p.mechanism.model.ndof
+    nf = p.gradient_functionals()
+    p.evaluate(x, gradient=False)          # warm-up (model compiled, pattern built)
+    t_sim = best(lambda: p.evaluate(x, gradient=False), repeat + 1)
+    ev = {}
+    t_adj, fwd, bwd = best_split(
+        lambda: ev.__setitem__("a", p.evaluate(x, gradient="used", method="adjoint")), repeat)
+    py = t_adj - fwd - bwd
+    t_fd = (nv + 1) * t_sim
+    if nv <= direct_max:
+        t_dir = best(lambda: ev.__setitem__("d", p.evaluate(x, gradient="used",
+                                                            method="direct")), repeat)
+        dj, aj = ev["d"].jacobian, ev["a"].jacobian
+        rel = float(np.abs(dj - aj).max() / np.abs(dj).max())
+        d_abs, d_rel, note = f"{t_dir:8.2f}", f"{t_dir / t_sim:8.1f}", f"{rel:.0e}"
+    else:
+        d_abs, d_rel, note = f"{'-':>8}", f"{'-':>8}", "not run"
+    print(f"{label:<16} {nv:>5} {ndof:>5} {nf:>4} {t_sim:>7.3f} {t_adj:>8.3f} {d_abs} "
+          f"{t_adj / t_sim:>8.2f} {d_rel} {t_fd / t_sim:>7.0f}   "
+          f"{fwd / t_sim:>5.2f} {bwd / t_sim:>5.2f} {py / t_sim:>5.2f}   {note}", flush=True)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("elements", nargs="*", type=int, default=[4, 8, 16, 32, 64, 128, 512])
+    ap.add_argument("elements", nargs="*", type=int, default=[1, 8, 32, 128, 512])
     ap.add_argument("--t-end", type=float, default=0.65)
-    ap.add_argument("--repeat", type=int, default=2)
-    ap.add_argument("--direct-max", type=int, default=512,
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--direct-max", type=int, default=128,
                     help="largest nv for which direct differentiation is run (beyond: '-')")
+    ap.add_argument("--no-robot", action="store_true", help="skip the robot_2dof rows")
     args = ap.parse_args()
     t_begin = time.perf_counter()
-    print(f"robot_2dof_tapered_tubes, t_end {args.t_end} s, h 5e-4, KS deviation (28) (1 "
-          "functional); times in s, ratios to sim of the same model")
-    print(f"{'E/arm':>5} {'nv':>5} {'ndof':>5} {'sim':>7} {'direct':>8} {'adjoint':>8} "
-          f"{'FD est':>8} {'direct/sim':>10} {'adjoint/sim':>11} {'FD/sim':>7} "
-          f"{'FD/adjoint':>10} {'direct/adjoint':>14}")
-    fd_check = None
-    for k, e in enumerate(args.elements):
+    print(f"t_end {args.t_end} s, h 5e-4; wall times in s (best of {args.repeat}), ratios to sim "
+          "of the same model; adjoint split: fwd = forward run with the tape, bwd = backward "
+          "pass, py = the rest (Python)")
+    print(f"{'case':<16} {'nv':>5} {'ndof':>5} {'nf':>4} {'sim':>7} {'adjoint':>8} {'direct':>8} "
+          f"{'adj/sim':>8} {'dir/sim':>8} {'FD/sim':>7}   {'fwd':>5} {'bwd':>5} {'py':>5}   "
+          "adjoint - direct")
+    if not args.no_robot:
+        t = {"time.t_end": args.t_end}
+        row("robot_2dof", Problem("robot_2dof", t), 1, args.direct_max)
+        row("robot_2dof KS", Problem("robot_2dof", {**t, "constraints.0.over": "ks",
+                                                    "constraints.0.parameter": 200.0}),
+            args.repeat, args.direct_max)
+    for e in args.elements:
         p = Problem("robot_2dof_tapered_tubes", {
             "time.t_end": args.t_end, "bodies.arm1.elements": e, "bodies.arm2.elements": e,
             "responses": RESPONSES, "constraints": [dict(CONSTRAINT)]})
-        x = p.start
-        nv = x.size
-        ndof = p.mechanism.model.ndof
-        rep = args.repeat if nv <= 128 else 1
-        p.evaluate(x, gradient=False)          # warm-up (model compiled, pattern built)
-        t_sim = best(lambda: p.evaluate(x, gradient=False), rep + 1)
-        ev = {}
-        t_adj = best(lambda: ev.__setitem__("a", p.evaluate(x, gradient="used",
-                                                            method="adjoint")), rep)
-        t_fd = (nv + 1) * t_sim
-        if nv <= args.direct_max:
-            t_dir = best(lambda: ev.__setitem__("d", p.evaluate(x, gradient="used",
-                                                                method="direct")), rep)
-            dj, aj = ev["d"].jacobian, ev["a"].jacobian
-            rel = float(np.abs(dj - aj).max() / np.abs(dj).max())
-            direct = (f"{t_dir:>8.2f}", f"{t_dir / t_sim:>10.1f}", f"{t_dir / t_adj:>14.1f}",
-                      f"   (adjoint - direct: {rel:.0e})")
-        else:
-            direct = (f"{'-':>8}", f"{'-':>10}", f"{'-':>14}", "   (direct not run)")
-        print(f"{e:>5} {nv:>5} {ndof:>5} {t_sim:>7.3f} {direct[0]} {t_adj:>8.2f} {t_fd:>8.2f} "
-              f"{direct[1]} {t_adj / t_sim:>11.1f} {t_fd / t_sim:>7.0f} "
-              f"{t_fd / t_adj:>10.1f} {direct[2]}{direct[3]}", flush=True)
-        if k == 0:
-            t0 = time.perf_counter()
-            for i in range(nv + 1):
-                xi = x.copy()
-                if i:
-                    xi[i - 1] *= 1 + 1e-6
-                p.evaluate(xi, gradient=False)
-            fd_check = (nv, time.perf_counter() - t0, t_fd)
-    if fd_check:
-        nv, meas, est = fd_check
-        print(f"forward FD measured at nv = {nv}: {nv + 1} evaluations {meas:.2f} s "
-              f"(estimate (nv + 1) x sim: {est:.2f} s)")
+        rep = args.repeat if 4 * e <= 128 else 1
+        row(f"tubes E={e}", p, rep, args.direct_max)
     print(f"total {time.perf_counter() - t_begin:.0f} s")
 
 

@@ -299,3 +299,34 @@ def test_elementwise_tubes_64_variables(monkeypatch):
     for i, name in enumerate(direct.constraint_names):
         scale = np.abs(direct.jacobian[i]).max()
         assert np.abs(adj.jacobian[i] - direct.jacobian[i]).max() <= 1e-8 * scale, name
+
+
+def test_constraint_weights_are_the_rows_derivatives():
+    """constraint_weights (the adjoint's weights of every constraint row over the time steps,
+    without identity gradients) against central differences of the rows' values
+    (constraint_rows) in the response history: a KS upper bound, a windowed p-norm lower
+    bound and a per-step upper bound on a window, on a smooth synthetic history (r_j =
+    1e-3 (1 + 0.5 sin(7 t_j)), t on 0..0.65 s). The difference quotient with step 1e-9 of r's
+    1e-3 scale has truncation and rounding errors of about 1e-6 relative to the largest
+    weight: checked to 1e-4."""
+    from flexmbs.problem import constraint_rows, constraint_weights
+    p = Problem("robot_2dof", {"constraints": [
+        {"response": "deviation_28", "upper": 1.0e-3, "over": "ks", "parameter": 200.0},
+        {"response": "deviation_28", "lower": 2.0e-4, "over": "pnorm", "parameter": 8.0,
+         "window": [0.1, 0.3]},
+        {"response": "deviation_28", "upper": 1.2e-3, "window": [0.6, 0.65]}]})
+    t = p.mechanism.t
+    r = 1e-3 * (1 + 0.5 * np.sin(7 * t))
+    W = constraint_weights(p.description, {"deviation_28": r, "mass": 1.0}, t)
+    g0, _, names, _ = constraint_rows(p.description, {"deviation_28": r, "mass": 1.0}, {}, t, 0,
+                                      False)
+    assert W.shape == (g0.size, t.size) and set(names) == {"deviation_28"}
+    eps = 1e-9
+    for j in list(range(0, t.size, 97)) + [t.size - 1]:
+        up, dn = r.copy(), r.copy()
+        up[j] += eps
+        dn[j] -= eps
+        gu = constraint_rows(p.description, {"deviation_28": up, "mass": 1.0}, {}, t, 0, False)[0]
+        gd = constraint_rows(p.description, {"deviation_28": dn, "mass": 1.0}, {}, t, 0, False)[0]
+        fd = (gu - gd) / (2 * eps)
+        assert np.abs(fd - W[:, j]).max() <= 1e-4 * np.abs(W).max(axis=1).max()

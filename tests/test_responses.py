@@ -406,3 +406,29 @@ def test_stress_rejects_bad_input():
         beam_stress(m, r, b, dc=np.zeros((2, 1)))
     with pytest.raises(ModelError, match="stations='middle' is unknown"):
         beam_stress(m, r, b, stations="middle")
+
+
+# ---------------------------------------------------------------------------- aggregate weights
+def test_aggregate_weights_have_their_closed_forms():
+    """aggregate_weights (the adjoint's per-sample weights, W @ dr = aggregate's gradient):
+    KS of r = [0, ln 2 / rho] has the softmax weights exp(rho r) / sum = [1/3, 2/3] and the
+    value ln(3) / rho; the p-norm (P = 2) of [3, 4] is 5 with weights r / 5 = [0.6, 0.8];
+    'max' weighs its largest sample alone; 'every_step' within a window (t0, t1) selects the
+    samples inside, one row each; a window's KS weighs only the samples inside it (exact
+    arithmetic up to rounding: 1e-14)."""
+    from flexmbs.responses.aggregate import aggregate_weights
+    rho = 50.0
+    v, W = aggregate_weights([0.0, math.log(2.0) / rho], "ks", parameter=rho)
+    assert v == pytest.approx(math.log(3.0) / rho, rel=1e-14)
+    assert W == pytest.approx(np.array([[1 / 3, 2 / 3]]), abs=1e-14)
+    v, W = aggregate_weights([3.0, -4.0], "pnorm", parameter=2.0)
+    assert v == pytest.approx(5.0, rel=1e-14)
+    assert W == pytest.approx(np.array([[0.6, -0.8]]), abs=1e-14)
+    v, W = aggregate_weights([1.0, 7.0, 2.0], "max")
+    assert v == 7.0 and W.tolist() == [[0.0, 1.0, 0.0]]
+    t = np.array([0.0, 0.1, 0.2, 0.3])
+    v, W = aggregate_weights([1.0, 2.0, 3.0, 4.0], "every_step", t=t, window=(0.1, 0.2))
+    assert v.tolist() == [2.0, 3.0] and W.tolist() == [[0, 1, 0, 0], [0, 0, 1, 0]]
+    v, W = aggregate_weights([9.0, 0.0, math.log(2.0) / rho, 9.0], "ks", parameter=rho, t=t,
+                             window=(0.1, 0.2))
+    assert W == pytest.approx(np.array([[0.0, 1 / 3, 2 / 3, 0.0]]), abs=1e-14)

@@ -28,7 +28,7 @@ from flexmbs.casefile import description_from_dict, read_description
 from flexmbs.description import GROUND, Deviation, Description, Mass, Reaction, Stress, Torque
 from flexmbs.errors import CaseError, ModelError, ResourceError
 from flexmbs.mechanism import Mechanism
-from flexmbs.responses.aggregate import aggregate
+from flexmbs.responses.aggregate import aggregate, aggregate_weights
 from flexmbs.responses.deviation import deviation, deviation_terms
 from flexmbs.responses.forces import constraint_force, joint_reaction
 from flexmbs.responses.stress import beam_stress
@@ -48,6 +48,10 @@ ADJOINT_MIN_VARIABLES = 32     # docs/adjoint.md 4d: direct is faster below ~32
 #: the adjoint evaluates the responses' per-step partials on identity derivatives, in chunks of
 #: columns of at most this many bytes
 ADJOINT_CHUNK_BYTES = 32e6
+#: response types whose values depend on the design directly, not only through the motion (a
+#: stress through the section depth): the adjoint evaluates their partials with respect to the
+#: design variables too; a new response type of that kind must be listed here
+EXPLICIT_DESIGN_RESPONSES = (Stress,)
 #: The part of an adjoint's MemoryEstimate (Problem.memory_estimate) holding the per-step
 #: partials of the backward pass (flexmbs.adjoint.adjoint_memory).
 ADJOINT_PART = "adjoint's per-step partials"
@@ -295,12 +299,15 @@ class Problem:
         return memory_estimate(model, t_end, h, **kw)
 
     # ------------------------------------------------------------------ responses
-    def _response(self, r, x, result, gradient):
+    def _response(self, r, x, result, gradient, dprop=None):
+        """Value and gradient (or None) of response r at design x on simulation `result`;
+        dprop: mechanism.element_property_derivatives(x) when already computed (Mass)."""
         mech = self.mechanism
         if isinstance(r, Mass):
             bodies = r.bodies if r.bodies is not None else mech.beams
             m = mech.model
-            dprop = mech.element_property_derivatives(x) if gradient else None
+            if gradient and dprop is None:
+                dprop = mech.element_property_derivatives(x)
             props = m.element_properties()
             value, grad = 0.0, np.zeros(len(mech.variables))
             for b in bodies:
@@ -545,15 +552,19 @@ class Problem:
                           gradient_method="direct" if gradient else None,
                           result=None if store is None else result)
 
-    def _adjoint_plan(self, x, responses, store=None, checkpoints=_DEFAULT):
+    def _adjoint_plan(self, x, responses, store=None, checkpoints=_DEFAULT, run=None):
         """(K, MemoryEstimate) of the adjoint's runs: K None for the tape of every state,
         else the checkpoint interval (see Problem's `checkpoints`; as the problem's unless
-        given). When nothing fits, K is ceil(sqrt(N)), about the least memory."""
+        given). When nothing fits, K is ceil(sqrt(N)), about the least memory. run: the
+        forward run's `_run(x, False, responses, store, tape=True)` when already made (the
+        design is then set once per evaluation)."""
         from flexmbs.adjoint import adjoint_memory, checkpoint_interval, checkpoint_memory
         if checkpoints is _DEFAULT:
             checkpoints = self.adjoint_checkpoints
         _check_checkpoints(checkpoints)
-        model, t_end, h, kw = self._run(x, False, responses, store, tape=True)
+        if run is None:
+            run = self._run(x, False, responses, store, tape=True)
+        model, t_end, h, kw = run
         est = memory_estimate(model, t_end, h, **kw)
         cm = model.compile()
         nsteps = self.mechanism.t.size - 1
@@ -576,13 +587,13 @@ class Problem:
         est.checkpoints = k
         return k, est
 
-    def _check_adjoint_memory(self, x, timed):
+    def _check_adjoint_memory(self, x, timed, run=None):
         """The checkpoint interval of the adjoint's forward run (None: the tape of every
         state; `_adjoint_plan`), or ResourceError, naming what to change, when its memory
         (the tape, or the checkpoints and one segment's tape, and the backward pass's
         per-step partials) exceeds the memory limit (flexmbs.resources.memory_limit:
         FLEXMBS_MEMORY_LIMIT, else the memory available)."""
-        k, est = self._adjoint_plan(x, timed)
+        k, est = self._adjoint_plan(x, timed, run=run)
         need, avail = est.total, memory_limit()
         if need <= avail:
             return k
@@ -606,29 +617,36 @@ class Problem:
         The responses are evaluated on the run with 'virtual' design variables: one per
         differentiated coordinate and constraint row (dq, dmu identities) and the real ones
         (explicit dependences, e.g. a stress's section depth): their gradients (nt, V) are
-        the per-step partials. The aggregation weights of each row over time come from
-        constraint_rows with identity gradients; weights times partials are the adjoint's
-        right-hand sides (flexmbs.adjoint.adjoint_gradient)."""
+        the per-step partials (the design columns only for responses that depend on the
+        design explicitly: a stress). The aggregation weights of each row over time come from
+        constraint_weights; weights times partials are the adjoint's right-hand sides
+        (flexmbs.adjoint.adjoint_gradient)."""
         from dataclasses import replace
 
         from flexmbs.adjoint import adjoint_gradient
 
         mech = self.mechanism
-        ckpt = self._check_adjoint_memory(x, timed)
-        model = mech.set_design(x)
+        run = self._run(x, False, timed, None, tape=True)      # the design set once
+        ckpt = self._check_adjoint_memory(x, timed, run)
+        model, t_end, h, kw = run
         cm = model.compile()
-        result = self.simulate(x, gradient=False, responses=timed, tape=ckpt is None,
-                               checkpoints=ckpt)
+        if ckpt is not None:      # the full state every ckpt time points instead of the tape
+            kw = dict(kw, tape=False, checkpoints=int(ckpt))
+        result = simulate(model, t_end, h, **kw)
         result.stats["adjoint_checkpoints"] = ckpt
         nodes = self._nodes_needed(timed)
         sdofs = np.array([3 * n + k for n in (nodes or [0]) for k in range(3)])
         t = mech.t
         nt, nsens, nc, nv = t.size, sdofs.size, result.mu.shape[1], len(mech.variables)
-        nvirt = nsens + nc + nv
+        dprop = mech.element_property_derivatives(x)
+        # design columns only for responses depending on the design explicitly (a stress's
+        # section depth); the others' partials there are zero
+        explicit = any(isinstance(r, EXPLICIT_DESIGN_RESPONSES) for r in self._resp.values())
+        nvirt = nsens + nc + (nv if explicit else 0)
         values, partials, grads, cache = {}, {}, {}, {}
         for name, r in self._resp.items():
             if isinstance(r, Mass):
-                values[name], grads[name] = self._response(r, x, None, True)
+                values[name], grads[name] = self._response(r, x, None, True, dprop)
             else:
                 partials[name] = []
                 grads[name] = np.zeros((nt, nv))
@@ -649,26 +667,16 @@ class Problem:
                 values[name], part = self._response(self._resp[name], x, vres, True)
                 partials[name].append(np.asarray(part, float).reshape(nt, cols.size))
         partials = {n: np.concatenate(p, axis=1) for n, p in partials.items()}
-        # the scalar responses' part, then the weights over time of every row: the rows'
-        # gradients for identity gradients of the histories, in chunks of steps
+        # the scalar responses' part, then the weights over time of every row (the rows'
+        # gradients are these weights times the histories' gradients)
         cons, jac, names, _ = constraint_rows(self.description, values, grads, t, nv, True)
         obj = self.description.objective
         f = df = None
         if obj is not None:
             f, df = _scalar(values[obj.response], grads[obj.response], obj.over, None, t)
-        wrows = np.zeros((len(names), nt))
-        wobj = np.zeros(nt)
-        width = max(1, min(nt, int(ADJOINT_CHUNK_BYTES // (8.0 * nt))))
-        for c0 in range(0, nt, width):
-            c1 = min(c0 + width, nt)
-            block = np.zeros((nt, c1 - c0))
-            block[np.arange(c0, c1), np.arange(c1 - c0)] = 1.0
-            wgrads = {n: (block if n in partials else np.zeros(c1 - c0)) for n in self._resp}
-            _, wrows[:, c0:c1], _, _ = constraint_rows(self.description, values, wgrads, t,
-                                                       c1 - c0, True)
-            if obj is not None:
-                wobj[c0:c1] = _scalar(values[obj.response], wgrads[obj.response], obj.over,
-                                      None, t)[1]
+        wrows = constraint_weights(self.description, values, t)
+        if obj is not None:
+            wobj = _scalar_weights(values[obj.response], obj.over, t)
         rows = [(names[i], wrows[i]) for i in range(len(names))]
         if obj is not None:
             rows.append((obj.response, wobj))
@@ -682,8 +690,8 @@ class Problem:
                 p = partials[n]
                 gq[:, sdofs, i] = w[:, None] * p[:, :nsens]
                 gmu[:, :, i] = w[:, None] * p[:, nsens:nsens + nc]
-                out[k] = w @ p[:, nsens + nc:]
-            dprop = mech.element_property_derivatives(x)
+                if explicit:
+                    out[k] = w @ p[:, nsens + nc:]
             out[live] += adjoint_gradient(model, result, dprop, gq, gmu).T
         jac = jac + out[:len(names)]
         if obj is not None:
@@ -775,6 +783,40 @@ def constraint_rows(description, values, gradients, t, nv, gradient=True):
     cons = np.concatenate(g_rows) if g_rows else np.zeros(0)
     jac = (np.vstack(j_rows) if j_rows else np.zeros((0, nv))) if gradient else None
     return cons, jac, names, np.asarray(groups, int)
+
+
+def constraint_weights(description, values, t):
+    """The weights over time of the rows of `constraint_rows`: (ng, nt), row i's gradient is
+    weights[i] @ (the gradient of its response's history); zero rows for scalar responses.
+    What the adjoint's right-hand sides need, without identity gradients (O(nt) per row)."""
+    nt = np.asarray(t).size
+    out = []
+    for c in description.constraints:
+        v = values[c.response]
+        for bound, sign in ((c.upper, 1.0), (c.lower, -1.0)):
+            if bound is None:
+                continue
+            s = abs(bound) if bound != 0 else 1.0
+            r = sign * np.asarray(v, float) / s
+            if np.ndim(r):
+                _, w = aggregate_weights(r, c.over, parameter=c.parameter, t=t, window=c.window)
+                out.append((sign / s) * w.reshape(w.shape[0], nt, -1).sum(axis=2))
+            else:
+                out.append(np.zeros((1, nt)))
+    return np.vstack(out) if out else np.zeros((0, nt))
+
+
+def _scalar_weights(v, how, t):
+    """The weights over time of `_scalar(v, dv, how, None, t)`'s gradient (zeros: a scalar)."""
+    nt = np.asarray(t).size
+    if np.ndim(v) == 0:
+        return np.zeros(nt)
+    if how == "final":
+        w = np.zeros(nt)
+        w[-1] = 1.0
+        return w
+    _, w = aggregate_weights(v, how, t=t)
+    return w.reshape(nt, -1).sum(axis=1)
 
 
 def with_linear_rows(mechanism, x, g, jacobian, names):

@@ -34,7 +34,8 @@ import numpy as np
 
 from flexmbs.errors import ModelError
 
-__all__ = ["aggregate", "ks", "pnorm", "integral", "trapezoid_weights", "window_mask",
+__all__ = ["aggregate", "aggregate_weights", "ks", "pnorm", "integral", "trapezoid_weights",
+           "window_mask",
            "aggregate_constraints", "AGGREGATES", "DEFAULT_PARAMETER"]
 
 #: Names accepted by `aggregate(how=...)`.
@@ -50,14 +51,19 @@ def ks(r, dr=None, rho=DEFAULT_PARAMETER["ks"]):
     w = exp(rho (r - m)) / sum exp(rho (r - m)) (they sum to 1). dr: r.shape + (nv,) or None.
     Returns (KS, dKS (nv,) or None).
     """
+    val, w = _ks_weights(r, rho, dr is not None)
+    if dr is None:
+        return val, None
+    return val, w @ np.asarray(dr, float).reshape(w.size, -1)
+
+
+def _ks_weights(r, rho, weights=True):
+    """KS of the samples r and its weights dKS/dr (flat; None unless weights)."""
     r = np.asarray(r, float).ravel()
     m = r.max()
     e = np.exp(rho * (r - m))
     val = m + np.log(e.sum()) / rho
-    if dr is None:
-        return float(val), None
-    w = e / e.sum()
-    return float(val), w @ np.asarray(dr, float).reshape(r.size, -1)
+    return float(val), (e / e.sum() if weights else None)
 
 
 def pnorm(r, dr=None, p=DEFAULT_PARAMETER["pnorm"]):
@@ -66,18 +72,24 @@ def pnorm(r, dr=None, p=DEFAULT_PARAMETER["pnorm"]):
     Computed as m (sum (|r| / m)^P)^(1/P), m = max |r|; d = sum (|r| / PN)^(P-1) sign(r) dr.
     All samples zero: 0 with a zero gradient. Returns (PN, dPN (nv,) or None).
     """
+    val, w = _pnorm_weights(r, p, dr is not None)
+    if dr is None:
+        return val, None
+    return val, w @ np.asarray(dr, float).reshape(w.size, -1)
+
+
+def _pnorm_weights(r, p, weights=True):
+    """p-norm of the samples r and its weights dPN/dr (flat; None unless weights)."""
     r = np.asarray(r, float).ravel()
     a = np.abs(r)
     m = a.max()
-    nv = None if dr is None else np.asarray(dr).reshape(r.size, -1).shape[1]
     if m <= 0.0:
-        return 0.0, (None if dr is None else np.zeros(nv))
+        return 0.0, (np.zeros(r.size) if weights else None)
     sc = a / m
     norm = np.sum(sc ** p) ** (1.0 / p)
-    if dr is None:
+    if not weights:
         return float(m * norm), None
-    w = (sc / norm) ** (p - 1.0) * np.sign(r)
-    return float(m * norm), w @ np.asarray(dr, float).reshape(r.size, -1)
+    return float(m * norm), (sc / norm) ** (p - 1.0) * np.sign(r)
 
 
 def trapezoid_weights(t):
@@ -199,6 +211,40 @@ def aggregate(r, dr=None, how="max", *, parameter=None, t=None, window=None):
             and np.isfinite(par) and par > least):
         raise ModelError(f"parameter of {how!r} must be a finite number > {least:g}, got {parameter!r}")
     return (ks if how == "ks" else pnorm)(r, dr, float(par))
+
+
+def aggregate_weights(r, how="max", *, parameter=None, t=None, window=None):
+    """`aggregate` of a history r with the weights of its gradient instead of the gradient:
+    (value, W) with W (k, r.size) such that aggregate(r, dr, ...)'s gradient is
+    W @ dr.reshape(r.size, nv) (k rows: the window's samples for 'every_step', else 1).
+    What the adjoint needs (the weight of every sample), without identity derivatives.
+    Arguments, values and errors as `aggregate`."""
+    r = np.asarray(r, float)
+    value, _ = aggregate(r, None, how, parameter=parameter, t=t, window=window)
+    idx = np.arange(r.size).reshape(r.shape)
+    if window is not None:
+        idx = idx[window_mask(np.asarray(t, float), window)]
+        rw = r[window_mask(np.asarray(t, float), window)]
+    else:
+        rw = r
+    idx = idx.ravel()
+    if how == "every_step":
+        W = np.zeros((idx.size, r.size))
+        W[np.arange(idx.size), idx] = 1.0
+        return value, W
+    W = np.zeros((1, r.size))
+    if how == "max":
+        W[0, idx[int(np.argmax(rw.ravel()))]] = 1.0
+        return value, W
+    if how == "integral":       # the trapezoid rule on the window's times
+        tw = np.asarray(t, float)
+        if window is not None:
+            tw = tw[window_mask(tw, window)]
+        W[0, idx] = trapezoid_weights(tw)
+        return value, W
+    par = float(DEFAULT_PARAMETER[how] if parameter is None else parameter)
+    W[0, idx] = (_ks_weights if how == "ks" else _pnorm_weights)(rw, par)[1]
+    return value, W
 
 
 def aggregate_constraints(ratio, d_ratio, kind, parameter, windows):
