@@ -521,7 +521,7 @@ def test_optimizers_accept_a_case_name_and_progress_false():
     (dict(kkt_tol="small"), "kkt_tol must be a positive finite number, got 'small'"),
     (dict(trust_radius=-1), "trust_radius must be a positive finite number, got -1"),
     (dict(design_rel_change="a"), "design_rel_change (or None) must be a positive finite number, got 'a'"),
-    (dict(optimizer="bfgs"), "optimizer must be one of mma, sqp, slsqp, nlopt-mma, nlopt-ccsaq, nlopt-slsqp, got 'bfgs'"),
+    (dict(optimizer="bfgs"), "optimizer must be 'auto' or one of mma, sqp, slsqp, nlopt-mma, nlopt-ccsaq, nlopt-slsqp, got 'bfgs'"),
     (dict(progress=3), "progress must be a callable taking one history record, or None/False, got 3"),
     (dict(mma_options=3), "mma_options must be a dict or None, got 3"),
     (dict(x0="40,30,35,25"), "design must be 4 numbers (p1, p2, p3, p4), got '40,30,35,25'"),

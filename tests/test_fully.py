@@ -271,7 +271,7 @@ def test_cli_json(tmp_path):
 def test_bad_input(robot):
     """Bad options and starts are ModelErrors naming the argument, the value and what is
     allowed."""
-    with pytest.raises(ModelError, match=r"optimizer must be one of .*'newton'"):
+    with pytest.raises(ModelError, match=r"optimizer must be .auto. or one of .*'newton'"):
         optimize_fully(robot, optimizer="newton")
     with pytest.raises(ModelError, match=r"x0: p1 = 10.0 lies outside its bounds \[20, 60\]"):
         optimize_fully(robot, [10, 50, 50, 50])
@@ -360,7 +360,9 @@ def test_cli_optimizes_the_press(press_default, capsys):
     out = json.loads(capsys.readouterr().out)
     assert out["objective_name"] == "rod_mass" and out["converged"]
     assert out["design"][0] == pytest.approx(press_default.design[0], rel=1e-6)
-    # the automatic gradient method is reported: 1 variable, so direct differentiation
+    # the automatic optimizer and gradient method are reported: 1 variable, so the SQP and
+    # direct differentiation
+    assert out["optimizer"] == "sqp" and out["optimizer_reason"].startswith("sqp (auto: 1 ")
     assert out["gradient_method_reason"].startswith("direct (auto: 1 design variable,")
     assert main(["optimize", str(CASES / "slider_crank_press.toml"), "--method", "weakly",
                  "--frame", "chord", "--json"]) == 0
@@ -389,3 +391,17 @@ def test_sqp_first_matrix_is_positive_definite_for_tube_sections():
     we = np.linalg.eigvalsh(E)
     assert we.min() < -1e-3 * np.abs(we).max()
     np.testing.assert_allclose(np.sort(w)[-2:], np.sort(np.abs(we))[-2:], rtol=1e-2)
+
+
+def test_automatic_optimizer_by_the_number_of_variables():
+    """optimizer='auto' (the default): the trust-region SQP below MANY_VARIABLES (32) design
+    variables, the hand-written MMA from 32 (docs/optimizers.md, many variables: the SQP was
+    0.65 kg and infeasible at 100 iterations on 64 element-wise variables, MMA 0.269 kg); a
+    named optimizer is taken as given."""
+    from flexmbs.optimize.fully import MANY_VARIABLES, choose_optimizer
+    assert MANY_VARIABLES == 32
+    assert choose_optimizer("auto", 4)[0] == "sqp"
+    assert choose_optimizer("auto", 31)[0] == "sqp"
+    assert choose_optimizer("auto", 32)[0] == "mma"
+    assert choose_optimizer("auto", 128)[0] == "mma"
+    assert choose_optimizer("nlopt-ccsaq", 128) == ("nlopt-ccsaq", "nlopt-ccsaq (as asked)")

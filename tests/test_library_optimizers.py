@@ -113,14 +113,14 @@ def test_screened_rows_keeps_peaks_near_the_limit_with_their_neighbours():
 def test_bad_optimizer_name_is_named_with_the_allowed_values():
     """An unknown optimizer -> ModelError naming the option, the value and every allowed
     name; a bad screen -> ModelError naming it."""
-    with pytest.raises(ModelError, match="optimizer must be one of") as exc:
+    with pytest.raises(ModelError, match="optimizer must be .auto. or one of") as exc:
         optimize_fully(_two_bar(), optimizer="ipopt")
     assert "'ipopt'" in str(exc.value)
     for name in OPTIMIZERS:
         assert name in str(exc.value)
     with pytest.raises(ModelError, match="screen must be a number <= 0"):
         optimize_fully(_two_bar(), optimizer="nlopt-mma", screen=0.5)
-    with pytest.raises(ModelError, match="optimizer must be one of"):
+    with pytest.raises(ModelError, match="optimizer must be .auto. or one of"):
         multistart(_two_bar(), 2, optimizer="newton", workers=1)
     with pytest.raises(ModelError, match="sampler must be one of sobol, lhs"):
         start_designs([1.0], [2.0], 4, sampler="grid")

@@ -263,8 +263,9 @@ def run_optimize(args):
 def add_fully_options(parser):
     """Options of ``flexmbs optimize CASE --method fully``."""
     g = parser.add_argument_group("fully coupled method")
-    g.add_argument("--optimizer", choices=OPTIMIZERS, default=None,
-                   help="sqp: trust-region SQP (default; with --starts: nlopt-mma); "
+    g.add_argument("--optimizer", choices=("auto",) + OPTIMIZERS, default=None,
+                   help="auto (default; with --starts: nlopt-mma): sqp below 32 design "
+                        "variables, mma from 32; sqp: trust-region SQP; "
                         "nlopt-ccsaq, nlopt-mma, nlopt-slsqp: NLopt's; mma: Svanberg's "
                         "globally convergent MMA, hand-written (the paper's; `flexmbs "
                         "reproduce` uses it); slsqp: plain scipy SLSQP (no move limits, fails "
@@ -307,7 +308,7 @@ def run_fully(args, problem):
     with _Reporter(args, args.max_iterations, "iterations", describe_iteration,
                    _iteration_line) as report:
         return optimize_fully(problem, design_from_text(args.start, problem, "--start"),
-                              optimizer=args.optimizer or "sqp", kkt_tol=args.kkt_tol,
+                              optimizer=args.optimizer or "auto", kkt_tol=args.kkt_tol,
                               max_iterations=args.max_iterations,
                               design_rel_change=args.design_rel_change, history=args.history,
                               progress=report, resume=args.resume)

@@ -46,11 +46,27 @@ from flexmbs.optimize.result import OptimizationResult, open_history
 from flexmbs.progress import check_progress, describe_iteration, reporter
 from flexmbs.sections import real_number
 
-__all__ = ["optimize_fully", "ScaledProblem", "OPTIMIZERS"]
+__all__ = ["optimize_fully", "ScaledProblem", "OPTIMIZERS", "choose_optimizer", "MANY_VARIABLES"]
 
 #: Optimizers: GCMMA (hand-written, default), the trust-region SQP and plain scipy SLSQP
 #: (`loops`), and NLopt's MMA, CCSAQ and SLSQP (flexmbs.optimize.library, docs/optimizers.md).
 OPTIMIZERS = ("mma", "sqp", "slsqp", "nlopt-mma", "nlopt-ccsaq", "nlopt-slsqp")
+#: optimize_fully(optimizer='auto') takes the trust-region SQP below this many design
+#: variables and the hand-written MMA from it (docs/optimizers.md, "Many variables": with 64
+#: element-wise variables the SQP's BFGS matrix was 0.6496 kg and infeasible at 100
+#: iterations where MMA reached 0.2689 kg; with 128, MMA 0.2674 kg feasible at every
+#: iteration, NLopt's CCSAQ 0.2724 kg after excursions to 1.8 kg)
+MANY_VARIABLES = 32
+
+
+def choose_optimizer(optimizer, nv):
+    """(optimizer, why) for optimize_fully's `optimizer` and nv design variables: 'auto' is
+    'sqp' below MANY_VARIABLES variables and 'mma' from there; any other name as given."""
+    if optimizer != "auto":
+        return optimizer, f"{optimizer} (as asked)"
+    chosen = "sqp" if nv < MANY_VARIABLES else "mma"
+    return chosen, (f"{chosen} (auto: {nv} design variable{'s' * (nv != 1)}; sqp below "
+                    f"{MANY_VARIABLES}, mma from there)")
 
 
 def _mass(problem, design, values):
@@ -345,7 +361,7 @@ def _nlopt_settings(options):
     return kw
 
 
-def optimize_fully(problem, x0=None, *, optimizer="sqp", max_iterations=100,
+def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
                    max_simulations=1000, objective_rel_change=1e-3, constraint_violation=1e-6,
                    design_rel_change=None, kkt_tol=1e-3, active_tol=1e-3, scale=None,
                    mma_options=None, trust_radius=0.2, max_trust_radius=0.5,
@@ -359,11 +375,14 @@ def optimize_fully(problem, x0=None, *, optimizer="sqp", max_iterations=100,
         a Description (then loaded with flexmbs.problem.load_problem).
     x0 : array, optional
         Starting design (the variables' units, within the bounds); default the case's start.
-    optimizer : {'mma', 'sqp', 'slsqp', 'nlopt-mma', 'nlopt-ccsaq', 'nlopt-slsqp'}, default 'sqp'
-        The trust-region SQP is the default: over Tables 1, 2, 5, 6, 7, the four-bar, the
-        three new examples and the robot at 0.1 and 0.3 s it met the paper's stopping test
-        in every run, as light as the hand-written MMA or lighter, with 2-16 % of the run in
-        the optimizer (docs/optimizers.md). Svanberg's globally convergent MMA (`flexmbs.optimize.mma`, with inner iterations),
+    optimizer : {'auto', 'mma', 'sqp', 'slsqp', 'nlopt-mma', 'nlopt-ccsaq', 'nlopt-slsqp'}, default 'auto'
+        'auto' (`choose_optimizer`) takes the trust-region SQP below MANY_VARIABLES (32)
+        design variables: over Tables 1, 2, 5, 6, 7, the four-bar, the three new examples
+        and the robot at 0.1 and 0.3 s it met the paper's stopping test in every run, as
+        light as the hand-written MMA or lighter, with 2-16 % of the run in the optimizer
+        (docs/optimizers.md); and the hand-written MMA from 32 variables (element-wise
+        sizing), where the SQP's BFGS matrix learns too slowly. The choice and its reason
+        are in the result's details (optimizer, optimizer_reason). Svanberg's globally convergent MMA (`flexmbs.optimize.mma`, with inner iterations),
         the trust-region SQP, or plain scipy SLSQP (no move limits), see
         `flexmbs.optimize.loops`; or NLopt's MMA, CCSAQ or SLSQP on the design mapped to
         [0, 1] with the constraints as one vector constraint (`flexmbs.optimize.library`;
@@ -444,8 +463,9 @@ def optimize_fully(problem, x0=None, *, optimizer="sqp", max_iterations=100,
     from flexmbs.problem import load_problem
 
     t0 = time.perf_counter()
-    if not isinstance(optimizer, str) or optimizer not in OPTIMIZERS:
-        raise ModelError(f"optimizer must be one of {', '.join(OPTIMIZERS)}, got {optimizer!r}")
+    if not isinstance(optimizer, str) or optimizer not in OPTIMIZERS + ("auto",):
+        raise ModelError(f"optimizer must be 'auto' or one of {', '.join(OPTIMIZERS)}, got "
+                         f"{optimizer!r}")
     if screen is not None and (isinstance(screen, bool) or not isinstance(screen, (int, float))
                                or not -np.inf < screen <= 0):
         raise ModelError(f"screen must be a number <= 0 (e.g. -0.3) or None, got {screen!r}")
@@ -463,6 +483,7 @@ def optimize_fully(problem, x0=None, *, optimizer="sqp", max_iterations=100,
         raise ModelError(f"resume must be True or False, got {resume!r}")
     problem = load_problem(problem)
     mech = problem.mechanism
+    optimizer, optimizer_reason = choose_optimizer(optimizer, len(problem.variables))
     p0 = problem.start if x0 is None else mech.design_values(x0)
     lo, hi = problem.lower, problem.upper
     bad = np.flatnonzero((p0 < lo * (1 - 1e-12)) | (p0 > hi * (1 + 1e-12)))
@@ -520,11 +541,15 @@ def optimize_fully(problem, x0=None, *, optimizer="sqp", max_iterations=100,
     P.evaluate_time_s += time.perf_counter() - t_fresh
     P.simulations += 1
     desc = problem.description
-    details = dict(optimizer=optimizer, kkt_residual=mon.last_kkt,
+    details = dict(optimizer=optimizer, optimizer_reason=optimizer_reason,
+                   kkt_residual=mon.last_kkt,
                    paper_test_iteration=mon.paper_test_iteration,
                    gradient_evaluations=P.gradient_evaluations, scale=P.scale,
-                   gradient_method=problem.gradient_method(),
-                   gradient_method_reason=problem.gradient_method_reason(),
+                   gradient_method=(problem.gradient_method()
+                                    if hasattr(problem, "gradient_method") else None),
+                   gradient_method_reason=(problem.gradient_method_reason()
+                                           if hasattr(problem, "gradient_method_reason")
+                                           else None),
                    stopping=dict(objective_rel_change=objective_rel_change,
                                  constraint_violation=constraint_violation,
                                  design_rel_change=design_rel_change, kkt_tol=kkt_tol,

@@ -249,8 +249,9 @@ def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0
     from flexmbs.optimize.fully import OPTIMIZERS
 
     t0 = time.perf_counter()
-    if not isinstance(optimizer, str) or optimizer not in OPTIMIZERS:
-        raise ModelError(f"optimizer must be one of {', '.join(OPTIMIZERS)}, got {optimizer!r}")
+    if not isinstance(optimizer, str) or optimizer not in OPTIMIZERS + ("auto",):
+        raise ModelError(f"optimizer must be 'auto' or one of {', '.join(OPTIMIZERS)}, got "
+                         f"{optimizer!r}")
     from flexmbs.progress import check_progress, describe_start
 
     check_progress(progress)

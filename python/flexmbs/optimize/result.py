@@ -279,6 +279,8 @@ class OptimizationResult:
                     f", constraint violation {self.max_violation:.2e} (simulated)"),
                  f"  {self.iterations} iterations{inner}, {self.simulations} simulations, "
                  f"{self.wall_time_s:.2f} s"]
+        if self.details.get("optimizer_reason"):
+            lines.append(f"  optimizer: {self.details['optimizer_reason']}")
         if self.details.get("gradient_method_reason"):
             lines.append(f"  gradients: {self.details['gradient_method_reason']}")
         if self.max_deviation_m is not None:
