@@ -40,6 +40,8 @@ ratios are only as good as the load allows.
 from __future__ import annotations
 
 import argparse
+import importlib
+import importlib.util
 import os
 import resource
 import subprocess
@@ -119,7 +121,7 @@ def main(argv=None):
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     from common import format_table, machine_summary
     print(f"batch scaling: {machine_summary()}")
-    import flexmbs.batch  # noqa: F401 - the serial run's process has flexmbs imported
+    importlib.import_module("flexmbs.batch")    # the serial run's process has flexmbs imported
     notes = []
     if os.environ.get("PYTHONDONTWRITEBYTECODE"):
         notes.append("PYTHONDONTWRITEBYTECODE is set: every interpreter compiles flexmbs's "
@@ -135,9 +137,7 @@ def main(argv=None):
             _run("2 local processes, forkserver", 2, jobs, start_method="forkserver")]
     if not args.no_dask:
         from flexmbs.batch import local_cluster
-        try:
-            import distributed  # noqa: F401
-        except ImportError:
+        if importlib.util.find_spec("distributed") is None:
             print("dask.distributed is not installed (pip install flexmbs[batch]): no Dask run")
         else:
             t0 = time.perf_counter()

@@ -220,7 +220,7 @@ def _ignore_sigint():
 START_METHODS = ("spawn", "forkserver")
 #: The modules a forkserver imports once, before it forks the workers (with the main module
 #: and the job function's module).
-FORKSERVER_PRELOAD = ("flexmbs.batch", "flexmbs.problem")
+FORKSERVER_PRELOAD = ("flexmbs.batch", "flexmbs.problem", "flexmbs.kinematics")
 
 
 def _context(start_method, func):
