@@ -329,8 +329,11 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
         (about 0.4 s of CPU each). 'forkserver' (POSIX only): one fresh interpreter per calling
         process imports them once (`FORKSERVER_PRELOAD`, the main module and the job's
         module) and forks the workers from it: the import is paid once per process, not per
-        worker and per batch, which counts with many workers or many short batches. Neither
-        forks the calling process. Each worker builds its Problem once (`max_deviation_job`).
+        worker and per batch, which counts with many workers or many short batches (the
+        first batch pays it as 'spawn' does). The fork server is multiprocessing's, one per
+        process: one already started (by an earlier batch or other code) is reused with what
+        it preloaded. Neither forks the calling process. Each worker builds its Problem once
+        (`max_deviation_job`).
 
     Raises
     ------
