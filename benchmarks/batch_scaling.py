@@ -26,7 +26,10 @@ issue asks >= 1.8 on 2 cores), then where the time goes:
   core to itself, less when the machine is shared (then the ratio says how much of the 2 cores
   the batch got, not how it scales);
 - after start-up: (serial wall - its start-up) / (wall - start-up), what a longer batch of the
-  same jobs tends to.
+  same jobs tends to;
+- caller CPU: the CPU time of the calling process during the batch (parallel runs): sending
+  jobs and receiving results, and for Dask the client and the LocalCluster's scheduler, which
+  run in it and compete with the workers for the cores.
 Every run's deviations are compared with the serial ones (max |dev - serial|, 0 expected).
 Before the runs: what a fresh interpreter pays to import flexmbs.batch (CPU, best of 3), with
 the two costs a development checkout adds to it and an installed wheel does not (sources
@@ -81,15 +84,16 @@ def _run(label, workers, jobs, **kw):
     from flexmbs import batch
     batch._local.__dict__.clear()         # no Problem cached in this process from a prior run
     t_call = time.time()
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     res = batch.run_batch(timed_job, jobs, workers=workers, progress=False, **kw)
-    wall = time.perf_counter() - t0
+    wall, caller = time.perf_counter() - t0, time.process_time() - c0
     rs = list(res.values())
     pids = sorted({r["pid"] for r in rs})
     startup = np.mean([min(r["start"] for r in rs if r["pid"] == p) - t_call for p in pids])
     builds = [r["build_s"] for r in rs if r["built"]]
     steady = [r for r in rs if not r["built"]]
-    return dict(label=label, wall=wall, workers=workers, processes=len(pids), startup=startup,
+    return dict(label=label, wall=wall, caller=caller, workers=workers, processes=len(pids),
+                startup=startup,
                 build=np.mean(builds) if builds else 0.0,
                 steady_s=np.mean([r["job_s"] for r in steady]),
                 steady_cpu=np.mean([r["job_cpu_s"] for r in steady]),
@@ -155,11 +159,12 @@ def main(argv=None):
     rows = [[r["label"], r["processes"], r["wall"], base["wall"] / r["wall"], r["startup"],
              r["build"], r["steady_s"], f"{r['steady_cpu']:.3f} ({r['steady_thread']:.3f})",
              r["busy"], r["cpu_share"],
-             (base["wall"] - base["startup"]) / (r["wall"] - r["startup"]), r.get("diff")]
-            for r in runs]
+             (base["wall"] - base["startup"]) / (r["wall"] - r["startup"]),
+             r["caller"] if r is not base else None, r.get("diff")] for r in runs]
     print(format_table(["run", "processes", "wall s", "speed-up", "start-up s", "first build s",
                         "steady job s", "steady job CPU s (thread)", "busy share", "CPU share",
-                        "speed-up after start-up", "max |dev - serial| m"], rows,
+                        "speed-up after start-up", "caller CPU s", "max |dev - serial| m"],
+                       rows,
                        title=f"\n{len(jobs)} designs of robot_2dof, {args.elements} elements per "
                              "arm, 1300 steps, one simulation each"))
     print(f"load average at the end: {os.getloadavg()[0]:.2f} ({os.cpu_count()} cores)")
