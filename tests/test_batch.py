@@ -88,6 +88,23 @@ def test_bad_start_method():
                       start_method=bad)
 
 
+def test_worker_start_up_imports_no_scipy():
+    """What a batch worker does before its first simulation (import flexmbs.batch, build the
+    robot's Problem, whose motors follow the rigid reference: 'reference' laws) loads no scipy
+    module: scipy.linalg, .interpolate and .sparse cost a spawned worker about 0.5 s of
+    start-up (benchmarks/README.md, batch_scaling.py)."""
+    import subprocess
+    import sys
+    code = ("import sys, flexmbs.batch\n"
+            "from flexmbs.problem import Problem\n"
+            "p = Problem('robot_2dof', overrides={'bodies.arm1.elements': 8})\n"
+            "assert p.mechanism.reference is not None\n"
+            "print(sorted(m for m in sys.modules if m == 'scipy' or m.startswith('scipy.')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.strip().splitlines()[-1]
+    assert out == "[]"
+
+
 def test_dask_local_cluster_matches_serial(serial, tmp_path):
     """A real Dask LocalCluster (2 single-threaded worker processes) gives the serial results."""
     pytest.importorskip("distributed")
