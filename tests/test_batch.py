@@ -1,10 +1,10 @@
 """Batch runs (flexmbs.batch.run_batch): the jobs give the published Table 1 numbers; local
-processes (spawned or forked from a fork server) and a Dask LocalCluster give the same
-results as a serial run; a store makes reruns
-skip finished jobs; an error in one job is raised after the other jobs are stored; and faults
-lose nothing: a worker process killed mid-batch (its jobs run again), a truncated stored result
-(named in a warning, recomputed), a full disk while storing (no half-written file is left under
-a result's name or read back)."""
+processes (spawned or forked from a fork server) and a Dask LocalCluster give the same results
+as a serial run; a store makes reruns skip finished jobs; an error in one job is raised after
+the other jobs are stored; faults lose nothing: a worker process killed mid-batch (its jobs run
+again), a truncated stored result (named in a warning, recomputed), a full disk while storing
+(no half-written file is left under a result's name or read back); and a worker's start-up
+(import, first Problem build) loads no scipy."""
 import errno
 import json
 import math
