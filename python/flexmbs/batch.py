@@ -451,13 +451,22 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
     return {name: results[name] for name in jobs}
 
 
+#: Dask settings of `local_cluster`: it has no dashboard, so no statistical profiler in the
+#: workers (a sample of the running job's stack every 10 ms: ~5-10 % of a job's CPU time), and
+#: the event-loop tick (20 ms) and system monitor (0.5 s) that feed the dashboard run rarely:
+#: idle, the calling process (client and scheduler) then burns 1.8 % of a core instead of 5.4 %
+#: and each worker 0.9 % instead of 2.2 % (measured with 2 workers)
+LOCAL_CLUSTER_CONFIG = {"distributed.worker.profile.enabled": False,
+                        "distributed.admin.tick.interval": "1s",
+                        "distributed.admin.system-monitor.interval": "5s"}
+
+
 def local_cluster(workers):
     """The Dask LocalCluster of ``run_batch(dask="local")``: `workers` single-threaded worker
-    processes, no dashboard, and so no statistical profiler in the workers either (it samples
-    the running job's stack every 10 ms for the dashboard: about 5 % of a job's CPU time)."""
+    processes, no dashboard, `LOCAL_CLUSTER_CONFIG` (its scheduler runs in this process)."""
     import dask.config
     from distributed import LocalCluster
-    with dask.config.set({"distributed.worker.profile.enabled": False}):
+    with dask.config.set(LOCAL_CLUSTER_CONFIG):
         return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                             dashboard_address=None)
 
