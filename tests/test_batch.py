@@ -1,9 +1,10 @@
 """Batch runs (flexmbs.batch.run_batch): the jobs give the published Table 1 numbers; local
-processes and a Dask LocalCluster give the same results as a serial run; a store makes reruns
-skip finished jobs; an error in one job is raised after the other jobs are stored; and faults
-lose nothing: a worker process killed mid-batch (its jobs run again), a truncated stored result
-(named in a warning, recomputed), a full disk while storing (no half-written file is left under
-a result's name or read back)."""
+processes (spawned or forked from a fork server) and a Dask LocalCluster give the same results
+as a serial run; a store makes reruns skip finished jobs; an error in one job is raised after
+the other jobs are stored; faults lose nothing: a worker process killed mid-batch (its jobs run
+again), a truncated stored result (named in a warning, recomputed), a full disk while storing
+(no half-written file is left under a result's name or read back); and a worker's start-up
+(import, first Problem build) loads no scipy."""
 import errno
 import json
 import math
@@ -64,6 +65,44 @@ def test_local_processes_match_serial(serial, tmp_path):
     res = run_batch(max_deviation_job, _jobs(), workers=2, store=tmp_path, progress=False)
     _assert_same(res, serial)
     assert sorted(p.name for p in tmp_path.glob("*.json")) == [f"{n}.json" for n in sorted(serial)]
+
+
+def test_forkserver_workers_match_serial(serial):
+    """Two local workers forked from a fork server that preloaded flexmbs
+    (start_method='forkserver') give the serial results (rtol 1e-12: the same arithmetic)."""
+    import multiprocessing
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        pytest.skip("no forkserver start method on this platform")
+    res = run_batch(max_deviation_job, _jobs(), workers=2, start_method="forkserver",
+                    progress=False)
+    _assert_same(res, serial)
+
+
+def test_bad_start_method():
+    """An unknown start method is a ModelError naming the argument, the value and the choices
+    (before any job runs); 'fork' is refused (it would fork the caller's BLAS threads)."""
+    for bad in ("fork", None, 2):
+        with pytest.raises(ModelError, match=rf"start_method must be one of 'spawn', "
+                                             rf"'forkserver', got {bad!r}"):
+            run_batch(count_calls, {"a": dict(log=os.devnull, value=1)}, workers=2,
+                      start_method=bad)
+
+
+def test_worker_start_up_imports_no_scipy():
+    """What a batch worker does before its first simulation (import flexmbs.batch, build the
+    robot's Problem, whose motors follow the rigid reference: 'reference' laws) loads no scipy
+    module: scipy.linalg, .interpolate and .sparse cost a spawned worker about 0.5 s of
+    start-up (benchmarks/README.md, batch_scaling.py)."""
+    import subprocess
+    import sys
+    code = ("import sys, flexmbs.batch\n"
+            "from flexmbs.problem import Problem\n"
+            "p = Problem('robot_2dof', overrides={'bodies.arm1.elements': 8})\n"
+            "assert p.mechanism.reference is not None\n"
+            "print(sorted(m for m in sys.modules if m == 'scipy' or m.startswith('scipy.')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.strip().splitlines()[-1]
+    assert out == "[]"
 
 
 def test_dask_local_cluster_matches_serial(serial, tmp_path):

@@ -365,3 +365,24 @@ def test_constraint_jacobian_and_gamma_taylor():
     chk = taylor_test(rate, np.zeros(1), deriv[:, None], np.ones(1), step=1e-2)
     assert chk.ok, chk
     assert body.nodes[0] in rigid_groups(m)[0]     # beam and rigid body share a node: one group
+
+
+def test_reference_law_interpolant_is_exact_for_cubics():
+    """The interpolant of a 'reference' drive's law (mechanism._CubicHermite: values and rates
+    at the knots) reproduces any cubic exactly (Hermite interpolation is exact to degree 3):
+    value and rate of p(t) = 1 - 2 t + 3 t^2 - 4 t^3 between uneven knots and beyond the ends
+    (extrapolation by the end pieces) to 1e-12, and it equals scipy's CubicHermiteSpline on a
+    non-polynomial (sin) to 1e-14 (same formula)."""
+    from scipy.interpolate import CubicHermiteSpline
+    from flexmbs.mechanism import _CubicHermite
+    t = np.array([0.0, 0.1, 0.25, 0.3, 0.7, 1.0])
+    p = np.polynomial.Polynomial([1.0, -2.0, 3.0, -4.0])
+    law = _CubicHermite(t, p(t), p.deriv()(t))
+    s = np.linspace(-0.2, 1.2, 57)
+    np.testing.assert_allclose(law(s), p(s), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(law.rate(s), p.deriv()(s), rtol=0, atol=1e-12)
+    assert np.array_equal(law(t[:-1]), p(t[:-1]))            # knots: the values given
+    ref = CubicHermiteSpline(t, np.sin(3 * t), 3 * np.cos(3 * t))
+    mine = _CubicHermite(t, np.sin(3 * t), 3 * np.cos(3 * t))
+    np.testing.assert_allclose(mine(s), ref(s), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(mine.rate(s), ref.derivative()(s), rtol=0, atol=1e-14)

@@ -36,7 +36,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg as sla
 
 from flexmbs.errors import ModelError
 from flexmbs.model import Body, Model
@@ -420,6 +419,7 @@ class StaticSolution:
 
 def _factor(stiffness: BodyStiffness, props):
     """K^b(p) and its Cholesky factorization (ModelError if not positive definite)."""
+    import scipy.linalg as sla      # here: importing flexmbs does not load scipy.linalg
     K = stiffness.matrix(props)
     try:
         return K, sla.cho_factor(K, check_finite=False)
@@ -443,6 +443,7 @@ def solve_static(stiffness: BodyStiffness, g_eq, props, dprops=None):
     -------
     StaticSolution
     """
+    import scipy.linalg as sla
     K, fac = _factor(stiffness, props)
     g = np.asarray(g_eq, float)
     u = sla.cho_solve(fac, g.T, check_finite=False).T
@@ -474,6 +475,7 @@ def static_response(stiffness: BodyStiffness, g_eq, props, columns, dprops=None)
     -------
     u : (nt, nsel); du : (nv, nt, nsel) or None.
     """
+    import scipy.linalg as sla
     K, fac = _factor(stiffness, props)
     cols = np.asarray(columns, int)
     g = np.asarray(g_eq, float)

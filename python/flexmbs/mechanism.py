@@ -84,6 +84,37 @@ def _law_start(spec):
     return float(make_law(spec).tabulate(np.zeros(1))[0][0])
 
 
+class _CubicHermite:
+    """The piecewise cubic through values y and rates dy at the knots t (increasing):
+    scipy.interpolate.CubicHermiteSpline's coefficients and sums (the same numbers), in numpy,
+    so that building a mechanism with a 'reference' drive does not import scipy.interpolate
+    (about 0.5 s of a batch worker's start-up). Extrapolates with the end pieces."""
+
+    def __init__(self, t, y, dy):
+        self.t = t = np.asarray(t, float)
+        y, dy = np.asarray(y, float), np.asarray(dy, float)
+        h = np.diff(t)
+        slope = np.diff(y) / h
+        c3 = (dy[:-1] + dy[1:] - 2 * slope) / h
+        # ascending powers of (s - t_i): y_i, dy_i, c2, c3
+        self.c = (y[:-1], dy[:-1], (slope - dy[:-1]) / h - c3, c3 / h)
+
+    def _piece(self, s):
+        s = np.asarray(s, float)
+        i = np.clip(np.searchsorted(self.t, s, side="right") - 1, 0, self.t.size - 2)
+        return i, s - self.t[i]
+
+    def __call__(self, s):
+        i, x = self._piece(s)
+        c0, c1, c2, c3 = (c[i] for c in self.c)
+        return c0 + c1 * x + c2 * (x * x) + c3 * (x * x * x)
+
+    def rate(self, s):
+        i, x = self._piece(s)
+        _, c1, c2, c3 = (c[i] for c in self.c)
+        return c1 + 2 * c2 * x + 3 * c3 * (x * x)
+
+
 # ----------------------------------------------------------------------------- sections
 def _groups(value, nel):
     """A dimension's entry for every element (a scalar, or one per element / equal group)."""
@@ -331,7 +362,6 @@ class Mechanism:
 
     def _reference_law(self, dr, n, other, motion, name):
         """The drive's motion in the rigid reference, as a law exact on the time grid."""
-        from scipy.interpolate import CubicHermiteSpline
         # the histories of the drive's coordinates alone (not of every node: motion.q)
         if dr.type == "rotation":
             v, r, a = (motion.coordinates(3 * n + 2, rate) for rate in (0, 1, 2))
@@ -346,8 +376,8 @@ class Mechanism:
             v = (q - q[0]) @ ax
             r, a = motion.coordinates(sl, 1) @ ax, motion.coordinates(sl, 2) @ ax
         t = motion.t
-        spline = CubicHermiteSpline(t, v, r)
-        return TimeLaw(spline, spline.derivative(1), lambda s: np.interp(s, t, a), name=name)
+        spline = _CubicHermite(t, v, r)
+        return TimeLaw(spline, spline.rate, lambda s: np.interp(s, t, a), name=name)
 
     # ------------------------------------------------------------------ rigid reference
     @property

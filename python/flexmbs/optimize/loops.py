@@ -47,7 +47,6 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from scipy.linalg import cho_solve, solve_triangular
 
 from flexmbs.errors import ModelError, SimulationError
 from flexmbs.sections import real_number, whole_number
@@ -73,6 +72,7 @@ def solve_qp(c, H, A, b):
     ValueError
         If the constraints are incompatible.
     """
+    from scipy.linalg import cho_solve, solve_triangular
     from scipy.optimize import nnls
 
     H = np.asarray(H, float)
