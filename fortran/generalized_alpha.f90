@@ -233,6 +233,10 @@ contains
         type(linear_system) :: ls
         type(ga_state) :: x, xsave
         real(wp), allocatable :: fgrav(:), vals(:)
+        !> modified Newton's predictor: qdd two steps back and its step (0: none, or the
+        !! history was broken by a failed step; then the predictor is linear)
+        real(wp), allocatable :: qdd_pp(:)
+        real(wp) :: h_pp
         ! work arrays of the direct differentiation, (ndof or n, nv), allocated once
         real(wp), allocatable :: ap_(:, :), qhat(:, :), vhat(:, :), rhs(:, :)
         real(wp) :: alpha_m, alpha_f, gamma, beta, kdyn, pdyn, t, hs, fact_h, ks, ps
@@ -282,9 +286,9 @@ contains
                 return
             end if
         end if
-        allocate (vals(m%nnz), fgrav(m%ndof), stat=ierr)
+        allocate (vals(m%nnz), fgrav(m%ndof), qdd_pp(m%ndof), stat=ierr)
         if (ierr /= 0) then
-            call no_memory(8.0_wp * (real(m%nnz, wp) + m%ndof), MEM_MATRIX)
+            call no_memory(8.0_wp * (real(m%nnz, wp) + 2 * m%ndof), MEM_MATRIX)
             goto 900
         end if
         call allocate_state(x, ierr)
@@ -295,6 +299,8 @@ contains
         end if
         x%qdd_prev = 0
         x%h_prev = 0
+        qdd_pp = 0
+        h_pp = 0
         if (nv > 0) then
             x%dq = 0; x%dqd = 0; x%dqdd = 0; x%da = 0; x%dmu = 0
             allocate (ap_(m%ndof, nv), qhat(m%ndof, nv), vhat(m%ndof, nv), rhs(m%n, nv), stat=ierr)
@@ -372,6 +378,7 @@ contains
                 call copy_state(xsave, x)
                 ptr = ptr0
                 fact_valid = .false.
+                h_pp = 0
                 if (.not. full_step .and. s%newton == NEWTON_AUTO) then
                     full_step = .true.
                     cycle
@@ -463,13 +470,22 @@ contains
             gammap = gamma / (beta * hh)
             tnew = tn + hh
             ! predictor, eqs. (3)-(5), with qdd_{n+1} = qdd_n; in modified Newton,
-            ! qdd_{n+1} extrapolated linearly from the last two steps instead: a
-            ! closer start for the slower (linear) convergence of a reused Jacobian
-            ! (-25 % iterations on the robot; full Newton gains nothing from it)
+            ! qdd_{n+1} extrapolated from the last steps instead: a closer start for the
+            ! slower (linear) convergence of a reused Jacobian. Linear from two steps
+            ! (-25 % iterations on the robot; full Newton gains nothing from it); quadratic
+            ! from three equal steps
             a_part = (alpha_f * x%qdd - alpha_m * x%a) / (1 - alpha_m)
             qdd_pred = x%qdd
-            if (mod_step .and. x%h_prev > 0) qdd_pred = x%qdd + (hh / x%h_prev) * (x%qdd - x%qdd_prev)
+            if (mod_step .and. x%h_prev > 0) then
+                if (h_pp == hh .and. x%h_prev == hh) then
+                    qdd_pred = 3 * (x%qdd - x%qdd_prev) + qdd_pp
+                else
+                    qdd_pred = x%qdd + (hh / x%h_prev) * (x%qdd - x%qdd_prev)
+                end if
+            end if
             a_new = a_part + (1 - alpha_f) / (1 - alpha_m) * qdd_pred
+            qdd_pp = x%qdd_prev
+            h_pp = x%h_prev
             x%qdd_prev = x%qdd
             x%h_prev = hh
             x%q = x%q + hh * x%qd + hh**2 * ((0.5_wp - beta) * x%a + beta * a_new)
