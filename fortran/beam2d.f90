@@ -26,14 +26,6 @@ module beam2d
     integer, parameter :: MAX_NEN = 3            !! nodes per element at most
     integer, parameter :: MAX_EDOF = 3 * MAX_NEN !! element dofs at most
     integer, parameter :: MAX_GAUSS = 2          !! Gauss points of the stiffness at most
-    !> xi of the 2-point Gauss rule, 1/sqrt(3)
-    real(wp), parameter :: XG2 = 0.57735026918962576451_wp
-    !> shape functions and their xi-derivatives at the Gauss points of the stiffness
-    !! (the values `shape` computes), as constants for beam_forces: (node, point)
-    real(wp), parameter :: N3(3, 2) = reshape([0.5_wp * XG2 * (1 + XG2), 1 - XG2**2, &
-        0.5_wp * XG2 * (XG2 - 1), 0.5_wp * XG2 * (XG2 - 1), 1 - XG2**2, 0.5_wp * XG2 * (XG2 + 1)], [3, 2])
-    real(wp), parameter :: DN3(3, 2) = reshape([-XG2 - 0.5_wp, 2 * XG2, -XG2 + 0.5_wp, &
-        XG2 - 0.5_wp, -2 * XG2, XG2 + 0.5_wp], [3, 2])
 
 contains
 
@@ -196,8 +188,10 @@ contains
     end subroutine beam_internal_forces
 
     !> Internal force vector of one element alone (no tangent): the fe of
-    !! beam_internal_forces with reference strains `eref`, in fewer operations (shape
-    !! values as constants, B never formed). The residual-only path of modified Newton.
+    !! beam_internal_forces with reference strains `eref`, in fewer operations (B never
+    !! formed, no optional arguments). The residual-only path of modified Newton. The
+    !! strains come from the same `shape` and `raw_strains` as the reference strains:
+    !! exactly zero in the reference configuration (stress free).
     pure subroutine beam_forces(nen, elen, stiff, eref, qe, fe)
         integer, intent(in) :: nen                   !! nodes of the element (2 or 3)
         real(wp), intent(in) :: elen                 !! reference length L
@@ -205,54 +199,28 @@ contains
         real(wp), intent(in) :: eref(3, MAX_GAUSS)   !! reference strains (beam_reference_strains)
         real(wp), intent(in) :: qe(3 * nen)          !! current coordinates
         real(wp), intent(out) :: fe(3 * nen)         !! internal forces
-        real(wp) :: dns(3), n(3), w, dx, dy, kap, phi, c, s, e1, e2, nf, qf, mf, fx, fy
-        integer :: ig, a
+        real(wp) :: xg(MAX_GAUSS), wg(MAX_GAUSS), n(nen), dn(nen), dns(nen), jac, w
+        real(wp) :: e1, e2, kap, c, s, nf, qf, mf, fx, fy, fp
+        integer :: ig, ng, a
+        call stiffness_gauss(nen, ng, xg, wg)
+        jac = 0.5_wp * elen
         fe = 0
-        if (nen == 2) then
-            ! one point, xi = 0: N = 1/2, dN/ds = -+1/L, weight L
-            dx = (qe(4) - qe(1)) / elen
-            dy = (qe(5) - qe(2)) / elen
-            kap = (qe(6) - qe(3)) / elen
-            phi = 0.5_wp * (qe(3) + qe(6))
-            c = cos(phi)
-            s = sin(phi)
-            e1 = c * dx + s * dy
-            e2 = -s * dx + c * dy
-            nf = elen * stiff(1) * (e1 - eref(1, 1))
-            qf = elen * stiff(2) * (e2 - eref(2, 1))
-            mf = elen * stiff(3) * (kap - eref(3, 1))
-            fx = (nf * c - qf * s) / elen
-            fy = (nf * s + qf * c) / elen
-            fe(1) = -fx
-            fe(2) = -fy
-            fe(4) = fx
-            fe(5) = fy
-            fe(3) = 0.5_wp * (nf * e2 - qf * e1) - mf / elen
-            fe(6) = 0.5_wp * (nf * e2 - qf * e1) + mf / elen
-            return
-        end if
-        w = 0.5_wp * elen                            ! Gauss weights 1, Jacobian L / 2
-        do ig = 1, 2
-            n = N3(:, ig)
-            dns = DN3(:, ig) / w
-            dx = dns(1) * qe(1) + dns(2) * qe(4) + dns(3) * qe(7)
-            dy = dns(1) * qe(2) + dns(2) * qe(5) + dns(3) * qe(8)
-            kap = dns(1) * qe(3) + dns(2) * qe(6) + dns(3) * qe(9)
-            phi = n(1) * qe(3) + n(2) * qe(6) + n(3) * qe(9)
-            c = cos(phi)
-            s = sin(phi)
-            e1 = c * dx + s * dy
-            e2 = -s * dx + c * dy
+        do ig = 1, ng
+            call shape(nen, xg(ig), n, dn)
+            dns = dn / jac
+            w = wg(ig) * jac
+            call raw_strains(nen, qe, dns, n, e1, e2, kap, c, s)
             nf = w * stiff(1) * (e1 - eref(1, ig))
             qf = w * stiff(2) * (e2 - eref(2, ig))
             mf = w * stiff(3) * (kap - eref(3, ig))
+            ! w B^T [N Q M]: B rows (d Gamma_1, d Gamma_2, d kappa)/d qe as in beam_internal_forces
             fx = nf * c - qf * s
             fy = nf * s + qf * c
-            e1 = nf * e2 - qf * e1                   ! the phi term of N and Q
-            do a = 1, 3
+            fp = nf * e2 - qf * e1
+            do a = 1, nen
                 fe(3 * a - 2) = fe(3 * a - 2) + dns(a) * fx
                 fe(3 * a - 1) = fe(3 * a - 1) + dns(a) * fy
-                fe(3 * a) = fe(3 * a) + n(a) * e1 + dns(a) * mf
+                fe(3 * a) = fe(3 * a) + n(a) * fp + dns(a) * mf
             end do
         end do
     end subroutine beam_forces

@@ -234,9 +234,11 @@ contains
         type(ga_state) :: x, xsave
         real(wp), allocatable :: fgrav(:), vals(:)
         !> modified Newton's predictor: qdd two steps back and its step (0: none, or the
-        !! history was broken by a failed step; then the predictor is linear)
+        !! history was broken by a failed step; then the predictor is linear); quad: the
+        !! quadratic extrapolation was the closer one at the last step where both were made
         real(wp), allocatable :: qdd_pp(:)
         real(wp) :: h_pp
+        logical :: quad
         ! work arrays of the direct differentiation, (ndof or n, nv), allocated once
         real(wp), allocatable :: ap_(:, :), qhat(:, :), vhat(:, :), rhs(:, :)
         real(wp) :: alpha_m, alpha_f, gamma, beta, kdyn, pdyn, t, hs, fact_h, ks, ps
@@ -301,6 +303,7 @@ contains
         x%h_prev = 0
         qdd_pp = 0
         h_pp = 0
+        quad = .true.
         if (nv > 0) then
             x%dq = 0; x%dqd = 0; x%dqdd = 0; x%da = 0; x%dmu = 0
             allocate (ap_(m%ndof, nv), qhat(m%ndof, nv), vhat(m%ndof, nv), rhs(m%n, nv), stat=ierr)
@@ -459,9 +462,9 @@ contains
             real(wp), intent(in) :: tn, hh
             integer, intent(out) :: stat
             real(wp) :: betap, gammap, r(m%n), z(m%n, 1), err, err_prev, rate, phimax, tnew
-            real(wp) :: a_new(m%ndof), a_part(m%ndof), qdd_pred(m%ndof)
+            real(wp) :: a_new(m%ndof), a_part(m%ndof), qdd_pred(m%ndof), qdd_lin(m%ndof), qdd_quad(m%ndof)
             integer :: it, lst
-            logical :: refresh, fresh, assemble, mod_step, auto_step, reuse_step
+            logical :: refresh, fresh, assemble, mod_step, auto_step, reuse_step, both
             ! this step's strategy: modified Newton (reuse or automatic) unless full_step
             mod_step = .not. full_step
             auto_step = mod_step .and. s%newton == NEWTON_AUTO
@@ -472,15 +475,21 @@ contains
             ! predictor, eqs. (3)-(5), with qdd_{n+1} = qdd_n; in modified Newton,
             ! qdd_{n+1} extrapolated from the last steps instead: a closer start for the
             ! slower (linear) convergence of a reused Jacobian. Linear from two steps
-            ! (-25 % iterations on the robot; full Newton gains nothing from it); quadratic
-            ! from three equal steps
+            ! (-25 % iterations on the robot; full Newton gains nothing from it), or
+            ! quadratic from three equal steps, whichever was closer to the converged qdd at
+            ! the last step where both were made (robot, 32 elements per arm: the first
+            ! increment 1e-10 instead of 3e-10 qscale and 2.0 instead of 2.5 iterations per
+            ! step; a slider-crank with a stiff rod: linear closer)
             a_part = (alpha_f * x%qdd - alpha_m * x%a) / (1 - alpha_m)
             qdd_pred = x%qdd
+            both = .false.
             if (mod_step .and. x%h_prev > 0) then
+                qdd_lin = x%qdd + (hh / x%h_prev) * (x%qdd - x%qdd_prev)
+                qdd_pred = qdd_lin
                 if (h_pp == hh .and. x%h_prev == hh) then
-                    qdd_pred = 3 * (x%qdd - x%qdd_prev) + qdd_pp
-                else
-                    qdd_pred = x%qdd + (hh / x%h_prev) * (x%qdd - x%qdd_prev)
+                    both = .true.
+                    qdd_quad = 3 * (x%qdd - x%qdd_prev) + qdd_pp
+                    if (quad) qdd_pred = qdd_quad
                 end if
             end if
             a_new = a_part + (1 - alpha_f) / (1 - alpha_m) * qdd_pred
@@ -601,6 +610,7 @@ contains
                 err_prev = err
             end do
             if (stat == GA_OK) then
+                if (both) quad = maxval(abs(x%qdd - qdd_quad)) <= maxval(abs(x%qdd - qdd_lin))
                 x%a = x%a + (1 - alpha_f) / (1 - alpha_m) * x%qdd
                 info = 0
                 if (nv > 0) call sens_step(hh, tnew, betap, gammap, stat)
