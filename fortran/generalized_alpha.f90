@@ -233,12 +233,6 @@ contains
         type(linear_system) :: ls
         type(ga_state) :: x, xsave
         real(wp), allocatable :: fgrav(:), vals(:)
-        !> modified Newton's predictor: qdd two steps back and its step (0: none, or the
-        !! history was broken by a failed step; then the predictor is linear); quad: the
-        !! quadratic extrapolation was the closer one at the last step where both were made
-        real(wp), allocatable :: qdd_pp(:)
-        real(wp) :: h_pp
-        logical :: quad
         ! work arrays of the direct differentiation, (ndof or n, nv), allocated once
         real(wp), allocatable :: ap_(:, :), qhat(:, :), vhat(:, :), rhs(:, :)
         real(wp) :: alpha_m, alpha_f, gamma, beta, kdyn, pdyn, t, hs, fact_h, ks, ps
@@ -288,9 +282,9 @@ contains
                 return
             end if
         end if
-        allocate (vals(m%nnz), fgrav(m%ndof), qdd_pp(m%ndof), stat=ierr)
+        allocate (vals(m%nnz), fgrav(m%ndof), stat=ierr)
         if (ierr /= 0) then
-            call no_memory(8.0_wp * (real(m%nnz, wp) + 2 * m%ndof), MEM_MATRIX)
+            call no_memory(8.0_wp * (real(m%nnz, wp) + m%ndof), MEM_MATRIX)
             goto 900
         end if
         call allocate_state(x, ierr)
@@ -301,9 +295,6 @@ contains
         end if
         x%qdd_prev = 0
         x%h_prev = 0
-        qdd_pp = 0
-        h_pp = 0
-        quad = .true.
         if (nv > 0) then
             x%dq = 0; x%dqd = 0; x%dqdd = 0; x%da = 0; x%dmu = 0
             allocate (ap_(m%ndof, nv), qhat(m%ndof, nv), vhat(m%ndof, nv), rhs(m%n, nv), stat=ierr)
@@ -381,7 +372,6 @@ contains
                 call copy_state(xsave, x)
                 ptr = ptr0
                 fact_valid = .false.
-                h_pp = 0
                 if (.not. full_step .and. s%newton == NEWTON_AUTO) then
                     full_step = .true.
                     cycle
@@ -462,9 +452,9 @@ contains
             real(wp), intent(in) :: tn, hh
             integer, intent(out) :: stat
             real(wp) :: betap, gammap, r(m%n), z(m%n, 1), err, err_prev, rate, phimax, tnew
-            real(wp) :: a_new(m%ndof), a_part(m%ndof), qdd_pred(m%ndof), qdd_lin(m%ndof), qdd_quad(m%ndof)
+            real(wp) :: a_new(m%ndof), a_part(m%ndof), qdd_pred(m%ndof)
             integer :: it, lst
-            logical :: refresh, fresh, assemble, mod_step, auto_step, reuse_step, both
+            logical :: refresh, fresh, assemble, mod_step, auto_step, reuse_step
             ! this step's strategy: modified Newton (reuse or automatic) unless full_step
             mod_step = .not. full_step
             auto_step = mod_step .and. s%newton == NEWTON_AUTO
@@ -473,28 +463,13 @@ contains
             gammap = gamma / (beta * hh)
             tnew = tn + hh
             ! predictor, eqs. (3)-(5), with qdd_{n+1} = qdd_n; in modified Newton,
-            ! qdd_{n+1} extrapolated from the last steps instead: a closer start for the
-            ! slower (linear) convergence of a reused Jacobian. Linear from two steps
-            ! (-25 % iterations on the robot; full Newton gains nothing from it), or
-            ! quadratic from three equal steps, whichever was closer to the converged qdd at
-            ! the last step where both were made (robot, 32 elements per arm: the first
-            ! increment 1e-10 instead of 3e-10 qscale and 2.0 instead of 2.5 iterations per
-            ! step; a slider-crank with a stiff rod: linear closer)
+            ! qdd_{n+1} extrapolated linearly from the last two steps instead: a
+            ! closer start for the slower (linear) convergence of a reused Jacobian
+            ! (-25 % iterations on the robot; full Newton gains nothing from it)
             a_part = (alpha_f * x%qdd - alpha_m * x%a) / (1 - alpha_m)
             qdd_pred = x%qdd
-            both = .false.
-            if (mod_step .and. x%h_prev > 0) then
-                qdd_lin = x%qdd + (hh / x%h_prev) * (x%qdd - x%qdd_prev)
-                qdd_pred = qdd_lin
-                if (h_pp == hh .and. x%h_prev == hh) then
-                    both = .true.
-                    qdd_quad = 3 * (x%qdd - x%qdd_prev) + qdd_pp
-                    if (quad) qdd_pred = qdd_quad
-                end if
-            end if
+            if (mod_step .and. x%h_prev > 0) qdd_pred = x%qdd + (hh / x%h_prev) * (x%qdd - x%qdd_prev)
             a_new = a_part + (1 - alpha_f) / (1 - alpha_m) * qdd_pred
-            qdd_pp = x%qdd_prev
-            h_pp = x%h_prev
             x%qdd_prev = x%qdd
             x%h_prev = hh
             x%q = x%q + hh * x%qd + hh**2 * ((0.5_wp - beta) * x%a + beta * a_new)
@@ -610,7 +585,6 @@ contains
                 err_prev = err
             end do
             if (stat == GA_OK) then
-                if (both) quad = maxval(abs(x%qdd - qdd_quad)) <= maxval(abs(x%qdd - qdd_lin))
                 x%a = x%a + (1 - alpha_f) / (1 - alpha_m) * x%qdd
                 info = 0
                 if (nv > 0) call sens_step(hh, tnew, betap, gammap, stat)
