@@ -471,7 +471,9 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     t_start = time.perf_counter()
     if not isinstance(model, Model):
         raise ModelError(f"simulate expects a flexmbs Model, got {type(model).__name__}")
-    nsteps = time_steps(t_end, h, memory_limit)
+    # the step count alone here (one reading of the available memory per call, below:
+    # check_memory's estimate contains the grid and stored outputs time_steps would check)
+    nsteps = time_steps(t_end, h, math.inf)
     limits = ValidityLimits.coerce(validity)
     _check_newton_settings(rho_inf, tol, max_iter, max_cuts)
     newton = newton_mode(newton, reuse_jacobian)
