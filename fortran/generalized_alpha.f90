@@ -52,8 +52,10 @@ module generalized_alpha
     !! at least 4x per iteration (the rule of the former reuse_jacobian=True)
     integer, parameter :: NEWTON_REUSE = 1
     !> automatic: modified Newton whose factorization is refreshed when the contraction
-    !! rate exceeds auto_rate, when a step needs auto_iter iterations, and at the start of
-    !! the step after one that needed auto_stale; an increment <= tol (full Newton's test)
+    !! rate exceeds auto_rate, when a step needs auto_iter iterations, when the observed rate
+    !! would need more further iterations than a refresh costs (auto_refresh_cost), and at
+    !! the start of the step after one that needed auto_stale or renewed its held matrix;
+    !! an increment <= tol (full Newton's test)
     !! is accepted only when the contraction bounds the remaining error by what full
     !! Newton's quadratic convergence leaves (auto_floor)
     integer, parameter :: NEWTON_AUTO = 2
