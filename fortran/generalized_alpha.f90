@@ -504,7 +504,9 @@ contains
                 if (it == 1) then
                     held_start = .not. fresh
                     renewed = .false.
-                else if (fresh .and. held_start) then
+                else if (fresh .and. held_start .and. .not. (nv > 0 .or. s%polish)) then
+                    ! (with design derivatives or polish, a step's iterations from the second
+                    ! on are fresh anyway, and its last factorization serves the next step)
                     renewed = .true.
                 end if
                 ! the iteration matrix is assembled with the residual, in one pass over the
