@@ -191,7 +191,11 @@ def robot_flexmbs(elements_per_arm=2, p=0.05, stiffness_factor=1.0, drive_laws=N
     `drive_laws` = (theta1, theta1 + theta2) TimeLaws (default: the paper's motion).
     """
     import flexmbs as fx
-    from flexmbs.laws import robot_joint_laws
+    import sys
+    tests = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tests")
+    if tests not in sys.path:                # the robot's inverse kinematics (left the library)
+        sys.path.insert(0, tests)
+    from robot_kinematics import robot_joint_laws
     mat = fx.Material(E=E_ALU * stiffness_factor, nu=NU_ALU, rho=RHO_ALU)
     sec = fx.Tube.with_wall_ratio(p, 0.1)
     if drive_laws is None:

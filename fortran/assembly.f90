@@ -12,7 +12,7 @@
 !! a dense column-major matrix or the CSC values of the KLU pattern.
 module assembly
     use flexmbs_kinds, only: wp
-    use beam2d, only: beam_internal_forces, MAX_EDOF
+    use beam2d, only: beam_internal_forces, beam_forces, MAX_EDOF
     use constraints, only: constraint_row, MAX_CDOF
     use force_elements, only: spring_damper
     use model_data, only: mbs_model, law_value
@@ -49,8 +49,8 @@ contains
                     end do
                 end do
             else
-                call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), &
-                                          qr(1:ne), qe(1:ne), fe(1:ne), eref=m%el_eref(:, :, e))
+                call beam_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), m%el_eref(:, :, e), &
+                                 qe(1:ne), fe(1:ne))
             end if
             do a = 1, ne
                 d = m%el_dofs(a, e)
@@ -60,24 +60,58 @@ contains
     end subroutine internal_forces
 
     !> y = M x with the constant mass matrix (element blocks + lumped diagonal).
+    !! A beam's consistent mass (beam2d's beam_mass) couples only like coordinates (x with
+    !! x, y with y, phi with phi) of its nodes: the other entries, zero, are skipped.
     pure subroutine mass_times(m, x, y)
         type(mbs_model), intent(in) :: m
         real(wp), intent(in) :: x(m%ndof)
         real(wp), intent(out) :: y(m%ndof)
         integer :: e, ne, a, b
-        real(wp) :: s
+        real(wp) :: s, xe(MAX_EDOF)
         y = m%lumped * x
         do e = 1, m%nel
             ne = 3 * m%el_nen(e)
             do a = 1, ne
+                xe(a) = x(m%el_dofs(a, e))
+            end do
+            do a = 1, ne
                 s = 0
-                do b = 1, ne
-                    s = s + m%el_mass(a, b, e) * x(m%el_dofs(b, e))
+                do b = mod(a - 1, 3) + 1, ne, 3
+                    s = s + m%el_mass(a, b, e) * xe(b)
                 end do
                 y(m%el_dofs(a, e)) = y(m%el_dofs(a, e)) + s
             end do
         end do
     end subroutine mass_times
+
+    !> f = f_int(q) + cm M qdd, in one pass over the elements: the residual's element
+    !! part when no matrix is assembled (mass coupling as in mass_times).
+    subroutine element_forces(m, q, qdd, cm, f)
+        type(mbs_model), intent(in) :: m
+        real(wp), intent(in) :: q(m%ndof), qdd(m%ndof), cm
+        real(wp), intent(out) :: f(m%ndof)
+        real(wp) :: fe(MAX_EDOF), qe(MAX_EDOF), ae(MAX_EDOF), s
+        integer :: e, ne, a, b, d
+        f = cm * m%lumped * qdd
+        do e = 1, m%nel
+            ne = 3 * m%el_nen(e)
+            do a = 1, ne
+                d = m%el_dofs(a, e)
+                qe(a) = q(d)
+                ae(a) = qdd(d)
+            end do
+            call beam_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), m%el_eref(:, :, e), &
+                             qe(1:ne), fe(1:ne))
+            do a = 1, ne
+                s = 0
+                do b = mod(a - 1, 3) + 1, ne, 3
+                    s = s + m%el_mass(a, b, e) * ae(b)
+                end do
+                d = m%el_dofs(a, e)
+                f(d) = f(d) + (fe(a) + cm * s)
+            end do
+        end do
+    end subroutine element_forces
 
     !> External forces at time t: gravity M g_acc plus the nodal loads.
     pure subroutine external_forces(m, fgrav, t, fext)
@@ -132,8 +166,13 @@ contains
         real(wp) :: fint(m%ndof), fext(m%ndof), mq(m%ndof)
         real(wp) :: phi, grad(MAX_CDOF), hess(MAX_CDOF, MAX_CDOF)
         integer :: i, a
+        logical :: inertia
+        inertia = cm /= 0
         if (present(vals)) then
             call iteration_matrix(m, q, qd, mu, t, cmat, 1.0_wp, cc, kscale, pen, vals, fint)
+        else if (inertia) then
+            call element_forces(m, q, qdd, cm, fint)     ! f_int + cm M qdd in one pass
+            inertia = .false.
         else
             call internal_forces(m, q, fint)
         end if
@@ -141,7 +180,7 @@ contains
         if (present(lf)) fext = lf * fext
         r(1:m%ndof) = fint - fext
         if (m%nsd > 0) call spring_forces(m, q, qd, r(1:m%ndof))
-        if (cm /= 0) then
+        if (inertia) then
             call mass_times(m, qdd, mq)
             r(1:m%ndof) = r(1:m%ndof) + cm * mq
         end if

@@ -21,7 +21,7 @@ module beam2d
     use flexmbs_kinds, only: wp
     implicit none
     private
-    public :: beam_internal_forces, beam_mass, beam_reference_strains, MAX_EDOF, MAX_GAUSS
+    public :: beam_internal_forces, beam_forces, beam_mass, beam_reference_strains, MAX_EDOF, MAX_GAUSS
 
     integer, parameter :: MAX_NEN = 3            !! nodes per element at most
     integer, parameter :: MAX_EDOF = 3 * MAX_NEN !! element dofs at most
@@ -186,6 +186,44 @@ contains
             end if
         end do
     end subroutine beam_internal_forces
+
+    !> Internal force vector of one element alone (no tangent): the fe of
+    !! beam_internal_forces with reference strains `eref`, in fewer operations (B never
+    !! formed, no optional arguments). The residual-only path of modified Newton. The
+    !! strains come from the same `shape` and `raw_strains` as the reference strains:
+    !! exactly zero in the reference configuration (stress free).
+    pure subroutine beam_forces(nen, elen, stiff, eref, qe, fe)
+        integer, intent(in) :: nen                   !! nodes of the element (2 or 3)
+        real(wp), intent(in) :: elen                 !! reference length L
+        real(wp), intent(in) :: stiff(3)             !! EA, kGA, EI
+        real(wp), intent(in) :: eref(3, MAX_GAUSS)   !! reference strains (beam_reference_strains)
+        real(wp), intent(in) :: qe(3 * nen)          !! current coordinates
+        real(wp), intent(out) :: fe(3 * nen)         !! internal forces
+        real(wp) :: xg(MAX_GAUSS), wg(MAX_GAUSS), n(nen), dn(nen), dns(nen), jac, w
+        real(wp) :: e1, e2, kap, c, s, nf, qf, mf, fx, fy, fp
+        integer :: ig, ng, a
+        call stiffness_gauss(nen, ng, xg, wg)
+        jac = 0.5_wp * elen
+        fe = 0
+        do ig = 1, ng
+            call shape(nen, xg(ig), n, dn)
+            dns = dn / jac
+            w = wg(ig) * jac
+            call raw_strains(nen, qe, dns, n, e1, e2, kap, c, s)
+            nf = w * stiff(1) * (e1 - eref(1, ig))
+            qf = w * stiff(2) * (e2 - eref(2, ig))
+            mf = w * stiff(3) * (kap - eref(3, ig))
+            ! w B^T [N Q M]: B rows (d Gamma_1, d Gamma_2, d kappa)/d qe as in beam_internal_forces
+            fx = nf * c - qf * s
+            fy = nf * s + qf * c
+            fp = nf * e2 - qf * e1
+            do a = 1, nen
+                fe(3 * a - 2) = fe(3 * a - 2) + dns(a) * fx
+                fe(3 * a - 1) = fe(3 * a - 1) + dns(a) * fy
+                fe(3 * a) = fe(3 * a) + n(a) * fp + dns(a) * mf
+            end do
+        end do
+    end subroutine beam_forces
 
     !> Consistent mass matrix with rotary inertia, exact Gauss integration.
     pure subroutine beam_mass(nen, elen, rho_a, rho_i, me)

@@ -54,8 +54,10 @@ module generalized_alpha
     !! at least 4x per iteration (the rule of the former reuse_jacobian=True)
     integer, parameter :: NEWTON_REUSE = 1
     !> automatic: modified Newton whose factorization is refreshed when the contraction
-    !! rate exceeds auto_rate, when a step needs auto_iter iterations, and at the start of
-    !! the step after one that needed auto_stale; an increment <= tol (full Newton's test)
+    !! rate exceeds auto_rate, when a step needs auto_iter iterations, when the observed rate
+    !! would need more further iterations than a refresh costs (auto_refresh_cost), and at
+    !! the start of the step after one that needed auto_stale or renewed its held matrix;
+    !! an increment <= tol (full Newton's test)
     !! is accepted only when the contraction bounds the remaining error by what full
     !! Newton's quadratic convergence leaves (auto_floor)
     integer, parameter :: NEWTON_AUTO = 2
@@ -65,6 +67,12 @@ module generalized_alpha
     !> automatic: a step that needed this many iterations (to tol and below) makes the next
     !! step start with a fresh matrix: the contraction of an aged matrix had become slow
     integer, parameter :: auto_stale = 3
+    !> automatic: the cost of a refresh (assembling and factoring the matrix) in Newton
+    !! iterations (a residual and a solve): a held matrix is refreshed within a step when its
+    !! observed contraction would need more than 2 + auto_refresh_cost further iterations to
+    !! reach acceptance (a fresh matrix converges in about 2). Measured on the robot: 1.8
+    !! (2 elements per arm) to 3.5 (32 and 128) iterations per refresh; the lower bound is taken
+    real(wp), parameter :: auto_refresh_cost = 2.0_wp
     !> automatic: an increment below tol is accepted when the estimated remaining error,
     !! rate / (1 - rate) times the increment, is below max(tol^2, auto_floor): what full
     !! Newton's quadratic convergence leaves, or the rounding level of the scaled
@@ -548,6 +556,9 @@ contains
             real(wp) :: a_new(m%ndof), a_part(m%ndof), qdd_pred(m%ndof)
             integer :: it, lst
             logical :: refresh, fresh, assemble, mod_step, auto_step, reuse_step
+            !> held_start: the step began with a held matrix; renewed: and refreshed it later
+            logical :: held_start, renewed
+            real(wp) :: k_held
             ! this step's strategy: modified Newton (reuse or automatic) unless full_step
             mod_step = .not. full_step
             auto_step = mod_step .and. s%newton == NEWTON_AUTO
@@ -583,6 +594,14 @@ contains
                 ! and the step then converges like full Newton, in one factorization
                 if ((nv > 0 .or. s%polish) .and. mod_step .and. it >= 2) refresh = .true.
                 fresh = refresh .or. .not. fact_valid .or. fact_h /= hh
+                if (it == 1) then
+                    held_start = .not. fresh
+                    renewed = .false.
+                else if (fresh .and. held_start .and. .not. (nv > 0 .or. s%polish)) then
+                    ! (with design derivatives or polish, a step's iterations from the second
+                    ! on are fresh anyway, and its last factorization serves the next step)
+                    renewed = .true.
+                end if
                 ! the iteration matrix is assembled with the residual, in one pass over the
                 ! elements, whenever it is factored
                 assemble = fresh
@@ -662,7 +681,9 @@ contains
                     if (stat == GA_OK) then
                         fact_exact = fresh
                         vals_exact = assemble
-                        stale = auto_step .and. it >= auto_stale .and. .not. fresh
+                        ! the next step starts with a fresh matrix after one that needed
+                        ! auto_stale iterations with a held one, or that had to renew it
+                        stale = auto_step .and. ((it >= auto_stale .and. .not. fresh) .or. renewed)
                         exit
                     end if
                 end if
@@ -673,6 +694,12 @@ contains
                 if (auto_step) then
                     if (err > s%tol .and. (rate > auto_rate .or. it + 1 >= auto_iter)) refresh = .true.
                     if (err <= s%tol .and. rate > 0.5_wp) refresh = .true.
+                    ! cost model: further held iterations to reach acceptance at the observed
+                    ! contraction, against a refresh and the ~2 iterations of a fresh matrix
+                    if (.not. fresh .and. it >= 2 .and. rate > 0 .and. rate < 1 .and. err > 0) then
+                        k_held = log(max(s%tol**2, auto_floor) * (1 - rate) / (rate * err)) / log(rate)
+                        if (k_held > 2 + auto_refresh_cost) refresh = .true.
+                    end if
                 end if
                 if (err > 1.0e6_wp .or. .not. (err == err)) exit
                 err_prev = err

@@ -420,7 +420,9 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         Newton strategy. 'full': the iteration matrix of eq. (7) assembled and factored at
         every iteration. 'auto': the factorization is kept across iterations and steps while
         the scaled increment contracts by at least 0.3 per iteration, and refreshed when it does
-        not, when a step needs a 4th iteration, or after a step that needed 3; an increment
+        not, when a step needs a 4th iteration, when the observed contraction would need more
+        further iterations than a refresh costs (a cost model: generalized_alpha.f90,
+        auto_refresh_cost), or after a step that needed 3 or had to refresh; an increment
         below `tol` (full Newton's test) is accepted once the estimated remaining error
         (contraction / (1 - contraction) x increment) is at the level full Newton's quadratic
         convergence leaves (tol^2, or the rounding of the coordinates), because modified
@@ -502,7 +504,9 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     t_start = time.perf_counter()
     if not isinstance(model, Model):
         raise ModelError(f"simulate expects a flexmbs Model, got {type(model).__name__}")
-    nsteps = time_steps(t_end, h, memory_limit)
+    # the step count alone here (one reading of the available memory per call, below:
+    # check_memory's estimate contains the grid and stored outputs time_steps would check)
+    nsteps = time_steps(t_end, h, math.inf)
     limits = ValidityLimits.coerce(validity)
     _check_newton_settings(rho_inf, tol, max_iter, max_cuts)
     newton = newton_mode(newton, reuse_jacobian)
