@@ -113,7 +113,8 @@ class _Poses:
             self.r[nodes] = pts - c
             self.c0[g] = c
             self.count[g] = len(nodes)
-            self.spread[g] = float(np.sum((pts - c) ** 2))
+            with np.errstate(over="ignore", invalid="ignore"):   # checked just below
+                self.spread[g] = float(np.sum((pts - c) ** 2))
         with np.errstate(over="ignore", invalid="ignore"):
             extent = np.abs(ref[:, :2] - ref[:, :2].mean(axis=0)).max() if nn else 0.0
         if not np.isfinite(extent) or extent > 1e100:
