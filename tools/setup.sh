@@ -15,7 +15,10 @@ have_system() {
     command -v pkg-config >/dev/null 2>&1 || return 1
     [ -f /usr/include/suitesparse/klu.h ] || [ -f /usr/local/include/suitesparse/klu.h ] \
         || [ -f /usr/include/klu.h ] || return 1
-    ldconfig -p 2>/dev/null | grep -q 'liblapack\.so' || return 1
+    # grep without -q reads all of ldconfig's output: with -q it may exit first, ldconfig dies
+    # of SIGPIPE and pipefail made the check fail now and then (an apt-get for nothing, or an
+    # error for a user without root)
+    ldconfig -p 2>/dev/null | grep 'liblapack\.so' >/dev/null || return 1
     return 0
 }
 
@@ -50,3 +53,8 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ] || ! "$VENV/bin/python"
     "$VENV/bin/python" -c "import flexmbs" 
     echo "$want" > "$stamp"
 fi
+
+# Byte-compile the package (fast when nothing changed): with PYTHONDONTWRITEBYTECODE set, as
+# on this machine, every fresh interpreter (a batch's worker processes) would otherwise
+# compile flexmbs's sources again (~0.2 s each; benchmarks/README.md, batch scaling).
+"$VENV/bin/python" -m compileall -q python/flexmbs >/dev/null || true
