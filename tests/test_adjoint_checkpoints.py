@@ -3,6 +3,8 @@ state at every K-th time point instead of the tape of every state; the backward 
 each segment from its checkpoint with the tape and carries the adjoint state from one segment
 to the previous one (flexmbs.adjoint, fortran/adjoint.f90 ga_adjoint with j_start / adj_in /
 adj_out, fortran/generalized_alpha.f90 ga_simulate with ckpt / x_start)."""
+import json
+
 import numpy as np
 import pytest
 
@@ -203,3 +205,24 @@ def test_checkpoint_interval_fits_the_memory_given():
         k = checkpoint_interval(model, n, avail)
         assert k >= 100 and sum(checkpoint_memory(model, n, k)) <= avail
         assert k == n or sum(checkpoint_memory(model, n, k + 1)) > avail
+
+
+def test_cli_checkpoints_give_the_gradient_of_the_full_tape(capsys):
+    """`flexmbs evaluate ... --gradient --gradient-method adjoint --checkpoints 5 --json`: the constraint
+    rows' gradients (the JSON's jacobian) equal those of the full tape (no --checkpoints) to
+    1e-9 relative (the segments are re-run from exact states); a bad --checkpoints value is a
+    usage error naming the option and the value."""
+    from flexmbs.cli import main
+    args = ["evaluate", "robot_2dof_tapered_tubes", "--set", "time.t_end=0.02",
+            "--gradient", "--gradient-method", "adjoint", "--json"]
+    assert main(args) == 0
+    full = json.loads(capsys.readouterr().out)
+    assert main(args + ["--checkpoints", "5"]) == 0
+    ck = json.loads(capsys.readouterr().out)
+    assert full["gradient_method"] == ck["gradient_method"] == "adjoint"
+    a, b = np.array(full["jacobian"]), np.array(ck["jacobian"])
+    assert a.shape == (len(full["constraint_names"]), 64)
+    assert np.abs(a - b).max() <= 1e-9 * np.abs(a).max()
+    assert main(args + ["--checkpoints", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "--checkpoints" in err and "'0'" in err

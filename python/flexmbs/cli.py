@@ -78,6 +78,25 @@ def add_case_arguments(parser):
                              "independent of the number of variables), or auto (the default of "
                              "optimize: the adjoint when the variables are >= 32 and outnumber "
                              "the aggregated rows 4 times; docs/adjoint.md)")
+    parser.add_argument("--checkpoints", type=_checkpoints, default=None, metavar="auto|K",
+                        help="the adjoint's forward run keeps the full state every K time "
+                             "points only and recomputes the segments backwards (auto: K = "
+                             "sqrt(steps), about the least memory); default: the tape of every "
+                             "state when it fits in memory, checkpoints when it does not "
+                             "(docs/adjoint.md 3b)")
+
+
+def _checkpoints(text):
+    """--checkpoints: 'auto' or an integer >= 1."""
+    if text == "auto":
+        return text
+    try:
+        k = int(text)
+    except ValueError:
+        k = 0
+    if k < 1:
+        raise argparse.ArgumentTypeError(f"expected 'auto' or an integer >= 1, got {text!r}")
+    return k
 
 
 def parse_set(items):
@@ -104,7 +123,8 @@ def problem_from_args(args, gradient_method="direct"):
         if value is not None:
             overrides[f"time.{key}"] = value
     return Problem(args.case, overrides=overrides or None,
-                   gradient_method=getattr(args, "gradient_method", None) or gradient_method)
+                   gradient_method=getattr(args, "gradient_method", None) or gradient_method,
+                   checkpoints=getattr(args, "checkpoints", None))
 
 
 def parse_values(text, names, owner, option="--design"):
@@ -218,7 +238,8 @@ def add_design_arguments(p):
                    help="design variables in their units (one value: all of them); default: "
                         "the case's start")
     p.add_argument("--gradient", action="store_true",
-                   help="also compute the design gradients (direct differentiation, exact)")
+                   help="also compute the design gradients (exact: direct differentiation, or the "
+                        "adjoint with --gradient-method adjoint|auto)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a summary")
 
 

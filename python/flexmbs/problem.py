@@ -148,6 +148,12 @@ class Evaluation:
                                        "gradient_of_max": None if g is None else g[j].tolist()}
         if self.d_objective is not None:
             out["d_objective"] = self.d_objective.tolist()
+        # the constraint rows g <= 0 and their gradients (with the adjoint, the only gradients
+        # there are besides the objective's)
+        out["constraints"] = np.asarray(self.constraints, float).tolist()
+        out["constraint_names"] = list(self.constraint_names)
+        out["jacobian"] = None if self.jacobian is None else np.asarray(self.jacobian).tolist()
+        out["gradient_method"] = self.gradient_method
         return out
 
 
