@@ -254,15 +254,10 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
             grid=np.asarray(tp["grid"], np.int32), nf=nf, gq=gq_f, gmu=gmu_f,
             nv=max(nv, 1), dprop=dprop_f, ntot=nt, j_start=j0, have_in=int(have_in),
             adj_in=adj, gprop_in=gprop)
-        if status == 9:
-            raise ResourceError(f"adjoint_gradient: an allocation failed in the core "
-                                f"({format_bytes(info[1]) if info[1] > 0 else 'size unknown'})",
-                                required=float(info[1]) if info[1] > 0 else None)
         if status != 0:
-            raise SimulationError(f"adjoint_gradient: the backward pass failed at t = "
-                                  f"{info[0]:.6g} s (core status {int(status)}, code "
-                                  f"{int(info[3])}): a singular transposed iteration matrix",
-                                  time=float(info[0]), code=int(status))
+            _core_failure(status, info, "", f"the backward pass failed at t = {info[0]:.6g} s "
+                          f"(core status {int(status)}, code {int(info[3])}): a singular "
+                          "transposed iteration matrix")
         return grad, gp, adj_out
 
     if tape is not None:
@@ -286,6 +281,17 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
     if return_properties:
         return grad, np.array(gprop[:, :cm.nel])
     return grad
+
+
+def _core_failure(status, info, where, failure):
+    """Raise for a core call that returned a non-zero status: ResourceError for a failed
+    allocation (status 9; `where` says during what), else SimulationError('adjoint_gradient: '
+    + failure) at the time info[0]."""
+    if status == 9:
+        raise ResourceError(f"adjoint_gradient: an allocation failed in the core{where} "
+                            f"({format_bytes(info[1]) if info[1] > 0 else 'size unknown'})",
+                            required=float(info[1]) if info[1] > 0 else None)
+    raise SimulationError(f"adjoint_gradient: {failure}", time=float(info[0]), code=int(status))
 
 
 def _segment_tape(model, result, margs, pat, x_start, j0, nseg):
@@ -315,16 +321,11 @@ def _segment_tape(model, result, margs, pat, x_start, j0, nseg):
             ncol = nseg * 2 ** int(st["max_cuts"]) + 1
             continue
         break
-    if status == 9:
-        raise ResourceError(f"adjoint_gradient: an allocation failed in the core while "
-                            f"re-running the segment from t = {j0 * st['h']:.6g} s "
-                            f"({format_bytes(info[1]) if info[1] > 0 else 'size unknown'})",
-                            required=float(info[1]) if info[1] > 0 else None)
     if status != 0:
-        raise SimulationError(f"adjoint_gradient: the re-run of the segment from its checkpoint "
-                              f"at t = {j0 * st['h']:.6g} s failed at t = {info[0]:.6g} s (core "
-                              f"status {status}), although the first run converged",
-                              time=float(info[0]), code=status)
+        _core_failure(status, info, f" while re-running the segment from t = "
+                      f"{j0 * st['h']:.6g} s", f"the re-run of the segment from its checkpoint "
+                      f"at t = {j0 * st['h']:.6g} s failed at t = {info[0]:.6g} s (core status "
+                      f"{status}), although the first run converged")
     tq, tqd, tqdd, tmu, th, tgrid, nused = out[9:16]
     nused = int(nused)
     return dict(q=tq[:, :nused], qd=tqd[:, :nused], qdd=tqdd[:, :nused],
