@@ -330,3 +330,30 @@ def test_progress_line_summarizes_many_variables():
     assert "x = [39.29, 28.33]" in few
     many = _iteration_line(dict(rec, design=list(np.linspace(0.5, 60.0, 64))))
     assert "x = (64 values in [0.5, 60])" in many
+
+
+def test_result_plot_draws_small_profiles_on_a_second_axis(tmp_path, monkeypatch):
+    """OptimizationResult.plot with element-wise diameters (~50 mm) and walls (~1 mm): a PNG is
+    written, the walls go to a second y axis (labelled 'right axis') and the diameters stay
+    on the first, so that both profiles can be read."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from flexmbs.optimize.result import OptimizationResult
+    names = [f"D[{k}]" for k in range(1, 5)] + [f"t[{k}]" for k in range(1, 5)]
+    design = np.array([60.0, 55.0, 40.0, 22.0, 0.5, 0.5, 0.6, 0.5])
+    res = OptimizationResult(
+        method="fully", case="x", variables=names, units=["mm"] * 8, design=design,
+        start=np.array([50.0] * 4 + [5.0] * 4), objective=0.3, objective_name="mass",
+        mass_kg=0.3, max_violation=0.0, max_deviation_m=None, iterations=2,
+        inner_iterations=None, evaluations=2, simulations=2, converged=False, reason="cap",
+        history=[{"iteration": 1, "mass_kg": 0.5, "max_violation": 0.0},
+                 {"iteration": 2, "mass_kg": 0.3, "max_violation": 0.0}], wall_time_s=1.0)
+    figs = []
+    monkeypatch.setattr(plt, "close", lambda fig: figs.append(fig))
+    out = res.plot(tmp_path / "r.png")
+    assert (tmp_path / "r.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", out
+    axes = figs[0].axes
+    labels = {ax.get_ylabel(): [ln.get_label() for ln in ax.get_lines()] for ax in axes}
+    assert any("t [mm] (right axis)" in v for v in labels.get("design value (right axis)", []))
+    assert any(v == "D [mm]" for v in labels["design value"])

@@ -307,17 +307,30 @@ class OptimizationResult:
         ax1, ax2 = axes[0], axes[1]
         if profiles:
             ax3 = axes[2]
+            # profiles 10 times smaller than the largest (a wall beside a diameter) on a
+            # second axis, so that both can be read
+            top = {b: float(np.max(np.abs(np.concatenate(
+                [np.asarray(self.design)[ks], np.asarray(self.start)[ks]])))) for b, ks in
+                profiles.items()}
+            big = max(top.values())
+            small = {b for b, v in top.items() if v < 0.1 * big}
+            ax_small = ax3.twinx() if small and len(small) < len(profiles) else None
+            lines = []
             for i, (base, ks) in enumerate(profiles.items()):
                 color = f"C{i}"
+                ax = ax_small if (ax_small is not None and base in small) else ax3
                 idx = np.arange(1, len(ks) + 1)
-                ax3.step(idx, np.asarray(self.design)[ks], where="mid", color=color,
-                         label=f"{base} [{self.units[ks[0]]}]")
-                ax3.step(idx, np.asarray(self.start)[ks], where="mid", color=color, ls=":",
-                         lw=0.8)
+                lines += ax.step(idx, np.asarray(self.design)[ks], where="mid", color=color,
+                                 label=f"{base} [{self.units[ks[0]]}]"
+                                 + (" (right axis)" if ax is ax_small else ""))
+                ax.step(idx, np.asarray(self.start)[ks], where="mid", color=color, ls=":",
+                        lw=0.8)
             ax3.set_xlabel("element (root first)")
             ax3.set_ylabel("design value")
+            if ax_small is not None:
+                ax_small.set_ylabel("design value (right axis)")
             ax3.set_title("element-wise design (dotted: start)")
-            ax3.legend(loc="best", fontsize=8)
+            ax3.legend(lines, [ln.get_label() for ln in lines], loc="best", fontsize=8)
             ax3.grid(True, alpha=0.3)
         its = [r.get("iteration", k + 1) for k, r in enumerate(self.history)]
         key = "mass_kg" if all(r.get("mass_kg") is not None for r in self.history) \
