@@ -330,7 +330,7 @@ class OptimizationResult:
             if ax_small is not None:
                 ax_small.set_ylabel("design value (right axis)")
             ax3.set_title("element-wise design (dotted: start)")
-            ax3.legend(lines, [ln.get_label() for ln in lines], loc="best", fontsize=8)
+            ax3.legend(lines, [ln.get_label() for ln in lines], loc="center left", fontsize=8)
             ax3.grid(True, alpha=0.3)
         its = [r.get("iteration", k + 1) for k, r in enumerate(self.history)]
         key = "mass_kg" if all(r.get("mass_kg") is not None for r in self.history) \
