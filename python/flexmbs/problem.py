@@ -755,6 +755,16 @@ def _check_method(method, name="method"):
                          f"got {method!r}")
 
 
+def _bounds(description):
+    """(constraint, bound, sign, scale) of every bound of the description's constraints, in
+    row order: the upper bound (sign 1) before the lower (sign -1); scale |bound| (1 for 0).
+    The one normalisation of `constraint_rows` and `constraint_weights`."""
+    for c in description.constraints:
+        for bound, sign in ((c.upper, 1.0), (c.lower, -1.0)):
+            if bound is not None:
+                yield c, bound, sign, (abs(bound) if bound != 0 else 1.0)
+
+
 def constraint_rows(description, values, gradients, t, nv, gradient=True):
     """The normalised constraint rows g <= 0 of a description from response values.
 
@@ -768,24 +778,19 @@ def constraint_rows(description, values, gradients, t, nv, gradient=True):
     groups : (ng,) index of the (constraint, bound) each row comes from.
     """
     g_rows, j_rows, names, groups = [], [], [], []
-    for c in description.constraints:
+    for c, bound, sign, s in _bounds(description):
         v, dv = values[c.response], gradients.get(c.response)
-        for bound, sign in ((c.upper, 1.0), (c.lower, -1.0)):
-            if bound is None:
-                continue
-            s = abs(bound) if bound != 0 else 1.0
-            # g = sign (r - bound) / |bound| <= 0, aggregated over time as asked
-            r = sign * np.asarray(v, float) / s
-            dr = None if dv is None or not gradient else sign * np.asarray(dv, float) / s
-            if np.ndim(r):
-                r, dr = aggregate(r, dr, c.over, parameter=c.parameter, t=t,
-                                  window=c.window)
-            g = np.atleast_1d(r) - sign * bound / s
-            groups += [len(g_rows)] * g.size
-            g_rows.append(g)
-            names += [c.response] * g.size
-            if dr is not None:
-                j_rows.append(np.atleast_2d(dr))
+        # g = sign (r - bound) / |bound| <= 0, aggregated over time as asked
+        r = sign * np.asarray(v, float) / s
+        dr = None if dv is None or not gradient else sign * np.asarray(dv, float) / s
+        if np.ndim(r):
+            r, dr = aggregate(r, dr, c.over, parameter=c.parameter, t=t, window=c.window)
+        g = np.atleast_1d(r) - sign * bound / s
+        groups += [len(g_rows)] * g.size
+        g_rows.append(g)
+        names += [c.response] * g.size
+        if dr is not None:
+            j_rows.append(np.atleast_2d(dr))
     cons = np.concatenate(g_rows) if g_rows else np.zeros(0)
     jac = (np.vstack(j_rows) if j_rows else np.zeros((0, nv))) if gradient else None
     return cons, jac, names, np.asarray(groups, int)
@@ -797,18 +802,13 @@ def constraint_weights(description, values, t):
     What the adjoint's right-hand sides need, without identity gradients (O(nt) per row)."""
     nt = np.asarray(t).size
     out = []
-    for c in description.constraints:
-        v = values[c.response]
-        for bound, sign in ((c.upper, 1.0), (c.lower, -1.0)):
-            if bound is None:
-                continue
-            s = abs(bound) if bound != 0 else 1.0
-            r = sign * np.asarray(v, float) / s
-            if np.ndim(r):
-                _, w = aggregate_weights(r, c.over, parameter=c.parameter, t=t, window=c.window)
-                out.append((sign / s) * w.reshape(w.shape[0], nt, -1).sum(axis=2))
-            else:
-                out.append(np.zeros((1, nt)))
+    for c, _, sign, s in _bounds(description):
+        r = sign * np.asarray(values[c.response], float) / s
+        if np.ndim(r):
+            _, w = aggregate_weights(r, c.over, parameter=c.parameter, t=t, window=c.window)
+            out.append((sign / s) * w.reshape(w.shape[0], nt, -1).sum(axis=2))
+        else:
+            out.append(np.zeros((1, nt)))
     return np.vstack(out) if out else np.zeros((0, nt))
 
 
