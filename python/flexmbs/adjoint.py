@@ -244,10 +244,8 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
         mut[:cm.nc] = tp["mu"]
         grad, gp, status, info, adj_out = _core.simulate_adjoint(
             **margs, nsteps=nseg, q0=np.asarray(st["q0"], float),
-            qd0=np.asarray(st["qd0"], float),
-            ap=pat["ap"], ai=pat["ai"], h=float(st["h"]), rho_inf=float(st["rho_inf"]),
-            tol=float(st["tol"]), max_iter=int(st["max_iter"]), max_cuts=int(st["max_cuts"]),
-            solver=_SOLVERS[solver], static_start=int(st["start"] == "static"),
+            qd0=np.asarray(st["qd0"], float), ap=pat["ap"], ai=pat["ai"],
+            **_integrator_args(st), static_start=int(st["start"] == "static"),
             kscale=float(kscale), penalty=float(penalty),
             ncol=ncol, qt=np.asfortranarray(tp["q"]), qdt=np.asfortranarray(tp["qd"]),
             qddt=np.asfortranarray(tp["qdd"]), mut=mut, th=np.asarray(tp["h"], float),
@@ -283,6 +281,14 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
     return grad
 
 
+def _integrator_args(st):
+    """The core's integrator settings of a run from its Result.settings: what the backward
+    pass and a segment's re-run must share with the forward run."""
+    return dict(h=float(st["h"]), rho_inf=float(st["rho_inf"]), tol=float(st["tol"]),
+                max_iter=int(st["max_iter"]), max_cuts=int(st["max_cuts"]),
+                solver=_SOLVERS[st["solver"]])
+
+
 def _core_failure(status, info, where, failure):
     """Raise for a core call that returned a non-zero status: ResourceError for a failed
     allocation (status 9; `where` says during what), else SimulationError('adjoint_gradient: '
@@ -308,9 +314,8 @@ def _segment_tape(model, result, margs, pat, x_start, j0, nseg):
         out = call_with_stack(
             _core.simulate, STACK_BYTES_PER_UNKNOWN * cm.n, **margs, nsteps=nseg,
             q0=np.asarray(st["q0"], float), qd0=np.asarray(st["qd0"], float),
-            ap=pat["ap"], ai=pat["ai"], h=float(st["h"]), rho_inf=float(st["rho_inf"]),
-            tol=float(st["tol"]), max_iter=int(st["max_iter"]), max_cuts=int(st["max_cuts"]),
-            solver=_SOLVERS[st["solver"]], newton=NEWTON_MODES[st["newton"]], static_start=0,
+            ap=pat["ap"], ai=pat["ai"], **_integrator_args(st),
+            newton=NEWTON_MODES[st["newton"]], static_start=0,
             kscale=float(x_start[-2]), penalty=float(x_start[-1]),
             out_dofs=np.ones(1, np.int32), nv=0, dprop=np.zeros((5, nel, 1), order="F"),
             sens_dofs=np.ones(1, np.int32), want_dmu=0, ndmu=1,
