@@ -226,3 +226,17 @@ def test_cli_checkpoints_give_the_gradient_of_the_full_tape(capsys):
     assert main(args + ["--checkpoints", "0"]) == 2
     err = capsys.readouterr().err
     assert "--checkpoints" in err and "'0'" in err
+
+
+def test_adjoint_evaluation_keeps_the_coordinates_asked():
+    """evaluate(method='adjoint', store='all') returns its forward run in Evaluation.result
+    with every coordinate (what `flexmbs simulate --gradient --out` saves), and storing them
+    changes neither the constraints nor their adjoint gradients (1e-12 relative: what is
+    stored is not what is solved)."""
+    p = Problem("robot_2dof_tapered_tubes", {"time.t_end": 0.02})
+    lean = p.evaluate(p.start, method="adjoint")
+    full = p.evaluate(p.start, method="adjoint", store="all")
+    assert lean.result is None
+    assert full.result.q.shape[1] == p.mechanism.model.ndof
+    assert np.abs(full.jacobian - lean.jacobian).max() <= 1e-12 * np.abs(lean.jacobian).max()
+    assert np.abs(full.constraints - lean.constraints).max() <= 1e-12

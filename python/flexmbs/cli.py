@@ -290,13 +290,8 @@ def run_simulate(args):
         args.out = output_file(args.out, "--out", suffix=".npz", required=_npz_estimate(prob))
     if args.plot:
         args.plot = figure_file(args.plot, "--plot")
-    keep = bool(args.out or args.plot)
-    if keep and args.gradient and prob.gradient_method() == "adjoint":
-        ev = prob.evaluate(x, gradient=args.gradient)
-        result = prob.simulate(x, store="all")     # the adjoint's run keeps its own tape
-    else:
-        ev = prob.evaluate(x, gradient=args.gradient, store="all" if keep else None)
-        result = ev.result
+    ev = prob.evaluate(x, gradient=args.gradient, store="all" if (args.out or args.plot) else None)
+    result = ev.result
     if args.out:
         _save_npz(args.out, prob, ev, result)
     if args.plot:

@@ -519,7 +519,7 @@ class Problem:
         store : None (default: only the coordinates the responses read) or as `simulate`'s
             ('all', or a list of nodes): those coordinates are kept too, and the run is
             returned in Evaluation.result (one simulation for the responses and for a plot or
-            a file of the motion). Not with gradients by the adjoint (its own tape)."""
+            a file of the motion)."""
         t0 = _time.perf_counter()
         mech = self.mechanism
         x = mech.start if x is None else mech.design_values(x)
@@ -528,10 +528,7 @@ class Problem:
         timed = [n for n, r in self._resp.items() if not isinstance(r, Mass)]
         chosen = self.gradient_method(method)
         if gradient and timed and chosen == "adjoint":
-            if store is not None:
-                raise ModelError("evaluate: store= is not available with gradients by the "
-                                 "adjoint (method='direct', or evaluate without gradients)")
-            return self._evaluate_adjoint(x, timed, t0)
+            return self._evaluate_adjoint(x, timed, t0, store)
         if store is not None and not timed:
             raise ModelError("evaluate: store= asks for coordinates, but no response of this "
                              "problem needs a simulation")
@@ -616,7 +613,7 @@ class Problem:
             + ("" if k is not None else ", or checkpoints ('auto' or an interval)"),
             required=need, available=avail)
 
-    def _evaluate_adjoint(self, x, timed, t0):
+    def _evaluate_adjoint(self, x, timed, t0, store=None):
         """evaluate() with the gradients of the objective and constraint rows by the discrete
         adjoint (its forward run keeps the tape of every (sub-)step).
 
@@ -632,7 +629,7 @@ class Problem:
         from flexmbs.adjoint import adjoint_gradient
 
         mech = self.mechanism
-        run = self._run(x, False, timed, None, tape=True)      # the design set once
+        run = self._run(x, False, timed, store, tape=True)     # the design set once
         ckpt = self._check_adjoint_memory(x, timed, run)
         model, t_end, h, kw = run
         cm = model.compile()
@@ -707,7 +704,8 @@ class Problem:
                           gradients={n: (None if n in partials else g) for n, g in grads.items()},
                           objective=f, d_objective=df, constraints=cons, jacobian=jac,
                           constraint_names=names, stats=result.stats,
-                          wall_time=_time.perf_counter() - t0, gradient_method="adjoint")
+                          wall_time=_time.perf_counter() - t0, gradient_method="adjoint",
+                          result=None if store is None else result)
 
 
     # ------------------------------------------------------------------ summaries
