@@ -19,8 +19,8 @@ For each row it times (wall time, best of a few repeats; one for the largest):
 - sim: `evaluate(x, gradient=False)`, the simulation and the responses;
 - direct: `evaluate(x, gradient='used', method='direct')` (nv right-hand sides per step);
 - adjoint: `evaluate(x, gradient='used', method='adjoint')`, and its split (of the best
-  repeat): fwd, the core's forward run with the tape (polished: full Newton steps from each
-  step's second iteration); bwd, the core's backward pass (`_core.simulate_adjoint`); py, the
+  repeat): fwd, the core's forward run with the tape (polished: every step converged to the
+  rounding level); bwd, the core's backward pass (`_core.simulate_adjoint`); py, the
   rest (model set-up, responses and their per-step partials, memory checks);
 - FD: forward finite differences, (nv + 1) simulations: reported as (nv + 1) x sim.
 

@@ -160,8 +160,8 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     integer(c_int), intent(in) :: want_dmu                  !! 1: return d(mu)/dp (needs nv > 0)
     integer(c_int), intent(in) :: ndmu                      !! extent: nca when want_dmu, else 1
     real(c_double), intent(out) :: dmu_out(ndmu, nva, nsteps + 1)  !! d(mu)/dp on the grid
-    !> 1: modified Newton takes full Newton steps from each step's second iteration (states
-    !! converged as for the direct method or the adjoint), 0: not
+    !> 1: modified Newton converges every step to the rounding level (states as full
+    !! Newton's, for the adjoint: ga_settings%polish), 0: not
     integer(c_int), intent(in) :: polish
     !> tape of every (sub-)step for the adjoint (generalized_alpha.f90): kept when ntape >=
     !! nsteps + 1 (status 10 when the sub-steps need more columns); extent 1 otherwise

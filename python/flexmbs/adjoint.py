@@ -115,8 +115,8 @@ def checkpoint_interval(model, nsteps, available=None):
 
 def simulate_for_adjoint(model, t_end, h=5e-4, *, checkpoints=None, **kwargs):
     """`simulate` keeping the tape of every converged (sub-)step (tape=True) with the states
-    converged as full Newton's (polish=True: modified Newton's states, 1e-11 m off, made the
-    adjoint's gradients 2e-8 to 7e-7 off on the robot): the states the backward pass needs.
+    converged as full Newton's (polish=True: 'auto''s states, 8e-12 m off, made the robot's KS
+    gradient 2e-6 off): the states the backward pass needs.
 
     checkpoints : None, int or 'auto'
         None: the tape of every state. K (>= 1): only the full state at every K-th time

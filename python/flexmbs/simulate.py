@@ -474,10 +474,13 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         'off': no checks. Only stored coordinates are checked.
 
     polish : bool, default False
-        With newton 'auto' or 'reuse': full Newton steps from each step's second iteration, as
-        design_derivatives implies, so that the states converge as full Newton's do (the
-        discrete adjoint, flexmbs.adjoint, linearizes about them: with modified Newton's
-        states, 1e-11 m off, its gradients were 2e-8 to 7e-7 off on the robot; 'reuse' 1e-4).
+        With newton 'auto' or 'reuse': every step converged to the rounding level, as full
+        Newton's states are (the discrete adjoint, flexmbs.adjoint, linearizes about them):
+        a step is accepted when its increment is at the rounding level *and* the observed
+        contraction bounds the remaining error below it ('auto' accepts on either). With
+        'auto''s states, 8e-12 m off, the robot's KS gradient was 2e-6 off; polished, 5e-10.
+        The extra work is held iterations (a residual and a solve each): on the robot 0.47
+        factorizations and 2.6 solves per step, against 0.35 and 2.5 unpolished.
     tape : bool, default False
         Keep every converged state, of every sub-step of a cut step too, in Result.tape (what
         the discrete adjoint runs backwards over: flexmbs.adjoint): 3 ndof + nc numbers per
