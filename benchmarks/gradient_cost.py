@@ -14,7 +14,7 @@ Rows:
   bodies.arm2.elements = E), so nv = 4 E variables; the model grows with E too (3 (4 E + 2)
   coordinates), so every column is also given relative to the simulation of the same model.
 
-For each row it times (wall time, best of a few repeats; one for the largest):
+For each row it times (wall time, best of a few repeats; --repeat-large for the largest):
 
 - sim: `evaluate(x, gradient=False)`, the simulation and the responses;
 - direct: `evaluate(x, gradient='used', method='direct')` (nv right-hand sides per step);
@@ -140,6 +140,8 @@ def main():
     ap.add_argument("elements", nargs="*", type=int, default=[1, 8, 32, 128, 512])
     ap.add_argument("--t-end", type=float, default=0.65)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--repeat-large", type=int, default=1,
+                    help="repeats beyond 128 variables (default 1)")
     ap.add_argument("--direct-max", type=int, default=128,
                     help="largest nv for which direct differentiation is run (beyond: '-')")
     ap.add_argument("--no-robot", action="store_true", help="skip the robot_2dof rows")
@@ -161,7 +163,7 @@ def main():
         p = Problem("robot_2dof_tapered_tubes", {
             "time.t_end": args.t_end, "bodies.arm1.elements": e, "bodies.arm2.elements": e,
             "responses": RESPONSES, "constraints": [dict(CONSTRAINT)]})
-        rep = args.repeat if 4 * e <= 128 else 1
+        rep = args.repeat if 4 * e <= 128 else args.repeat_large
         row(f"tubes E={e}", p, rep, args.direct_max)
     print(f"total {time.perf_counter() - t_begin:.0f} s")
 
