@@ -74,6 +74,9 @@ contains
         type(linear_system) :: ls
         real(wp), allocatable :: vals(:), fgrav(:), qb(:, :), qdb(:, :), qddb(:, :), ab(:, :)
         real(wp), allocatable :: apb(:, :), qhb(:, :), vhb(:, :), z(:, :), w(:, :), acc(:)
+        !> every element's forces per unit stiffness at the step's state, from the pass that
+        !! assembles its tangent (iteration_matrix): the design contraction reuses them
+        real(wp), allocatable :: elparts(:, :, :)
         logical, allocatable :: stiff(:), mass(:)
         integer, allocatable :: gidx(:)
         real(wp) :: alpha_m, alpha_f, gamma, beta, h, betap, gammap, cf, kdyn, pdyn, t, k0
@@ -139,10 +142,12 @@ contains
         end if
         allocate (vals(m%nnz), fgrav(nd), qb(nd, nf), qdb(nd, nf), qddb(nd, nf), ab(nd, nf), &
                   apb(nd, nf), qhb(nd, nf), vhb(nd, nf), z(n, nf), w(nd, nf), acc(nd), &
-                  stiff(max(m%nel, 1)), mass(max(m%nel, 1)), gidx(ncol), stat=ierr)
+                  stiff(max(m%nel, 1)), mass(max(m%nel, 1)), gidx(ncol), &
+                  elparts(MAX_EDOF, 3, max(m%nel, 1)), stat=ierr)
         if (ierr /= 0) then
             status = GA_NO_MEMORY
-            info = [0.0_wp, 8.0_wp * (m%nnz + nd * (9.0_wp * nf + 2) + n * nf), 0.0_wp, 5.0_wp]
+            info = [0.0_wp, 8.0_wp * (m%nnz + nd * (9.0_wp * nf + 2) + n * nf &
+                                      + 3.0_wp * MAX_EDOF * m%nel), 0.0_wp, 5.0_wp]
             call ls_free(ls)
             return
         end if
@@ -194,12 +199,12 @@ contains
             end if
             ! transposed solve with the iteration matrix at the converged state n + 1
             call iteration_matrix(m, qt(:, j), qdt(:, j), mut(1:nc, j), t, betap, 1.0_wp, gammap, &
-                                  kdyn, pdyn, vals)
+                                  kdyn, pdyn, vals, parts=elparts)
             call factor_solve(t)
             if (status /= GA_OK) goto 900
             ! rhs = -dr/dp + beta' M Qhat + C_t (gamma' Qhat - Vhat)
             acc = qddt(:, j) - m%gacc
-            call contract(qt(:, j), acc, z(1:nd, :))
+            call contract(qt(:, j), acc, z(1:nd, :), pe=elparts)
             do f = 1, nf
                 call mass_times(m, z(1:nd, f), w(:, f))
                 qhb(:, f) = qhb(:, f) + betap * w(:, f)
@@ -327,9 +332,11 @@ contains
 
         !> gprop(:, e, f) += y_f^T d(rhs)/dprop_e: the right-hand side of the direct method
         !! -(df_int/dp + dM/dp acc) at q, or with velocity, +dM/dp acc (acc = qd0 - qd).
-        subroutine contract(q, accv, y, velocity)
+        subroutine contract(q, accv, y, velocity, pe)
             real(wp), intent(in) :: q(nd), accv(nd), y(:, :)
             logical, intent(in), optional :: velocity
+            !> the elements' forces per unit stiffness at q when already computed
+            real(wp), intent(in), optional :: pe(:, :, :)
             real(wp) :: fe(MAX_EDOF), parts(MAX_EDOF, 3), qe(MAX_EDOF), qr(MAX_EDOF)
             real(wp) :: ae(MAX_EDOF), ya(MAX_EDOF), yi(MAX_EDOF), ye(MAX_EDOF), sg
             integer :: ee, ne, a, ff, d
@@ -345,9 +352,14 @@ contains
                     qr(a) = m%qref(d)
                     ae(a) = accv(d)
                 end do
-                if (stiff(ee) .and. .not. vel) call beam_internal_forces(m%el_nen(ee), m%el_len(ee), &
-                    m%el_prop(1:3, ee), qr(1:ne), qe(1:ne), fe(1:ne), parts=parts(1:ne, :), &
-                    eref=m%el_eref(:, :, ee))
+                if (stiff(ee) .and. .not. vel) then
+                    if (present(pe)) then
+                        parts(1:ne, :) = pe(1:ne, :, ee)
+                    else
+                        call beam_internal_forces(m%el_nen(ee), m%el_len(ee), m%el_prop(1:3, ee), &
+                            qr(1:ne), qe(1:ne), fe(1:ne), parts=parts(1:ne, :), eref=m%el_eref(:, :, ee))
+                    end if
+                end if
                 if (mass(ee)) then
                     ya(1:ne) = matmul(m%el_mass_a(1:ne, 1:ne, ee), ae(1:ne))
                     yi(1:ne) = matmul(m%el_mass_i(1:ne, 1:ne, ee), ae(1:ne))

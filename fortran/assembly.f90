@@ -23,13 +23,16 @@ module assembly
 
 contains
 
-    !> Internal forces f_int(q); with `vals`, adds ck * K_t at the element positions.
-    subroutine internal_forces(m, q, fint, vals, ck)
+    !> Internal forces f_int(q); with `vals`, adds ck * K_t at the element positions; with
+    !! `parts` (and `vals`), also every element's forces per unit stiffness (beam_internal_forces'
+    !! parts: the adjoint's design contraction, from the same pass as the tangent).
+    subroutine internal_forces(m, q, fint, vals, ck, parts)
         type(mbs_model), intent(in) :: m
         real(wp), intent(in) :: q(m%ndof)
         real(wp), intent(out) :: fint(m%ndof)
         real(wp), intent(inout), optional :: vals(:)
         real(wp), intent(in), optional :: ck
+        real(wp), intent(out), optional :: parts(:, :, :)     !! (MAX_EDOF, 3, nel)
         real(wp) :: fe(MAX_EDOF), ke(MAX_EDOF, MAX_EDOF), qe(MAX_EDOF), qr(MAX_EDOF)
         integer :: e, ne, a, b, d
         fint = 0
@@ -41,8 +44,15 @@ contains
                 qr(a) = m%qref(d)
             end do
             if (present(vals)) then
-                call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), &
-                                          qr(1:ne), qe(1:ne), fe(1:ne), ke(1:ne, 1:ne), eref=m%el_eref(:, :, e))
+                if (present(parts)) then
+                    call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), &
+                                              qr(1:ne), qe(1:ne), fe(1:ne), ke(1:ne, 1:ne), &
+                                              parts=parts(1:ne, :, e), eref=m%el_eref(:, :, e))
+                else
+                    call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), &
+                                              qr(1:ne), qe(1:ne), fe(1:ne), ke(1:ne, 1:ne), &
+                                              eref=m%el_eref(:, :, e))
+                end if
                 do b = 1, ne
                     do a = 1, ne
                         vals(m%map_el(a, b, e)) = vals(m%map_el(a, b, e)) + ck * ke(a, b)
@@ -196,8 +206,9 @@ contains
     end subroutine residual
 
     !> Iteration matrix of eq. (7) (see the module header) into `vals`.
-    !! With `fint_out` (and ck = 1): also the internal forces f_int(q) of the same pass.
-    subroutine iteration_matrix(m, q, qd, mu, t, cm, ck, cc, kscale, pen, vals, fint_out)
+    !! With `fint_out` (and ck = 1): also the internal forces f_int(q) of the same pass; with
+    !! `parts` (ck /= 0): every element's forces per unit stiffness (internal_forces).
+    subroutine iteration_matrix(m, q, qd, mu, t, cm, ck, cc, kscale, pen, vals, fint_out, parts)
         type(mbs_model), intent(in) :: m
         real(wp), intent(in) :: q(m%ndof), qd(m%ndof), mu(m%nc), t
         real(wp), intent(in) :: cm      !! coefficient of M (beta' in dynamics, 0 in statics)
@@ -207,11 +218,12 @@ contains
         real(wp), intent(in) :: kscale, pen
         real(wp), intent(out) :: vals(:)
         real(wp), intent(out), optional :: fint_out(m%ndof)
+        real(wp), intent(out), optional :: parts(:, :, :)
         real(wp) :: fint(m%ndof)
         real(wp) :: phi, grad(MAX_CDOF), hess(MAX_CDOF, MAX_CDOF), w
         integer :: e, ne, a, b, i
         vals = 0
-        if (ck /= 0) call internal_forces(m, q, fint, vals, ck)
+        if (ck /= 0) call internal_forces(m, q, fint, vals, ck, parts)
         if (present(fint_out)) fint_out = fint
         if (m%nsd > 0 .and. (ck /= 0 .or. cc /= 0)) then
             fint = 0
