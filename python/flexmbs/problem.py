@@ -12,8 +12,8 @@ Fortran core, one extra multi-right-hand-side solve per step); only the coordina
 responses need are stored and differentiated, the multipliers' derivatives (motor torques,
 joint reactions) are asked for only when such a response is evaluated, and nothing is
 differentiated when ``gradient=False``. ``evaluate(x, method="adjoint")`` computes the gradients
-of the objective and constraint rows by the discrete adjoint instead (docs/adjoint.md): about
-one more simulation whatever the number of variables; ``method="auto"`` picks it when the
+of the objective and constraint rows by the discrete adjoint instead (docs/adjoint.md): 2.2-3
+simulations in all whatever the number of variables (measured from 4 to 2048); ``method="auto"`` picks it when the
 variables outnumber the aggregated rows (`Problem.gradient_method`).
 """
 from __future__ import annotations
@@ -44,7 +44,7 @@ GRADIENT_METHODS = ("direct", "adjoint", "auto")
 #: right-hand sides (the factorization is Newton's) cost less than the adjoint's forward run
 #: with every state stored and its factorization per step
 ADJOINT_MARGIN = 4
-ADJOINT_MIN_VARIABLES = 32     # docs/adjoint.md 4d: direct is faster below ~32
+ADJOINT_MIN_VARIABLES = 16     # docs/adjoint.md 4e: direct is faster below 8-16 variables
 #: the adjoint evaluates the responses' per-step partials on identity derivatives, in chunks of
 #: columns of at most this many bytes
 ADJOINT_CHUNK_BYTES = 32e6
@@ -513,8 +513,8 @@ class Problem:
             'direct' unless given)
             How gradients are computed (`gradient_method`): direct differentiation (the
             gradient of every history, Evaluation.gradients), or the discrete adjoint
-            (flexmbs.adjoint: the objective's and constraints' rows only, for about the cost
-            of one more simulation whatever the number of variables; the histories'
+            (flexmbs.adjoint: the objective's and constraints' rows only, for 2.2-3
+            simulations in all whatever the number of variables; the histories'
             gradients are None). Evaluation.gradient_method tells which was used.
         store : None (default: only the coordinates the responses read) or as `simulate`'s
             ('all', or a list of nodes): those coordinates are kept too, and the run is
