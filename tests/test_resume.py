@@ -264,3 +264,30 @@ def test_batch_progress_on_a_stream_and_callback():
     seen = []
     run_batch(_square, jobs, workers=1, progress=lambda name, res: seen.append((name, res)))
     assert sorted(seen) == [("j0", {"value": 0}), ("j1", {"value": 1}), ("j2", {"value": 4})]
+
+
+def test_logged_analysis_round_trips_exactly():
+    """An analysis as the history logs it (JSON) and as a resumed run replays it: the
+    objective, the constraints and the Jacobian come back bit for bit; a Jacobian mostly
+    zeros (linear rows of smoothness limits) is logged by its nonzeros, a dense one as is."""
+    import json
+
+    from flexmbs.optimize.fully import _evaluation_from_log, _log_entry
+    from flexmbs.optimize.result import jsonable
+    p = Problem("robot_2dof", {"time.t_end": 0.02})
+    ev = p.evaluate(p.start)
+    rng = np.random.default_rng(3)
+    sparse = np.zeros((40, 7))
+    sparse[rng.integers(0, 40, 12), rng.integers(0, 7, 12)] = rng.normal(size=12)
+    for jac in (ev.jacobian, sparse):
+        ev.jacobian = jac
+        ev.constraint_names = ["c"] * jac.shape[0]
+        ev.constraints = np.arange(jac.shape[0], dtype=float)
+        entry = json.loads(json.dumps(jsonable(_log_entry(p.start, True, ev))))
+        assert isinstance(entry["jacobian"], dict) == (jac is sparse)
+        back = _evaluation_from_log(entry, p.start)
+        assert np.array_equal(back.jacobian, jac)
+        assert np.array_equal(back.constraints, ev.constraints)
+        assert back.objective == ev.objective
+        # of each response its largest value
+        assert all(back.values[k] == np.max(v) for k, v in ev.values.items())

@@ -320,11 +320,28 @@ def _log_entry(x, gradient, ev):
               for k, v in ev.values.items()}
     return dict(x=x, gradient=bool(gradient), objective=ev.objective,
                 d_objective=ev.d_objective, constraints=ev.constraints,
-                jacobian=ev.jacobian, constraint_names=_runs(ev.constraint_names),
+                jacobian=_sparse_log(ev.jacobian), constraint_names=_runs(ev.constraint_names),
                 values=values)
 
 
+def _sparse_log(jac):
+    """A Jacobian for the history: its nonzeros {"shape", "i", "j", "v"} when they are fewer
+    than a third of its entries (the linear rows of smoothness limits are two nonzeros each:
+    at 128 element-wise variables four fifths of the file were their zeros), else as is."""
+    if jac is None:
+        return None
+    a = np.asarray(jac, float)
+    if a.ndim != 2 or 3 * np.count_nonzero(a) >= a.size:
+        return jac
+    i, j = np.nonzero(a)
+    return {"shape": list(a.shape), "i": i.tolist(), "j": j.tolist(), "v": a[i, j].tolist()}
+
+
 def _array(v):
+    if isinstance(v, dict):           # a sparse Jacobian (_sparse_log)
+        a = np.zeros(v["shape"])
+        a[np.asarray(v["i"], int), np.asarray(v["j"], int)] = np.asarray(v["v"], float)
+        return a
     return None if v is None else np.asarray(v, float)
 
 
