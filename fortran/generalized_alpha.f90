@@ -108,16 +108,18 @@ module generalized_alpha
         logical :: static_start = .false.!! start from static equilibrium at t = 0
         real(wp) :: kscale = 0           !! scaling k of eq. (1); <= 0: automatic
         real(wp) :: penalty = 0          !! penalty p of eq. (1); <= 0: automatic (= k)
-        !> modified Newton (reuse, auto) converged to the rounding level, as full Newton's
-        !! states are (the discrete adjoint linearizes about them: adjoint.f90): a step is
-        !! accepted when its increment is at the rounding level (round_floor) *and* the
-        !! contraction bounds the remaining error by auto_floor, where 'auto' accepts on
-        !! either. Modified Newton's remaining error keeps its sign from step to step; at
+        !> modified Newton's states converged as full Newton's are (the discrete adjoint
+        !! linearizes about them: adjoint.f90). 'auto': a step is accepted when its increment
+        !! is at the rounding level (round_floor) *and* the contraction bounds the remaining
+        !! error by auto_floor, where unpolished 'auto' accepts on either; the held matrices
+        !! are kept. Modified Newton's remaining error keeps its sign from step to step: at
         !! auto's acceptance it left the robot's KS gradient 2e-6 off (states 8e-12 m, the
-        !! accelerations 3e-8 relative), polished 5e-10 (measured against full Newton).
-        !! Held iterations, cheaper than the full Newton steps from each step's second
-        !! iteration that polish took before: 1.40 factorizations per step (1358 on the robot's
-        !! 1300 steps) became 0.47 (610), for 0.62 more solves per step (2654 -> 3463)
+        !! accelerations 3e-8 relative), polished 8e-10 (against full Newton at tol 1e-12),
+        !! with 0.47 factorizations per step (610 on the robot's 1300 steps) and 2.66 solves
+        !! (unpolished: 0.35 and 2.51). With 'reuse' the run takes 'auto''s refresh rules
+        !! (its held matrices, at contraction rates up to reuse_rate, left the gradient 2e-8
+        !! off; its full Newton steps from each step's second iteration, as polish took for
+        !! both until session 6, accepted a first held increment below tol: 5e-6)
         logical :: polish = .false.
     end type ga_settings
 
@@ -568,9 +570,12 @@ contains
             real(wp) :: k_held
             ! this step's strategy: modified Newton (reuse or automatic) unless full_step
             mod_step = .not. full_step
-            auto_step = mod_step .and. s%newton == NEWTON_AUTO
-            polished = s%polish .and. mod_step .and. nv == 0
-            reuse_step = mod_step .and. s%newton == NEWTON_REUSE
+            ! polish: the automatic strategy's refresh rules whatever s%newton ('reuse''s held
+            ! matrices, contracting at up to reuse_rate, left the robot's KS gradient 2e-8
+            ! off, against 8e-10 with 'auto''s), and its acceptance tightened (polished)
+            auto_step = mod_step .and. (s%newton == NEWTON_AUTO .or. s%polish)
+            reuse_step = mod_step .and. s%newton == NEWTON_REUSE .and. .not. s%polish
+            polished = s%polish .and. auto_step .and. nv == 0
             betap = (1 - alpha_m) / (beta * hh**2 * (1 - alpha_f))
             gammap = gamma / (beta * hh)
             tnew = tn + hh

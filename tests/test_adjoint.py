@@ -226,13 +226,16 @@ def test_step_cuts():
         assert _rel(adj[:, f], ref[:, f]) < REL
 
 
-def test_automatic_newton_paper_horizon(monkeypatch):
+@pytest.mark.parametrize("newton", ["auto", "reuse"])
+def test_automatic_newton_paper_horizon(monkeypatch, newton):
     """Robot of Table 1 at its full horizon (0.65 s, 1300 steps) with the default automatic
-    Newton: the adjoint gradient of the KS deviation (its forward run polished: every step
-    converged to the rounding level) is within 1e-8 relative of the exact one (direct
-    differentiation, full Newton, tol 1e-12; measured 8e-10). Without polishing, modified
-    Newton's states (8e-12 m off) made it 2e-6 off: adjoint_gradient refuses such runs."""
-    p = Problem("robot_2dof", {"constraints.0.over": "ks"})
+    Newton and with 'reuse': the adjoint gradient of the KS deviation (its forward run
+    polished: every step converged to the rounding level, by 'auto''s rules in both) is
+    within 1e-8 relative of the exact one (direct differentiation, full Newton, tol 1e-12;
+    measured 8e-10 with both; 'reuse' polished by full Newton steps from each step's second
+    iteration, as before session 6: 5e-6). Without polishing, modified Newton's states
+    (8e-12 m off) made it 2e-6 off: adjoint_gradient refuses such runs."""
+    p = Problem("robot_2dof", {"constraints.0.over": "ks", "time.newton": newton})
     adj = p.evaluate(p.start, method="adjoint")
     with monkeypatch.context() as mp:
         mp.setattr(problem_module, "simulate", functools.partial(simulate, tol=1e-12))

@@ -474,8 +474,9 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         'off': no checks. Only stored coordinates are checked.
 
     polish : bool, default False
-        With newton 'auto' or 'reuse': every step converged to the rounding level, as full
-        Newton's states are (the discrete adjoint, flexmbs.adjoint, linearizes about them):
+        With newton 'auto' or 'reuse' (which then takes 'auto''s refresh rules): every step
+        converged to the rounding level, as full Newton's states are (the discrete adjoint,
+        flexmbs.adjoint, linearizes about them):
         a step is accepted when its increment is at the rounding level *and* the observed
         contraction bounds the remaining error below it ('auto' accepts on either). With
         'auto''s states, 8e-12 m off, the robot's KS gradient was 2e-6 off; polished, 5e-10.
