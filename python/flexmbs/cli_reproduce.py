@@ -8,6 +8,7 @@ from pathlib import Path
 
 from flexmbs.cli import positive_int
 from flexmbs.errors import ModelError
+from flexmbs.optimize.library import preload
 from flexmbs.report import publish
 from flexmbs.reproduce import reproduce
 from flexmbs.study import load_study
@@ -63,6 +64,7 @@ def run_reproduce(args):
             raise ModelError(f"--table must be among the study's tables "
                              f"{', '.join(map(str, study.tables))} ({study.path}), got "
                              f"{', '.join(map(str, bad))}")
+    preload()      # a Ctrl-C mid-run must not land in a first import (library.preload)
     try:
         log = lambda s: print(s, flush=True)        # noqa: E731
         report = reproduce(tables, args.out, workers=args.workers, dask=args.dask, grid=grid,
@@ -136,6 +138,7 @@ def run_demo(args):
     start = "[" + ", ".join(f"{v:g}" for v in spec.starts[0]) + "]"
     print(f"flexmbs demo: the paper's Table {n} ({demo.about}), weakly and fully coupled "
           f"optimizations from p = {start}{f' {unit}' if unit else ''}", flush=True)
+    preload()
     try:
         log = lambda s: print(s, flush=True)        # noqa: E731
         report = publish(reproduce([n], args.out, workers=args.workers, force=True, log=log,

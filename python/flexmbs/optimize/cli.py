@@ -40,6 +40,7 @@ from flexmbs.cli import (add_case_arguments, design_from_text, figure_file, outp
                          print_json, problem_from_args)
 from flexmbs.errors import CaseError, ModelError
 from flexmbs.optimize.fully import OPTIMIZERS
+from flexmbs.optimize.library import preload
 from flexmbs.optimize.result import HistoryWriter
 
 __all__ = ["register", "run_optimize", "run_weakly", "add_weakly_options", "run_fully",
@@ -211,6 +212,7 @@ def _interrupted(args, writer):
 
 
 def run_optimize(args):
+    preload()      # a Ctrl-C mid-run must not land in a first import (library.preload)
     problem = problem_from_args(args, gradient_method="auto")
     if getattr(args, "starts", None) is not None and args.method != "fully":
         raise CaseError(f"--starts {args.starts}: multi-start runs the fully coupled method; "
