@@ -13,8 +13,9 @@ responses need are stored and differentiated, the multipliers' derivatives (moto
 joint reactions) are asked for only when such a response is evaluated, and nothing is
 differentiated when ``gradient=False``. ``evaluate(x, method="adjoint")`` computes the gradients
 of the objective and constraint rows by the discrete adjoint instead (docs/adjoint.md): 2.2-3
-simulations in all whatever the number of variables (measured from 4 to 2048); ``method="auto"`` picks it when the
-variables outnumber the aggregated rows (`Problem.gradient_method`).
+simulations in all whatever the number of variables (measured from 4 to 2048);
+``method="auto"`` picks it when the variables outnumber the aggregated rows
+(`Problem.gradient_method`).
 """
 from __future__ import annotations
 

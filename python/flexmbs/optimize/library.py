@@ -52,7 +52,7 @@ def preload():
     which imports run (dataclasses, namedtuples), even when the caller then handles it: a
     Ctrl-C that landed in such an import mid-run printed the resume line and then ended the
     process by SIGINT (Py_RunMain's exit_sigint) instead of exit status 130 (one early Ctrl-C
-    in four on `flexmbs optimize robot_2dof`, measured; none in 40 with this)."""
+    in four on `flexmbs optimize robot_2dof`, measured; none in 70 with this)."""
     import importlib
     for name in ("scipy.linalg", "scipy.optimize", "nlopt"):
         try:
