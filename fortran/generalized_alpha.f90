@@ -566,8 +566,8 @@ contains
             integer :: it, lst
             logical :: refresh, fresh, assemble, mod_step, auto_step, reuse_step
             !> held_start: the step began with a held matrix; renewed: and refreshed it later
-            logical :: held_start, renewed, polished
-            real(wp) :: k_held
+            logical :: held_start, renewed, polished, est_ok
+            real(wp) :: k_held, est_floor
             ! this step's strategy: modified Newton (reuse or automatic) unless full_step
             mod_step = .not. full_step
             ! polish: the automatic strategy's refresh rules whatever s%newton ('reuse''s held
@@ -681,30 +681,28 @@ contains
                     ! matrix was fresh: a full Newton step); accepted when that is at most
                     ! what full Newton's quadratic convergence leaves, tol^2, or the rounding
                     ! level; else one more iteration with the same factorization (cheap)
+                    ! the estimate within the floor: tol^2 or the rounding level; polished,
+                    ! the rounding level whatever tol
+                    est_floor = max(s%tol**2, auto_floor)
+                    if (polished) est_floor = auto_floor
+                    est_ok = .false.
+                    if (it == 1) then
+                        est_ok = fresh
+                    else if (fresh) then
+                        ! a full Newton step: quadratic, remaining error ~ rate^2 increment
+                        est_ok = rate**2 * err <= est_floor
+                    else if (rate < 1) then
+                        est_ok = rate / (1 - rate) * err <= est_floor
+                    end if
                     if (polished) then
                         ! polish (the adjoint's forward run): both tests, and not either
-                        if (err <= round_floor) then
-                            if (it == 1) then
-                                if (fresh) stat = GA_OK
-                            else if (fresh) then
-                                if (rate**2 * err <= auto_floor) stat = GA_OK
-                            else if (rate < 1) then
-                                if (rate / (1 - rate) * err <= auto_floor) stat = GA_OK
-                            end if
-                        end if
+                        if (err <= round_floor .and. est_ok) stat = GA_OK
                         ! increments that stopped shrinking below tol with a fresh matrix (full
                         ! Newton's test is met), or at the rounding level: noise
                         if (it >= 3 .and. rate >= 0.5_wp .and. (fresh .or. err <= 1.0e2_wp * round_floor)) &
                             stat = GA_OK
-                    else if (.not. auto_step .or. err <= round_floor) then
+                    else if (.not. auto_step .or. err <= round_floor .or. est_ok) then
                         stat = GA_OK
-                    else if (it == 1) then
-                        if (fresh) stat = GA_OK
-                    else if (fresh) then
-                        ! a full Newton step: quadratic, remaining error ~ rate^2 increment
-                        if (rate**2 * err <= max(s%tol**2, auto_floor)) stat = GA_OK
-                    else if (rate < 1) then
-                        if (rate / (1 - rate) * err <= max(s%tol**2, auto_floor)) stat = GA_OK
                     end if
                     if (stat == GA_OK) then
                         fact_exact = fresh
