@@ -243,11 +243,13 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
     adj = np.zeros((cm.ndof, nf, 4), order="F")
 
     def backward(tp, j0, nseg, have_in, kscale, penalty):
-        """The backward pass over the tape tp of the nseg steps from time point j0."""
+        """The backward pass over the tape tp of the nseg steps from time point j0: the
+        per-element property gradients (the core's own product with the marker column of
+        dprop_f is not the gradient) and the adjoint state at j0."""
         ncol = tp["h"].size
         mut = np.zeros((nca, ncol), order="F")
         mut[:cm.nc] = tp["mu"]
-        grad, gp, status, info, adj_out = _core.simulate_adjoint(
+        _, gp, status, info, adj_out = _core.simulate_adjoint(
             **margs, nsteps=nseg, q0=np.asarray(st["q0"], float),
             qd0=np.asarray(st["qd0"], float), ap=pat["ap"], ai=pat["ai"],
             **_integrator_args(st), static_start=int(st["start"] == "static"),
@@ -261,10 +263,10 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
             _core_failure(status, info, "", f"the backward pass failed at t = {info[0]:.6g} s "
                           f"(core status {int(status)}, code {int(info[3])}): a singular "
                           "transposed iteration matrix")
-        return grad, gp, adj_out
+        return gp, adj_out
 
     if tape is not None:
-        grad, gprop, _ = backward(tape, 0, nt - 1, False, st["kscale"], st["penalty"])
+        gprop, _ = backward(tape, 0, nt - 1, False, st["kscale"], st["penalty"])
     else:
         every, states = int(ck["every"]), np.asarray(ck["states"], float)
         nsteps = nt - 1
@@ -277,7 +279,7 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
             # the run's scalings k, p; the first segment recomputes them (and the static
             # start's, from the settings) as the first run did
             kp = (st["kscale"], st["penalty"]) if j0 == 0 else (xs[-2], xs[-1])
-            grad, gprop, adj = backward(tp, j0, n_k, k < nseg - 1, *kp)
+            gprop, adj = backward(tp, j0, n_k, k < nseg - 1, *kp)
             adj = np.asfortranarray(adj)
             gprop = np.asfortranarray(gprop)
     grad = np.tensordot(dprop, gprop[:, :cm.nel], axes=([0, 1], [0, 1]))     # (nv, nf)
