@@ -130,7 +130,7 @@ contains
         cf = (1 - alpha_f) / (1 - alpha_m)
 
         if (s%solver == SOLVER_KLU) then
-            call ls_init_sparse(ls, n, ap, ai, st)
+            call ls_init_sparse(ls, n, ap, ai, st, s%klu_analysis)
         else
             call ls_init_dense(ls, n, st)
         end if

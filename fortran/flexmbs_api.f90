@@ -96,6 +96,55 @@ subroutine sparse_solve(n, nnz, nrhs, ap, ai, ax, ax2, b, b2, x, x2, status)
     call ls_free(ls)
 end subroutine sparse_solve
 
+!> KLU's symbolic analysis of a CSC pattern (0-based), made once per model and handed to
+!! its simulations (`simulate`, `simulate_adjoint`: klu_analysis) so that they do not
+!! analyse the pattern again. handle: an opaque address (0 on failure), released by
+!! klu_analysis_free; status 0 ok, 2 out of memory, 3 invalid pattern.
+subroutine klu_analyze(n, nnz, ap, ai, handle, status)
+    use iso_c_binding, only: c_int, c_ptr
+    !f2py threadsafe
+    implicit none
+    integer(c_int), intent(in) :: n                 !! order
+    integer(c_int), intent(in) :: nnz               !! stored values
+    integer(c_int), intent(in) :: ap(n + 1)         !! CSC column pointers, 0-based
+    integer(c_int), intent(in) :: ai(nnz)           !! CSC row indices, 0-based
+    integer(8), intent(out) :: handle
+    integer(c_int), intent(out) :: status
+    interface
+        function fx_klu_analyze(n, nnz, ap, ai, status) bind(c, name='fx_klu_analyze')
+            import :: c_ptr, c_int
+            integer(c_int), value :: n, nnz
+            integer(c_int), intent(in) :: ap(*), ai(*)
+            integer(c_int), intent(out) :: status
+            type(c_ptr) :: fx_klu_analyze
+        end function fx_klu_analyze
+    end interface
+    type(c_ptr) :: p
+    handle = 0
+    status = 3
+    if (n < 1 .or. nnz < 1 .or. ap(1) /= 0 .or. ap(n + 1) /= nnz) return
+    p = fx_klu_analyze(n, nnz, ap, ai, status)
+    if (status == 0) handle = transfer(p, handle)
+end subroutine klu_analyze
+
+!> Release an analysis made by klu_analyze (no simulation may be using it). 0 is ignored.
+subroutine klu_analysis_free(handle)
+    use iso_c_binding, only: c_ptr
+    !f2py threadsafe
+    implicit none
+    integer(8), intent(in) :: handle
+    interface
+        subroutine fx_klu_analysis_free(a) bind(c, name='fx_klu_analysis_free')
+            import :: c_ptr
+            type(c_ptr), value :: a
+        end subroutine fx_klu_analysis_free
+    end interface
+    type(c_ptr) :: p
+    if (handle == 0) return
+    p = transfer(handle, p)
+    call fx_klu_analysis_free(p)
+end subroutine klu_analysis_free
+
 !> Simulate a mechanism (see flexmbs.model for the meaning of every array).
 !! status: 0 ok, 1 Newton failed after step cuts, 2 singular iteration matrix,
 !! 3 static equilibrium failed, 4 singular initial system, 5 inconsistent initial
@@ -107,7 +156,7 @@ end subroutine sparse_solve
 !! arrays, 6 model arrays).
 !! stats: newton iterations, factorizations, residual evaluations, step cuts,
 !! static iterations, steps completed, factorizations made for the sensitivities
-!! (included in the factorizations).
+!! (included in the factorizations), KLU symbolic analyses run (0 when borrowed).
 subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npts, nout, nsteps, &
                     qref, q0, qd0, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
                     ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, c_c0, c_law, c_lawcoef, &
@@ -118,7 +167,7 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
                     nv, nva, nsens, dprop, sens_dofs, dq_out, &
                     nsd, nsda, sd_dofs, sd_prop, map_sd, want_dmu, ndmu, dmu_out, polish, &
                     ntape, tape_q, tape_qd, tape_qdd, tape_mu, tape_h, tape_grid, ntape_used, &
-                    nckr, nck, ckpt_every, ckpt, restart, x_start, j_start)
+                    nckr, nck, ckpt_every, ckpt, restart, x_start, j_start, klu_analysis)
     use iso_c_binding, only: c_double, c_int
     use model_data, only: mbs_model, model_from_arrays
     use generalized_alpha, only: ga_settings, ga_stats, ga_simulate, GA_NO_MEMORY, MEM_MODEL, &
@@ -146,7 +195,7 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     integer(c_int), intent(in) :: out_dofs(nout)
     real(c_double), intent(out) :: q_out(nout, nsteps + 1), qd_out(nout, nsteps + 1)
     real(c_double), intent(out) :: qdd_out(nout, nsteps + 1), mu_out(nca, nsteps + 1)
-    integer(c_int), intent(out) :: stats(7), status
+    integer(c_int), intent(out) :: stats(8), status
     real(c_double), intent(out) :: info(4)
     integer(c_int), intent(in) :: nv                        !! design variables (0: no sensitivities)
     integer(c_int), intent(in) :: nva, nsens                !! extents (>= 1)
@@ -177,6 +226,9 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     integer(c_int), intent(in) :: nckr, nck, ckpt_every, restart, j_start
     real(c_double), intent(out) :: ckpt(nckr, nck)
     real(c_double), intent(in) :: x_start(nckr)
+    !> KLU's symbolic analysis of (ap, ai) from klu_analyze (made once per model), or 0:
+    !! the run analyses the pattern itself (stats(8) = 1)
+    integer(8), intent(in) :: klu_analysis
     integer :: tgrid(nsteps + 1), tused
     type(mbs_model) :: m
     type(ga_settings) :: s
@@ -203,6 +255,7 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
                     max_cuts=int(max_cuts), solver=int(solver), newton=int(newton), &
                     static_start=static_start /= 0, kscale=kscale, penalty=penalty, &
                     polish=polish /= 0)
+    s%klu_analysis = transfer(klu_analysis, s%klu_analysis)
     if (nv > 0 .and. want_dmu /= 0 .and. ndmu >= nc) then
         call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
                          mu_out, st, stat, info, dprop(:, :, 1:nv), int(sens_dofs), dq_out(:, 1:nv, :), &
@@ -231,7 +284,8 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     tape_grid = int(tgrid, c_int)
     ntape_used = int(tused, c_int)
     stats = int([st%newton_iterations, st%factorizations, st%residual_evaluations, &
-                 st%step_cuts, st%static_iterations, st%steps, st%sensitivity_factorizations], &
+                 st%step_cuts, st%static_iterations, st%steps, st%sensitivity_factorizations, &
+                 st%symbolic_analyses], &
                 c_int)
 end subroutine simulate
 
@@ -252,7 +306,7 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
                    h, rho_inf, tol, max_iter, max_cuts, solver, static_start, kscale, penalty, &
                    nsd, nsda, sd_dofs, sd_prop, map_sd, &
                    ncol, qt, qdt, qddt, mut, th, grid, nf, gq, gmu, nv, dprop, grad, gprop, &
-                   status, info, ntot, j_start, have_in, adj_in, adj_out, gprop_in)
+                   status, info, ntot, j_start, have_in, adj_in, adj_out, gprop_in, klu_analysis)
     use iso_c_binding, only: c_double, c_int
     use model_data, only: mbs_model, model_from_arrays
     use generalized_alpha, only: ga_settings, GA_NO_MEMORY, MEM_MODEL
@@ -299,6 +353,7 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
     real(c_double), intent(in) :: adj_in(ndof, nf, 4)
     real(c_double), intent(out) :: adj_out(ndof, nf, 4)
     real(c_double), intent(in) :: gprop_in(5, nela, nf)
+    integer(8), intent(in) :: klu_analysis     !! as `simulate`'s
     type(mbs_model) :: m
     type(ga_settings) :: s
     integer :: stat
@@ -318,6 +373,7 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
     s = ga_settings(h=h, rho_inf=rho_inf, tol=tol, nsteps=int(nsteps), max_iter=int(max_iter), &
                     max_cuts=int(max_cuts), solver=int(solver), static_start=static_start /= 0, &
                     kscale=kscale, penalty=penalty)
+    s%klu_analysis = transfer(klu_analysis, s%klu_analysis)
     if (have_in /= 0) then
         call ga_adjoint(m, s, int(ap), int(ai), q0, qd0, qt, qdt, qddt, mut, th, int(grid), gq, gmu, &
                         dprop(:, 1:max(nel, 0), :), grad, gprop(:, 1:max(nel, 0), :), stat, info, &

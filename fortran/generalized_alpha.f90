@@ -11,6 +11,7 @@
 !! rate is good and refreshed when it is not, with the same stopping tolerance.
 !! Everything a call needs lives in its own variables: no module state.
 module generalized_alpha
+    use iso_c_binding, only: c_ptr, c_null_ptr
     use flexmbs_kinds, only: wp
     use constraints, only: MAX_CDOF
     use model_data, only: mbs_model, law_rate, law_accel0
@@ -121,6 +122,10 @@ module generalized_alpha
         !! off; its full Newton steps from each step's second iteration, as polish took for
         !! both until session 6, accepted a first held increment below tol: 5e-6)
         logical :: polish = .false.
+        !> KLU's symbolic analysis of the pattern, made once per model (klu_shim.c
+        !! fx_klu_analyze, owned by Python: flexmbs.core.KluAnalysis); null: each run
+        !! analyses the pattern itself
+        type(c_ptr) :: klu_analysis = c_null_ptr
     end type ga_settings
 
     !> Work counters returned with the result.
@@ -134,6 +139,7 @@ module generalized_alpha
         !> of the factorizations, those made for the sensitivities (modified Newton: the
         !! tangent of a step's last iteration, then kept for the next step's iterations)
         integer :: sensitivity_factorizations = 0
+        integer :: symbolic_analyses = 0     !! KLU symbolic analyses run (0: borrowed)
     end type ga_stats
 
     !> Integration state at one instant, with its design derivatives when asked:
@@ -326,7 +332,7 @@ contains
         nv = 0
         if (present(dprop)) nv = size(dprop, 3)
         if (s%solver == SOLVER_KLU) then
-            call ls_init_sparse(ls, m%n, ap, ai, st)
+            call ls_init_sparse(ls, m%n, ap, ai, st, s%klu_analysis)
             if (st == LS_NO_MEMORY) then
                 call no_memory(-1.0_wp, MEM_SPARSE_LU)
                 return
@@ -470,6 +476,7 @@ contains
 
 900     continue
         stats%factorizations = stats%factorizations + ls%factorizations
+        stats%symbolic_analyses = ls%analyses
         call ls_free(ls)
         if (present(ntape)) ntape = ptr
 

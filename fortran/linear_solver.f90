@@ -32,6 +32,7 @@ module linear_solver
         integer :: n = 0                     !! order of the matrix
         integer :: nnz = 0                   !! stored values (n*n when dense)
         integer :: factorizations = 0        !! numeric factorizations done
+        integer :: analyses = 0              !! KLU symbolic analyses run (0 when borrowed)
         logical :: factored = .false.        !! a valid factorization is held
         real(wp), allocatable :: lu(:, :)    !! dense LU factors
         integer, allocatable :: ipiv(:)      !! dense pivots
@@ -39,13 +40,19 @@ module linear_solver
     end type linear_system
 
     interface
-        function fx_klu_create(n, nnz, ap, ai, status) bind(c, name='fx_klu_create')
+        function fx_klu_create(n, nnz, ap, ai, shared, status) bind(c, name='fx_klu_create')
             import :: c_ptr, c_int
             integer(c_int), value :: n, nnz
             integer(c_int), intent(in) :: ap(*), ai(*)
+            type(c_ptr), value :: shared
             integer(c_int), intent(out) :: status
             type(c_ptr) :: fx_klu_create
         end function fx_klu_create
+        function fx_klu_analysed(h) bind(c, name='fx_klu_analysed')
+            import :: c_ptr, c_int
+            type(c_ptr), value :: h
+            integer(c_int) :: fx_klu_analysed
+        end function fx_klu_analysed
         function fx_klu_factor(h, ax) bind(c, name='fx_klu_factor')
             import :: c_ptr, c_int, c_double
             type(c_ptr), value :: h
@@ -105,20 +112,28 @@ contains
         b = 8.0_wp * real(n, wp)**2 + 4.0_wp * real(n, wp)
     end function dense_bytes
 
-    !> Prepare a sparse system: KLU symbolic analysis of the CSC pattern (0-based).
-    subroutine ls_init_sparse(ls, n, ap, ai, status)
+    !> Prepare a sparse system: KLU symbolic analysis of the CSC pattern (0-based), or,
+    !! with `shared` (an analysis object of klu_shim.c's fx_klu_analyze, made once per
+    !! model), that analysis borrowed: status LS_INVALID if it is of another pattern.
+    subroutine ls_init_sparse(ls, n, ap, ai, status, shared)
         type(linear_system), intent(inout) :: ls  !! system to initialise
         integer, intent(in) :: n                  !! order
         integer, intent(in) :: ap(n + 1)          !! column pointers, 0-based
         integer, intent(in) :: ai(:)              !! row indices, 0-based
         integer, intent(out) :: status            !! LS_* code
+        type(c_ptr), intent(in), optional :: shared
+        type(c_ptr) :: given
         integer(c_int) :: st
         call ls_free(ls)
         ls%kind = SOLVER_KLU
         ls%n = n
         ls%nnz = ap(n + 1)
-        ls%klu = fx_klu_create(int(n, c_int), int(ls%nnz, c_int), int(ap, c_int), int(ai, c_int), st)
+        given = c_null_ptr
+        if (present(shared)) given = shared
+        ls%klu = fx_klu_create(int(n, c_int), int(ls%nnz, c_int), int(ap, c_int), int(ai, c_int), &
+                               given, st)
         status = int(st)
+        if (status == LS_OK) ls%analyses = ls%analyses + int(fx_klu_analysed(ls%klu))
     end subroutine ls_init_sparse
 
     !> Numeric factorization of the matrix whose values are `vals`.

@@ -15,6 +15,7 @@ kappa from numpy's SVD. KLU pivots with a threshold (0.001) instead of the
 largest entry, which allows a larger growth factor; its bound is taken 100
 times looser (1000 n u), still far below anything a wrong solve would give.
 """
+import importlib
 import threading
 
 import numpy as np
@@ -357,3 +358,93 @@ def test_two_models_alternately_and_in_threads_match_running_alone(solver):
     for k in range(2):
         for q in results[k]:
             assert np.array_equal(q, alone[k])
+
+
+# ------------------------------------------------------------------ KLU's analysis once per model
+def test_klu_analysis_is_made_once_per_model_and_borrowed_by_every_run(monkeypatch):
+    """Issue 16 ("the model, its sparsity pattern and the KLU symbolic analysis are built
+    once per case"): three simulations of one model at three designs make one analysis
+    (flexmbs.core.KluAnalysis) and none of their own (stats 'symbolic_analyses' 0); a run
+    that analyses the pattern itself (the core's klu_analysis = 0) makes 1 and gives
+    bit-identical states (KLU's ordering depends on the pattern only). Each design's states
+    match the dense LAPACK path's to 1e-9 m (rounding of two different factorizations of the
+    same matrices, measured about 1e-13 m)."""
+    from flexmbs.core import KluAnalysis
+
+    simulate_module = importlib.import_module("flexmbs.simulate")
+
+    m = swinging_beam(0.03, 6)
+    runs = []
+    for d in (0.03, 0.04, 0.05):
+        m.bodies["arm"].section = fx.Tube.with_wall_ratio(d, 0.1)
+        r = fx.simulate(m, 0.1, 1e-3, solver="klu", start="static")
+        assert r.stats["symbolic_analyses"] == 0
+        dense = fx.simulate(m, 0.1, 1e-3, solver="dense", start="static")
+        assert np.abs(r.q - dense.q).max() < 1e-9
+        runs.append(r)
+    analysis = m.pattern("klu")["analysis"]
+    assert isinstance(analysis, KluAnalysis) and analysis.analyses == 1
+    monkeypatch.setattr(simulate_module, "klu_analysis", lambda model, storage: 0)
+    own = fx.simulate(m, 0.1, 1e-3, solver="klu", start="static")
+    assert own.stats["symbolic_analyses"] == 1
+    assert np.array_equal(own.q, runs[-1].q) and np.array_equal(own.mu, runs[-1].mu)
+
+
+def test_klu_analysis_of_another_pattern_is_refused(monkeypatch):
+    """The core checks that a borrowed analysis is of the run's pattern: another model's
+    (different size) makes the simulation and the adjoint's backward pass fail with the
+    linear solver's set-up error instead of factoring with a wrong ordering."""
+    from flexmbs.core import klu_analysis
+
+    adjoint_module = importlib.import_module("flexmbs.adjoint")
+    simulate_module = importlib.import_module("flexmbs.simulate")
+
+    m, other = swinging_beam(0.03, 4), swinging_beam(0.03, 6)
+    good = fx.simulate(m, 0.05, 1e-3, solver="klu", start="static", tape=True, polish=True)
+    wrong = klu_analysis(other, "klu")
+    monkeypatch.setattr(simulate_module, "klu_analysis", lambda model, storage: wrong)
+    with pytest.raises(SimulationError, match="sparse linear solver could not be set up.*"
+                                              "another pattern"):
+        fx.simulate(m, 0.05, 1e-3, solver="klu", start="static")
+    monkeypatch.setattr(adjoint_module, "klu_analysis", lambda model, storage: wrong)
+    gq = np.zeros((good.t.size, m.ndof))
+    gq[-1, 0] = 1.0
+    with pytest.raises(SimulationError, match="backward pass failed"):
+        adjoint_module.adjoint_gradient(m, good, np.ones((5, m.compile().nel, 1)), gq[:, :, None])
+
+
+def test_klu_analysis_is_shared_by_threads_and_remade_by_copies():
+    """One model simulated from two threads at once borrows one analysis (KLU only reads it:
+    klu.h, "inputs, not modified") and gives bit-identical states; a copy of a case's Problem
+    (deepcopy; pickle takes the same path) makes an analysis of its own on first use and
+    gives the same responses."""
+    from copy import deepcopy
+
+    from flexmbs.problem import Problem
+
+    m = swinging_beam(0.04, 5)
+    alone = fx.simulate(m, 0.1, 1e-3, solver="klu", start="static").q
+    results = {}
+
+    def worker(k):
+        results[k] = [fx.simulate(m, 0.1, 1e-3, solver="klu", start="static") for _ in range(3)]
+
+    threads = [threading.Thread(target=worker, args=(k,)) for k in range(2)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    for k in range(2):
+        for r in results[k]:
+            assert r.stats["symbolic_analyses"] == 0
+            assert np.array_equal(r.q, alone)
+    assert m.pattern("klu")["analysis"].analyses == 1
+    case = Problem("robot_2dof_tapered_tubes", {"time.t_end": 0.05, "bodies.arm1.elements": 6,
+                                                "bodies.arm2.elements": 6})
+    first = case.evaluate(gradient=False)
+    copy = deepcopy(case)
+    assert copy.mechanism.model.pattern("klu")["analysis"].analyses == 0
+    again = copy.evaluate(gradient=False)
+    assert again.stats["solver"] == "klu" and again.stats["symbolic_analyses"] == 0
+    assert np.array_equal(again.values["deviation_28"], first.values["deviation_28"])
+    assert copy.mechanism.model.pattern("klu")["analysis"].analyses == 1

@@ -36,7 +36,7 @@ from __future__ import annotations
 import numpy as np
 
 from flexmbs import _core
-from flexmbs.core import core_model_args
+from flexmbs.core import core_model_args, klu_analysis
 from flexmbs.errors import ModelError, ResourceError, SimulationError
 from flexmbs.model import Model
 from flexmbs.resources import STACK_BYTES_PER_UNKNOWN, call_with_stack, format_bytes, limit_source
@@ -258,7 +258,7 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
             qddt=np.asfortranarray(tp["qdd"]), mut=mut, th=np.asarray(tp["h"], float),
             grid=np.asarray(tp["grid"], np.int32), nf=nf, gq=gq_f, gmu=gmu_f,
             nv=1, dprop=dprop_f, ntot=nt, j_start=j0, have_in=int(have_in),
-            adj_in=adj, gprop_in=gprop)
+            adj_in=adj, gprop_in=gprop, klu_analysis=klu_analysis(model, solver))
         if status != 0:
             _core_failure(status, info, "", f"the backward pass failed at t = {info[0]:.6g} s "
                           f"(core status {int(status)}, code {int(info[3])}): a singular "
@@ -327,7 +327,8 @@ def _segment_tape(model, result, margs, pat, x_start, j0, nseg):
             out_dofs=np.ones(1, np.int32), nv=0, dprop=np.zeros((5, nel, 1), order="F"),
             sens_dofs=np.ones(1, np.int32), want_dmu=0, ndmu=1,
             polish=int(st.get("polish", False)), ntape=ncol, nckr=x_start.size, nck=1,
-            ckpt_every=0, restart=1, x_start=x_start, j_start=int(j0))
+            ckpt_every=0, restart=1, x_start=x_start, j_start=int(j0),
+            klu_analysis=klu_analysis(model, st["solver"]))
         status, info = int(out[5]), out[6]
         if status == _TAPE_FULL and attempt == 0:
             ncol = nseg * 2 ** int(st["max_cuts"]) + 1

@@ -3,6 +3,9 @@ keyword arguments, and the residual and iteration matrix at a state. `simulate` 
 and the diagnoses of failed runs (validity.py) both build on it."""
 from __future__ import annotations
 
+import threading
+import weakref
+
 import numpy as np
 
 from flexmbs import _core
@@ -11,11 +14,63 @@ from flexmbs.model import Model
 from flexmbs.resources import format_bytes, limit_source
 from flexmbs.resources import memory_limit as _memory_limit
 
-__all__ = ["core_model_args", "system_matrices"]
+__all__ = ["KluAnalysis", "core_model_args", "klu_analysis", "system_matrices"]
 
 # The core's BLAS works on small systems thousands of times per run: one thread
 # (no pool latency); parallelism belongs to batch runs over designs.
 _core.blas_single_thread()
+
+
+class KluAnalysis:
+    """KLU's symbolic analysis (fill-reducing ordering and block structure) of a model's
+    sparsity pattern, made on first use and then borrowed by every simulation, adjoint
+    pass and sensitivity run of the model (the core's `klu_analysis` argument): the model,
+    its pattern and this analysis are built once per case, a design changes only the
+    values. Owned here and released with this object. KLU only reads an analysis after
+    making it, so simulations in parallel threads share one; a copy (pickle, deepcopy: a
+    Problem sent to a worker process) makes its own on first use. `analyses` counts the
+    analyses made (1 after the first use)."""
+
+    def __init__(self, ap, ai):
+        self._ap = np.ascontiguousarray(ap, np.int32)
+        self._ai = np.ascontiguousarray(ai, np.int32)
+        self._handle = 0
+        self._lock = threading.Lock()
+        self.analyses = 0
+
+    def handle(self) -> int:
+        """The core's address of the analysis (made now on first use)."""
+        if self._handle == 0:
+            with self._lock:
+                if self._handle == 0:
+                    handle, status = _core.klu_analyze(self._ap, self._ai)
+                    if status == 2 or handle == 0 and status == 0:
+                        raise ResourceError(f"out of memory in KLU's symbolic analysis of the "
+                                            f"{self._ap.size - 1} x {self._ap.size - 1} "
+                                            f"iteration matrix ({self._ai.size} nonzeros)")
+                    if status != 0:
+                        raise ModelError(f"KLU rejected the sparsity pattern of the iteration "
+                                         f"matrix ({self._ap.size - 1} unknowns, "
+                                         f"{self._ai.size} nonzeros; status {int(status)})")
+                    weakref.finalize(self, _core.klu_analysis_free, handle)
+                    self.analyses += 1
+                    self._handle = int(handle)
+        return self._handle
+
+    def __reduce__(self):
+        return (KluAnalysis, (self._ap, self._ai))
+
+
+def klu_analysis(model: Model, storage) -> int:
+    """The `klu_analysis` argument of the core's runs of `model` with matrix storage
+    `storage`: the address of the model's KluAnalysis for 'klu' (made on first use and
+    kept with the model's pattern), 0 for 'dense'."""
+    if storage != "klu":
+        return 0
+    pat = model.pattern("klu")
+    if "analysis" not in pat:
+        pat["analysis"] = KluAnalysis(pat["ap"], pat["ai"])
+    return pat["analysis"].handle()
 
 
 def core_model_args(model: Model, storage, t, props=None):

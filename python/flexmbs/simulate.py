@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from flexmbs import _core
-from flexmbs.core import core_model_args, system_matrices
+from flexmbs.core import core_model_args, klu_analysis, system_matrices
 from flexmbs.errors import ModelError, ResourceError, SimulationError
 from flexmbs.model import Model
 from flexmbs.resources import (call_with_stack, check_memory, estimate_memory, format_bytes,
@@ -87,7 +87,9 @@ class Result:
     dofs : (nout,) stored coordinates (0-based indices of q).
     stats : newton_iterations, factorizations, residual_evaluations, step_cuts,
         static_iterations, steps, sensitivity_factorizations (of the factorizations, those
-        made for the derivative solves), solver, unknowns, newton (the strategy).
+        made for the derivative solves), symbolic_analyses (KLU's symbolic analyses of the
+        pattern made by the run: 0, the model's one being borrowed,
+        flexmbs.core.KluAnalysis), solver, unknowns, newton (the strategy).
     wall_time : seconds spent in the simulation (including the set-up in Python).
     validity : flexmbs.validity.Validity, the checks run after the simulation (strains of the
         beams, constraint drift, energy of a free system); see simulate(validity=...).
@@ -204,7 +206,9 @@ def _messages(model, status, info, max_cuts, diagnosis=""):
     if status == 7:
         return "invalid settings passed to the core"
     if status == 8:
-        return f"the sparse solver could not be set up (code {int(extra)})"
+        why = {3: ": KLU rejected the sparsity pattern, or the model's KLU analysis "
+                  "(flexmbs.core.KluAnalysis) is of another pattern"}.get(int(extra), "")
+        return f"the sparse linear solver could not be set up (code {int(extra)}){why}"
     return f"simulation failed with status {status}"
 
 
@@ -607,7 +611,7 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
             nv=nv, dprop=dprop_f, sens_dofs=(sdofs + 1).astype(np.int32),
             want_dmu=int(want_dmu), ndmu=max(cm.nc, 1) if want_dmu else 1, polish=int(polish),
             ntape=ncol, nckr=nckr, nck=nck, ckpt_every=int(checkpoints or 0), restart=0,
-            x_start=np.zeros(nckr), j_start=0)
+            x_start=np.zeros(nckr), j_start=0, klu_analysis=klu_analysis(model, solver))
 
     try:
         (q_out, qd_out, qdd_out, mu_out, stats, status, info, dq_out, dmu_out, *tape_out,
@@ -627,7 +631,8 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
                             "store fewer outputs (store=[...]), use a coarser step h or a shorter "
                             "t_end", required=est.total) from exc
     st = dict(zip(("newton_iterations", "factorizations", "residual_evaluations", "step_cuts",
-                   "static_iterations", "steps", "sensitivity_factorizations"),
+                   "static_iterations", "steps", "sensitivity_factorizations",
+                   "symbolic_analyses"),
                   (int(v) for v in stats)))
     st["newton"] = newton
     st["solver"] = solver
