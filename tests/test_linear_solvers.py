@@ -415,9 +415,9 @@ def test_klu_analysis_of_another_pattern_is_refused(monkeypatch):
 
 def test_klu_analysis_is_shared_by_threads_and_remade_by_copies():
     """One model simulated from two threads at once borrows one analysis (KLU only reads it:
-    klu.h, "inputs, not modified") and gives bit-identical states; a copy of a case's Problem
-    (deepcopy; pickle takes the same path) makes an analysis of its own on first use and
-    gives the same responses."""
+    klu.h, "inputs, not modified") and gives bit-identical states; a case's Problem evaluated
+    at two designs (the adjoint at the second) makes one analysis; a copy of it (deepcopy;
+    pickle takes the same path) makes its own on first use and gives the same responses."""
     from copy import deepcopy
 
     from flexmbs.problem import Problem
@@ -442,6 +442,8 @@ def test_klu_analysis_is_shared_by_threads_and_remade_by_copies():
     case = Problem("robot_2dof_tapered_tubes", {"time.t_end": 0.05, "bodies.arm1.elements": 6,
                                                 "bodies.arm2.elements": 6})
     first = case.evaluate(gradient=False)
+    case.evaluate(1.1 * case.start, gradient="used", method="adjoint")   # another design
+    assert case.mechanism.model.pattern("klu")["analysis"].analyses == 1
     copy = deepcopy(case)
     assert copy.mechanism.model.pattern("klu")["analysis"].analyses == 0
     again = copy.evaluate(gradient=False)
