@@ -172,6 +172,32 @@ def test_rigid_reference_work_does_not_grow_with_the_elements(monkeypatch):
         assert np.abs(xy[:, 7] - (y0 + D)).max() <= 1e-12
 
 
+def test_rigid_reference_coordinates_are_computed_once_per_case(monkeypatch):
+    """The rigid reference does not depend on the sizing design: evaluating the robot at three
+    designs maps the poses to the deviation's nodes once per coordinate set (first design),
+    not again at each design; what `coordinates` returns is the caller's to change (a changed
+    copy leaves the next call's values as they were)."""
+    calls = []
+    original = kinematics._Poses.q
+
+    def counted(self, z, nodes=None):
+        calls.append(np.shape(z))
+        return original(self, z, nodes)
+
+    prob = Problem("robot_2dof", overrides={"time.t_end": 0.05})
+    prob.evaluate(gradient=False)
+    monkeypatch.setattr(kinematics._Poses, "q", counted)
+    first = prob.evaluate(1.02 * prob.start, gradient=False)
+    assert calls == []
+    prob.evaluate(1.05 * prob.start, gradient=False)
+    assert calls == []
+    ref = prob.mechanism.reference
+    a = ref.coordinates([0, 1])
+    a[:] = np.nan
+    assert np.all(np.isfinite(ref.coordinates([0, 1])))
+    assert np.isfinite(first.objective)
+
+
 def test_gradients_of_the_used_responses_only(monkeypatch):
     """evaluate(x, gradient='used') differentiates only what the objective (mass) and the
     constraint (coupler stress) read: the motor torque, reported but not constrained, gets no
