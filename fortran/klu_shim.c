@@ -172,22 +172,41 @@ static int pivots_ok(fx_klu *h)
     return 1;
 }
 
+/* Refactor with the held pivots and row scaling `scale` (KLU's Common.scale: -1 none and
+ * no index check, 2 max-abs rows); 1 if it succeeded with acceptable pivots. */
+static int refactor(fx_klu *h, const double *ax, int scale)
+{
+    h->common.scale = scale;
+    return klu_refactor(h->ap, h->ai, (double *) ax, h->symbolic, h->numeric, &h->common)
+           && pivots_ok(h);
+}
+
 /* Numeric factorization with the values ax (CSC order of the pattern).
  * The first call factors; later calls refactor with the same pivot order,
- * and fall back to a fresh factorization if the refactored pivots are poor. */
+ * and fall back to a fresh factorization if the refactored pivots are poor.
+ *
+ * Pivots are chosen by klu_factor on the row-scaled matrix (KLU's default scaling), but
+ * the factors the solves use are always those of a refactorization without row scaling
+ * (scale = -1, which also skips KLU's index check: the pattern was checked when the
+ * handle was made): with fixed pivots the factors of D A are D L D^-1 and D U, so the
+ * scaling changes rounding only, and KLU recomputing it at every refactorization was
+ * 5.3 % of an adjoint evaluation's samples (perf, session 7; without it: simulations
+ * 7-8 %, adjoint evaluations 6-10 % faster, interleaved, tapered tubes at 8 and 32
+ * elements per arm). A fresh factorization is refactored once without scaling too, so
+ * that a run's factors do not depend on which of its factorizations were fresh: a
+ * checkpointed adjoint's segment, which starts with a fresh one where the first run
+ * refactored, repeats the first run bit for bit (tests/test_adjoint_checkpoints.py). */
 int fx_klu_factor(void *handle, const double *ax)
 {
     fx_klu *h = (fx_klu *) handle;
     if (h == NULL) return 3;
     if (!all_finite(ax, h->nnz)) return 4;
     if (h->numeric != NULL) {
-        if (klu_refactor(h->ap, h->ai, (double *) ax, h->symbolic, h->numeric, &h->common)
-            && pivots_ok(h)) {
-            return 0;
-        }
+        if (refactor(h, ax, -1)) return 0;
         klu_free_numeric(&h->numeric, &h->common);
         h->numeric = NULL;
     }
+    h->common.scale = 2;
     h->common.status = KLU_OK;
     h->numeric = klu_factor(h->ap, h->ai, (double *) ax, h->symbolic, &h->common);
     if (h->numeric == NULL) {
@@ -195,7 +214,9 @@ int fx_klu_factor(void *handle, const double *ax)
         return s == 0 ? 3 : s;
     }
     if (h->common.status == KLU_SINGULAR || !pivots_ok(h)) return 1;
-    return 0;
+    if (refactor(h, ax, -1)) return 0;
+    /* the unscaled factors' pivots failed the check: keep the scaled ones */
+    return refactor(h, ax, 2) ? 0 : 1;
 }
 
 /* Solve A x = b in place for nrhs right-hand sides stored column by column (leading dim n). */
