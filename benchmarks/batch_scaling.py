@@ -31,14 +31,21 @@ issue asks >= 1.8 on 2 cores), then where the time goes:
   jobs and receiving results, and for Dask the client and the LocalCluster's scheduler, which
   run in it and compete with the workers for the cores.
 Every run's deviations are compared with the serial ones (max |dev - serial|, 0 expected).
+
+The machine's speed drifts by up to +-30 % over minutes (VM neighbours): one serial run
+against one parallel run minutes later measured 1.52 to 2.42 (session 7), the steady job's
+CPU time moving 0.39 <-> 0.50 s between the runs. ``--rounds R`` therefore also alternates
+R serial and R default parallel (spawn) runs, each round's speed-up against the serial run
+just before it, and the ratio of the summed wall times (what drift does not bias).
 Before the runs: what a fresh interpreter pays to import flexmbs.batch (CPU, best of 3), with
 the two costs a development checkout adds to it and an installed wheel does not (sources
 compiled at every start when PYTHONDONTWRITEBYTECODE is set; the rebuild check of an editable
 install). The load average is printed at the start and the end: on a shared machine the
 ratios are only as good as the load allows.
 
-`python benchmarks/batch_scaling.py [--designs 64] [--elements 128] [--no-dask]` (about
-90 s on an idle 2-core machine); not part of run.py's default list.
+`python benchmarks/batch_scaling.py [--designs 64] [--elements 128] [--no-dask]
+[--rounds R]` (about 90 s on an idle 2-core machine, and some 40 s per round); not part of
+run.py's default list.
 """
 from __future__ import annotations
 
@@ -119,6 +126,8 @@ def main(argv=None):
     ap.add_argument("--designs", type=int, default=64)
     ap.add_argument("--elements", type=int, default=128, help="elements per arm")
     ap.add_argument("--no-dask", action="store_true")
+    ap.add_argument("--rounds", type=int, default=0,
+                    help="alternate this many serial / 2-process (spawn) runs after the table")
     args = ap.parse_args(argv)
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
@@ -167,6 +176,20 @@ def main(argv=None):
                        rows,
                        title=f"\n{len(jobs)} designs of robot_2dof, {args.elements} elements per "
                              "arm, 1300 steps, one simulation each"))
+    if args.rounds > 0:
+        pairs = []
+        for k in range(args.rounds):
+            ser = _run("serial", 1, jobs)
+            par = _run("spawn", 2, jobs)
+            pairs.append((ser, par))
+            print(f"round {k + 1}: serial {ser['wall']:.2f} s (steady job CPU "
+                  f"{ser['steady_cpu']:.3f} s), 2 processes {par['wall']:.2f} s "
+                  f"({par['steady_cpu']:.3f} s): speed-up {ser['wall'] / par['wall']:.3f}",
+                  flush=True)
+        total = sum(s_["wall"] for s_, _ in pairs) / sum(p_["wall"] for _, p_ in pairs)
+        each = [s_["wall"] / p_["wall"] for s_, p_ in pairs]
+        print(f"alternating rounds: speed-up of the summed wall times {total:.3f}; per round "
+              f"min {min(each):.3f}, median {float(np.median(each)):.3f}, max {max(each):.3f}")
     print(f"load average at the end: {os.getloadavg()[0]:.2f} ({os.cpu_count()} cores)")
     return 0
 
