@@ -453,3 +453,17 @@ def test_klu_analysis_is_shared_by_threads_and_remade_by_copies():
     assert again.stats["solver"] == "klu" and again.stats["symbolic_analyses"] == 0
     assert np.array_equal(again.values["deviation_28"], first.values["deviation_28"])
     assert copy.mechanism.model.pattern("klu")["analysis"].analyses == 1
+
+
+def test_klu_analysis_of_an_invalid_pattern_raises():
+    """A pattern KLU cannot analyse (first column pointer not 0; a row index outside the
+    matrix) is a ModelError naming its size, not a crash or a null handle used later."""
+    from flexmbs.core import KluAnalysis
+    from flexmbs.errors import ModelError
+
+    for ap, ai in (([1, 2], [0]), ([0, 1], [5])):
+        bad = KluAnalysis(np.array(ap, np.int32), np.array(ai, np.int32))
+        with pytest.raises(ModelError, match=r"rejected the sparsity pattern .*1 unknowns, "
+                                             r"1 nonzeros"):
+            bad.handle()
+        assert bad.analyses == 0

@@ -44,7 +44,7 @@ class KluAnalysis:
             with self._lock:
                 if self._handle == 0:
                     handle, status = _core.klu_analyze(self._ap, self._ai)
-                    if status == 2 or handle == 0 and status == 0:
+                    if status == 2 or (status == 0 and handle == 0):
                         raise ResourceError(f"out of memory in KLU's symbolic analysis of the "
                                             f"{self._ap.size - 1} x {self._ap.size - 1} "
                                             f"iteration matrix ({self._ai.size} nonzeros)")
