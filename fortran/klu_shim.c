@@ -36,12 +36,10 @@ typedef struct {
 typedef struct {
     int n;
     int nnz;
-    int *ap;              /* column pointers, 0-based: copied, or the analysis's */
-    int *ai;              /* row indices, 0-based: copied, or the analysis's */
+    fx_klu_analysis *analysis;   /* the pattern and its symbolic analysis */
+    int owns_analysis;           /* 1: made by this handle (freed with it), 0: borrowed */
     klu_common common;
-    klu_symbolic *symbolic;
     klu_numeric *numeric;
-    int borrowed;         /* 1: ap, ai and symbolic belong to an fx_klu_analysis */
 } fx_klu;
 
 static int map_status(const klu_common *c)
@@ -111,32 +109,15 @@ void *fx_klu_create(int n, int nnz, const int *ap, const int *ai, void *shared, 
     }
     h = (fx_klu *) calloc(1, sizeof(fx_klu));
     if (h == NULL) { *status = 2; return NULL; }
+    if (a == NULL) {
+        a = (fx_klu_analysis *) fx_klu_analyze(n, nnz, ap, ai, status);
+        if (a == NULL) { free(h); return NULL; }
+        h->owns_analysis = 1;
+    }
     h->n = n;
     h->nnz = nnz;
+    h->analysis = a;
     klu_defaults(&h->common);
-    if (a != NULL) {
-        h->ap = a->ap;
-        h->ai = a->ai;
-        h->symbolic = a->symbolic;
-        h->borrowed = 1;
-        *status = 0;
-        return (void *) h;
-    }
-    h->ap = (int *) malloc(sizeof(int) * (size_t) (n + 1));
-    h->ai = (int *) malloc(sizeof(int) * (size_t) (nnz > 0 ? nnz : 1));
-    if (h->ap == NULL || h->ai == NULL) {
-        free(h->ap); free(h->ai); free(h);
-        *status = 2;
-        return NULL;
-    }
-    memcpy(h->ap, ap, sizeof(int) * (size_t) (n + 1));
-    memcpy(h->ai, ai, sizeof(int) * (size_t) nnz);
-    h->symbolic = klu_analyze(n, h->ap, h->ai, &h->common);
-    if (h->symbolic == NULL) {
-        *status = (h->common.status == KLU_OUT_OF_MEMORY) ? 2 : 3;
-        free(h->ap); free(h->ai); free(h);
-        return NULL;
-    }
     *status = 0;
     return (void *) h;
 }
@@ -145,7 +126,7 @@ void *fx_klu_create(int n, int nnz, const int *ap, const int *ai, void *shared, 
 int fx_klu_analysed(void *handle)
 {
     fx_klu *h = (fx_klu *) handle;
-    return (h != NULL && !h->borrowed) ? 1 : 0;
+    return (h != NULL && h->owns_analysis) ? 1 : 0;
 }
 
 /* 1 if no value is Inf or NaN (exponent bits all ones): a branch-free OR over the bit
@@ -167,7 +148,7 @@ static int all_finite(const double *x, int n)
 static int pivots_ok(fx_klu *h)
 {
     /* klu_rcond: min |U_ii| / max |U_ii|, cheap; flags a numerically singular matrix */
-    if (!klu_rcond(h->symbolic, h->numeric, &h->common)) return 0;
+    if (!klu_rcond(h->analysis->symbolic, h->numeric, &h->common)) return 0;
     if (!(h->common.rcond > 1e-14)) return 0;    /* also catches NaN */
     return 1;
 }
@@ -177,7 +158,8 @@ static int pivots_ok(fx_klu *h)
 static int refactor(fx_klu *h, const double *ax, int scale)
 {
     h->common.scale = scale;
-    return klu_refactor(h->ap, h->ai, (double *) ax, h->symbolic, h->numeric, &h->common)
+    return klu_refactor(h->analysis->ap, h->analysis->ai, (double *) ax, h->analysis->symbolic,
+                        h->numeric, &h->common)
            && pivots_ok(h);
 }
 
@@ -208,7 +190,8 @@ int fx_klu_factor(void *handle, const double *ax)
     }
     h->common.scale = 2;
     h->common.status = KLU_OK;
-    h->numeric = klu_factor(h->ap, h->ai, (double *) ax, h->symbolic, &h->common);
+    h->numeric = klu_factor(h->analysis->ap, h->analysis->ai, (double *) ax,
+                            h->analysis->symbolic, &h->common);
     if (h->numeric == NULL) {
         int s = map_status(&h->common);
         return s == 0 ? 3 : s;
@@ -224,7 +207,7 @@ int fx_klu_solve(void *handle, double *b, int nrhs)
 {
     fx_klu *h = (fx_klu *) handle;
     if (h == NULL || h->numeric == NULL) return 3;
-    if (!klu_solve(h->symbolic, h->numeric, h->n, nrhs, b, &h->common)) {
+    if (!klu_solve(h->analysis->symbolic, h->numeric, h->n, nrhs, b, &h->common)) {
         int s = map_status(&h->common);
         return s == 0 ? 3 : s;
     }
@@ -236,7 +219,7 @@ int fx_klu_tsolve(void *handle, double *b, int nrhs)
 {
     fx_klu *h = (fx_klu *) handle;
     if (h == NULL || h->numeric == NULL) return 3;
-    if (!klu_tsolve(h->symbolic, h->numeric, h->n, nrhs, b, &h->common)) {
+    if (!klu_tsolve(h->analysis->symbolic, h->numeric, h->n, nrhs, b, &h->common)) {
         int s = map_status(&h->common);
         return s == 0 ? 3 : s;
     }
@@ -249,11 +232,7 @@ void fx_klu_free(void *handle)
     fx_klu *h = (fx_klu *) handle;
     if (h == NULL) return;
     if (h->numeric != NULL) klu_free_numeric(&h->numeric, &h->common);
-    if (!h->borrowed) {
-        if (h->symbolic != NULL) klu_free_symbolic(&h->symbolic, &h->common);
-        free(h->ap);
-        free(h->ai);
-    }
+    if (h->owns_analysis) fx_klu_analysis_free(h->analysis);
     free(h);
 }
 

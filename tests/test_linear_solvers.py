@@ -332,6 +332,21 @@ def swinging_beam(diameter, elements):
     return m
 
 
+def in_two_threads(work):
+    """{k: work(k)} for k = 0, 1, run in two threads at once."""
+    results = {}
+
+    def worker(k):
+        results[k] = work(k)
+
+    threads = [threading.Thread(target=worker, args=(k,)) for k in range(2)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    return results
+
+
 @pytest.mark.parametrize("solver", ["dense", "klu"])
 def test_two_models_alternately_and_in_threads_match_running_alone(solver):
     """Two different models (different sizes, so a shared factorization or work array
@@ -348,16 +363,7 @@ def test_two_models_alternately_and_in_threads_match_running_alone(solver):
     alternate = [run(models[k % 2]) for k in range(4)]
     for k, q in enumerate(alternate):
         assert np.array_equal(q, alone[k % 2])
-    results = {}
-
-    def worker(k):
-        results[k] = [run(models[k]) for _ in range(3)]
-
-    threads = [threading.Thread(target=worker, args=(k,)) for k in range(2)]
-    for th in threads:
-        th.start()
-    for th in threads:
-        th.join()
+    results = in_two_threads(lambda k: [run(models[k]) for _ in range(3)])
     for k in range(2):
         for q in results[k]:
             assert np.array_equal(q, alone[k])
@@ -427,16 +433,8 @@ def test_klu_analysis_is_shared_by_threads_and_remade_by_copies():
 
     m = swinging_beam(0.04, 5)
     alone = fx.simulate(m, 0.1, 1e-3, solver="klu", start="static").q
-    results = {}
-
-    def worker(k):
-        results[k] = [fx.simulate(m, 0.1, 1e-3, solver="klu", start="static") for _ in range(3)]
-
-    threads = [threading.Thread(target=worker, args=(k,)) for k in range(2)]
-    for th in threads:
-        th.start()
-    for th in threads:
-        th.join()
+    results = in_two_threads(
+        lambda k: [fx.simulate(m, 0.1, 1e-3, solver="klu", start="static") for _ in range(3)])
     for k in range(2):
         for r in results[k]:
             assert r.stats["symbolic_analyses"] == 0
