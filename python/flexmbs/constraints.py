@@ -48,7 +48,8 @@ import numpy as np
 from flexmbs.errors import ModelError
 
 __all__ = ["RowTable", "row_table", "law_tables", "drive_terms", "constraint_values",
-           "constraint_values_t", "jacobian_entries", "constraint_jacobian", "constraint_rate", "acceleration_rhs"]
+           "constraint_values_t", "jacobian_entries", "constraint_jacobian", "constraint_rate",
+           "acceleration_rhs"]
 
 KIND_LINEAR, KIND_RIGID_X, KIND_RIGID_Y, KIND_PRISMATIC = 1, 2, 3, 4
 _KINDS = (KIND_LINEAR, KIND_RIGID_X, KIND_RIGID_Y, KIND_PRISMATIC)

@@ -432,13 +432,15 @@ class RigidMotion:
 
     The node histories follow from the poses by rigid transforms: `coordinates(dofs, rate)`
     gives those of some coordinates (cost and memory nt x len(dofs); the last
-    MEMO_ENTRIES asked are kept, the reference being the same for every design of a
-    case); q, qd, qdd (nt, ndof) hold every node's, computed on first use and kept (nt x
+    MEMO_ENTRIES asked of up to MEMO_VALUES values are kept, the reference being the same
+    for every design of a case); q, qd, qdd (nt, ndof) hold every node's, computed on first use and kept (nt x
     ndof values each).
     """
     #: `coordinates` results kept (a response asks for the same few coordinates at every
     #: design: 4 calls and ~1.3 ms of a 17 ms evaluation of the paper's robot, session 7)
     MEMO_ENTRIES = 32
+    #: ... of at most this many values each (8 MB; larger ones are computed at every call)
+    MEMO_VALUES = 1 << 20
     t: np.ndarray
     z: np.ndarray
     zd: np.ndarray
@@ -475,6 +477,8 @@ class RigidMotion:
             nodes, inv = np.unique(flat // 3, return_inverse=True)
             h = self._nodes_history(nodes, rate).reshape(self.t.size, nodes.size, 3)
             out = h[:, inv.ravel(), flat % 3]
+            if out.size > self.MEMO_VALUES:          # not kept: no copy of a large history
+                return out[:, 0] if d.ndim == 0 else out
             if len(self._memo) >= self.MEMO_ENTRIES:
                 self._memo.pop(next(iter(self._memo)))
             self._memo[key] = out

@@ -63,22 +63,23 @@ def _leading_first(v, lead):
     return np.moveaxis(v, -1, 0).reshape(tuple(lead) + v.shape[:2])
 
 
+def _along(q, comp, w):
+    """sum_a w[:, a, :] q[:, 3 a + comp, :] over an element's nodes a: (nel, npt, T)."""
+    return sum(q[:, 3 * a + comp, None, :] * w[:, a, :, None] for a in range(w.shape[1]))
+
+
 def raw_strains_t(q, n, dn, jac):
     """raw_strains on time-last arrays: q (nel, 3 nen, T) -> (e1, e2, kappa) each (nel, npt, T)."""
-    nen = n.shape[0]
     dns = dn[None, :, :] / jac[:, None, None]                # (nel, nen, npt)
-    dx = sum(q[:, 3 * a, None, :] * dns[:, a, :, None] for a in range(nen))
-    dy = sum(q[:, 3 * a + 1, None, :] * dns[:, a, :, None] for a in range(nen))
-    kap = sum(q[:, 3 * a + 2, None, :] * dns[:, a, :, None] for a in range(nen))
-    phi = sum(q[:, 3 * a + 2, None, :] * n[a][None, :, None] for a in range(nen))
+    dx, dy = _along(q, 0, dns), _along(q, 1, dns)
+    phi = _along(q, 2, np.broadcast_to(n[None], (q.shape[0],) + n.shape))
     c, s = np.cos(phi), np.sin(phi)
-    return c * dx + s * dy, -s * dx + c * dy, kap
+    return c * dx + s * dy, -s * dx + c * dy, raw_curvature_t(q, dn, jac)
 
 
 def raw_curvature_t(q, dn, jac):
     """kappa of raw_strains_t alone (no rotation to evaluate): (nel, npt, T)."""
-    dns = dn[None, :, :] / jac[:, None, None]
-    return sum(q[:, 3 * a + 2, None, :] * dns[:, a, :, None] for a in range(dn.shape[0]))
+    return _along(q, 2, dn[None, :, :] / jac[:, None, None])
 
 
 def raw_strains(qe, n, dn, jac):
