@@ -63,23 +63,21 @@ class _CoreTimer:
         real = simulate_module._core
         timer = self
 
+        def timed(call, field):
+            def run(*a, **kw):
+                t0 = time.perf_counter()
+                try:
+                    return call(*a, **kw)
+                finally:
+                    setattr(timer, field, getattr(timer, field) + time.perf_counter() - t0)
+            return run
+
         class Proxy:
+            simulate = staticmethod(timed(real.simulate, "fwd"))
+            simulate_adjoint = staticmethod(timed(real.simulate_adjoint, "bwd"))
+
             def __getattr__(self, name):
                 return getattr(real, name)
-
-            def simulate(self, *a, **kw):
-                t0 = time.perf_counter()
-                try:
-                    return real.simulate(*a, **kw)
-                finally:
-                    timer.fwd += time.perf_counter() - t0
-
-            def simulate_adjoint(self, *a, **kw):
-                t0 = time.perf_counter()
-                try:
-                    return real.simulate_adjoint(*a, **kw)
-                finally:
-                    timer.bwd += time.perf_counter() - t0
 
         self._real = real
         simulate_module._core = adjoint_module._core = Proxy()

@@ -78,6 +78,7 @@ contains
         !! assembles its tangent (iteration_matrix): the design contraction reuses them
         real(wp), allocatable :: elparts(:, :, :)
         logical, allocatable :: stiff(:), mass(:)
+        logical :: state_ok
         integer, allocatable :: gidx(:)
         real(wp) :: alpha_m, alpha_f, gamma, beta, h, betap, gammap, cf, kdyn, pdyn, t, k0
         integer :: nf, nt, nv, j, f, e, v, st, ierr, n, nd, nc, ncol, j0
@@ -109,17 +110,13 @@ contains
             status = GA_BAD_INPUT
             return
         end if
-        if (present(adj_in)) then
-            if (size(adj_in, 1) /= nd .or. size(adj_in, 2) /= nf .or. size(adj_in, 3) < 4) then
-                status = GA_BAD_INPUT
-                return
-            end if
-        end if
-        if (present(adj_out)) then
-            if (size(adj_out, 1) /= nd .or. size(adj_out, 2) /= nf .or. size(adj_out, 3) < 4) then
-                status = GA_BAD_INPUT
-                return
-            end if
+        ! (two statements: Fortran's .and. does not guard an absent argument)
+        state_ok = .true.
+        if (present(adj_in)) state_ok = adjoint_state_fits(adj_in)
+        if (present(adj_out)) state_ok = state_ok .and. adjoint_state_fits(adj_out)
+        if (.not. state_ok) then
+            status = GA_BAD_INPUT
+            return
         end if
         if (grid(1) /= 1 .or. any(grid(2:nt) <= grid(1:nt - 1)) .or. &
             .not. all(th(2:ncol) > 0)) then
@@ -303,6 +300,12 @@ contains
         call ls_free(ls)
 
     contains
+
+        !> An adjoint state array (adj_in, adj_out) has the shape (nd, nf, >= 4).
+        pure logical function adjoint_state_fits(a)
+            real(wp), intent(in) :: a(:, :, :)
+            adjoint_state_fits = size(a, 1) == nd .and. size(a, 2) == nf .and. size(a, 3) >= 4
+        end function adjoint_state_fits
 
         !> Factor `vals` and solve the transpose in place in z.
         subroutine factor_solve(tt, singular)
