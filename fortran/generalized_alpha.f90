@@ -16,7 +16,8 @@ module generalized_alpha
     use constraints, only: MAX_CDOF
     use model_data, only: mbs_model, law_rate, law_accel0
     use assembly, only: residual, iteration_matrix, mass_times, internal_forces, &
-                        external_forces, constraint_values, spring_forces, spring_times
+                        external_forces, constraint_values, spring_forces, spring_times, &
+                        damping_times
     use sensitivity, only: mass_design_derivative_times, stiffness_times, &
                            constraint_curvature, step_design_rhs
     use linear_solver, only: linear_system, ls_init_dense, ls_init_sparse, ls_factor, &
@@ -200,10 +201,11 @@ contains
         type(mbs_model), intent(in) :: m
         real(wp), intent(in) :: q(m%ndof), cm
         real(wp), intent(inout) :: vals(:)
-        real(wp) :: sc, fint(m%ndof)
+        real(wp) :: sc, fint(m%ndof), qzero(m%ndof)
         integer :: e, ne, a, cnt
         vals = 0
-        call internal_forces(m, q, fint, vals, 1.0_wp)
+        qzero = 0
+        call internal_forces(m, q, qzero, fint, vals, 1.0_wp)
         sc = 0
         cnt = 0
         do e = 1, m%nel
@@ -793,11 +795,11 @@ contains
             ap_ = (alpha_f * x%dqdd - alpha_m * x%da) / (1 - alpha_m)
             qhat = x%dq + hh * x%dqd + hh**2 * ((0.5_wp - beta) * x%da + beta * ap_)
             vhat = x%dqd + hh * ((1 - gamma) * x%da + gamma * ap_)
-            call step_design_rhs(m, dprop, x%q, x%qdd - m%gacc, betap, qhat, rhs(1:m%ndof, :))
-            if (m%nsd > 0) then
+            call step_design_rhs(m, dprop, x%q, x%qd, x%qdd - m%gacc, betap, qhat, rhs(1:m%ndof, :))
+            if (m%nsd > 0 .or. m%damped) then
                 ! velocity-dependent forces: C_t qd' = gamma' C_t q' + C_t (vhat - gamma' qhat)
                 do v = 1, nv
-                    call spring_times(m, x%q, x%qd, gammap * qhat(:, v) - vhat(:, v), 0.0_wp, 1.0_wp, cv)
+                    call damping_times(m, x%q, x%qd, gammap * qhat(:, v) - vhat(:, v), cv)
                     rhs(1:m%ndof, v) = rhs(1:m%ndof, v) + cv
                 end do
             end if
@@ -978,7 +980,7 @@ contains
         end if
         x%qd = z(1:m%ndof, 1)
         ! accelerations and multipliers
-        call internal_forces(m, x%q, fint)
+        call internal_forces(m, x%q, x%qd, fint)
         call external_forces(m, fgrav, 0.0_wp, fext)
         stats%residual_evaluations = stats%residual_evaluations + 1
         if (m%nsd > 0) call spring_forces(m, x%q, x%qd, fint)
@@ -1036,7 +1038,7 @@ contains
             return
         end if
         ! -(df_int/dp - dM/dp g): the step right-hand side with beta' = 0 and qdd = 0
-        call step_design_rhs(m, dprop, x%q, -m%gacc, 0.0_wp, zero, rhs(1:m%ndof, :))
+        call step_design_rhs(m, dprop, x%q, qzero, -m%gacc, 0.0_wp, zero, rhs(1:m%ndof, :))
         rhs(m%ndof + 1:, :) = 0
         call ls_solve(ls, rhs, lst)
         if (lst /= LS_OK) then
@@ -1088,15 +1090,18 @@ contains
         x%dqd = rhs(1:m%ndof, :)
         ! accelerations and multipliers
         ! dM/dp (g - qdd) - df_int/dp: the step right-hand side with beta' = 0
-        call step_design_rhs(m, dprop, x%q, x%qdd - m%gacc, 0.0_wp, zero, rhs(1:m%ndof, :))
+        call step_design_rhs(m, dprop, x%q, x%qd, x%qdd - m%gacc, 0.0_wp, zero, rhs(1:m%ndof, :))
         do v = 1, nv
-            call stiffness_times(m, x%q, x%mu, x%dq(:, v), kq)
+            call stiffness_times(m, x%q, x%qd, x%mu, x%dq(:, v), kq)
             rhs(1:m%ndof, v) = rhs(1:m%ndof, v) - kq
             if (m%nsd > 0) then
-                ! spring-dampers: - K_sd q0' - C_sd qd'
+                ! spring-dampers: - K_sd q0'
                 call spring_times(m, x%q, x%qd, x%dq(:, v), 1.0_wp, 0.0_wp, kq)
                 rhs(1:m%ndof, v) = rhs(1:m%ndof, v) - kq
-                call spring_times(m, x%q, x%qd, x%dqd(:, v), 0.0_wp, 1.0_wp, kq)
+            end if
+            if (m%nsd > 0 .or. m%damped) then
+                ! velocity-dependent forces: - C_t qd'
+                call damping_times(m, x%q, x%qd, x%dqd(:, v), kq)
                 rhs(1:m%ndof, v) = rhs(1:m%ndof, v) - kq
             end if
             call constraint_curvature(m, x%q, x%dq(:, v), x%qdd, c1)
