@@ -66,20 +66,13 @@ contains
                                               eref=m%el_eref(:, :, e), eta=eta, qde=ve(1:ne), &
                                               ce=ce(1:ne, 1:ne))
                 end if
-                if (eta /= 0 .and. ccv /= 0) then
-                    do b = 1, ne
-                        do a = 1, ne
-                            vals(m%map_el(a, b, e)) = vals(m%map_el(a, b, e)) + ck * ke(a, b) &
-                                                      + ccv * ce(a, b)
-                        end do
+                ! (ce = 0 for an undamped element)
+                do b = 1, ne
+                    do a = 1, ne
+                        vals(m%map_el(a, b, e)) = vals(m%map_el(a, b, e)) + ck * ke(a, b) &
+                                                  + ccv * ce(a, b)
                     end do
-                else
-                    do b = 1, ne
-                        do a = 1, ne
-                            vals(m%map_el(a, b, e)) = vals(m%map_el(a, b, e)) + ck * ke(a, b)
-                        end do
-                    end do
-                end if
+                end do
             else
                 call beam_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), m%el_eref(:, :, e), &
                                  qe(1:ne), fe(1:ne), eta, ve(1:ne))
@@ -99,7 +92,7 @@ contains
         real(wp), intent(in) :: q(m%ndof), qd(m%ndof), x(m%ndof)
         real(wp), intent(out) :: y(m%ndof)
         logical, intent(in), optional :: transposed
-        real(wp) :: fe(MAX_EDOF), ce(MAX_EDOF, MAX_EDOF), qe(MAX_EDOF), qr(MAX_EDOF), xe(MAX_EDOF)
+        real(wp) :: fe(MAX_EDOF), ce(MAX_EDOF, MAX_EDOF)
         integer :: e, ne, a, d
         if (m%nsd > 0) then
             call spring_times(m, q, qd, x, 0.0_wp, 1.0_wp, y, transposed)
@@ -110,16 +103,10 @@ contains
         do e = 1, m%nel
             if (m%el_eta(e) == 0) cycle
             ne = 3 * m%el_nen(e)
-            do a = 1, ne
-                d = m%el_dofs(a, e)
-                qe(a) = q(d)
-                qr(a) = m%qref(d)
-                xe(a) = x(d)
-            end do
-            call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), qr(1:ne), &
-                                      qe(1:ne), fe(1:ne), eref=m%el_eref(:, :, e), &
-                                      eta=m%el_eta(e), ce=ce(1:ne, 1:ne))
-            fe(1:ne) = matmul(ce(1:ne, 1:ne), xe(1:ne))
+            call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), &
+                                      m%qref(m%el_dofs(1:ne, e)), q(m%el_dofs(1:ne, e)), fe(1:ne), &
+                                      eref=m%el_eref(:, :, e), eta=m%el_eta(e), ce=ce(1:ne, 1:ne))
+            fe(1:ne) = matmul(ce(1:ne, 1:ne), x(m%el_dofs(1:ne, e)))
             do a = 1, ne
                 d = m%el_dofs(a, e)
                 y(d) = y(d) + fe(a)

@@ -57,21 +57,30 @@ contains
         end if
     end subroutine shape
 
+    !> Interpolated x', y', phi' (dns: shape-function derivatives d/ds) and phi of nodal
+    !! values v = (x, y, phi per node), or of their rates when v are velocities.
+    pure subroutine along(nen, v, dns, n, dx, dy, dphi, phi)
+        integer, intent(in) :: nen
+        real(wp), intent(in) :: v(3 * nen), dns(nen), n(nen)
+        real(wp), intent(out) :: dx, dy, dphi, phi
+        integer :: a
+        dx = 0; dy = 0; dphi = 0; phi = 0
+        do a = 1, nen
+            dx = dx + dns(a) * v(3 * a - 2)
+            dy = dy + dns(a) * v(3 * a - 1)
+            dphi = dphi + dns(a) * v(3 * a)
+            phi = phi + n(a) * v(3 * a)
+        end do
+    end subroutine along
+
     !> Raw strain measures e1 = c x' + s y', e2 = -s x' + c y', kappa = phi', with
     !! c = cos(phi), s = sin(phi) of the interpolated rotation (returned for reuse).
     pure subroutine raw_strains(nen, qe, dns, n, e1, e2, kap, c, s)
         integer, intent(in) :: nen
         real(wp), intent(in) :: qe(3 * nen), dns(nen), n(nen)
         real(wp), intent(out) :: e1, e2, kap, c, s
-        integer :: a
         real(wp) :: phi, dx, dy
-        dx = 0; dy = 0; kap = 0; phi = 0
-        do a = 1, nen
-            dx = dx + dns(a) * qe(3 * a - 2)
-            dy = dy + dns(a) * qe(3 * a - 1)
-            kap = kap + dns(a) * qe(3 * a)
-            phi = phi + n(a) * qe(3 * a)
-        end do
+        call along(nen, qe, dns, n, dx, dy, kap, phi)
         c = cos(phi)
         s = sin(phi)
         e1 = c * dx + s * dy
@@ -171,14 +180,8 @@ contains
             g2 = e2 - r2
             gk = kap - rk
             if (visc) then
-                ! strain rates Gamma_dot = B qd: x'_dot, y'_dot, kappa_dot, phi_dot
-                xd = 0; yd = 0; phd = 0; gd(3) = 0
-                do a = 1, nen
-                    xd = xd + dns(a) * qde(3 * a - 2)
-                    yd = yd + dns(a) * qde(3 * a - 1)
-                    gd(3) = gd(3) + dns(a) * qde(3 * a)
-                    phd = phd + n(a) * qde(3 * a)
-                end do
+                ! strain rates Gamma_dot = B qd from x'_dot, y'_dot, kappa_dot, phi_dot
+                call along(nen, qde, dns, n, xd, yd, gd(3), phd)
                 gd(1) = c * xd + s * yd + e2 * phd
                 gd(2) = -s * xd + c * yd - e1 * phd
             end if
@@ -286,13 +289,7 @@ contains
             mf = kap - eref(3, ig)
             if (eta /= 0) then
                 ! strains plus eta times their rates B qd (beam_internal_forces)
-                xd = 0; yd = 0; kd = 0; phd = 0
-                do a = 1, nen
-                    xd = xd + dns(a) * qde(3 * a - 2)
-                    yd = yd + dns(a) * qde(3 * a - 1)
-                    kd = kd + dns(a) * qde(3 * a)
-                    phd = phd + n(a) * qde(3 * a)
-                end do
+                call along(nen, qde, dns, n, xd, yd, kd, phd)
                 nf = nf + eta * (c * xd + s * yd + e2 * phd)
                 qf = qf + eta * (-s * xd + c * yd - e1 * phd)
                 mf = mf + eta * kd
