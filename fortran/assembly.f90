@@ -93,7 +93,7 @@ contains
         real(wp), intent(out) :: y(m%ndof)
         logical, intent(in), optional :: transposed
         real(wp) :: fe(MAX_EDOF), ce(MAX_EDOF, MAX_EDOF)
-        integer :: e, ne, a, d
+        integer :: e, ne
         if (m%nsd > 0) then
             call spring_times(m, q, qd, x, 0.0_wp, 1.0_wp, y, transposed)
         else
@@ -106,11 +106,9 @@ contains
             call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), &
                                       m%qref(m%el_dofs(1:ne, e)), q(m%el_dofs(1:ne, e)), fe(1:ne), &
                                       eref=m%el_eref(:, :, e), eta=m%el_eta(e), ce=ce(1:ne, 1:ne))
-            fe(1:ne) = matmul(ce(1:ne, 1:ne), x(m%el_dofs(1:ne, e)))
-            do a = 1, ne
-                d = m%el_dofs(a, e)
-                y(d) = y(d) + fe(a)
-            end do
+            ! (an element's coordinates are distinct: the vector subscript scatters safely)
+            y(m%el_dofs(1:ne, e)) = y(m%el_dofs(1:ne, e)) &
+                                    + matmul(ce(1:ne, 1:ne), x(m%el_dofs(1:ne, e)))
         end do
     end subroutine damping_times
 
