@@ -205,12 +205,12 @@ contains
             do f = 1, nf
                 call mass_times(m, z(1:nd, f), w(:, f))
                 qhb(:, f) = qhb(:, f) + betap * w(:, f)
-                if (m%nsd > 0 .or. m%damped) then
-                    call damping_times(m, qt(:, j), qdt(:, j), z(1:nd, f), w(:, f), transposed=.true.)
-                    qhb(:, f) = qhb(:, f) + gammap * w(:, f)
-                    vhb(:, f) = vhb(:, f) - w(:, f)
-                end if
             end do
+            if (m%nsd > 0 .or. m%damped) then
+                call damping_times(m, qt(:, j), qdt(:, j), z(1:nd, :), w, transposed=.true.)
+                qhb = qhb + gammap * w
+                vhb = vhb - w
+            end if
             ! Qhat = q_n + h qd_n + h^2 ((1/2 - beta) a_n + beta ap),
             ! Vhat = qd_n + h ((1 - gamma) a_n + gamma ap), ap = (alpha_f qdd_n - alpha_m a_n) / (1 - alpha_m)
             qb = qhb
@@ -242,11 +242,11 @@ contains
         if (status /= GA_OK) goto 900
         acc = qddt(:, 1) - m%gacc
         call contract(qt(:, 1), qdt(:, 1), acc, z(1:nd, :))
+        if (m%nsd > 0 .or. m%damped) then
+            call damping_times(m, qt(:, 1), qdt(:, 1), z(1:nd, :), w, transposed=.true.)
+            qdb = qdb - w
+        end if
         do f = 1, nf
-            if (m%nsd > 0 .or. m%damped) then
-                call damping_times(m, qt(:, 1), qdt(:, 1), z(1:nd, f), w(:, f), transposed=.true.)
-                qdb(:, f) = qdb(:, f) - w(:, f)
-            end if
             if (nc > 0) then
                 w(:, f) = 0
                 call add_curvature_times(m, qt(:, 1), z(nd + 1:, f), qdt(:, 1), w(:, f))

@@ -85,20 +85,23 @@ contains
     end subroutine internal_forces
 
     !> y = C_t x: the damping matrix d f / d qd of every velocity-dependent force (the
-    !! spring-dampers' and the beams' Kelvin–Voigt damping) at (q, qd) times x, matrix-free;
-    !! with transposed = .true., y = C_t^T x (the adjoint; the beams' part is symmetric).
+    !! spring-dampers' and the beams' Kelvin–Voigt damping) at (q, qd) times every column of
+    !! x (ndof, nr), matrix-free (each element's matrix formed once for all columns); with
+    !! transposed = .true., y = C_t^T x (the adjoint; the beams' part is symmetric).
     subroutine damping_times(m, q, qd, x, y, transposed)
         type(mbs_model), intent(in) :: m
-        real(wp), intent(in) :: q(m%ndof), qd(m%ndof), x(m%ndof)
-        real(wp), intent(out) :: y(m%ndof)
+        real(wp), intent(in) :: q(m%ndof), qd(m%ndof), x(:, :)
+        real(wp), intent(out) :: y(:, :)
         logical, intent(in), optional :: transposed
         real(wp) :: fe(MAX_EDOF), ce(MAX_EDOF, MAX_EDOF)
-        integer :: e, ne
-        if (m%nsd > 0) then
-            call spring_times(m, q, qd, x, 0.0_wp, 1.0_wp, y, transposed)
-        else
-            y = 0
-        end if
+        integer :: e, ne, r
+        do r = 1, size(x, 2)
+            if (m%nsd > 0) then
+                call spring_times(m, q, qd, x(:, r), 0.0_wp, 1.0_wp, y(:, r), transposed)
+            else
+                y(:, r) = 0
+            end if
+        end do
         if (.not. m%damped) return
         do e = 1, m%nel
             if (m%el_eta(e) == 0) cycle
@@ -107,8 +110,10 @@ contains
                                       m%qref(m%el_dofs(1:ne, e)), q(m%el_dofs(1:ne, e)), fe(1:ne), &
                                       eref=m%el_eref(:, :, e), eta=m%el_eta(e), ce=ce(1:ne, 1:ne))
             ! (an element's coordinates are distinct: the vector subscript scatters safely)
-            y(m%el_dofs(1:ne, e)) = y(m%el_dofs(1:ne, e)) &
-                                    + matmul(ce(1:ne, 1:ne), x(m%el_dofs(1:ne, e)))
+            do r = 1, size(x, 2)
+                y(m%el_dofs(1:ne, e), r) = y(m%el_dofs(1:ne, e), r) &
+                                           + matmul(ce(1:ne, 1:ne), x(m%el_dofs(1:ne, e), r))
+            end do
         end do
     end subroutine damping_times
 

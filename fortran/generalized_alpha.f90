@@ -770,7 +770,7 @@ contains
             real(wp), intent(in) :: hh, tnew, betap, gammap
             integer, intent(out) :: stat
             integer :: lst, v
-            real(wp) :: cv(m%ndof)
+            real(wp) :: cv(m%ndof, 2)
             stat = GA_OK
             if (modified .and. .not. fact_exact) then
                 if (.not. vals_exact) call iteration_matrix(m, x%q, x%qd, x%mu, tnew, betap, 1.0_wp, &
@@ -799,8 +799,9 @@ contains
             if (m%nsd > 0 .or. m%damped) then
                 ! velocity-dependent forces: C_t qd' = gamma' C_t q' + C_t (vhat - gamma' qhat)
                 do v = 1, nv
-                    call damping_times(m, x%q, x%qd, gammap * qhat(:, v) - vhat(:, v), cv)
-                    rhs(1:m%ndof, v) = rhs(1:m%ndof, v) + cv
+                    cv(:, 1) = gammap * qhat(:, v) - vhat(:, v)
+                    call damping_times(m, x%q, x%qd, cv(:, 1:1), cv(:, 2:2))
+                    rhs(1:m%ndof, v) = rhs(1:m%ndof, v) + cv(:, 2)
                 end do
             end if
             rhs(m%ndof + 1:, :) = 0
@@ -1064,7 +1065,7 @@ contains
         type(ga_state), intent(inout) :: x
         integer, intent(out) :: status
         integer :: nv, v, lst, ierr
-        real(wp) :: k0, kq(m%ndof), c1(m%nc), c2(m%nc)
+        real(wp) :: k0, kq(m%ndof), kq2(m%ndof, 1), c1(m%nc), c2(m%nc)
         real(wp), allocatable :: rhs(:, :), md(:, :), zero(:, :)
         status = GA_OK
         nv = size(dprop, 3)
@@ -1101,8 +1102,8 @@ contains
             end if
             if (m%nsd > 0 .or. m%damped) then
                 ! velocity-dependent forces: - C_t qd'
-                call damping_times(m, x%q, x%qd, x%dqd(:, v), kq)
-                rhs(1:m%ndof, v) = rhs(1:m%ndof, v) - kq
+                call damping_times(m, x%q, x%qd, x%dqd(:, v:v), kq2)
+                rhs(1:m%ndof, v) = rhs(1:m%ndof, v) - kq2(:, 1)
             end if
             call constraint_curvature(m, x%q, x%dq(:, v), x%qdd, c1)
             call constraint_curvature(m, x%q, x%qd, x%dqd(:, v), c2)
