@@ -936,7 +936,7 @@ contains
 
     !> Consistent initial velocities and accelerations (and multipliers) at t = 0:
     !!   [M  k Phi_q^T; k Phi_q  0] [qd; .]   = [M qd0; -k Phi_t]
-    !!   [M  k Phi_q^T; k Phi_q  0] [qdd; lam] = [f_ext - f_int - f_sd(q, qd);
+    !!   [M  k Phi_q^T; k Phi_q  0] [qdd; lam] = [f_ext - f_int(q, qd) - f_sd(q, qd);
     !!                                             -k (Phi_tt + qd^T Phi_qq qd)]
     !! with mu = k lam. The velocity step is a mass-weighted projection of qd0.
     subroutine initial_rates(m, ls, vals, fgrav, x, stats, status, info)
