@@ -199,6 +199,8 @@ class Model:
 
         order=2: 3-node quadratic elements (accurate with 2 per arm, the default);
         order=1: 2-node linear elements. Returns the Body (its nodes run from start to end).
+        The material's Kelvin–Voigt damping (Material.damping_time, or damping_ratio at
+        damping_frequency) damps the beam's strain rates (fortran/beam2d.f90).
         """
         self._check_new_name(name)
         if not isinstance(section, Section):
