@@ -20,7 +20,7 @@ module adjoint
     use beam2d, only: beam_internal_forces, MAX_EDOF
     use constraints, only: MAX_CDOF
     use model_data, only: mbs_model
-    use assembly, only: iteration_matrix, mass_times, constraint_values, spring_times
+    use assembly, only: iteration_matrix, mass_times, constraint_values, spring_times, damping_times
     use sensitivity, only: stiffness_times, add_curvature_times
     use linear_solver, only: linear_system, ls_init_dense, ls_init_sparse, ls_factor, &
                              ls_solve, ls_free, SOLVER_KLU, LS_OK, LS_NO_MEMORY
@@ -201,17 +201,16 @@ contains
             if (status /= GA_OK) goto 900
             ! rhs = -dr/dp + beta' M Qhat + C_t (gamma' Qhat - Vhat)
             acc = qddt(:, j) - m%gacc
-            call contract(qt(:, j), acc, z(1:nd, :), pe=elparts)
+            call contract(qt(:, j), qdt(:, j), acc, z(1:nd, :), pe=elparts)
             do f = 1, nf
                 call mass_times(m, z(1:nd, f), w(:, f))
                 qhb(:, f) = qhb(:, f) + betap * w(:, f)
-                if (m%nsd > 0) then
-                    call spring_times(m, qt(:, j), qdt(:, j), z(1:nd, f), 0.0_wp, 1.0_wp, w(:, f), &
-                                      transposed=.true.)
-                    qhb(:, f) = qhb(:, f) + gammap * w(:, f)
-                    vhb(:, f) = vhb(:, f) - w(:, f)
-                end if
             end do
+            if (m%nsd > 0 .or. m%damped) then
+                call damping_times(m, qt(:, j), qdt(:, j), z(1:nd, :), w, transposed=.true.)
+                qhb = qhb + gammap * w
+                vhb = vhb - w
+            end if
             ! Qhat = q_n + h qd_n + h^2 ((1/2 - beta) a_n + beta ap),
             ! Vhat = qd_n + h ((1 - gamma) a_n + gamma ap), ap = (alpha_f qdd_n - alpha_m a_n) / (1 - alpha_m)
             qb = qhb
@@ -242,20 +241,20 @@ contains
         call factor_solve(0.0_wp, GA_INITIAL_SINGULAR)
         if (status /= GA_OK) goto 900
         acc = qddt(:, 1) - m%gacc
-        call contract(qt(:, 1), acc, z(1:nd, :))
+        call contract(qt(:, 1), qdt(:, 1), acc, z(1:nd, :))
+        if (m%nsd > 0 .or. m%damped) then
+            call damping_times(m, qt(:, 1), qdt(:, 1), z(1:nd, :), w, transposed=.true.)
+            qdb = qdb - w
+        end if
         do f = 1, nf
-            if (m%nsd > 0) then
-                call spring_times(m, qt(:, 1), qdt(:, 1), z(1:nd, f), 0.0_wp, 1.0_wp, w(:, f), &
-                                  transposed=.true.)
-                qdb(:, f) = qdb(:, f) - w(:, f)
-            end if
             if (nc > 0) then
                 w(:, f) = 0
                 call add_curvature_times(m, qt(:, 1), z(nd + 1:, f), qdt(:, 1), w(:, f))
                 qdb(:, f) = qdb(:, f) - 2 * k0 * w(:, f)
             end if
             if (s%static_start) then
-                call stiffness_times(m, qt(:, 1), mut(1:nc, 1), z(1:nd, f), w(:, f), transposed=.true.)
+                call stiffness_times(m, qt(:, 1), qdt(:, 1), mut(1:nc, 1), z(1:nd, f), w(:, f), &
+                                     transposed=.true.)
                 qb(:, f) = qb(:, f) - w(:, f)
                 if (m%nsd > 0) then
                     call spring_times(m, qt(:, 1), qdt(:, 1), z(1:nd, f), 1.0_wp, 0.0_wp, w(:, f), &
@@ -275,7 +274,7 @@ contains
         call solve_only(0.0_wp)
         if (status /= GA_OK) goto 900
         acc = qd0 - qdt(:, 1)
-        call contract(qt(:, 1), acc, z(1:nd, :), velocity=.true.)
+        call contract(qt(:, 1), qdt(:, 1), acc, z(1:nd, :), velocity=.true.)
         if (s%static_start .and. nc > 0) then
             do f = 1, nf
                 w(:, f) = 0
@@ -334,14 +333,14 @@ contains
         end subroutine solve_only
 
         !> gprop(:, e, f) += y_f^T d(rhs)/dprop_e: the right-hand side of the direct method
-        !! -(df_int/dp + dM/dp acc) at q, or with velocity, +dM/dp acc (acc = qd0 - qd).
-        subroutine contract(q, accv, y, velocity, pe)
-            real(wp), intent(in) :: q(nd), accv(nd), y(:, :)
+        !! -(df_int/dp + dM/dp acc) at (q, qv), or with velocity, +dM/dp acc (acc = qd0 - qd).
+        subroutine contract(q, qv, accv, y, velocity, pe)
+            real(wp), intent(in) :: q(nd), qv(nd), accv(nd), y(:, :)
             logical, intent(in), optional :: velocity
             !> the elements' forces per unit stiffness at q when already computed
             real(wp), intent(in), optional :: pe(:, :, :)
             real(wp) :: fe(MAX_EDOF), parts(MAX_EDOF, 3), qe(MAX_EDOF), qr(MAX_EDOF)
-            real(wp) :: ae(MAX_EDOF), ya(MAX_EDOF), yi(MAX_EDOF), ye(MAX_EDOF), sg
+            real(wp) :: ae(MAX_EDOF), ya(MAX_EDOF), yi(MAX_EDOF), ye(MAX_EDOF), ve(MAX_EDOF), sg
             integer :: ee, ne, a, ff, d
             logical :: vel
             vel = .false.
@@ -354,13 +353,15 @@ contains
                     qe(a) = q(d)
                     qr(a) = m%qref(d)
                     ae(a) = accv(d)
+                    ve(a) = qv(d)
                 end do
                 if (stiff(ee) .and. .not. vel) then
                     if (present(pe)) then
                         parts(1:ne, :) = pe(1:ne, :, ee)
                     else
                         call beam_internal_forces(m%el_nen(ee), m%el_len(ee), m%el_prop(1:3, ee), &
-                            qr(1:ne), qe(1:ne), fe(1:ne), parts=parts(1:ne, :), eref=m%el_eref(:, :, ee))
+                            qr(1:ne), qe(1:ne), fe(1:ne), parts=parts(1:ne, :), eref=m%el_eref(:, :, ee), &
+                            eta=m%el_eta(ee), qde=ve(1:ne))
                     end if
                 end if
                 if (mass(ee)) then
@@ -413,7 +414,7 @@ contains
             call factor_solve(0.0_wp, GA_STATIC_FAILED)
             if (status /= GA_OK) return
             acc = -m%gacc
-            call contract(xs%q, acc, z(1:nd, :))
+            call contract(xs%q, qzero, acc, z(1:nd, :))
         end subroutine static_adjoint
 
     end subroutine ga_adjoint

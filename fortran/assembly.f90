@@ -3,11 +3,14 @@
 !! Unknowns of a Newton correction: z = [dq (ndof); dlambda (nc)]. The
 !! physical multipliers are mu = k lambda, with k the scaling factor of eq. (1);
 !! p is the penalty of the augmented Lagrangian. Residual:
-!!   r_q = M qdd + f_int(q) - f_ext(t) + Phi_q^T (mu + p Phi)
+!!   r_q = M qdd + f_int(q, qd) + f_sd(q, qd) - f_ext(t) + Phi_q^T (mu + p Phi)
 !!   r_c = k Phi(q, t)
-!! Iteration matrix (eq. 7, with dqdd = beta' dq; no damping: C_t = 0):
-!!   [ cm M + ck (K_t + p Phi_q^T Phi_q + sum_r (mu_r + p Phi_r) Phi_r,qq)   k Phi_q^T ]
-!!   [ k Phi_q                                                               0         ]
+!! (f_int: the beams, with their Kelvin–Voigt damping, beam2d.f90; f_sd: the
+!! spring-dampers, force_elements.f90). Iteration matrix (eq. 7, with dqdd = beta' dq,
+!! dqd = gamma' dq):
+!!   [ cm M + cc C_t + ck (K_t + p Phi_q^T Phi_q + sum_r (mu_r + p Phi_r) Phi_r,qq)   k Phi_q^T ]
+!!   [ k Phi_q                                                                       0         ]
+!! with K_t = d(f_int + f_sd)/dq and C_t = d(f_int + f_sd)/dqd.
 !! Values go to the positions given by the model's maps, so the same code fills
 !! a dense column-major matrix or the CSC values of the KLU pattern.
 module assembly
@@ -19,48 +22,60 @@ module assembly
     implicit none
     private
     public :: internal_forces, mass_times, external_forces, constraint_values
-    public :: residual, iteration_matrix, spring_forces, spring_times
+    public :: residual, iteration_matrix, spring_forces, spring_times, damping_times
 
 contains
 
-    !> Internal forces f_int(q); with `vals`, adds ck * K_t at the element positions; with
-    !! `parts` (and `vals`), also every element's forces per unit stiffness (beam_internal_forces'
+    !> Internal forces f_int(q, qd) (qd: the beams' Kelvin–Voigt damping, beam2d.f90); with
+    !! `vals`, adds ck * K_t + cc * C_t of the beams at the element positions; with `parts`
+    !! (and `vals`), also every element's forces per unit stiffness (beam_internal_forces'
     !! parts: the adjoint's design contraction, from the same pass as the tangent).
-    subroutine internal_forces(m, q, fint, vals, ck, parts)
+    subroutine internal_forces(m, q, qd, fint, vals, ck, parts, cc)
         type(mbs_model), intent(in) :: m
-        real(wp), intent(in) :: q(m%ndof)
+        real(wp), intent(in) :: q(m%ndof), qd(m%ndof)
         real(wp), intent(out) :: fint(m%ndof)
         real(wp), intent(inout), optional :: vals(:)
         real(wp), intent(in), optional :: ck
         real(wp), intent(out), optional :: parts(:, :, :)     !! (MAX_EDOF, 3, nel)
-        real(wp) :: fe(MAX_EDOF), ke(MAX_EDOF, MAX_EDOF), qe(MAX_EDOF), qr(MAX_EDOF)
+        real(wp), intent(in), optional :: cc                  !! coefficient of C_t (0 if absent)
+        real(wp) :: fe(MAX_EDOF), ke(MAX_EDOF, MAX_EDOF), ce(MAX_EDOF, MAX_EDOF)
+        real(wp) :: qe(MAX_EDOF), qr(MAX_EDOF), ve(MAX_EDOF), ccv, eta
         integer :: e, ne, a, b, d
         fint = 0
+        ccv = 0
+        if (present(cc)) ccv = cc
+        ve = 0
         do e = 1, m%nel
             ne = 3 * m%el_nen(e)
+            eta = m%el_eta(e)
             do a = 1, ne
                 d = m%el_dofs(a, e)
                 qe(a) = q(d)
                 qr(a) = m%qref(d)
+                if (eta /= 0) ve(a) = qd(d)
             end do
             if (present(vals)) then
                 if (present(parts)) then
                     call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), &
                                               qr(1:ne), qe(1:ne), fe(1:ne), ke(1:ne, 1:ne), &
-                                              parts=parts(1:ne, :, e), eref=m%el_eref(:, :, e))
+                                              parts=parts(1:ne, :, e), eref=m%el_eref(:, :, e), &
+                                              eta=eta, qde=ve(1:ne), ce=ce(1:ne, 1:ne))
                 else
                     call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), &
                                               qr(1:ne), qe(1:ne), fe(1:ne), ke(1:ne, 1:ne), &
-                                              eref=m%el_eref(:, :, e))
+                                              eref=m%el_eref(:, :, e), eta=eta, qde=ve(1:ne), &
+                                              ce=ce(1:ne, 1:ne))
                 end if
+                ! (ce = 0 for an undamped element)
                 do b = 1, ne
                     do a = 1, ne
-                        vals(m%map_el(a, b, e)) = vals(m%map_el(a, b, e)) + ck * ke(a, b)
+                        vals(m%map_el(a, b, e)) = vals(m%map_el(a, b, e)) + ck * ke(a, b) &
+                                                  + ccv * ce(a, b)
                     end do
                 end do
             else
                 call beam_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), m%el_eref(:, :, e), &
-                                 qe(1:ne), fe(1:ne))
+                                 qe(1:ne), fe(1:ne), eta, ve(1:ne))
             end if
             do a = 1, ne
                 d = m%el_dofs(a, e)
@@ -68,6 +83,39 @@ contains
             end do
         end do
     end subroutine internal_forces
+
+    !> y = C_t x: the damping matrix d f / d qd of every velocity-dependent force (the
+    !! spring-dampers' and the beams' Kelvin–Voigt damping) at (q, qd) times every column of
+    !! x (ndof, nr), matrix-free (each element's matrix formed once for all columns); with
+    !! transposed = .true., y = C_t^T x (the adjoint; the beams' part is symmetric).
+    subroutine damping_times(m, q, qd, x, y, transposed)
+        type(mbs_model), intent(in) :: m
+        real(wp), intent(in) :: q(m%ndof), qd(m%ndof), x(:, :)
+        real(wp), intent(out) :: y(:, :)
+        logical, intent(in), optional :: transposed
+        real(wp) :: fe(MAX_EDOF), ce(MAX_EDOF, MAX_EDOF)
+        integer :: e, ne, r
+        do r = 1, size(x, 2)
+            if (m%nsd > 0) then
+                call spring_times(m, q, qd, x(:, r), 0.0_wp, 1.0_wp, y(:, r), transposed)
+            else
+                y(:, r) = 0
+            end if
+        end do
+        if (.not. m%damped) return
+        do e = 1, m%nel
+            if (m%el_eta(e) == 0) cycle
+            ne = 3 * m%el_nen(e)
+            call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), &
+                                      m%qref(m%el_dofs(1:ne, e)), q(m%el_dofs(1:ne, e)), fe(1:ne), &
+                                      eref=m%el_eref(:, :, e), eta=m%el_eta(e), ce=ce(1:ne, 1:ne))
+            ! (an element's coordinates are distinct: the vector subscript scatters safely)
+            do r = 1, size(x, 2)
+                y(m%el_dofs(1:ne, e), r) = y(m%el_dofs(1:ne, e), r) &
+                                           + matmul(ce(1:ne, 1:ne), x(m%el_dofs(1:ne, e), r))
+            end do
+        end do
+    end subroutine damping_times
 
     !> y = M x with the constant mass matrix (element blocks + lumped diagonal).
     !! A beam's consistent mass (beam2d's beam_mass) couples only like coordinates (x with
@@ -94,24 +142,26 @@ contains
         end do
     end subroutine mass_times
 
-    !> f = f_int(q) + cm M qdd, in one pass over the elements: the residual's element
+    !> f = f_int(q, qd) + cm M qdd, in one pass over the elements: the residual's element
     !! part when no matrix is assembled (mass coupling as in mass_times).
-    subroutine element_forces(m, q, qdd, cm, f)
+    subroutine element_forces(m, q, qd, qdd, cm, f)
         type(mbs_model), intent(in) :: m
-        real(wp), intent(in) :: q(m%ndof), qdd(m%ndof), cm
+        real(wp), intent(in) :: q(m%ndof), qd(m%ndof), qdd(m%ndof), cm
         real(wp), intent(out) :: f(m%ndof)
-        real(wp) :: fe(MAX_EDOF), qe(MAX_EDOF), ae(MAX_EDOF), s
+        real(wp) :: fe(MAX_EDOF), qe(MAX_EDOF), ae(MAX_EDOF), ve(MAX_EDOF), s
         integer :: e, ne, a, b, d
         f = cm * m%lumped * qdd
+        ve = 0
         do e = 1, m%nel
             ne = 3 * m%el_nen(e)
             do a = 1, ne
                 d = m%el_dofs(a, e)
                 qe(a) = q(d)
                 ae(a) = qdd(d)
+                if (m%el_eta(e) /= 0) ve(a) = qd(d)
             end do
             call beam_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), m%el_eref(:, :, e), &
-                             qe(1:ne), fe(1:ne))
+                             qe(1:ne), fe(1:ne), m%el_eta(e), ve(1:ne))
             do a = 1, ne
                 s = 0
                 do b = mod(a - 1, 3) + 1, ne, 3
@@ -181,10 +231,10 @@ contains
         if (present(vals)) then
             call iteration_matrix(m, q, qd, mu, t, cmat, 1.0_wp, cc, kscale, pen, vals, fint)
         else if (inertia) then
-            call element_forces(m, q, qdd, cm, fint)     ! f_int + cm M qdd in one pass
+            call element_forces(m, q, qd, qdd, cm, fint)     ! f_int + cm M qdd in one pass
             inertia = .false.
         else
-            call internal_forces(m, q, fint)
+            call internal_forces(m, q, qd, fint)
         end if
         call external_forces(m, fgrav, t, fext)
         if (present(lf)) fext = lf * fext
@@ -223,7 +273,7 @@ contains
         real(wp) :: phi, grad(MAX_CDOF), hess(MAX_CDOF, MAX_CDOF), w
         integer :: e, ne, a, b, i
         vals = 0
-        if (ck /= 0) call internal_forces(m, q, fint, vals, ck, parts)
+        if (ck /= 0 .or. (cc /= 0 .and. m%damped)) call internal_forces(m, q, qd, fint, vals, ck, parts, cc)
         if (present(fint_out)) fint_out = fint
         if (m%nsd > 0 .and. (ck /= 0 .or. cc /= 0)) then
             fint = 0

@@ -17,6 +17,19 @@
 !! nodes: no shear locking, no spurious zero-energy mode); the consistent mass
 !! with rotary inertia is integrated exactly. In the planar case the mass
 !! matrix is constant (no complementary inertia forces in g of eq. (1)).
+!!
+!! Kelvin–Voigt material damping (docs/case-format.md, materials): with the retardation
+!! time eta (s) of the material, every resultant gets a viscous part proportional to the
+!! rate of its strain, [N Q M] = D (Gamma + eta Gamma_dot), D = diag(EA, kGA, EI). The
+!! strain rates are Gamma_dot = B(q) qd (B = dGamma/dq), so the forces are
+!!   f = int B^T D (Gamma + eta B qd) ds
+!! and their tangents
+!!   df/dq  = int B^T D B + (N d2Gamma_1 + Q d2Gamma_2)                  (total N, Q)
+!!            + eta B^T D (d2Gamma qd)                     (not symmetric)
+!!   df/dqd = eta int B^T D B                              (C_t of eq. (7))
+!! with d2Gamma_j the Hessians of the strains (kappa is linear in q). A rigid motion
+!! leaves the strains unchanged, so it is not damped; qd = 0 (statics) has no viscous
+!! force.
 module beam2d
     use flexmbs_kinds, only: wp
     implicit none
@@ -44,21 +57,30 @@ contains
         end if
     end subroutine shape
 
+    !> Interpolated x', y', phi' (dns: shape-function derivatives d/ds) and phi of nodal
+    !! values v = (x, y, phi per node), or of their rates when v are velocities.
+    pure subroutine along(nen, v, dns, n, dx, dy, dphi, phi)
+        integer, intent(in) :: nen
+        real(wp), intent(in) :: v(3 * nen), dns(nen), n(nen)
+        real(wp), intent(out) :: dx, dy, dphi, phi
+        integer :: a
+        dx = 0; dy = 0; dphi = 0; phi = 0
+        do a = 1, nen
+            dx = dx + dns(a) * v(3 * a - 2)
+            dy = dy + dns(a) * v(3 * a - 1)
+            dphi = dphi + dns(a) * v(3 * a)
+            phi = phi + n(a) * v(3 * a)
+        end do
+    end subroutine along
+
     !> Raw strain measures e1 = c x' + s y', e2 = -s x' + c y', kappa = phi', with
     !! c = cos(phi), s = sin(phi) of the interpolated rotation (returned for reuse).
     pure subroutine raw_strains(nen, qe, dns, n, e1, e2, kap, c, s)
         integer, intent(in) :: nen
         real(wp), intent(in) :: qe(3 * nen), dns(nen), n(nen)
         real(wp), intent(out) :: e1, e2, kap, c, s
-        integer :: a
         real(wp) :: phi, dx, dy
-        dx = 0; dy = 0; kap = 0; phi = 0
-        do a = 1, nen
-            dx = dx + dns(a) * qe(3 * a - 2)
-            dy = dy + dns(a) * qe(3 * a - 1)
-            kap = kap + dns(a) * qe(3 * a)
-            phi = phi + n(a) * qe(3 * a)
-        end do
+        call along(nen, qe, dns, n, dx, dy, kap, phi)
         c = cos(phi)
         s = sin(phi)
         e1 = c * dx + s * dy
@@ -104,8 +126,14 @@ contains
     !! With `parts` present, the forces are returned per unit stiffness as well:
     !! parts(:, 1) for EA = 1, parts(:, 2) for kGA = 1, parts(:, 3) for EI = 1,
     !! so that fe = EA parts(:,1) + kGA parts(:,2) + EI parts(:,3) (the forces
-    !! are linear in the section stiffnesses; used by the design sensitivities).
-    pure subroutine beam_internal_forces(nen, elen, stiff, qref, qe, fe, ke, parts, eref)
+    !! are linear in the section stiffnesses, their viscous part too; used by the
+    !! design sensitivities).
+    !!
+    !! With `eta` (Kelvin–Voigt time, s) and the velocities `qde`, the viscous forces
+    !! (module header) are included in fe, ke and parts; `ce` = d fe / d qde needs `eta`
+    !! only (it does not depend on the velocities).
+    pure subroutine beam_internal_forces(nen, elen, stiff, qref, qe, fe, ke, parts, eref, eta, &
+                                         qde, ce)
         integer, intent(in) :: nen                   !! nodes of the element (2 or 3)
         real(wp), intent(in) :: elen                 !! reference length L
         real(wp), intent(in) :: stiff(3)             !! EA, kGA, EI
@@ -115,16 +143,26 @@ contains
         real(wp), intent(out), optional :: ke(3 * nen, 3 * nen)    !! tangent d fe / d qe
         real(wp), intent(out), optional :: parts(3 * nen, 3)       !! forces per unit stiffness
         real(wp), intent(in), optional :: eref(3, MAX_GAUSS)       !! reference strains (else from qref)
+        real(wp), intent(in), optional :: eta                      !! Kelvin–Voigt time (s)
+        real(wp), intent(in), optional :: qde(3 * nen)             !! current velocities
+        real(wp), intent(out), optional :: ce(3 * nen, 3 * nen)    !! damping d fe / d qde
         real(wp) :: xg(MAX_GAUSS), wg(MAX_GAUSS), n(nen), dn(nen), dns(nen), jac, w
         real(wp) :: e1, e2, kap, r1, r2, rk
-        real(wp) :: g1, g2, gk, nf, qf, mf, c, s
+        real(wp) :: g1, g2, gk, nf, qf, mf, c, s, ev
+        real(wp) :: gd(3), xd, yd, phd, hq(2, 3 * nen)
         real(wp) :: b(3, 3 * nen), db(3, 3 * nen)
         integer :: ig, ng, a, bb, ia, ib, j
+        logical :: visc
+        ev = 0
+        if (present(eta)) ev = eta
+        visc = ev /= 0 .and. present(qde)
         call stiffness_gauss(nen, ng, xg, wg)
         jac = 0.5_wp * elen
         fe = 0
+        gd = 0
         if (present(ke)) ke = 0
         if (present(parts)) parts = 0
+        if (present(ce)) ce = 0
         do ig = 1, ng
             call shape(nen, xg(ig), n, dn)
             dns = dn / jac
@@ -141,9 +179,16 @@ contains
             g1 = e1 - r1
             g2 = e2 - r2
             gk = kap - rk
-            nf = stiff(1) * g1
-            qf = stiff(2) * g2
-            mf = stiff(3) * gk
+            if (visc) then
+                ! strain rates Gamma_dot = B qd from x'_dot, y'_dot, kappa_dot, phi_dot
+                call along(nen, qde, dns, n, xd, yd, gd(3), phd)
+                gd(1) = c * xd + s * yd + e2 * phd
+                gd(2) = -s * xd + c * yd - e1 * phd
+            end if
+            ! total (elastic + viscous) stress resultants
+            nf = stiff(1) * (g1 + ev * gd(1))
+            qf = stiff(2) * (g2 + ev * gd(2))
+            mf = stiff(3) * (gk + ev * gd(3))
             ! B = d(Gamma_1, Gamma_2, kappa)/d qe
             do a = 1, nen
                 ia = 3 * (a - 1)
@@ -153,16 +198,27 @@ contains
             end do
             fe = fe + w * (nf * b(1, :) + qf * b(2, :) + mf * b(3, :))
             if (present(parts)) then
-                parts(:, 1) = parts(:, 1) + w * g1 * b(1, :)
-                parts(:, 2) = parts(:, 2) + w * g2 * b(2, :)
-                parts(:, 3) = parts(:, 3) + w * gk * b(3, :)
+                parts(:, 1) = parts(:, 1) + w * (g1 + ev * gd(1)) * b(1, :)
+                parts(:, 2) = parts(:, 2) + w * (g2 + ev * gd(2)) * b(2, :)
+                parts(:, 3) = parts(:, 3) + w * (gk + ev * gd(3)) * b(3, :)
             end if
-            if (present(ke)) then
-                ! material part B^T D B
+            if (present(ke) .or. present(ce)) then
                 ! (explicit loops: matmul(transpose(b), db) made a temporary per Gauss point)
                 do j = 1, 3
                     db(j, :) = w * stiff(j) * b(j, :)
                 end do
+            end if
+            if (present(ce) .and. ev /= 0) then
+                ! damping eta B^T D B
+                do ib = 1, 3 * nen
+                    do ia = 1, 3 * nen
+                        ce(ia, ib) = ce(ia, ib) + ev * (b(1, ia) * db(1, ib) + b(2, ia) * db(2, ib) &
+                                                        + b(3, ia) * db(3, ib))
+                    end do
+                end do
+            end if
+            if (present(ke)) then
+                ! material part B^T D B
                 do ib = 1, 3 * nen
                     do ia = 1, 3 * nen
                         ke(ia, ib) = ke(ia, ib) + b(1, ia) * db(1, ib) + b(2, ia) * db(2, ib) &
@@ -183,24 +239,42 @@ contains
                         ke(ia + 3, ib + 3) = ke(ia + 3, ib + 3) - w * n(a) * n(bb) * (nf * e1 + qf * e2)
                     end do
                 end do
+                if (visc) then
+                    ! viscous part eta B^T D (d2Gamma qd): hq(j, :) = d(Gamma_dot_j)/dq at fixed qd
+                    do a = 1, nen
+                        ia = 3 * (a - 1)
+                        hq(1, ia + 1:ia + 3) = [-dns(a) * s * phd, dns(a) * c * phd, &
+                                                n(a) * (-s * xd + c * yd - e1 * phd)]
+                        hq(2, ia + 1:ia + 3) = [-dns(a) * c * phd, -dns(a) * s * phd, &
+                                                n(a) * (-c * xd - s * yd - e2 * phd)]
+                    end do
+                    do ib = 1, 3 * nen
+                        do ia = 1, 3 * nen
+                            ke(ia, ib) = ke(ia, ib) + ev * (db(1, ia) * hq(1, ib) + db(2, ia) * hq(2, ib))
+                        end do
+                    end do
+                end if
             end if
         end do
     end subroutine beam_internal_forces
 
     !> Internal force vector of one element alone (no tangent): the fe of
-    !! beam_internal_forces with reference strains `eref`, in fewer operations (B never
+    !! beam_internal_forces with reference strains `eref`, Kelvin–Voigt time `eta` and
+    !! velocities `qde` (eta = 0: elastic, qde not read), in fewer operations (B never
     !! formed, no optional arguments). The residual-only path of modified Newton. The
     !! strains come from the same `shape` and `raw_strains` as the reference strains:
     !! exactly zero in the reference configuration (stress free).
-    pure subroutine beam_forces(nen, elen, stiff, eref, qe, fe)
+    pure subroutine beam_forces(nen, elen, stiff, eref, qe, fe, eta, qde)
         integer, intent(in) :: nen                   !! nodes of the element (2 or 3)
         real(wp), intent(in) :: elen                 !! reference length L
         real(wp), intent(in) :: stiff(3)             !! EA, kGA, EI
         real(wp), intent(in) :: eref(3, MAX_GAUSS)   !! reference strains (beam_reference_strains)
         real(wp), intent(in) :: qe(3 * nen)          !! current coordinates
         real(wp), intent(out) :: fe(3 * nen)         !! internal forces
+        real(wp), intent(in) :: eta                  !! Kelvin–Voigt time (s)
+        real(wp), intent(in) :: qde(3 * nen)         !! current velocities (read when eta /= 0)
         real(wp) :: xg(MAX_GAUSS), wg(MAX_GAUSS), n(nen), dn(nen), dns(nen), jac, w
-        real(wp) :: e1, e2, kap, c, s, nf, qf, mf, fx, fy, fp
+        real(wp) :: e1, e2, kap, c, s, nf, qf, mf, fx, fy, fp, xd, yd, kd, phd
         integer :: ig, ng, a
         call stiffness_gauss(nen, ng, xg, wg)
         jac = 0.5_wp * elen
@@ -210,9 +284,19 @@ contains
             dns = dn / jac
             w = wg(ig) * jac
             call raw_strains(nen, qe, dns, n, e1, e2, kap, c, s)
-            nf = w * stiff(1) * (e1 - eref(1, ig))
-            qf = w * stiff(2) * (e2 - eref(2, ig))
-            mf = w * stiff(3) * (kap - eref(3, ig))
+            nf = e1 - eref(1, ig)
+            qf = e2 - eref(2, ig)
+            mf = kap - eref(3, ig)
+            if (eta /= 0) then
+                ! strains plus eta times their rates B qd (beam_internal_forces)
+                call along(nen, qde, dns, n, xd, yd, kd, phd)
+                nf = nf + eta * (c * xd + s * yd + e2 * phd)
+                qf = qf + eta * (-s * xd + c * yd - e1 * phd)
+                mf = mf + eta * kd
+            end if
+            nf = w * stiff(1) * nf
+            qf = w * stiff(2) * qf
+            mf = w * stiff(3) * mf
             ! w B^T [N Q M]: B rows (d Gamma_1, d Gamma_2, d kappa)/d qe as in beam_internal_forces
             fx = nf * c - qf * s
             fy = nf * s + qf * c

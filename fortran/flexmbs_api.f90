@@ -158,7 +158,7 @@ end subroutine klu_analysis_free
 !! static iterations, steps completed, factorizations made for the sensitivities
 !! (included in the factorizations), KLU symbolic analyses run (0 when borrowed).
 subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npts, nout, nsteps, &
-                    qref, q0, qd0, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
+                    qref, q0, qd0, lumped, gacc, el_nen, el_dofs, el_len, el_prop, el_eta, &
                     ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, c_c0, c_law, c_lawcoef, &
                     law_h, law_val, law_der, law_dd0, &
                     map_el, map_diag, map_cq, map_qc, map_qq, nap, nai, ap, ai, &
@@ -180,6 +180,7 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     real(c_double), intent(in) :: qref(ndof), q0(ndof), qd0(ndof), lumped(ndof), gacc(ndof)
     integer(c_int), intent(in) :: el_nen(nela), el_dofs(9, nela)
     real(c_double), intent(in) :: el_len(nela), el_prop(5, nela)
+    real(c_double), intent(in) :: el_eta(nela)          !! Kelvin-Voigt time per element (s)
     integer(c_int), intent(in) :: ld_dof(nlda), ld_law(nlda)
     real(c_double), intent(in) :: ld_amp(nlda)
     integer(c_int), intent(in) :: c_kind(nca), c_dofs(5, nca), c_law(nca)
@@ -245,7 +246,7 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
                            ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, &
                            c_c0, c_law, c_lawcoef, law_h, law_val, law_der, law_dd0, &
                            map_el, map_diag, map_cq, map_qc, map_qq, stat, nbytes, &
-                           int(nsd), int(sd_dofs), sd_prop, int(map_sd))
+                           int(nsd), int(sd_dofs), sd_prop, int(map_sd), el_eta)
     if (stat /= 0) then
         status = int(GA_NO_MEMORY, c_int)
         info = [0.0_c_double, nbytes, 0.0_c_double, real(MEM_MODEL, c_double)]
@@ -299,7 +300,7 @@ end subroutine simulate
 !! with have_in = 1 the adjoint state adj_in from the later segment, adj_out for the earlier
 !! one, gprop_in the later segments' gprop (added to).
 subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npts, nsteps, &
-                   qref, q0, qd0, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
+                   qref, q0, qd0, lumped, gacc, el_nen, el_dofs, el_len, el_prop, el_eta, &
                    ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, c_c0, c_law, c_lawcoef, &
                    law_h, law_val, law_der, law_dd0, &
                    map_el, map_diag, map_cq, map_qc, map_qq, nap, nai, ap, ai, &
@@ -319,6 +320,7 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
     real(c_double), intent(in) :: qref(ndof), q0(ndof), qd0(ndof), lumped(ndof), gacc(ndof)
     integer(c_int), intent(in) :: el_nen(nela), el_dofs(9, nela)
     real(c_double), intent(in) :: el_len(nela), el_prop(5, nela)
+    real(c_double), intent(in) :: el_eta(nela)          !! Kelvin-Voigt time per element (s)
     integer(c_int), intent(in) :: ld_dof(nlda), ld_law(nlda)
     real(c_double), intent(in) :: ld_amp(nlda)
     integer(c_int), intent(in) :: c_kind(nca), c_dofs(5, nca), c_law(nca)
@@ -364,7 +366,7 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
                            ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, &
                            c_c0, c_law, c_lawcoef, law_h, law_val, law_der, law_dd0, &
                            map_el, map_diag, map_cq, map_qc, map_qq, stat, nbytes, &
-                           int(nsd), int(sd_dofs), sd_prop, int(map_sd))
+                           int(nsd), int(sd_dofs), sd_prop, int(map_sd), el_eta)
     if (stat /= 0) then
         status = int(GA_NO_MEMORY, c_int)
         info = [0.0_c_double, nbytes, 0.0_c_double, real(MEM_MODEL, c_double)]
@@ -386,8 +388,10 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
     status = int(stat, c_int)
 end subroutine simulate_adjoint
 
-!> Element internal forces and tangent of one beam (for the tangent checker).
-subroutine beam_element(nen, elen, stiff, qref, qe, fe, ke)
+!> Element internal forces and tangents of one beam (for the tangent checker): with the
+!! Kelvin-Voigt time eta and the velocities qde, fe includes the damping forces, ke is
+!! d fe / d qe at fixed qde and ce = d fe / d qde (beam2d.f90).
+subroutine beam_element(nen, elen, stiff, qref, qe, eta, qde, fe, ke, ce)
     use iso_c_binding, only: c_double, c_int
     use beam2d, only: beam_internal_forces
     implicit none
@@ -395,8 +399,10 @@ subroutine beam_element(nen, elen, stiff, qref, qe, fe, ke)
     real(c_double), intent(in) :: elen                    !! reference length
     real(c_double), intent(in) :: stiff(3)                !! EA, kGA, EI
     real(c_double), intent(in) :: qref(3 * nen), qe(3 * nen)
-    real(c_double), intent(out) :: fe(3 * nen), ke(3 * nen, 3 * nen)
-    call beam_internal_forces(int(nen), elen, stiff, qref, qe, fe, ke)
+    real(c_double), intent(in) :: eta                     !! Kelvin-Voigt time (s)
+    real(c_double), intent(in) :: qde(3 * nen)            !! velocities
+    real(c_double), intent(out) :: fe(3 * nen), ke(3 * nen, 3 * nen), ce(3 * nen, 3 * nen)
+    call beam_internal_forces(int(nen), elen, stiff, qref, qe, fe, ke, eta=eta, qde=qde, ce=ce)
 end subroutine beam_element
 
 !> Beam element mass matrix.
@@ -414,7 +420,7 @@ end subroutine beam_element_mass
 !! (dense storage: vals is the n x n matrix, column-major). With cm = 0, ck = 1,
 !! cc = 0, kscale = 0, pen = 0 and mu = 0 the leading ndof x ndof block is K_t.
 subroutine system_matrices(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npts, &
-                           qref, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
+                           qref, lumped, gacc, el_nen, el_dofs, el_len, el_prop, el_eta, &
                            ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, c_c0, c_law, c_lawcoef, &
                            law_h, law_val, law_der, law_dd0, &
                            map_el, map_diag, map_cq, map_qc, map_qq, &
@@ -430,6 +436,7 @@ subroutine system_matrices(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nla
     real(c_double), intent(in) :: qref(ndof), lumped(ndof), gacc(ndof)
     integer(c_int), intent(in) :: el_nen(nela), el_dofs(9, nela)
     real(c_double), intent(in) :: el_len(nela), el_prop(5, nela)
+    real(c_double), intent(in) :: el_eta(nela)          !! Kelvin-Voigt time per element (s)
     integer(c_int), intent(in) :: ld_dof(nlda), ld_law(nlda)
     real(c_double), intent(in) :: ld_amp(nlda)
     integer(c_int), intent(in) :: c_kind(nca), c_dofs(5, nca), c_law(nca)
@@ -458,7 +465,7 @@ subroutine system_matrices(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nla
                            ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, &
                            c_c0, c_law, c_lawcoef, law_h, law_val, law_der, law_dd0, &
                            map_el, map_diag, map_cq, map_qc, map_qq, stat, nbytes, &
-                           int(nsd), int(sd_dofs), sd_prop, int(map_sd))
+                           int(nsd), int(sd_dofs), sd_prop, int(map_sd), el_eta)
     status = int(stat * 9, c_int)
     if (stat /= 0) return
     call mass_times(m, m%gacc, fgrav)

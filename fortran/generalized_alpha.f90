@@ -16,7 +16,8 @@ module generalized_alpha
     use constraints, only: MAX_CDOF
     use model_data, only: mbs_model, law_rate, law_accel0
     use assembly, only: residual, iteration_matrix, mass_times, internal_forces, &
-                        external_forces, constraint_values, spring_forces, spring_times
+                        external_forces, constraint_values, spring_forces, spring_times, &
+                        damping_times
     use sensitivity, only: mass_design_derivative_times, stiffness_times, &
                            constraint_curvature, step_design_rhs
     use linear_solver, only: linear_system, ls_init_dense, ls_init_sparse, ls_factor, &
@@ -200,10 +201,11 @@ contains
         type(mbs_model), intent(in) :: m
         real(wp), intent(in) :: q(m%ndof), cm
         real(wp), intent(inout) :: vals(:)
-        real(wp) :: sc, fint(m%ndof)
+        real(wp) :: sc, fint(m%ndof), qzero(m%ndof)
         integer :: e, ne, a, cnt
         vals = 0
-        call internal_forces(m, q, fint, vals, 1.0_wp)
+        qzero = 0
+        call internal_forces(m, q, qzero, fint, vals, 1.0_wp)
         sc = 0
         cnt = 0
         do e = 1, m%nel
@@ -768,7 +770,7 @@ contains
             real(wp), intent(in) :: hh, tnew, betap, gammap
             integer, intent(out) :: stat
             integer :: lst, v
-            real(wp) :: cv(m%ndof)
+            real(wp) :: cv(m%ndof, 2)
             stat = GA_OK
             if (modified .and. .not. fact_exact) then
                 if (.not. vals_exact) call iteration_matrix(m, x%q, x%qd, x%mu, tnew, betap, 1.0_wp, &
@@ -793,12 +795,13 @@ contains
             ap_ = (alpha_f * x%dqdd - alpha_m * x%da) / (1 - alpha_m)
             qhat = x%dq + hh * x%dqd + hh**2 * ((0.5_wp - beta) * x%da + beta * ap_)
             vhat = x%dqd + hh * ((1 - gamma) * x%da + gamma * ap_)
-            call step_design_rhs(m, dprop, x%q, x%qdd - m%gacc, betap, qhat, rhs(1:m%ndof, :))
-            if (m%nsd > 0) then
+            call step_design_rhs(m, dprop, x%q, x%qd, x%qdd - m%gacc, betap, qhat, rhs(1:m%ndof, :))
+            if (m%nsd > 0 .or. m%damped) then
                 ! velocity-dependent forces: C_t qd' = gamma' C_t q' + C_t (vhat - gamma' qhat)
                 do v = 1, nv
-                    call spring_times(m, x%q, x%qd, gammap * qhat(:, v) - vhat(:, v), 0.0_wp, 1.0_wp, cv)
-                    rhs(1:m%ndof, v) = rhs(1:m%ndof, v) + cv
+                    cv(:, 1) = gammap * qhat(:, v) - vhat(:, v)
+                    call damping_times(m, x%q, x%qd, cv(:, 1:1), cv(:, 2:2))
+                    rhs(1:m%ndof, v) = rhs(1:m%ndof, v) + cv(:, 2)
                 end do
             end if
             rhs(m%ndof + 1:, :) = 0
@@ -933,7 +936,7 @@ contains
 
     !> Consistent initial velocities and accelerations (and multipliers) at t = 0:
     !!   [M  k Phi_q^T; k Phi_q  0] [qd; .]   = [M qd0; -k Phi_t]
-    !!   [M  k Phi_q^T; k Phi_q  0] [qdd; lam] = [f_ext - f_int - f_sd(q, qd);
+    !!   [M  k Phi_q^T; k Phi_q  0] [qdd; lam] = [f_ext - f_int(q, qd) - f_sd(q, qd);
     !!                                             -k (Phi_tt + qd^T Phi_qq qd)]
     !! with mu = k lam. The velocity step is a mass-weighted projection of qd0.
     subroutine initial_rates(m, ls, vals, fgrav, x, stats, status, info)
@@ -978,7 +981,7 @@ contains
         end if
         x%qd = z(1:m%ndof, 1)
         ! accelerations and multipliers
-        call internal_forces(m, x%q, fint)
+        call internal_forces(m, x%q, x%qd, fint)
         call external_forces(m, fgrav, 0.0_wp, fext)
         stats%residual_evaluations = stats%residual_evaluations + 1
         if (m%nsd > 0) call spring_forces(m, x%q, x%qd, fint)
@@ -1036,7 +1039,7 @@ contains
             return
         end if
         ! -(df_int/dp - dM/dp g): the step right-hand side with beta' = 0 and qdd = 0
-        call step_design_rhs(m, dprop, x%q, -m%gacc, 0.0_wp, zero, rhs(1:m%ndof, :))
+        call step_design_rhs(m, dprop, x%q, qzero, -m%gacc, 0.0_wp, zero, rhs(1:m%ndof, :))
         rhs(m%ndof + 1:, :) = 0
         call ls_solve(ls, rhs, lst)
         if (lst /= LS_OK) then
@@ -1062,7 +1065,7 @@ contains
         type(ga_state), intent(inout) :: x
         integer, intent(out) :: status
         integer :: nv, v, lst, ierr
-        real(wp) :: k0, kq(m%ndof), c1(m%nc), c2(m%nc)
+        real(wp) :: k0, kq(m%ndof), kq2(m%ndof, 1), c1(m%nc), c2(m%nc)
         real(wp), allocatable :: rhs(:, :), md(:, :), zero(:, :)
         status = GA_OK
         nv = size(dprop, 3)
@@ -1088,16 +1091,19 @@ contains
         x%dqd = rhs(1:m%ndof, :)
         ! accelerations and multipliers
         ! dM/dp (g - qdd) - df_int/dp: the step right-hand side with beta' = 0
-        call step_design_rhs(m, dprop, x%q, x%qdd - m%gacc, 0.0_wp, zero, rhs(1:m%ndof, :))
+        call step_design_rhs(m, dprop, x%q, x%qd, x%qdd - m%gacc, 0.0_wp, zero, rhs(1:m%ndof, :))
         do v = 1, nv
-            call stiffness_times(m, x%q, x%mu, x%dq(:, v), kq)
+            call stiffness_times(m, x%q, x%qd, x%mu, x%dq(:, v), kq)
             rhs(1:m%ndof, v) = rhs(1:m%ndof, v) - kq
             if (m%nsd > 0) then
-                ! spring-dampers: - K_sd q0' - C_sd qd'
+                ! spring-dampers: - K_sd q0'
                 call spring_times(m, x%q, x%qd, x%dq(:, v), 1.0_wp, 0.0_wp, kq)
                 rhs(1:m%ndof, v) = rhs(1:m%ndof, v) - kq
-                call spring_times(m, x%q, x%qd, x%dqd(:, v), 0.0_wp, 1.0_wp, kq)
-                rhs(1:m%ndof, v) = rhs(1:m%ndof, v) - kq
+            end if
+            if (m%nsd > 0 .or. m%damped) then
+                ! velocity-dependent forces: - C_t qd'
+                call damping_times(m, x%q, x%qd, x%dqd(:, v:v), kq2)
+                rhs(1:m%ndof, v) = rhs(1:m%ndof, v) - kq2(:, 1)
             end if
             call constraint_curvature(m, x%q, x%dq(:, v), x%qdd, c1)
             call constraint_curvature(m, x%q, x%qd, x%dqd(:, v), c2)

@@ -26,6 +26,8 @@ module model_data
         integer, allocatable :: el_dofs(:, :)    !! (MAX_EDOF, nel) global coordinate indices
         real(wp), allocatable :: el_len(:)       !! reference lengths
         real(wp), allocatable :: el_prop(:, :)   !! (5, nel): EA, kGA, EI, rhoA, rhoI
+        real(wp), allocatable :: el_eta(:)       !! (nel) Kelvin–Voigt time of the material (s)
+        logical :: damped = .false.              !! some element has eta > 0 (beam2d.f90)
         real(wp), allocatable :: el_mass(:, :, :)!! (MAX_EDOF, MAX_EDOF, nel) element mass matrices
         real(wp), allocatable :: el_mass_a(:, :, :) !! element mass matrices per unit rhoA (rhoI = 0)
         real(wp), allocatable :: el_mass_i(:, :, :) !! element mass matrices per unit rhoI (rhoA = 0)
@@ -68,7 +70,7 @@ contains
                                  c_kind, c_dofs, c_coef, c_c0, c_law, c_lawcoef, &
                                  law_h, law_val, law_der, law_dd0, &
                                  map_el, map_diag, map_cq, map_qc, map_qq, status, nbytes, &
-                                 nsd, sd_dofs, sd_prop, map_sd)
+                                 nsd, sd_dofs, sd_prop, map_sd, el_eta)
         type(mbs_model), intent(out) :: m
         integer, intent(in) :: ndof, nc, nel, nload, nlaw, nnz
         real(wp), intent(in) :: qref(:), lumped(:), gacc(:)
@@ -85,6 +87,7 @@ contains
         integer, intent(in), optional :: nsd     !! spring-dampers (0 when absent)
         integer, intent(in), optional :: sd_dofs(:, :), map_sd(:, :)
         real(wp), intent(in), optional :: sd_prop(:, :)
+        real(wp), intent(in), optional :: el_eta(:)   !! Kelvin–Voigt times (0 when absent)
         integer :: e, r, ne, nca, nld, ierr, nsa
         m%ndof = ndof
         m%nc = nc
@@ -102,7 +105,7 @@ contains
         nbytes = 0
         allocate (m%qref(ndof), m%lumped(ndof), m%gacc(ndof), m%map_diag(ndof), &
                   m%el_nen(ne), m%el_dofs(size(el_dofs, 1), ne), m%el_len(ne), &
-                  m%el_prop(size(el_prop, 1), ne), m%map_el(MAX_EDOF, MAX_EDOF, ne), &
+                  m%el_prop(size(el_prop, 1), ne), m%el_eta(ne), m%map_el(MAX_EDOF, MAX_EDOF, ne), &
                   m%ld_dof(nld), m%ld_law(nld), m%ld_amp(nld), &
                   m%c_kind(nca), m%c_dofs(size(c_dofs, 1), nca), m%c_coef(size(c_coef, 1), nca), &
                   m%c_c0(nca), m%c_law(nca), m%c_lawcoef(nca), &
@@ -112,7 +115,7 @@ contains
                   m%law_der(size(law_der, 1), size(law_der, 2)), m%law_dd0(size(law_dd0)), &
                   m%sd_dofs(4, nsa), m%sd_prop(SD_NPROP, nsa), m%map_sd(4, 4, nsa), stat=ierr)
         if (ierr /= 0) then
-            nbytes = 8.0_wp * (4.0_wp * ndof + real(ne, wp) * (1 + size(el_dofs, 1) + 1 &
+            nbytes = 8.0_wp * (4.0_wp * ndof + real(ne, wp) * (2 + size(el_dofs, 1) + 1 &
                      + size(el_prop, 1) + MAX_EDOF**2) + 3.0_wp * nld &
                      + real(nca, wp) * (4 + size(c_dofs, 1) + size(c_coef, 1) + 2 * size(map_cq, 1) &
                      + MAX_CDOF**2) + 2.0_wp * size(law_val) + size(law_dd0) &
@@ -128,6 +131,8 @@ contains
         m%el_dofs = el_dofs(:, 1:ne)
         m%el_len = el_len(1:ne)
         m%el_prop = el_prop(:, 1:ne)
+        m%el_eta = 0
+        if (present(el_eta)) m%el_eta = el_eta(1:ne)
         do e = 1, ne
             m%map_el(:, :, e) = reshape(map_el(:, e), [MAX_EDOF, MAX_EDOF])
         end do
@@ -206,6 +211,8 @@ contains
         do e = 1, max(m%nel, 1)
             m%el_mass(:, :, e) = m%el_prop(4, e) * m%el_mass_a(:, :, e) + m%el_prop(5, e) * m%el_mass_i(:, :, e)
         end do
+        m%damped = .false.
+        if (m%nel > 0 .and. allocated(m%el_eta)) m%damped = any(m%el_eta(1:m%nel) /= 0)
         m%linear_constraints = .true.
         if (m%nc > 0) m%linear_constraints = all(m%c_kind(1:m%nc) == CON_LINEAR)
         m%qscale = max(1.0_wp, maxval(abs(m%qref)))

@@ -6,7 +6,10 @@
 !! linear in (EA, kGA, EI) (beam2d: forces per unit stiffness) and the mass
 !! matrix is linear in (rhoA, rhoI), so every partial derivative is exact:
 !!   dr/dp_v = dM/dp_v (qdd - g_acc) + df_int/dp_v
-!! (gravity on the beam's own mass is M g_acc; nodal loads do not depend on p).
+!! (gravity on the beam's own mass is M g_acc; nodal loads do not depend on p). The beams'
+!! Kelvin–Voigt damping forces are proportional to the stiffnesses as well (beam2d.f90):
+!! df_int/dp_v holds them, at the state's velocities qd (the material's time eta does not
+!! depend on the design).
 module sensitivity
     use flexmbs_kinds, only: wp
     use beam2d, only: beam_internal_forces, MAX_EDOF
@@ -22,15 +25,15 @@ contains
 
     !> Right-hand sides of the direct differentiation of one step, in one pass over the
     !! elements: rhs(:, v) = -(df_int/dp_v + dM/dp_v acc) + betap M qhat(:, v), with
-    !! acc = qdd - g_acc (see sens_step in generalized_alpha.f90).
-    subroutine step_design_rhs(m, dprop, q, acc, betap, qhat, rhs)
+    !! acc = qdd - g_acc and f_int at (q, qd) (see sens_step in generalized_alpha.f90).
+    subroutine step_design_rhs(m, dprop, q, qd, acc, betap, qhat, rhs)
         type(mbs_model), intent(in) :: m
         real(wp), intent(in) :: dprop(:, :, :)     !! (5, nel, nv)
-        real(wp), intent(in) :: q(m%ndof), acc(m%ndof), betap
+        real(wp), intent(in) :: q(m%ndof), qd(m%ndof), acc(m%ndof), betap
         real(wp), intent(in) :: qhat(:, :)         !! (ndof, nv)
         real(wp), intent(out) :: rhs(:, :)         !! (ndof, nv) (rows of the coordinates only)
         real(wp) :: fe(MAX_EDOF), parts(MAX_EDOF, 3), qe(MAX_EDOF), qr(MAX_EDOF), acce(MAX_EDOF)
-        real(wp) :: ya(MAX_EDOF), yi(MAX_EDOF), qh(MAX_EDOF), mq(MAX_EDOF)
+        real(wp) :: ya(MAX_EDOF), yi(MAX_EDOF), qh(MAX_EDOF), mq(MAX_EDOF), ve(MAX_EDOF)
         integer :: e, ne, a, b, v, d, nv
         logical :: has_stiff, has_mass
         nv = size(dprop, 3)
@@ -46,9 +49,11 @@ contains
                 qe(a) = q(d)
                 qr(a) = m%qref(d)
                 acce(a) = acc(d)
+                ve(a) = qd(d)
             end do
             if (has_stiff) call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), &
-                qr(1:ne), qe(1:ne), fe(1:ne), parts=parts(1:ne, :), eref=m%el_eref(:, :, e))
+                qr(1:ne), qe(1:ne), fe(1:ne), parts=parts(1:ne, :), eref=m%el_eref(:, :, e), &
+                eta=m%el_eta(e), qde=ve(1:ne))
             if (has_mass) then
                 ya(1:ne) = matmul(m%el_mass_a(1:ne, 1:ne, e), acce(1:ne))
                 yi(1:ne) = matmul(m%el_mass_i(1:ne, 1:ne, e), acce(1:ne))
@@ -104,14 +109,16 @@ contains
         end do
     end subroutine mass_design_derivative_times
 
-    !> y = (K_t(q) + sum_r mu_r Phi_r,qq) x, matrix-free (element by element);
-    !! with transposed = .true., the transpose of that matrix times x (the adjoint).
-    subroutine stiffness_times(m, q, mu, x, y, transposed)
+    !> y = (K_t(q, qd) + sum_r mu_r Phi_r,qq) x, matrix-free (element by element; K_t of the
+    !! beams, with their damping forces at the velocities qd); with transposed = .true., the
+    !! transpose of that matrix times x (the adjoint).
+    subroutine stiffness_times(m, q, qd, mu, x, y, transposed)
         type(mbs_model), intent(in) :: m
-        real(wp), intent(in) :: q(m%ndof), mu(m%nc), x(m%ndof)
+        real(wp), intent(in) :: q(m%ndof), qd(m%ndof), mu(m%nc), x(m%ndof)
         real(wp), intent(out) :: y(m%ndof)
         logical, intent(in), optional :: transposed
         real(wp) :: fe(MAX_EDOF), ke(MAX_EDOF, MAX_EDOF), qe(MAX_EDOF), qr(MAX_EDOF), xe(MAX_EDOF)
+        real(wp) :: ve(MAX_EDOF)
         integer :: e, ne, a, d
         logical :: tr
         tr = .false.
@@ -124,9 +131,11 @@ contains
                 qe(a) = q(d)
                 qr(a) = m%qref(d)
                 xe(a) = x(d)
+                ve(a) = qd(d)
             end do
             call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), qr(1:ne), &
-                                      qe(1:ne), fe(1:ne), ke(1:ne, 1:ne), eref=m%el_eref(:, :, e))
+                                      qe(1:ne), fe(1:ne), ke(1:ne, 1:ne), eref=m%el_eref(:, :, e), &
+                                      eta=m%el_eta(e), qde=ve(1:ne))
             if (tr) then
                 fe(1:ne) = matmul(xe(1:ne), ke(1:ne, 1:ne))
             else

@@ -517,23 +517,24 @@ def test_element_tangent_matches_finite_differences(nen):
     assert result.max_relative_error < 1e-6, result
 
 
-def test_tangent_checker_detects_a_wrong_tangent(monkeypatch):
+@pytest.mark.parametrize("wrong,eta", [(1, 0.0), (2, 1e-3)], ids=["tangent", "damping matrix"])
+def test_tangent_checker_detects_a_wrong_tangent(monkeypatch, wrong, eta):
     """The checker must fail on a wrong tangent: the geometric stiffness of the element is
     ~1e-3 of its material part at these strains, so a tangent with one entry off by 1e-4 of
-    its row must be reported above 1e-6."""
+    its row must be reported above 1e-6; likewise the damping matrix d fe/d qd of a damped
+    element (Kelvin-Voigt time eta = 1e-3 s, checked when eta > 0)."""
     import flexmbs.checks as checks
     real = checks._core
 
     class Perturbed:
         @staticmethod
-        def beam_element(length, stiff, qref, qe):
-            fe, ke = real.beam_element(length, stiff, qref, qe)
-            ke = ke.copy()
-            ke[2, 5] += 1e-4 * np.abs(ke[2]).max()
-            return fe, ke
+        def beam_element(length, stiff, qref, qe, eta, qde):
+            out = [a.copy() for a in real.beam_element(length, stiff, qref, qe, eta, qde)]
+            out[wrong][2, 5] += 1e-4 * np.abs(out[wrong][2]).max()
+            return tuple(out)
 
     monkeypatch.setattr(checks, "_core", Perturbed)
-    assert check_tangent(3, states=2).max_relative_error > 1e-5
+    assert check_tangent(3, states=2, damping_time=eta).max_relative_error > 1e-5
 
 
 def test_robot_iteration_matrix_matches_finite_differences(robot50):

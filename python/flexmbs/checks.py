@@ -92,7 +92,7 @@ def _central_jacobian(fun, x0, steps):
 
 
 def check_tangent(nen=3, *, states=5, length=0.5, stiffness=None, rotation=np.pi,
-                  strain=0.2, step=1e-6, seed=0):
+                  strain=0.2, step=1e-6, seed=0, damping_time=0.0):
     """Check the beam element tangent ``ke`` against central differences of ``fe``.
 
     At each random state the element (reference straight, of the given length,
@@ -123,6 +123,12 @@ def check_tangent(nen=3, *, states=5, length=0.5, stiffness=None, rotation=np.pi
         Central-difference step relative to max(1, length) on every coordinate.
     seed : int, default 0
         Seed of the random states.
+    damping_time : float, default 0.0
+        Kelvin–Voigt time eta (s) of the material: with eta > 0 every state also has
+        random velocities (a rigid rotation rate and a deformation rate of order
+        strain / eta), the forces include the viscous part, and besides ``ke`` = dfe/dq
+        at fixed velocities the damping matrix ``ce`` = dfe/dqd is checked (one more
+        entry per part in ``errors``).
 
     Returns
     -------
@@ -156,17 +162,28 @@ def check_tangent(nen=3, *, states=5, length=0.5, stiffness=None, rotation=np.pi
             comb = np.array([ea, rng.uniform(0.5, 2.0), rng.uniform(0.5, 2.0) * length ** 2])
         else:
             comb = np.asarray(stiffness, float)
+        eta = float(damping_time)
+        qde = np.zeros(qe.size)
+        if eta > 0:
+            # a rigid rotation rate (no strain rate) plus a deformation rate
+            omega = rng.uniform(-1, 1) / eta
+            qde[0::3] = -omega * (qe[1::3] - qe[1])
+            qde[1::3] = omega * (qe[0::3] - qe[0])
+            qde[2::3] = omega
+            qde += strain / eta * rng.uniform(-1, 1, qe.size) * np.tile([length, length, 1.0], nen)
         for stiff in (np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([0, 0, 1.0]), comb):
-            _, ke = _core.beam_element(length, stiff, qref, qe)
-
-            def fe(q, stiff=stiff):
-                return _core.beam_element(length, stiff, qref, q)[0]
-
-            kfd = _central_jacobian(fe, qe, np.full(qe.size, h))
-            err, ij = _rowwise_error(ke, kfd)
-            errors.append(err)
-            if err > worst[0]:
-                worst = (err, ij, ke.copy(), kfd)
+            _, ke, ce = _core.beam_element(length, stiff, qref, qe, eta, qde)
+            pairs = [(ke, lambda q, stiff=stiff: _core.beam_element(length, stiff, qref, q, eta,
+                                                                     qde)[0], qe)]
+            if eta > 0:
+                pairs.append((ce, lambda v, stiff=stiff: _core.beam_element(length, stiff, qref, qe,
+                                                                            eta, v)[0], qde))
+            for analytic, fe, x0 in pairs:
+                kfd = _central_jacobian(fe, x0, np.full(x0.size, h * max(1.0, np.max(np.abs(x0)))))
+                err, ij = _rowwise_error(analytic, kfd)
+                errors.append(err)
+                if err > worst[0]:
+                    worst = (err, ij, analytic.copy(), kfd)
     errors = np.array(errors)
     return DerivativeCheck(float(errors.max()), errors, worst[1], worst[2], worst[3], h)
 

@@ -113,6 +113,7 @@ def core_model_args(model: Model, storage, t, props=None):
         nc=cm.nc, nel=cm.nel, nload=cm.nload, nlaw=len(laws), nnz=pat["nnz"],
         qref=cm.qref, lumped=cm.lumped, gacc=cm.gacc,
         el_nen=cm.el_nen, el_dofs=cm.el_dofs, el_len=cm.el_len, el_prop=np.asfortranarray(props),
+        el_eta=cm.el_eta,
         ld_dof=cm.ld_dof, ld_law=cm.ld_law, ld_amp=cm.ld_amp,
         c_kind=cm.c_kind, c_dofs=cm.c_dofs, c_coef=cm.c_coef, c_c0=cm.c_c0, c_law=cm.c_law,
         c_lawcoef=cm.c_lawcoef, law_h=law_h, law_val=law_val, law_der=law_der, law_dd0=law_dd0,
@@ -126,8 +127,9 @@ def system_matrices(model: Model, q, qdd=None, mu=None, t=0.0, *, cm=0.0, ck=1.0
 
     With the defaults (cm = 0, ck = 1, cc = 0, kscale = 0, penalty = 0, mu = 0, qd = 0) the
     leading ndof x ndof block of S is the tangent stiffness K_t(q) and r[:ndof] = f_int - f_ext.
-    `qd` (default 0) are the velocities of the velocity-dependent forces (spring-dampers) and
-    `cc` the coefficient of their damping matrix C_t in S (gamma' in dynamics).
+    `qd` (default 0) are the velocities of the velocity-dependent forces (spring-dampers, the
+    beams' Kelvin–Voigt damping) and `cc` the coefficient of their damping matrix C_t in S
+    (gamma' in dynamics).
     The time laws are evaluated at t exactly.
     """
     c = model.compile()

@@ -118,10 +118,25 @@ class Law(_Strict):
 
 # ----------------------------------------------------------------------------- parts
 class MaterialSpec(_Strict):
-    """Linear elastic isotropic material: E (Pa), nu, rho (kg/m^3)."""
+    """Linear elastic isotropic material: E (Pa), nu, rho (kg/m^3); optionally Kelvin–Voigt
+    damping of its beams (flexmbs.Material): `damping_time` eta (s), or `damping_ratio` zeta
+    at `damping_frequency` f (Hz), eta = 2 zeta / (2 pi f)."""
     E: Positive
     nu: Annotated[float, Field(gt=-1.0, lt=0.5)]
     rho: Positive
+    damping_time: NonNegative | None = None
+    damping_ratio: NonNegative | None = None
+    damping_frequency: Positive | None = None
+
+    @model_validator(mode="after")
+    def _damping(self):
+        if (self.damping_ratio is None) != (self.damping_frequency is None):
+            raise ValueError("damping_ratio and damping_frequency go together (the ratio zeta "
+                             "at the frequency f in Hz)")
+        if self.damping_time is not None and self.damping_ratio is not None:
+            raise ValueError("give either damping_time or damping_ratio with "
+                             "damping_frequency, not both")
+        return self
 
 
 class Section(_Strict):

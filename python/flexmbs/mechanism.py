@@ -176,7 +176,10 @@ class Mechanism:
                           f"h = {ts.h} s: simulating to {self.t_end:.10g} s ({self.nsteps} steps)",
                           stacklevel=2)
         self._expand_design(d)
-        self.materials = {k: Material(m.E, m.nu, m.rho) for k, m in d.materials.items()}
+        self.materials = {k: Material(m.E, m.nu, m.rho, damping_time=m.damping_time or 0.0,
+                                      damping_ratio=m.damping_ratio,
+                                      damping_frequency=m.damping_frequency)
+                          for k, m in d.materials.items()}
         self._bodies = {b.name: b for b in d.bodies}
         self.model, self.node = self._structure(d.case.name)
         self._reference = None

@@ -101,6 +101,7 @@ class CompiledModel:
     nsd: int = 0                     # spring-dampers
     sd_dofs: np.ndarray | None = None   # (4, nsda) 1-based x_a, y_a, x_b, y_b
     sd_prop: np.ndarray | None = None   # (4, nsda) k, c, l0, f0
+    el_eta: np.ndarray | None = None    # (nela) Kelvin–Voigt time of each element's material (s)
 
 
 class Model:
@@ -198,6 +199,8 @@ class Model:
 
         order=2: 3-node quadratic elements (accurate with 2 per arm, the default);
         order=1: 2-node linear elements. Returns the Body (its nodes run from start to end).
+        The material's Kelvin–Voigt damping (Material.damping_time, or damping_ratio at
+        damping_frequency) damps the beam's strain rates (fortran/beam2d.f90).
         """
         self._check_new_name(name)
         if not isinstance(section, Section):
@@ -574,7 +577,10 @@ class Model:
         el_nen = np.full(nela, 2, np.int32)
         el_dofs = np.ones((MAX_EDOF, nela), np.int32, order="F")
         el_len = np.ones(nela)
-        for e, (ids, length, _) in enumerate(self._elements):
+        el_eta = np.zeros(nela)
+        for e, (ids, length, body) in enumerate(self._elements):
+            mat = self.bodies[body].material
+            el_eta[e] = mat.damping_time if mat is not None else 0.0
             el_nen[e] = len(ids)
             d = np.array([[3 * i, 3 * i + 1, 3 * i + 2] for i in ids]).ravel()
             el_dofs[:len(d), e] = d + 1
@@ -616,7 +622,8 @@ class Model:
                            c_dofs=c_dofs, c_coef=c_coef, c_c0=c_c0, c_law=c_law,
                            c_lawcoef=c_lawcoef, nel=nel, nload=len(self._loads),
                            row_labels=[r.label for r in self._rows], patterns={},
-                           nsd=len(self._springs), sd_dofs=sd_dofs, sd_prop=sd_prop)
+                           nsd=len(self._springs), sd_dofs=sd_dofs, sd_prop=sd_prop,
+                           el_eta=el_eta)
         self._compiled = cm
         return cm
 

@@ -60,15 +60,29 @@ def _positive(name, value):
 
 @dataclass(frozen=True)
 class Material:
-    """Linear elastic isotropic material (SI units).
+    """Linear elastic isotropic material (SI units), optionally with Kelvin–Voigt damping.
 
     Parameters
     ----------
     E : Young's modulus (Pa).  nu : Poisson's ratio.  rho : density (kg/m^3).
+    damping_time : the Kelvin–Voigt (retardation) time eta (s), default 0 (undamped):
+        every stress resultant of a beam gets a viscous part eta D dGamma/dt (D = EA, kGA,
+        EI; fortran/beam2d.f90), stiffness-proportional damping whose modal damping ratio
+        at the circular frequency omega is zeta = eta omega / 2.
+    damping_ratio, damping_frequency : the alternative to `damping_time`: the damping
+        ratio zeta (e.g. 0.02) at the frequency f (Hz, e.g. a beam's first bending
+        frequency), giving eta = 2 zeta / (2 pi f). Both or neither, and not with
+        `damping_time`.
+
+    Damping has no static effect (the forces depend on the strain rates) and does not
+    change the stress responses, which are the elastic D Gamma.
     """
     E: float
     nu: float
     rho: float
+    damping_time: float = 0.0
+    damping_ratio: float | None = None
+    damping_frequency: float | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "E", _positive("Material.E", self.E))
@@ -77,6 +91,21 @@ class Material:
         if not (-1.0 < nu < 0.5):
             raise ModelError(f"Material.nu must lie in (-1, 0.5), got {self.nu!r}")
         object.__setattr__(self, "nu", nu)
+        eta = real_number("Material.damping_time", self.damping_time, nonnegative=True)
+        if (self.damping_ratio is None) != (self.damping_frequency is None):
+            raise ModelError(f"Material: give damping_ratio and damping_frequency together, got "
+                             f"damping_ratio={self.damping_ratio!r}, "
+                             f"damping_frequency={self.damping_frequency!r}")
+        if self.damping_ratio is not None:
+            if eta != 0.0:
+                raise ModelError(f"Material: give either damping_time (got {self.damping_time!r}) "
+                                 "or damping_ratio with damping_frequency, not both")
+            zeta = real_number("Material.damping_ratio", self.damping_ratio, nonnegative=True)
+            freq = _positive("Material.damping_frequency (Hz)", self.damping_frequency)
+            object.__setattr__(self, "damping_ratio", zeta)
+            object.__setattr__(self, "damping_frequency", freq)
+            eta = 2.0 * zeta / (2.0 * math.pi * freq)
+        object.__setattr__(self, "damping_time", eta)
 
     @property
     def G(self):

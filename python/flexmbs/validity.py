@@ -25,7 +25,9 @@ every run, `validity=` setting) measures, vectorised over the stored states:
 - **energy** of free systems (no drive or prescribed motion, no time-varying load: every force
   is conservative and the joints do no work): T + U + V must not grow; generalized-alpha only
   dissipates (Chung & Hulbert 1993), so a growth above energy_warn (energy_fail) of the largest
-  T + U is a warning (an error).
+  T + U is a warning (an error). Dampers and the beams' material damping (Kelvin–Voigt,
+  flexmbs.Material) only remove energy, so the check holds, unchanged, for damped models
+  (tests/test_damping.py).
 
 Each check needs the coordinates it reads: with `store=` a subset, what is not stored is not
 checked and the check's note says so.
