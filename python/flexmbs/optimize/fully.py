@@ -197,7 +197,6 @@ class ScaledProblem:
 
         def grad(x):
             p = self.design(x)
-            prob.mechanism.set_design(p)
             return prob._response(r, p, None, True)[1] * self.scale / self.f_ref
         H = np.zeros((self.nv, self.nv))
         for i in range(self.nv):

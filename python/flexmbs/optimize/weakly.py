@@ -325,7 +325,7 @@ class StaticModel:
     # ------------------------------------------------------------------ responses
     def _solutions(self, x, gradient):
         mech = self.mech
-        model = mech.set_design(x)
+        model = mech.design_model(x)
         props = model.element_properties()
         dprops = mech.element_property_derivatives(x)
         out = {}
@@ -725,7 +725,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
             resumed = first - 1
         for cycle in range(first, max_cycles + 1):
             result, values, g_dyn, names, dev = _simulate_design(problem, x)
-            model = mech.set_design(x)
+            model = mech.design_model(x)
             loads = equivalent_static_loads(model, result, static.frames,
                                             stiffness=static.stiffness,
                                             props=model.element_properties())
@@ -862,7 +862,7 @@ def _resume_cycles(problem, static, writer, control, progress, x0, max_cycles):
     if c > 1:
         xp = np.asarray(recs[-2]["design"], float)
         result = problem.simulate(xp, store="all")
-        model = problem.mechanism.set_design(xp)
+        model = problem.mechanism.design_model(xp)
         prev_loads = equivalent_static_loads(model, result, static.frames,
                                              stiffness=static.stiffness,
                                              props=model.element_properties())
