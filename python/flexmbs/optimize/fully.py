@@ -42,6 +42,7 @@ from flexmbs.errors import ModelError
 from flexmbs.optimize.loops import (_check_stopping, _mma_settings, _Monitor, _run_mma,
                                     _run_slsqp, _run_sqp)
 from flexmbs.optimize.mma import MMA
+from flexmbs.fingerprint import fingerprint, run_options
 from flexmbs.optimize.result import OptimizationResult, open_history
 from flexmbs.progress import check_progress, describe_iteration, reporter
 from flexmbs.sections import real_number
@@ -483,6 +484,7 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
     flexmbs.errors.SimulationError
         If the simulation of the start fails.
     """
+    options = run_options(locals())      # the arguments: what a history answers
     from flexmbs.problem import load_problem
 
     t0 = time.perf_counter()
@@ -515,6 +517,7 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
         raise ModelError(f"x0: {problem.variables[i]} = {float(p0[i])!r} lies outside its "
                          f"bounds [{lo[i]:g}, {hi[i]:g}]")
     writer, own_writer = open_history(history, resume)
+    writer.check_fingerprint(fingerprint(problem.description, "fully", dict(options, x0=p0)))
     replay = []
     for rec in writer.previous:
         replay += rec.pop("evaluations", None) or []

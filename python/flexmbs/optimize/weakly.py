@@ -64,6 +64,7 @@ from flexmbs.description import Beam, Deviation, Mass, PointMass, Stress, body_p
 from flexmbs.errors import CaseError, ModelError
 from flexmbs.esl import (BodyStiffness, ChordFrame, EquivalentStaticLoads, TangentFrame,
                          equivalent_static_loads, esl_change, solve_static)
+from flexmbs.fingerprint import fingerprint, run_options
 from flexmbs.optimize.result import OptimizationResult, open_history
 from flexmbs.optimize.cycles import (CycleControl, check_cycle_options, check_remedies,
                                      damped_update, move_limited_bounds)
@@ -681,6 +682,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         eq. (25) first held), static_optimizations, oscillation_period, esl_change,
         esl_bodies, frames, damping, esl_blend, design_tol.
     """
+    options = run_options(locals())      # the arguments: what a history answers
     t_start = time.perf_counter()
     problem = load_problem(problem)
     d = problem.description
@@ -710,6 +712,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
     mass_resp = [r for r in d.responses if isinstance(r, Mass)]
 
     writer, own_writer = open_history(history, resume)
+    writer.check_fingerprint(fingerprint(problem.description, "weakly", dict(options, x0=x)))
     prev_loads, pending, x_prev = None, None, x
     control = CycleControl(eps, confirm_cycles, max_cycles, stop_on_oscillation, design_tol)
     inner_total = n_static = 0
