@@ -67,7 +67,9 @@ class Law(_Strict):
                      beyond the period, like the paper's eq. 26)
       polynomial     sum coefficients[k] t^k
       samples        through (times, values): 'pchip' (monotone cubic, no overshoot; default)
-                     or 'cubic' (cubic spline, continuous acceleration) `interpolation`
+                     or 'cubic' (cubic spline, continuous acceleration) `interpolation`;
+                     beyond its times an error unless `extrapolate` = 'hold' (the end value)
+                     or 'linear' (on along the end tangent)
       reference      (drives only) the motion the rigid reference gives this drive when the
                      mechanism's ideal motion is prescribed by `paths`
     A rotation drive's law is added to the driven node's initial angle unless
@@ -93,6 +95,7 @@ class Law(_Strict):
     times: list[Finite] | None = None
     values: list[Finite] | None = None
     interpolation: Literal["pchip", "cubic"] = "pchip"
+    extrapolate: Literal["hold", "linear"] | None = None
     absolute: bool = False
 
     @model_validator(mode="after")
@@ -108,6 +111,8 @@ class Law(_Strict):
             raise ValueError("law type 'ramp_to_speed' needs exactly one of speed, speed_rpm")
         if self.type == "smooth_step" and not self.t1 > self.t0:
             raise ValueError(f"smooth_step: t1 = {self.t1} must be after t0 = {self.t0}")
+        if self.extrapolate is not None and self.type != "samples":
+            raise ValueError(f"extrapolate applies to a 'samples' law, not to {self.type!r}")
         if self.type == "samples":
             if len(self.times) != len(self.values) or len(self.times) < 2:
                 raise ValueError("samples: times and values need the same length, at least 2")

@@ -75,7 +75,7 @@ def make_law(spec, name="law", shift=0.0):
         return TimeLaw(p, p.deriv(1), p.deriv(2), name=name)
     if k == "samples":
         return TimeLaw.samples(spec.times, np.array(spec.values) + shift, name=name,
-                               interpolation=spec.interpolation)
+                               interpolation=spec.interpolation, extrapolate=spec.extrapolate)
     raise ModelError(f"{name}: a law of type {k!r} has no formula (it is computed from the "
                      "rigid reference)")
 

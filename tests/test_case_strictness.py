@@ -1,0 +1,79 @@
+"""Case values that used to be read as something else: a sampled law beyond its table, a
+boolean where a number is expected, a relative drive's constant law, overflowing or empty
+inputs. Each is refused with an error naming the input, or done as the case says.
+"""
+import copy
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from flexmbs.casefile import description_from_dict
+from flexmbs.errors import CaseError, ModelError
+from flexmbs.laws import TimeLaw
+from flexmbs.problem import Problem
+
+CASES = Path(__file__).resolve().parents[1] / "cases"
+
+
+def _robot(t_end=0.3):
+    d = tomllib.loads((CASES / "robot_2dof.toml").read_text())
+    d["time"]["t_end"] = t_end
+    return d
+
+
+def _with_sampled_load(extrapolate=None, t_end=0.3):
+    d = _robot(t_end)
+    law = {"type": "samples", "times": [0.0, 0.1], "values": [0.0, 1.0],
+           "interpolation": "pchip"}
+    if extrapolate is not None:
+        law["extrapolate"] = extrapolate
+    d["loads"] = [{"body": "arm2", "at": "tip", "fy": -10.0, "law": law}]
+    return d
+
+
+# ----------------------------------------------------------------------------- sampled laws
+def test_sampled_law_beyond_its_table_is_an_error():
+    """A load through samples at t = 0 and 0.1 s on a 0.3 s run: ModelError naming the load,
+    a time past 0.1 s and the 'extrapolate' key (the law used to grow on linearly)."""
+    with pytest.raises(ModelError, match=r"load 1.*outside its samples' times \(0 to 0\.1 s\)"
+                                         r".*extrapolate"):
+        Problem(_with_sampled_load()).evaluate(gradient=False)
+
+
+def test_sampled_law_within_its_table_runs():
+    """The same load on a 0.1 s run (the table's span) is not refused."""
+    Problem(_with_sampled_load(t_end=0.1)).evaluate(gradient=False)
+
+
+def test_hold_and_linear_extrapolation_are_exact():
+    """extrapolate='hold': beyond the last sample the value is the last sample's, rate and
+    acceleration 0; 'linear': value y_end + y'(t_end) (t - t_end), rate y'(t_end), acceleration
+    0. Checked at t = 0.2 and 0.3 s on samples of y = t^2 at 0, 0.05, 0.1 s (cubic spline:
+    exact for a quadratic, so y(0.1) = 0.01, y'(0.1) = 0.2)."""
+    t = [0.0, 0.05, 0.1]
+    y = [0.0, 0.0025, 0.01]
+    hold = TimeLaw.samples(t, y, extrapolate="hold")
+    v, r, a = hold.evaluate(np.array([0.2, 0.3]))
+    np.testing.assert_allclose(v, 0.01, rtol=1e-12)
+    np.testing.assert_array_equal(r, 0.0)
+    np.testing.assert_array_equal(a, 0.0)
+    lin = TimeLaw.samples(t, y, extrapolate="linear")
+    v, r, a = lin.evaluate(np.array([0.2, 0.3]))
+    np.testing.assert_allclose(v, [0.01 + 0.2 * 0.1, 0.01 + 0.2 * 0.2], rtol=1e-12)
+    np.testing.assert_allclose(r, 0.2, rtol=1e-12)
+    np.testing.assert_array_equal(a, 0.0)
+
+
+def test_extrapolate_in_a_case_file():
+    """extrapolate = 'hold' in a case runs the 0.3 s simulation; a bad value or extrapolate on
+    another law type is a CaseError naming the key."""
+    Problem(_with_sampled_load("hold")).evaluate(gradient=False)
+    with pytest.raises(CaseError, match="extrapolate"):
+        description_from_dict(_with_sampled_load("forever"))
+    d = _robot()
+    d["loads"] = [{"body": "arm2", "at": "tip", "fy": -1.0,
+                   "law": {"type": "constant", "value": 1.0, "extrapolate": "hold"}}]
+    with pytest.raises(CaseError, match="extrapolate applies to a 'samples' law"):
+        description_from_dict(d)
