@@ -41,7 +41,9 @@ def description_digest(description):
     pydantic model), or of a dict; {'object': type name} for anything else (a Problem-like
     test object has no description to hash)."""
     if hasattr(description, "model_dump"):
-        data = description.model_dump(mode="json", by_alias=True)
+        # keys left at their defaults are left out: a key added to the format with a
+        # default (the same question) does not change the fingerprint of older results
+        data = description.model_dump(mode="json", by_alias=True, exclude_defaults=True)
     elif isinstance(description, dict):
         data = description
     else:
