@@ -77,3 +77,45 @@ def test_extrapolate_in_a_case_file():
                    "law": {"type": "constant", "value": 1.0, "extrapolate": "hold"}}]
     with pytest.raises(CaseError, match="extrapolate applies to a 'samples' law"):
         description_from_dict(d)
+
+
+# ----------------------------------------------------------------------------- booleans
+def _set(d, path, value):
+    node = d
+    for k in path[:-1]:
+        node = node[k]
+    node[path[-1]] = value
+    return d
+
+
+@pytest.mark.parametrize("path, key", [
+    (("bodies", 2, "mass"), "bodies.2.point_mass.mass"),
+    (("time", "t_end"), "time.t_end"),
+    (("bodies", 0, "elements"), "bodies.0.beam.elements"),
+    (("bodies", 0, "order"), "bodies.0.beam.order"),
+    (("materials", "aluminium", "nu"), "materials.aluminium.nu"),
+    (("points", "A"), "points.A"),
+])
+def test_a_boolean_is_not_a_number(path, key):
+    """`true` where a case expects a number (a mass, t_end, a count of elements, the element
+    order, Poisson's ratio, a point's coordinate) is a CaseError naming the key and saying it
+    got a boolean (pydantic read it as 1: 1 kg, 1 s, 1 element)."""
+    value = [True, 0.0] if path == ("points", "A") else True
+    d = _set(_robot(), path, value)
+    with pytest.raises(CaseError) as err:
+        description_from_dict(d)
+    msg = str(err.value)
+    assert key.split(".")[0] in msg and path[-1] in msg and "must be a number, not a boolean, got True" in msg, msg
+
+
+def test_a_boolean_is_not_a_number_in_a_study(tmp_path):
+    """A study's multi-start `starts = true` is a CaseError naming the key and the boolean."""
+    from flexmbs.study import load_study
+    f = tmp_path / "s.toml"
+    f.write_text('[study]\nname = "s"\npublished = "p.json"\n[tables.1]\ntitle = "t"\n'
+                 'case = "robot_2dof"\npublished = ["a", "b"]\n'
+                 'starts = [[50.0, 50.0, 50.0, 50.0]]\n'
+                 '[[tables.1.variants]]\nkey = "m"\nlabel = "m"\nmethod = "fully"\n'
+                 'multistart = { starts = true }\n')
+    with pytest.raises(CaseError, match=r"multistart\.starts' must be a number, not a boolean"):
+        load_study(f)

@@ -86,9 +86,12 @@ def friendly_error(err, model=None, doc="docs/case-format.md", tags=None):
     key of `model`'s data, default a case's Description, the keys allowed in its table).
     tags: the tags of `model`'s tagged unions (default: a case's)."""
     tags = _TAGS if tags is None else tags
-    # pydantic adds the tag of a union member ('beam') or of a validator to the location
-    loc = [p for p in err["loc"] if not (isinstance(p, str) and
-                                         (p in tags or p.startswith("function-")))]
+    # pydantic adds the tag of a union member ('beam', after the item's index) or of a
+    # validator to the location; a key of the same name elsewhere (a point mass's 'mass')
+    # stays
+    raw = list(err["loc"])
+    loc = [p for k, p in enumerate(raw) if not (isinstance(p, str) and (
+        p.startswith("function-") or (p in tags and k > 0 and isinstance(raw[k - 1], int))))]
     msg = err["msg"].removeprefix("Value error, ")
     allowed = ""
     if err["type"] == "extra_forbidden":

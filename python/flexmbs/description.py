@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
 
 __all__ = ["Description", "Law", "Beam", "Rigid", "PointMass", "Joint", "Drive", "Load",
            "SpringDamper", "DesignVariable", "Deviation", "Mass", "Stress", "Torque", "Reaction",
@@ -37,9 +37,22 @@ __all__ = ["Description", "Law", "Beam", "Rigid", "PointMass", "Joint", "Drive",
            "TimeSettings", "Section", "MaterialSpec", "Term", "PointRef", "GROUND",
            "design_layout"]
 
-Finite = Annotated[float, Field(allow_inf_nan=False)]
-Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
-NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+
+
+def _not_bool(v):
+    """A number of a case is never a boolean (TOML's true is not 1 kg, 1 s or 1 element)."""
+    if isinstance(v, bool):
+        raise ValueError("must be a number, not a boolean")
+    return v
+
+
+#: refuses a boolean where a number is expected (pydantic would read true as 1)
+NoBool = BeforeValidator(_not_bool)
+Finite = Annotated[float, NoBool, Field(allow_inf_nan=False)]
+Positive = Annotated[float, NoBool, Field(gt=0, allow_inf_nan=False)]
+NonNegative = Annotated[float, NoBool, Field(ge=0, allow_inf_nan=False)]
+#: an integer, never a boolean
+Int = Annotated[int, NoBool]
 Name = Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z_][A-Za-z0-9_.\-]*$")]
 Pair = Annotated[list[Finite], Field(min_length=2, max_length=2)]
 #: the name that stands for the ground in a prismatic joint's bodies and a deviation's frame
@@ -125,7 +138,7 @@ class Law(_Strict):
 class MaterialSpec(_Strict):
     """Linear elastic isotropic material: E (Pa), nu, rho (kg/m^3)."""
     E: Positive
-    nu: Annotated[float, Field(gt=-1.0, lt=0.5)]
+    nu: Annotated[float, NoBool, Field(gt=-1.0, lt=0.5)]
     rho: Positive
 
 
@@ -146,7 +159,7 @@ class Section(_Strict):
     shape: Literal["circle", "tube", "rectangle", "given"]
     diameter: Dimension | None = None
     thickness: Dimension | None = None
-    wall_ratio: Annotated[float, Field(gt=0, le=0.5)] | None = None
+    wall_ratio: Annotated[float, NoBool, Field(gt=0, le=0.5)] | None = None
     width: Dimension | None = None
     height: Dimension | None = None
     EA: Positive | None = None
@@ -187,8 +200,8 @@ class Beam(_Strict):
     type: Literal["beam"]
     start: Name = Field(alias="from")
     end: Name = Field(alias="to")
-    elements: Annotated[int, Field(ge=1, le=20_000)] = 2
-    order: Literal[1, 2] = 2
+    elements: Annotated[int, NoBool, Field(ge=1, le=20_000)] = 2
+    order: Annotated[Literal[1, 2], NoBool] = 2
     material: Name
     section: Section
 
@@ -337,7 +350,7 @@ class DesignVariable(_Strict):
     unit: Literal["m", "mm"] = "m"
     description: str | None = None
     per_element: bool | None = None
-    groups: Annotated[list[Annotated[list[Annotated[int, Field(ge=1)]], Field(min_length=1)]],
+    groups: Annotated[list[Annotated[list[Annotated[int, NoBool, Field(ge=1)]], Field(min_length=1)]],
                       Field(min_length=1)] | None = None
     max_step: Positive | None = None
     max_step_relative: Positive | None = None
@@ -491,7 +504,7 @@ class TimeSettings(_Strict):
     strategy newton ('auto', 'full', 'reuse': see flexmbs.simulate)."""
     t_end: Positive
     h: Positive = 5e-4
-    rho_inf: Annotated[float, Field(ge=0.0, le=1.0)] = 0.5
+    rho_inf: Annotated[float, NoBool, Field(ge=0.0, le=1.0)] = 0.5
     start: Literal["rest", "static"] = "rest"
     newton: Literal["auto", "full", "reuse"] = "auto"
     reuse_jacobian: bool | None = None      # deprecated: true is newton = "reuse", false "full"

@@ -27,6 +27,7 @@ from typing import Annotated, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from flexmbs.description import Finite, Int, NoBool, NonNegative, Positive
 from flexmbs.errors import CaseError
 
 __all__ = ["load_study", "study_path", "Study", "TableSpec", "MapSpec", "Run", "Variant",
@@ -38,9 +39,6 @@ METHODS = ("weakly", "fully")
 DEFAULT_STUDY = "paper"
 
 Method = Literal["weakly", "fully"]
-Finite = Annotated[float, Field(allow_inf_nan=False)]
-Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
-NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 Scalar = Union[bool, int, float, str]
 Design = Annotated[list[Finite], Field(min_length=1)]
 
@@ -148,7 +146,7 @@ class ReachedByAtLeast(_Check):
     """At least n starts of a multi-start variant reached the best design (within its
     best_tolerance), or, with rel, ended feasible at most (1 + rel) x the published mass."""
     type: Literal["reached_by_at_least"]
-    n: Annotated[int, Field(ge=1)]
+    n: Annotated[int, NoBool, Field(ge=1)]
     rel: NonNegative | None = None
 
 
@@ -185,11 +183,11 @@ Slug = Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9_\-][A-Za-z0-9_.\
 
 class MultistartFile(_Strict):
     """`flexmbs.optimize.multistart.multistart` settings of a variant."""
-    starts: Annotated[int, Field(ge=1)] = 8
+    starts: Annotated[int, NoBool, Field(ge=1)] = 8
     optimizer: str = "nlopt-mma"
     sampler: Literal["sobol", "lhs"] = "sobol"
-    seed: Annotated[int, Field(ge=0)] = 0
-    candidates: Annotated[int, Field(ge=1)] | None = None
+    seed: Annotated[int, NoBool, Field(ge=0)] = 0
+    candidates: Annotated[int, NoBool, Field(ge=1)] | None = None
     best_tolerance: NonNegative = 0.003
 
 
@@ -222,9 +220,9 @@ class TableFile(_Strict):
 
 
 class MapFile(_Strict):
-    figure: int
-    table: int
-    step: Annotated[int, Field(ge=1)]
+    figure: Int
+    table: Int
+    step: Annotated[int, NoBool, Field(ge=1)]
     axes: Annotated[list[str], Field(min_length=2, max_length=2)]
     fixed: dict[str, Finite] = {}
     zoom: Annotated[list[Annotated[list[Finite], Field(min_length=2, max_length=2)]],
@@ -233,22 +231,22 @@ class MapFile(_Strict):
 
 class _Figure(_Strict):
     key: Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9_\-]+$")]
-    number: int
+    number: Int
 
 
 class TwoMethodsFigure(_Figure):
     """Objective history of a table's runs and the deviation history of their optima."""
     kind: Literal["two_methods"]
-    table: int
+    table: Int
     what: str
 
 
 class OscillationFigure(_Figure):
     """A non-converging run: mass and critical time per cycle, the last cycles' deviations."""
     kind: Literal["oscillation"]
-    table: int
+    table: Int
     method: Method = "weakly"
-    last: Annotated[int, Field(ge=1)] = 4
+    last: Annotated[int, NoBool, Field(ge=1)] = 4
     deviation_label: str = "deviation (mm)"
     title: str
     caption: str
@@ -257,7 +255,7 @@ class OscillationFigure(_Figure):
 class StartsFigure(_Figure):
     """Every start of a table, one row of panels per method."""
     kind: Literal["starts"]
-    table: int
+    table: Int
     title: str
     caption: str
 
@@ -265,7 +263,7 @@ class StartsFigure(_Figure):
 class StartDetailFigure(_Figure):
     """Both methods from one start of a table: mass, maximum deviation per iterate, optima."""
     kind: Literal["start_detail"]
-    table: int
+    table: Int
     start: Design
     title: str
     caption: str
@@ -283,7 +281,7 @@ _FIGURE_TAGS = ("two_methods", "oscillation", "starts", "start_detail", "map")
 
 
 class Demo(_Strict):
-    table: int
+    table: Int
     about: str
 
 
@@ -398,7 +396,7 @@ class TableSpec:
     options: tuple = ()         # ((method, ((keyword, value), ...)), ...)
     kind: str = "rows"
     heading: str = ""
-    cost: float = 1.0
+    cost: Finite = 1.0
     checks: tuple = ()
     scan: Scan | None = None
     figures: tuple = ()
