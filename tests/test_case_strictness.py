@@ -119,3 +119,30 @@ def test_a_boolean_is_not_a_number_in_a_study(tmp_path):
                  'multistart = { starts = true }\n')
     with pytest.raises(CaseError, match=r"multistart\.starts' must be a number, not a boolean"):
         load_study(f)
+
+
+# ----------------------------------------------------------------------------- drives
+def _constant_drive(value, absolute=False, kind="rotation"):
+    d = _robot(0.05)
+    law = {"type": "constant", "value": value}
+    if absolute:
+        law["absolute"] = True
+    drive = {"type": kind, "body": "arm1", "at": "O", "law": law}
+    if kind == "translation":
+        drive["axis"] = [1.0, 0.0]
+    d["drives"][0] = drive
+    return d
+
+
+@pytest.mark.parametrize("kind", ["rotation", "translation"])
+def test_constant_law_on_a_relative_drive_is_refused(kind):
+    """A drive measured from the initial configuration with a constant law of value 0.5 (the
+    law's value at t = 0 is subtracted: no motion at all) is a CaseError naming the drive's
+    law, the value and the way out; value 0 (hold) and, for a rotation, absolute = true (the
+    angle itself) are accepted."""
+    with pytest.raises(CaseError, match=r"drives\[0\].*constant law \(value = 0\.5\) cannot move "
+                                        r"this drive.*subtracted"):
+        description_from_dict(_constant_drive(0.5, kind=kind))
+    description_from_dict(_constant_drive(0.0, kind=kind))
+    if kind == "rotation":
+        description_from_dict(_constant_drive(0.5, absolute=True))

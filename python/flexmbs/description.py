@@ -298,6 +298,18 @@ class Drive(_Strict):
                 raise ValueError("drive type 'translation' takes no relative_to")
         elif self.axis is not None:
             raise ValueError("drive type 'rotation' takes no axis")
+        law = self.law
+        if law.type == "constant" and law.value != 0.0 and not (
+                self.type == "rotation" and law.absolute):
+            what = ("the change of angle from the initial one" if self.type == "rotation"
+                    else "the displacement along the axis from the initial position")
+            fix = ("absolute = true in the law to impose the angle itself, or " if
+                   self.type == "rotation" else "")
+            raise ValueError(
+                f"a constant law (value = {law.value:g}) cannot move this drive: its law is "
+                f"{what}, the law's value at t = 0 subtracted, so a constant gives no motion; "
+                f"give {fix}a law that changes with time (value = 0 holds the drive at its "
+                "initial configuration)")
         return self
 
 
