@@ -19,6 +19,7 @@ from __future__ import annotations
 import functools
 import inspect
 import json
+import re
 import tomllib
 from dataclasses import dataclass, field, replace
 from importlib import resources
@@ -178,6 +179,8 @@ class Scan(_Strict):
 
 
 Option = Union[Scalar, dict[str, Scalar]]
+#: a plain name (a file or folder under the output folder: no path)
+_PLAIN = re.compile(r"^[A-Za-z0-9_\-]+$")
 Slug = Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9_\-][A-Za-z0-9_.\-]*$")]
 
 
@@ -509,6 +512,19 @@ def _optimizer_keywords(method):
             if p.kind == p.KEYWORD_ONLY or (p.default is not p.empty)]
 
 
+#: optimizer options a study file may not set: where a run writes (a path: no file names a
+#: file to write), how it is shown and whether it resumes are `flexmbs reproduce`'s
+NOT_STUDY_OPTIONS = ("history", "progress", "resume")
+
+
+def _refuse_run_options(options, where, source):
+    for opt in NOT_STUDY_OPTIONS:
+        if opt in options:
+            raise CaseError(f"{source}: key '{where}.{opt}': a study's runs are stored "
+                            f"by `flexmbs reproduce` (in its --out folder), got {opt} = "
+                            f"{options[opt]!r}; allowed: the optimizer's other options")
+
+
 def _check_options(options, where, source):
     for method, opts in options.items():
         allowed = _optimizer_keywords(method)
@@ -517,6 +533,7 @@ def _check_options(options, where, source):
                 raise CaseError(f"{source}: key '{where}.{method}.{k}' is not an option of the "
                                 f"{method} coupled optimizer, got {k!r}; allowed: "
                                 f"{', '.join(allowed)}")
+        _refuse_run_options(opts, f"{where}.{method}", source)
 
 
 def _resolve_case(case, folder):
@@ -603,11 +620,7 @@ def _variant(n, k, v, t, case, names, source):
             raise CaseError(f"{source}: key '{where}.options.{k}' is not an option of the "
                             f"{v.method} coupled optimizer, got {k!r}; allowed: "
                             f"{', '.join(allowed)}")
-    for opt in ("history", "progress", "resume"):
-        if opt in v.options:
-            raise CaseError(f"{source}: key '{where}.options.{opt}': a study's runs are stored "
-                            f"by `flexmbs reproduce`, got {opt} = {v.options[opt]!r}; allowed: "
-                            f"the optimizer's other options")
+    _refuse_run_options(v.options, f"{where}.options", source)
     ms = None
     if v.multistart is not None:
         from flexmbs.optimize.fully import OPTIMIZERS
@@ -684,6 +697,10 @@ def _load(path_text, text):
     maps = {}
     for key, m in f.maps.items():
         where = f"maps.{key}"
+        if not _PLAIN.match(key):
+            # its results go to OUT/jobs/KEY: a plain name, never a path out of the folder
+            raise CaseError(f"{source}: key '{where}': a map's key names its folder of "
+                            f"results: letters, digits, '_' and '-' only, got {key!r}")
         if m.table not in tables:
             raise CaseError(f"{source}: key '{where}.table': no table {m.table} "
                             f"(tables: {', '.join(map(str, tables))})")
