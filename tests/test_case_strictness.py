@@ -146,3 +146,45 @@ def test_constant_law_on_a_relative_drive_is_refused(kind):
     description_from_dict(_constant_drive(0.0, kind=kind))
     if kind == "rotation":
         description_from_dict(_constant_drive(0.5, absolute=True))
+
+
+# ----------------------------------------------------------------------------- limits
+@pytest.mark.parametrize("args", [["simulate", "robot_2dof", "--t-end", "1e308"],
+                                  ["simulate", "robot_2dof", "--set", "time.t_end=1e308"],
+                                  ["optimize", "robot_2dof", "--t-end", "1e308"]])
+def test_overflowing_t_end_is_a_case_error(args, capsys):
+    """t_end = 1e308 s (1e308 / 5e-4: an infinite number of steps) from --t-end, --set or a
+    case: exit 2 and a CaseError naming time.t_end, time.h and the core's step limit (it was
+    an OverflowError)."""
+    from flexmbs.cli import main
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "CaseError: time.t_end = 1e+308 s with time.h = 0.0005 s" in err
+    assert "more than the core's 2147483646" in err
+    with pytest.raises(CaseError, match="time.t_end = 1e"):
+        Problem(_robot(1e308))
+
+
+def test_empty_polynomial_is_a_case_error():
+    """law = {type = "polynomial", coefficients = []}: a CaseError naming the key (it was an
+    IndexError building the law)."""
+    d = _robot()
+    d["loads"] = [{"body": "arm2", "at": "tip", "fy": -1.0,
+                   "law": {"type": "polynomial", "coefficients": []}}]
+    with pytest.raises(CaseError, match=r"loads\[0\]\.law\.coefficients"):
+        description_from_dict(d)
+
+
+@pytest.mark.parametrize("study, text", [
+    ("{tmp}/missing/s.toml", "study '{tmp}/missing/s.toml' not found: give a path to a .toml "
+                             "file or one of the shipped studies: paper"),
+    ("{tmp}", "study '{tmp}' is a folder, not a file"),
+])
+def test_reproduce_with_a_missing_study_or_a_folder(tmp_path, capsys, study, text):
+    """`reproduce --study` of a missing file or of a folder: exit 2 and a CaseError naming it
+    (the missing one lists the shipped studies; it was an AttributeError), nothing written."""
+    from flexmbs.cli import main
+    out = tmp_path / "out"
+    assert main(["reproduce", "--study", study.format(tmp=tmp_path), "--out", str(out)]) == 2
+    assert text.format(tmp=tmp_path) in capsys.readouterr().err
+    assert not out.exists()

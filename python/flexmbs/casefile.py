@@ -247,8 +247,16 @@ def available_cases():
 
 def shipped_names(subfolder=""):
     """Names (stems) of the shipped .toml files of the shipped folders (or their `subfolder`)."""
-    return sorted({p.stem for folder in case_folders() if (folder / subfolder).is_dir()
-                   for p in (folder / subfolder).glob("*.toml")})
+    names = set()
+    for folder in case_folders():
+        sub = folder / subfolder if subfolder else folder
+        try:
+            # iterdir, not glob: the package's folder may be an importlib Traversable
+            names.update(p.name.removesuffix(".toml") for p in sub.iterdir()
+                         if p.name.endswith(".toml") and p.is_file())
+        except (OSError, AttributeError):        # no such folder
+            continue
+    return sorted(names)
 
 
 def case_path(name):
@@ -266,10 +274,14 @@ def shipped_path(name, kind, subfolder=""):
     p = Path(name)
     if p.is_file():
         return p
+    if p.is_dir():
+        raise CaseError(f"{kind} {str(name)!r} is a folder, not a file: give the path of a "
+                        f"{kind} file (.toml) or the name of a shipped {kind}")
     if len(p.parts) == 1:
         for folder in case_folders():
             f = folder / subfolder / f"{p.name.removesuffix('.toml')}.toml"
             if f.is_file():
                 return f
     raise CaseError(f"{kind} {str(name)!r} not found: give a path to a .toml file or one of the "
-                    f"shipped {kind}s: {', '.join(shipped_names(subfolder)) or 'none found'}")
+                    f"shipped {'studies' if kind == 'study' else kind + 's'}: "
+                    f"{', '.join(shipped_names(subfolder)) or 'none found'}")

@@ -104,7 +104,7 @@ class Law(_Strict):
     offset: Finite = 0.0
     stroke: Finite | None = None
     period: Positive | None = None
-    coefficients: list[Finite] | None = None
+    coefficients: Annotated[list[Finite], Field(min_length=1)] | None = None
     times: list[Finite] | None = None
     values: list[Finite] | None = None
     interpolation: Literal["pchip", "cubic"] = "pchip"

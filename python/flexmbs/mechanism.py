@@ -21,11 +21,11 @@ import numpy as np
 
 from flexmbs.description import (GROUND, Beam, Description, PointMass, Rigid, Section,
                                  body_points, design_layout)
-from flexmbs.errors import ModelError
+from flexmbs.errors import CaseError, ModelError
 from flexmbs.laws import TimeLaw
 from flexmbs.model import Model
 from flexmbs.sections import Circle, GivenSection, Material, Rectangle, Tube
-from flexmbs.simulate import time_steps
+from flexmbs.simulate import MAX_STEPS, time_steps
 
 __all__ = ["Mechanism", "make_law", "section_at"]
 
@@ -166,7 +166,12 @@ class Mechanism:
                              f"{type(description).__name__}")
         self.description = d = description
         ts = d.time
-        nsteps = max(1, int(round(ts.t_end / ts.h)))
+        ratio = ts.t_end / ts.h
+        if not math.isfinite(ratio) or ratio > MAX_STEPS:
+            raise CaseError(f"time.t_end = {ts.t_end:g} s with time.h = {ts.h:g} s is "
+                            f"{ratio:.3g} time steps, more than the core's {MAX_STEPS}: give a "
+                            "shorter t_end or a coarser h")
+        nsteps = max(1, int(round(ratio)))
         self.t_end_requested = ts.t_end
         self.h = ts.h
         self.nsteps = time_steps(nsteps * ts.h, ts.h)
