@@ -303,14 +303,16 @@ def test_table8_weakly_last_step_inactive(optimized):
 # ---------------------------------------------------------------------------- the report
 def test_reproduce_report_from_stored_runs(optimized, tmp_path, capsys):
     """`flexmbs reproduce --table 1` over a store that holds Table 1's runs (as an interrupted
-    run leaves it) runs no optimization, prints every row beside the paper's and writes
-    README.md, comparison.json and Fig. 5. The stored results are this session's, so the
-    printed numbers are the ones test_table1 checked."""
+    run leaves it: each with its job's fingerprint) runs no optimization, prints every row
+    beside the paper's and writes README.md, comparison.json and Fig. 5. The stored results
+    are this session's, so the printed numbers are the ones test_table1 checked."""
+    from flexmbs.fingerprint import job_fingerprint
     store = tmp_path / "jobs" / "optimizations"
     store.mkdir(parents=True)
     runs = TABLES[1].runs()
     for run in runs:
-        (store / f"{run.name}.json").write_text(json.dumps(optimized(run)))
+        stored = dict(optimized(run), fingerprint=job_fingerprint(optimization_job, run.job()))
+        (store / f"{run.name}.json").write_text(json.dumps(stored))
     assert main(["reproduce", "--table", "1", "--out", str(tmp_path), "--workers", "1"]) == 0
     out = capsys.readouterr().out
     assert "Table 1:" in out and out.count("paper ") >= 2

@@ -104,12 +104,12 @@ def test_fully_resume_with_more_iterations_after_a_killed_job(tmp_path):
 
 
 def test_fully_resume_with_other_start_is_refused(tmp_path):
-    """Resuming a history with another start: ModelError naming the file and the record where
-    the runs differ."""
+    """Resuming a history with another start: ModelError naming the file and the start (the
+    option x0) that differs from the history's fingerprint."""
     h = tmp_path / "h.jsonl"
     optimize_fully(_robot(), history=h, max_iterations=1)
-    with pytest.raises(ModelError, match=r"the resumed run differs from the interrupted one at "
-                                         r"record 1: iteration 0, design \[45\.0"):
+    with pytest.raises(ModelError, match=r"h\.jsonl' does not answer this run.*option x0: "
+                                         r"\[50\.0, 50\.0, 50\.0, 50\.0\] -> \[45\.0"):
         optimize_fully(_robot(), [45.0, 45.0, 45.0, 45.0], history=h, resume=True)
 
 
@@ -146,12 +146,13 @@ def test_weakly_interrupted_run_resumes_to_the_same_design(tmp_path):
 
 
 def test_weakly_resume_with_other_start_is_refused(tmp_path):
-    """Resuming a weakly coupled history from another start: ModelError naming the file's
-    start and this run's."""
+    """Resuming a weakly coupled history from another start: ModelError naming the file, the
+    file's start (the case's, 50 mm) and this run's (option x0 of the fingerprint)."""
     h = tmp_path / "w.jsonl"
     optimize_weakly(_robot(), history=h, max_cycles=1)
-    with pytest.raises(ModelError, match=r"starts from design \[50\.0, 50\.0, 50\.0, 50\.0\], "
-                                         r"this run from \[45\.0, 45\.0, 45\.0, 45\.0\]"):
+    with pytest.raises(ModelError, match=r"w\.jsonl' does not answer this run.*option x0: "
+                                         r"\[50\.0, 50\.0, 50\.0, 50\.0\] -> "
+                                         r"\[45\.0, 45\.0, 45\.0, 45\.0\]"):
         optimize_weakly(_robot(), [45.0] * 4, history=h, resume=True)
 
 

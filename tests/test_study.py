@@ -33,7 +33,11 @@ def test_shipped_study_runs_are_the_stored_reproduction():
     assert names == stored
 
 
-def _user_study(tmp_path, mass, extra=""):
+#: the paper study's options: its stored runs answer these (flexmbs.fingerprint)
+PAPER_OPTIONS = '[options]\nweakly = { max_cycles = 30 }\nfully = { optimizer = "mma" }\n'
+
+
+def _user_study(tmp_path, mass, extra="", options=""):
     (tmp_path / "published.json").write_text(json.dumps({"mine": {"t1": {
         "weakly": {"mass": mass, "iter": None, "inner_iter": None, "p": None},
         "fully": {"mass": mass, "iter": None, "inner_iter": None, "p": None}}}}))
@@ -42,7 +46,7 @@ def _user_study(tmp_path, mass, extra=""):
 [study]
 name = "mine"
 published = "published.json"
-
+{options}
 [tables.1]
 title = "my regression"
 case = "robot_2dof"
@@ -63,7 +67,7 @@ def test_user_study_checks_against_its_published_numbers(tmp_path, capsys, mass,
     out = tmp_path / "out"
     (out / "jobs").mkdir(parents=True)
     shutil.copytree(STORE, out / "jobs" / "optimizations")
-    f = _user_study(tmp_path, mass)
+    f = _user_study(tmp_path, mass, options=PAPER_OPTIONS)
     assert main(["reproduce", "--study", str(f), "--out", str(out), "--workers", "1",
                  "--no-figures"]) == status
     readme = (out / "README.md").read_text()
@@ -251,15 +255,20 @@ def test_user_study_variant_rows_and_findings(tmp_path):
     README.md and comparison.json's 'variants', its checks in the findings (2 table checks +
     2 variant checks = 4). Its result is the stored weakly coupled Table 1 run
     (docs/reproduction, 0.9586 kg, feasible: maximum deviation 0.99992 mm) stored as the
-    variant's job, so nothing is optimized; against the paper's 0.962 kg it is within 0.3 %
-    or lighter (-0.35 %), and feasible; against a published 0.95 kg it is not (+0.9 %)."""
+    variant's job (with the variant job's fingerprint), so nothing is optimized; against the
+    paper's 0.962 kg it is within 0.3 % or lighter (-0.35 %), and feasible; against a
+    published 0.95 kg it is not (+0.9 %)."""
+    from flexmbs.fingerprint import job_fingerprint
+    from flexmbs.reproduce import optimization_job
     for mass, verdict in ((0.962, "yes"), (0.95, "**no**")):
         out = tmp_path / f"out{mass}"
         (out / "jobs" / "variants").mkdir(parents=True)
         shutil.copytree(STORE, out / "jobs" / "optimizations")
-        shutil.copy(STORE / "robot_2dof-t0.65-weakly-50-50-50-50.json",
-                    out / "jobs" / "variants" / "table1-weakly-move0.1.json")
-        f = _user_study(tmp_path, mass, _VARIANT.format(more=""))
+        f = _user_study(tmp_path, mass, _VARIANT.format(more=""), options=PAPER_OPTIONS)
+        stored = json.loads((STORE / "robot_2dof-t0.65-weakly-50-50-50-50.json").read_text())
+        job = load_study(f).tables[1].variants[0].job()
+        stored["fingerprint"] = job_fingerprint(optimization_job, job)
+        (out / "jobs" / "variants" / "table1-weakly-move0.1.json").write_text(json.dumps(stored))
         assert main(["reproduce", "--study", str(f), "--out", str(out), "--workers", "1",
                      "--no-figures"]) == 0
         readme = (out / "README.md").read_text()

@@ -194,6 +194,13 @@ def check_disk_space(folder, required, what):
                             required=required, available=free)
 
 
+def stale_result(value, fp):
+    """What differs (flexmbs.fingerprint.differences) between a stored result's fingerprint
+    and `fp`; [] when it answers `fp`."""
+    from flexmbs.fingerprint import differences
+    return differences(value.get("fingerprint") if isinstance(value, dict) else None, fp)
+
+
 def _save(store, name, value):
     write_atomic(Path(store) / f"{name}.json", json.dumps(value, default=_to_json))
 
@@ -293,7 +300,7 @@ def _run_isolated(func, todo, workers, finish, start_method="spawn"):
 
 
 def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None, label="jobs",
-              retries=2, describe=None, start_method="spawn"):
+              retries=2, describe=None, start_method="spawn", fingerprints=None):
     """Run `func(**jobs[name])` for every name; return {name: result}.
 
     Parameters
@@ -311,6 +318,11 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
     store : path, optional
         Folder where each result is saved as it finishes; names already stored are not
         run again (their stored result is returned).
+    fingerprints : dict {name: fingerprint} or True, optional
+        What each job answers (flexmbs.fingerprint; True: `job_fingerprint(func, kwargs)`
+        of each job, its case read and resolved): saved in its result (a dict) under
+        'fingerprint'; a stored result whose fingerprint differs, or that has none, is not
+        reused: its job runs again, with a warning naming the file and what differs.
     progress : bool, text stream or callable, optional
         Show a progress bar (tqdm) on stderr (True; default: when stderr is a terminal), on
         a given text stream, or not (False); a callable is called as `progress(name,
@@ -355,9 +367,12 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
                          f"got {start_method!r}")
     results = {}
     todo = dict(jobs)
+    if fingerprints is True:
+        from flexmbs.fingerprint import job_fingerprint
+        fingerprints = {name: job_fingerprint(func, kw) for name, kw in jobs.items()}
     if store is not None:
         Path(store).mkdir(parents=True, exist_ok=True)
-        unreadable = []
+        unreadable, stale = [], []
         for name in list(todo):
             path = Path(store) / f"{name}.json"
             if path.exists():
@@ -365,11 +380,19 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
                 if value is None:
                     unreadable.append(str(path))
                     continue
+                if fingerprints is not None:
+                    diff = stale_result(value, fingerprints[name])
+                    if diff:
+                        stale.append(f"{path} ({'; '.join(diff)})")
+                        continue
                 results[name] = value
                 del todo[name]
         if unreadable:
             warnings.warn(f"{len(unreadable)} stored result(s) unreadable (truncated or not "
                           f"JSON), their jobs run again: {', '.join(unreadable)}", stacklevel=2)
+        if stale:
+            warnings.warn(f"{len(stale)} stored result(s) answer another question, their jobs "
+                          f"run again: {', '.join(stale)}", stacklevel=2)
     callback = progress if callable(progress) and not hasattr(progress, "write") else None
     if callback is not None:
         bar = Progress(len(jobs), label, enabled=False)
@@ -391,6 +414,8 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
         if error is not None:
             first_error = first_error or error
         else:
+            if fingerprints is not None and isinstance(value, dict):
+                value = dict(value, fingerprint=fingerprints[name])
             results[name] = value
             if store is not None:
                 _save(store, name, value)

@@ -86,9 +86,12 @@ def friendly_error(err, model=None, doc="docs/case-format.md", tags=None):
     key of `model`'s data, default a case's Description, the keys allowed in its table).
     tags: the tags of `model`'s tagged unions (default: a case's)."""
     tags = _TAGS if tags is None else tags
-    # pydantic adds the tag of a union member ('beam') or of a validator to the location
-    loc = [p for p in err["loc"] if not (isinstance(p, str) and
-                                         (p in tags or p.startswith("function-")))]
+    # pydantic adds the tag of a union member ('beam', after the item's index) or of a
+    # validator to the location; a key of the same name elsewhere (a point mass's 'mass')
+    # stays
+    raw = list(err["loc"])
+    loc = [p for k, p in enumerate(raw) if not (isinstance(p, str) and (
+        p.startswith("function-") or (p in tags and k > 0 and isinstance(raw[k - 1], int))))]
     msg = err["msg"].removeprefix("Value error, ")
     allowed = ""
     if err["type"] == "extra_forbidden":
@@ -244,8 +247,16 @@ def available_cases():
 
 def shipped_names(subfolder=""):
     """Names (stems) of the shipped .toml files of the shipped folders (or their `subfolder`)."""
-    return sorted({p.stem for folder in case_folders() if (folder / subfolder).is_dir()
-                   for p in (folder / subfolder).glob("*.toml")})
+    names = set()
+    for folder in case_folders():
+        sub = folder / subfolder if subfolder else folder
+        try:
+            # iterdir, not glob: the package's folder may be an importlib Traversable
+            names.update(p.name.removesuffix(".toml") for p in sub.iterdir()
+                         if p.name.endswith(".toml") and p.is_file())
+        except (OSError, AttributeError):        # no such folder
+            continue
+    return sorted(names)
 
 
 def case_path(name):
@@ -263,10 +274,14 @@ def shipped_path(name, kind, subfolder=""):
     p = Path(name)
     if p.is_file():
         return p
+    if p.is_dir():
+        raise CaseError(f"{kind} {str(name)!r} is a folder, not a file: give the path of a "
+                        f"{kind} file (.toml) or the name of a shipped {kind}")
     if len(p.parts) == 1:
         for folder in case_folders():
             f = folder / subfolder / f"{p.name.removesuffix('.toml')}.toml"
             if f.is_file():
                 return f
     raise CaseError(f"{kind} {str(name)!r} not found: give a path to a .toml file or one of the "
-                    f"shipped {kind}s: {', '.join(shipped_names(subfolder)) or 'none found'}")
+                    f"shipped {'studies' if kind == 'study' else kind + 's'}: "
+                    f"{', '.join(shipped_names(subfolder)) or 'none found'}")

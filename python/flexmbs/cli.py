@@ -252,9 +252,9 @@ def print_evaluation(prob, ev, source=None):
     """The summary of an Evaluation for people: design, every response, the constraints."""
     d = prob.description
     units = prob.mechanism.units
-    print(f"{d.case.name}: {d.case.description or ''}")
+    print(f"{d.case.name}: {printable(d.case.description or '')}")
     if source:
-        print(f"  case file       {source}")
+        print(f"  case file       {printable(source)}")
     if prob.variables:
         print("  design          " + ", ".join(f"{n} = {v:.5g} {u}" for n, v, u in
                                                zip(prob.variables, ev.x, units)))
@@ -383,16 +383,27 @@ def build_parser():
     return parser
 
 
+def printable(text, keep_newlines=False):
+    """Text from a file (a case's description, a study's titles), safe for a terminal: every
+    character that is not printable (escape sequences, controls, bidirectional overrides) is
+    shown escaped, e.g. '\\x1b[2J' for ESC [2J, instead of acting on the terminal."""
+    def one(c):
+        if c.isprintable() or (keep_newlines and c == "\n"):
+            return c
+        return c.encode("unicode_escape").decode("ascii")
+    return "".join(one(c) for c in str(text))
+
+
 def _one_line(exc):
     text = str(exc)
     if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
         text = f"{exc.strerror}: {exc.filename!r}"
-    return " ".join(text.split())
+    return printable(" ".join(text.split()))
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):
     """Warnings on the command line: one line each, without the source line."""
-    print(f"flexmbs: {category.__name__}: {' '.join(str(message).split())}",
+    print(f"flexmbs: {category.__name__}: {printable(' '.join(str(message).split()))}",
           file=file or sys.stderr)
 
 

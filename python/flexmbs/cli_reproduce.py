@@ -6,7 +6,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from flexmbs.cli import positive_int
+from flexmbs.cli import positive_int, printable
 from flexmbs.errors import ModelError
 from flexmbs.optimize.library import preload
 from flexmbs.report import publish
@@ -66,7 +66,7 @@ def run_reproduce(args):
                              f"{', '.join(map(str, bad))}")
     preload()      # a Ctrl-C mid-run must not land in a first import (library.preload)
     try:
-        log = lambda s: print(s, flush=True)        # noqa: E731
+        log = lambda s: print(printable(s, True), flush=True)        # noqa: E731
         report = reproduce(tables, args.out, workers=args.workers, dask=args.dask, grid=grid,
                            force=args.force, log=log, study=study)
         publish(report, figures=not args.no_figures, log=log)
@@ -91,13 +91,14 @@ def print_report(report):
     """Print every table beside the paper, the checks and where the report is."""
     for t in report.tables:
         print()
-        print(report.text(t))
+        print(printable(report.text(t), True))
     checks = [c for c in report.all_checks if c.ok is not None]
     print()
     if checks:
-        print(f"{sum(c.ok for c in checks)} of {len(checks)} findings of the paper reproduced"
-              + ("" if all(c.ok for c in checks) else "; differing: "
-                 + "; ".join(f"Table {c.table}: {c.what}" for c in checks if not c.ok)))
+        print(printable(
+            f"{sum(c.ok for c in checks)} of {len(checks)} findings of the paper reproduced"
+            + ("" if all(c.ok for c in checks) else "; differing: "
+               + "; ".join(f"Table {c.table}: {c.what}" for c in checks if not c.ok))))
     times = ", ".join(f"Table {t} {report.table_time(t):.1f} s" for t in report.row_tables)
     print(f"serial wall time of the runs: {times}")
     print("elapsed: " + ", ".join(f"{k} {v:.1f} s" for k, v in report.elapsed.items()))
@@ -136,11 +137,11 @@ def run_demo(args):
     spec = study.tables[n]
     unit = spec.units[0] if len(set(spec.units)) == 1 else ""
     start = "[" + ", ".join(f"{v:g}" for v in spec.starts[0]) + "]"
-    print(f"flexmbs demo: the paper's Table {n} ({demo.about}), weakly and fully coupled "
+    print(f"flexmbs demo: the paper's Table {n} ({printable(demo.about)}), weakly and fully coupled "
           f"optimizations from p = {start}{f' {unit}' if unit else ''}", flush=True)
     preload()
     try:
-        log = lambda s: print(s, flush=True)        # noqa: E731
+        log = lambda s: print(printable(s, True), flush=True)        # noqa: E731
         report = publish(reproduce([n], args.out, workers=args.workers, force=True, log=log,
                                    study=study), log=log)
     except KeyboardInterrupt:

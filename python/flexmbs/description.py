@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
 
 __all__ = ["Description", "Law", "Beam", "Rigid", "PointMass", "Joint", "Drive", "Load",
            "SpringDamper", "DesignVariable", "Deviation", "Mass", "Stress", "Torque", "Reaction",
@@ -37,9 +37,22 @@ __all__ = ["Description", "Law", "Beam", "Rigid", "PointMass", "Joint", "Drive",
            "TimeSettings", "Section", "MaterialSpec", "Term", "PointRef", "GROUND",
            "design_layout"]
 
-Finite = Annotated[float, Field(allow_inf_nan=False)]
-Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
-NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+
+
+def _not_bool(v):
+    """A number of a case is never a boolean (TOML's true is not 1 kg, 1 s or 1 element)."""
+    if isinstance(v, bool):
+        raise ValueError("must be a number, not a boolean")
+    return v
+
+
+#: refuses a boolean where a number is expected (pydantic would read true as 1)
+NoBool = BeforeValidator(_not_bool)
+Finite = Annotated[float, NoBool, Field(allow_inf_nan=False)]
+Positive = Annotated[float, NoBool, Field(gt=0, allow_inf_nan=False)]
+NonNegative = Annotated[float, NoBool, Field(ge=0, allow_inf_nan=False)]
+#: an integer, never a boolean
+Int = Annotated[int, NoBool]
 Name = Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z_][A-Za-z0-9_.\-]*$")]
 Pair = Annotated[list[Finite], Field(min_length=2, max_length=2)]
 #: the name that stands for the ground in a prismatic joint's bodies and a deviation's frame
@@ -67,7 +80,9 @@ class Law(_Strict):
                      beyond the period, like the paper's eq. 26)
       polynomial     sum coefficients[k] t^k
       samples        through (times, values): 'pchip' (monotone cubic, no overshoot; default)
-                     or 'cubic' (cubic spline, continuous acceleration) `interpolation`
+                     or 'cubic' (cubic spline, continuous acceleration) `interpolation`;
+                     beyond its times an error unless `extrapolate` = 'hold' (the end value)
+                     or 'linear' (on along the end tangent)
       reference      (drives only) the motion the rigid reference gives this drive when the
                      mechanism's ideal motion is prescribed by `paths`
     A rotation drive's law is added to the driven node's initial angle unless
@@ -89,10 +104,11 @@ class Law(_Strict):
     offset: Finite = 0.0
     stroke: Finite | None = None
     period: Positive | None = None
-    coefficients: list[Finite] | None = None
+    coefficients: Annotated[list[Finite], Field(min_length=1)] | None = None
     times: list[Finite] | None = None
     values: list[Finite] | None = None
     interpolation: Literal["pchip", "cubic"] = "pchip"
+    extrapolate: Literal["hold", "linear"] | None = None
     absolute: bool = False
 
     @model_validator(mode="after")
@@ -108,6 +124,8 @@ class Law(_Strict):
             raise ValueError("law type 'ramp_to_speed' needs exactly one of speed, speed_rpm")
         if self.type == "smooth_step" and not self.t1 > self.t0:
             raise ValueError(f"smooth_step: t1 = {self.t1} must be after t0 = {self.t0}")
+        if self.extrapolate is not None and self.type != "samples":
+            raise ValueError(f"extrapolate applies to a 'samples' law, not to {self.type!r}")
         if self.type == "samples":
             if len(self.times) != len(self.values) or len(self.times) < 2:
                 raise ValueError("samples: times and values need the same length, at least 2")
@@ -122,7 +140,7 @@ class MaterialSpec(_Strict):
     damping of its beams (flexmbs.Material): `damping_time` eta (s), or `damping_ratio` zeta
     at `damping_frequency` f (Hz), eta = 2 zeta / (2 pi f)."""
     E: Positive
-    nu: Annotated[float, Field(gt=-1.0, lt=0.5)]
+    nu: Annotated[float, NoBool, Field(gt=-1.0, lt=0.5)]
     rho: Positive
     damping_time: NonNegative | None = None
     damping_ratio: NonNegative | None = None
@@ -156,7 +174,7 @@ class Section(_Strict):
     shape: Literal["circle", "tube", "rectangle", "given"]
     diameter: Dimension | None = None
     thickness: Dimension | None = None
-    wall_ratio: Annotated[float, Field(gt=0, le=0.5)] | None = None
+    wall_ratio: Annotated[float, NoBool, Field(gt=0, le=0.5)] | None = None
     width: Dimension | None = None
     height: Dimension | None = None
     EA: Positive | None = None
@@ -197,8 +215,8 @@ class Beam(_Strict):
     type: Literal["beam"]
     start: Name = Field(alias="from")
     end: Name = Field(alias="to")
-    elements: Annotated[int, Field(ge=1, le=20_000)] = 2
-    order: Literal[1, 2] = 2
+    elements: Annotated[int, NoBool, Field(ge=1, le=20_000)] = 2
+    order: Annotated[Literal[1, 2], NoBool] = 2
     material: Name
     section: Section
 
@@ -295,6 +313,18 @@ class Drive(_Strict):
                 raise ValueError("drive type 'translation' takes no relative_to")
         elif self.axis is not None:
             raise ValueError("drive type 'rotation' takes no axis")
+        law = self.law
+        if law.type == "constant" and law.value != 0.0 and not (
+                self.type == "rotation" and law.absolute):
+            what = ("the change of angle from the initial one" if self.type == "rotation"
+                    else "the displacement along the axis from the initial position")
+            fix = ("absolute = true in the law to impose the angle itself, or " if
+                   self.type == "rotation" else "")
+            raise ValueError(
+                f"a constant law (value = {law.value:g}) cannot move this drive: its law is "
+                f"{what}, the law's value at t = 0 subtracted, so a constant gives no motion; "
+                f"give {fix}a law that changes with time (value = 0 holds the drive at its "
+                "initial configuration)")
         return self
 
 
@@ -347,7 +377,7 @@ class DesignVariable(_Strict):
     unit: Literal["m", "mm"] = "m"
     description: str | None = None
     per_element: bool | None = None
-    groups: Annotated[list[Annotated[list[Annotated[int, Field(ge=1)]], Field(min_length=1)]],
+    groups: Annotated[list[Annotated[list[Annotated[int, NoBool, Field(ge=1)]], Field(min_length=1)]],
                       Field(min_length=1)] | None = None
     max_step: Positive | None = None
     max_step_relative: Positive | None = None
@@ -501,7 +531,7 @@ class TimeSettings(_Strict):
     strategy newton ('auto', 'full', 'reuse': see flexmbs.simulate)."""
     t_end: Positive
     h: Positive = 5e-4
-    rho_inf: Annotated[float, Field(ge=0.0, le=1.0)] = 0.5
+    rho_inf: Annotated[float, NoBool, Field(ge=0.0, le=1.0)] = 0.5
     start: Literal["rest", "static"] = "rest"
     newton: Literal["auto", "full", "reuse"] = "auto"
     reuse_jacobian: bool | None = None      # deprecated: true is newton = "reuse", false "full"

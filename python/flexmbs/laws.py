@@ -6,7 +6,50 @@ import numpy as np
 from flexmbs.errors import ModelError
 from flexmbs.sections import real_number
 
-__all__ = ["TimeLaw", "as_law"]
+__all__ = ["TimeLaw", "as_law", "EXTRAPOLATIONS"]
+
+#: what a sampled law may be beyond its samples (TimeLaw.samples); None: an error
+EXTRAPOLATIONS = (None, "hold", "linear")
+
+
+class _Ends:
+    """A sampled law's interpolant inside its samples' span [lo, hi] and its extrapolation
+    outside (TimeLaw.samples): None refuses a time outside (ModelError), 'hold' keeps the end
+    value, 'linear' goes on along the end tangent."""
+
+    def __init__(self, t, spline, how):
+        self.lo, self.hi, self.spline, self.how = float(t[0]), float(t[-1]), spline, how
+        self.tol = 1e-9 * max(1.0, abs(self.lo), abs(self.hi))   # a grid's rounding
+        d1 = spline.derivative(1)
+        self.d1, self.d2 = d1, spline.derivative(2)
+        self.y = (float(spline(self.lo)), float(spline(self.hi)))
+        self.s = (0.0, 0.0) if how != "linear" else (float(d1(self.lo)), float(d1(self.hi)))
+
+    def _split(self, t):
+        t = np.asarray(t, float)
+        below, above = t < self.lo - self.tol, t > self.hi + self.tol
+        if self.how is None and (below.any() or above.any()):
+            bad = t[below | above].ravel()[0]
+            raise ModelError(
+                f"t = {bad:.6g} s is outside its samples' times ({self.lo:.6g} to {self.hi:.6g} s); "
+                "a sampled law is not extended beyond its table unless asked: give samples up "
+                "to the end of the run, or extrapolate = 'hold' (the end value) or 'linear' "
+                "(on along the end tangent)")
+        return t, below, above, np.clip(t, self.lo, self.hi)
+
+    def value(self, t):
+        t, below, above, tc = self._split(t)
+        out = self.spline(tc)
+        return np.where(below, self.y[0] + self.s[0] * (t - self.lo),
+                        np.where(above, self.y[1] + self.s[1] * (t - self.hi), out))
+
+    def rate(self, t):
+        t, below, above, tc = self._split(t)
+        return np.where(below, self.s[0], np.where(above, self.s[1], self.d1(tc)))
+
+    def accel(self, t):
+        t, below, above, tc = self._split(t)
+        return np.where(below | above, 0.0, self.d2(tc))
 
 
 class TimeLaw:
@@ -46,17 +89,24 @@ class TimeLaw:
                    lambda t: np.zeros(np.shape(t)), name=name)
 
     @classmethod
-    def samples(cls, t, values, name="samples", interpolation="cubic"):
+    def samples(cls, t, values, name="samples", interpolation="cubic", extrapolate=None):
         """A law through sampled values.
 
         interpolation: 'cubic' (cubic spline, not-a-knot: smooth, continuous acceleration, but
         it overshoots between samples of a step-like profile) or 'pchip' (monotone piecewise
         cubic Hermite, scipy's PchipInterpolator: no overshoot, continuous rate, acceleration
-        piecewise)."""
+        piecewise).
+        extrapolate: what the law is outside [t[0], t[-1]]: None (default: evaluating it
+        there is a ModelError naming the time and the samples' span), 'hold' (the end sample's
+        value, zero rate and acceleration) or 'linear' (on along the end's tangent: the
+        interpolant's rate at the end sample, zero acceleration)."""
         from scipy.interpolate import CubicSpline, PchipInterpolator
         if interpolation not in ("cubic", "pchip"):
             raise ModelError(f"TimeLaw.samples {name!r}: interpolation must be 'cubic' or "
                              f"'pchip', got {interpolation!r}")
+        if extrapolate not in EXTRAPOLATIONS:
+            raise ModelError(f"TimeLaw.samples {name!r}: extrapolate must be None, 'hold' or "
+                             f"'linear', got {extrapolate!r}")
         arrays = []
         for what, v in (("t", t), ("values", values)):
             try:
@@ -75,7 +125,8 @@ class TimeLaw:
             raise ModelError(f"TimeLaw.samples {name!r}: t must be strictly increasing")
         spline = (CubicSpline if interpolation == "cubic" else PchipInterpolator)(arrays[0],
                                                                                  arrays[1])
-        return cls(spline, spline.derivative(1), spline.derivative(2), name=name)
+        ends = _Ends(arrays[0], spline, extrapolate)
+        return cls(ends.value, ends.rate, ends.accel, name=name)
 
     def _eval(self, f, t, what):
         ta = np.asarray(t, float)

@@ -14,17 +14,18 @@ have at the same point.
 from __future__ import annotations
 
 import math
+import threading
 import warnings
 
 import numpy as np
 
 from flexmbs.description import (GROUND, Beam, Description, PointMass, Rigid, Section,
                                  body_points, design_layout)
-from flexmbs.errors import ModelError
+from flexmbs.errors import CaseError, ModelError
 from flexmbs.laws import TimeLaw
 from flexmbs.model import Model
 from flexmbs.sections import Circle, GivenSection, Material, Rectangle, Tube
-from flexmbs.simulate import time_steps
+from flexmbs.simulate import MAX_STEPS, time_steps
 
 __all__ = ["Mechanism", "make_law", "section_at"]
 
@@ -74,7 +75,7 @@ def make_law(spec, name="law", shift=0.0):
         return TimeLaw(p, p.deriv(1), p.deriv(2), name=name)
     if k == "samples":
         return TimeLaw.samples(spec.times, np.array(spec.values) + shift, name=name,
-                               interpolation=spec.interpolation)
+                               interpolation=spec.interpolation, extrapolate=spec.extrapolate)
     raise ModelError(f"{name}: a law of type {k!r} has no formula (it is computed from the "
                      "rigid reference)")
 
@@ -165,7 +166,12 @@ class Mechanism:
                              f"{type(description).__name__}")
         self.description = d = description
         ts = d.time
-        nsteps = max(1, int(round(ts.t_end / ts.h)))
+        ratio = ts.t_end / ts.h
+        if not math.isfinite(ratio) or ratio > MAX_STEPS:
+            raise CaseError(f"time.t_end = {ts.t_end:g} s with time.h = {ts.h:g} s is "
+                            f"{ratio:.3g} time steps, more than the core's {MAX_STEPS}: give a "
+                            "shorter t_end or a coarser h")
+        nsteps = max(1, int(round(ratio)))
         self.t_end_requested = ts.t_end
         self.h = ts.h
         self.nsteps = time_steps(nsteps * ts.h, ts.h)
@@ -184,11 +190,21 @@ class Mechanism:
         self.model, self.node = self._structure(d.case.name)
         self._reference = None
         self._initial = None
+        self._lazy = threading.RLock()     # the reference and initial state: made once
         # drives whose law is 'reference' follow the rigid reference: compute it first
         needs = any(dr.law.type == "reference" for dr in d.drives)
         self._add_constraints(self.model, reference=False,
                               motion=self.reference if needs else None)
         self.set_design(self.start)
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        del state["_lazy"]                 # a lock is not copied: the copy makes its own
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._lazy = threading.RLock()
 
     def _expand_design(self, d):
         """The design vector's components: a scalar variable is one, an element-wise one
@@ -261,7 +277,7 @@ class Mechanism:
         m = Model(name)
         node = {}
         pts = {k: np.array(v, float) for k, v in d.points.items()}
-        self.beams = []
+        beams = []
         for b in d.bodies:
             if isinstance(b, Beam):
                 mat = self.materials[b.material]
@@ -269,7 +285,7 @@ class Mechanism:
                                   section=Circle(1.0), order=b.order)
                 node[(b.name, b.start)] = body.first
                 node[(b.name, b.end)] = body.last
-                self.beams.append(b.name)
+                beams.append(b.name)
             elif isinstance(b, Rigid):
                 names = [p for p in body_points(b) if p != b.center]
                 ids = [m.add_node(*pts[p]) for p in names]
@@ -288,6 +304,7 @@ class Mechanism:
                 i = node[(b.on, b.at)]
                 m.add_point_mass(i, b.mass, b.inertia)
                 node[(b.name, b.at)] = i
+        self.beams = beams        # the same names for the reference's structure
         m.set_gravity(*d.gravity)
         for k, ld in enumerate(d.loads):
             law = make_law(ld.law, f"load {k + 1}") if ld.law is not None else None
@@ -386,23 +403,25 @@ class Mechanism:
     @property
     def reference(self):
         """The rigid reference motion on the time grid (flexmbs.kinematics.RigidMotion)."""
-        if self._reference is None:
-            from flexmbs.kinematics import assemble, rigid_reference
-            ref, _ = self._structure(self.description.case.name + " (rigid reference)")
-            self._add_constraints(ref, reference=True)
-            q0 = assemble(ref, 0.0).q
-            self._reference = rigid_reference(ref, self.t, q0=q0)
-            self.reference_model = ref
+        with self._lazy:
+            if self._reference is None:
+                from flexmbs.kinematics import assemble, rigid_reference
+                ref, _ = self._structure(self.description.case.name + " (rigid reference)")
+                self._add_constraints(ref, reference=True)
+                q0 = assemble(ref, 0.0).q
+                self.reference_model = ref
+                self._reference = rigid_reference(ref, self.t, q0=q0)
         return self._reference
 
     def initial_state(self):
         """(q0, qd0): the assembled initial configuration (loops closed by position analysis,
         every beam straight) and the rigid velocity field the drives impose at t = 0. Both are
         rigid kinematics, independent of the design: computed once per mechanism."""
-        if self._initial is None:
-            from flexmbs.kinematics import assemble, drive_velocities
-            a = assemble(self.model, 0.0)
-            self._initial = (a.q, drive_velocities(self.model, a.q, 0.0))
+        with self._lazy:
+            if self._initial is None:
+                from flexmbs.kinematics import assemble, drive_velocities
+                a = assemble(self.model, 0.0)
+                self._initial = (a.q, drive_velocities(self.model, a.q, 0.0))
         q0, qd0 = self._initial
         return q0.copy(), qd0.copy()
 
@@ -446,16 +465,27 @@ class Mechanism:
                     out[e][dim] = (float(item), -1)
         return out
 
+    def _sections(self, x):
+        """{beam name: the Section of each of its elements} for design x (user units)."""
+        x_m = self.design_values(x) * self._scale
+        return {name: [section_at(self._bodies[name].section, {k: v for k, (v, _) in vals.items()})
+                       for vals in self._element_values(self._bodies[name], x_m)]
+                for name in self.beams}
+
+    def design_model(self, x):
+        """The model of design x (user units): a copy of `model` with the design's sections
+        (Model.with_sections: the structure, its compiled arrays and KLU analysis shared),
+        `model` itself unchanged. What a simulation or a response of one design reads, so
+        that several threads may evaluate different designs of one mechanism at once."""
+        return self.model.with_sections(self._sections(x))
+
     def set_design(self, x):
-        """Set the sections of every beam for design x (user units)."""
-        x = self.design_values(x)
-        self._x = x
-        x_m = x * self._scale
-        for name in self.beams:
-            b = self._bodies[name]
-            secs = [section_at(b.section, {k: v for k, (v, _) in vals.items()})
-                    for vals in self._element_values(b, x_m)]
+        """Set the sections of every beam of `model` for design x (user units) and return
+        it. This changes the mechanism's shared model: for one thread at a time; evaluations
+        (Problem) use `design_model`, which leaves it alone."""
+        for name, secs in self._sections(x).items():
             self.model.set_element_sections(self.model.body(name), secs)
+        self._x = self.design_values(x)
         return self.model
 
     def element_property_derivatives(self, x):

@@ -251,6 +251,25 @@ class Model:
             section_properties(s, b.material)
         b.section = list(sections)
 
+    def with_sections(self, sections):
+        """A copy of this model with other sections: {beam name: list of Sections (one per
+        element, root first)}; the beams not named keep theirs. The copy shares everything
+        else with this model (nodes, elements, constraints, laws, the compiled arrays and
+        sparsity patterns with their KLU analysis, the law tables) and this model is left as
+        it is: each design's sections belong to its own copy, so several designs can be
+        simulated at once from one structure (Mechanism.design_model)."""
+        import copy
+        self.compile()                            # shared by the copies from now on
+        self.__dict__.setdefault("_law_tables", {})
+        out = copy.copy(self)
+        out.bodies = dict(self.bodies)
+        for name, secs in sections.items():
+            b = self._beam_of(name, "with_sections")
+            nb = Body(b.name, b.kind, b.nodes, b.elements, b.material, b.section)
+            out.bodies[name] = nb
+            out.set_element_sections(nb, secs)
+        return out
+
     def element_sections(self, body):
         """The section of each element of a beam."""
         b = self._beam_of(body, "element_sections")

@@ -193,6 +193,11 @@ class Problem:
         the largest that fits: `flexmbs.adjoint.checkpoint_interval`); 'auto' always
         checkpoints, every ceil(sqrt(N)) of N steps (about the least memory); K (>= 1) every
         K time points. Checkpointing costs about one more forward run.
+
+    Evaluation is re-entrant: `evaluate` and `simulate` put a design's sections into a model
+    of their own (Mechanism.design_model, sharing the structure, its compiled arrays and KLU
+    analysis), never into the problem's shared `mechanism.model`, so several threads may
+    evaluate different designs of one Problem at once and each gets its design's values.
     """
 
     def __init__(self, case, overrides=None, gradient_method="direct", checkpoints=None):
@@ -264,7 +269,7 @@ class Problem:
         `simulate`)."""
         mech = self.mechanism
         x = mech.start if x is None else mech.design_values(x)
-        model = mech.set_design(x)
+        model = mech.design_model(x)      # this call's sections: the shared model untouched
         names = list(self._resp) if responses is None else list(responses)
         diff = names if differentiate is None else list(differentiate)
         nodes = self._nodes_needed(names)
@@ -308,10 +313,16 @@ class Problem:
         as in `flexmbs.simulate`. tape=True: the discrete adjoint's forward run (every
         (sub-)step's converged state kept, Newton converged fully: flexmbs.adjoint);
         checkpoints=K instead: the full state at every K-th time point only (its segments
-        are re-run by flexmbs.adjoint.adjoint_gradient)."""
+        are re-run by flexmbs.adjoint.adjoint_gradient).
+
+        The result's `design_model` is the model of design x that was simulated
+        (Mechanism.design_model: the problem's shared model is not changed, so that several
+        threads may simulate different designs of one problem at once)."""
         model, t_end, h, kw = self._run(x, gradient, responses, store, differentiate, tape,
                                         checkpoints)
-        return simulate(model, t_end, h, **kw)
+        result = simulate(model, t_end, h, **kw)
+        result.design_model = model
+        return result
 
     def memory_estimate(self, x=None, gradient=True, *, responses=None, store=None,
                         method=None, checkpoints=_DEFAULT):
@@ -339,13 +350,16 @@ class Problem:
         return memory_estimate(model, t_end, h, **kw)
 
     # ------------------------------------------------------------------ responses
-    def _response(self, r, x, result, gradient, dprop=None):
+    def _response(self, r, x, result, gradient, dprop=None, model=None):
         """Value and gradient (or None) of response r at design x on simulation `result`;
-        dprop: mechanism.element_property_derivatives(x) when already computed (Mass)."""
+        dprop: mechanism.element_property_derivatives(x) when already computed (Mass);
+        model: the model of design x (mechanism.design_model(x)) when already made."""
         mech = self.mechanism
+        if model is None and isinstance(r, (Mass, Stress)):
+            model = mech.design_model(x)
         if isinstance(r, Mass):
             bodies = r.bodies if r.bodies is not None else mech.beams
-            m = mech.model
+            m = model
             if gradient and dprop is None:
                 dprop = mech.element_property_derivatives(x)
             props = m.element_properties()
@@ -370,12 +384,12 @@ class Problem:
         if isinstance(r, Stress):
             virtual = getattr(result, "_virtual", None)
             if gradient and virtual is not None:
-                return self._stress_partials(r, x, result, virtual)
+                return self._stress_partials(r, x, result, virtual, model)
             # the largest normal stress over the beams' elements and stations, step by step
             vals, grads = [], []
             for b in r.bodies:
                 c, dc = mech.half_depths(x, b)
-                bs = beam_stress(mech.model, result, b, dc=dc if gradient else None)
+                bs = beam_stress(model, result, b, dc=dc if gradient else None)
                 nt = bs.normal.shape[0]
                 vals.append(bs.normal.reshape(nt, -1))
                 if gradient:
@@ -396,7 +410,7 @@ class Problem:
                                   result, gradient)
         raise ModelError(f"response {r.name!r}: type {r.type!r} cannot be evaluated")
 
-    def _stress_partials(self, r, x, result, virtual):
+    def _stress_partials(self, r, x, result, virtual, model):
         """A Stress response and its partials on the adjoint's virtual columns (`virtual` =
         (number of coordinate and force columns, the chunk's column ids); coordinate column k
         is result.sens_dofs[k], the design columns follow the forces): the value at each step
@@ -408,7 +422,7 @@ class Problem:
         if cache is not None and r.name in cache:
             v, j, dloc, ddc, dofs, dcs = cache[r.name]
         else:
-            v, j, dloc, ddc, dofs, dcs = self._stress_local(r, x, result)
+            v, j, dloc, ddc, dofs, dcs = self._stress_local(r, x, result, model)
             if cache is not None:
                 cache[r.name] = (v, j, dloc, ddc, dofs, dcs)
         rows = np.arange(v.shape[0])
@@ -424,14 +438,14 @@ class Problem:
         out[:, kd[okd]] += ddc[:, None] * dcs[:, okd]
         return v[rows, j], out
 
-    def _stress_local(self, r, x, result):
+    def _stress_local(self, r, x, result, model):
         """(values, station index, its partials on its element's coordinates and half depth,
         those coordinates, dc/dp of its element) at each step of a Stress response."""
         mech = self.mechanism
         vals, dloc, ddc, dofs, dcs = [], [], [], [], []
         for b in r.bodies:
             c, dc = mech.half_depths(x, b)
-            bs = beam_stress(mech.model, result, b, local=True)
+            bs = beam_stress(model, result, b, local=True)
             nt, nel, nst = bs.normal.shape
             vals.append(bs.normal.reshape(nt, -1))
             dloc.append(bs.d_normal_local.reshape(nt, nel * nst, -1))
@@ -576,9 +590,10 @@ class Problem:
                              "problem needs a simulation")
         result = self.simulate(x, gradient=gradient, responses=timed, store=store,
                                differentiate=[n for n in timed if n in want]) if timed else None
+        model = mech.design_model(x) if result is None else result.design_model
         values, grads = {}, {}
         for name, r in self._resp.items():
-            values[name], grads[name] = self._response(r, x, result, name in want)
+            values[name], grads[name] = self._response(r, x, result, name in want, model=model)
         t = mech.t
         f = df = None
         obj = self.description.objective
@@ -713,7 +728,7 @@ class Problem:
         values, partials, grads, cache = {}, {}, {}, {}
         for name, r in self._resp.items():
             if isinstance(r, Mass):
-                values[name], grads[name] = self._response(r, x, None, True, dprop)
+                values[name], grads[name] = self._response(r, x, None, True, dprop, model)
             else:
                 partials[name] = []
                 grads[name] = np.zeros((nt, nv))
@@ -731,7 +746,8 @@ class Problem:
             vres._virtual = (nsens + nc, cols)
             vres._cache = cache
             for name in partials:
-                values[name], part = self._response(self._resp[name], x, vres, True)
+                values[name], part = self._response(self._resp[name], x, vres, True,
+                                                    model=model)
                 partials[name].append(np.asarray(part, float).reshape(nt, cols.size))
         partials = {n: np.concatenate(p, axis=1) for n, p in partials.items()}
         # the scalar responses' part, then the weights over time of every row (the rows'
@@ -781,9 +797,7 @@ class Problem:
         if obj is not None and isinstance(self._resp[obj.response], Mass):
             if values is not None and obj.response in values:
                 return float(values[obj.response])
-            self.mechanism.set_design(x)
             return float(self._response(self._resp[obj.response], x, None, False)[0])
-        self.mechanism.set_design(x)
         return float(self._response(Mass(name="mass", type="mass"), x, None, False)[0])
 
     def constrained_deviation(self, values):

@@ -11,7 +11,10 @@ is one job of `flexmbs.batch.run_batch`: local worker processes by default, a Da
 an address is given), compares the results with the published numbers and returns a `Report`;
 `flexmbs.report.publish(report)` draws the figures and writes ``out/README.md``, a report a
 reader can check without running anything. Every job's result is saved under ``out/jobs/``
-as soon as it finishes; running the same command again skips what is done. A table's
+as soon as it finishes, with the fingerprint of what it answers (flexmbs.fingerprint: its
+case as resolved, its options); running the same command again skips what is done and still
+answers the study (a job whose case file, overrides or options changed runs again, with a
+warning naming its file). A table's
 variants (extra rows with other options, or a multi-start, `flexmbs.study.Variant`) run after
 the table runs, stored under ``out/jobs/variants/``, and are reported as `VariantRow`s beside
 the published optimum of their method, with their own checks (`variant_checks`).
@@ -31,6 +34,7 @@ from __future__ import annotations
 import json
 import os
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -1045,18 +1049,22 @@ def _run_variants(variants, vstore, report, workers, address, progress, say):
     each multi-start in turn (its starts a batch of their own, each start stored in
     ``jobs/variants/NAME/``). Returns {name: result}; failures go to report.failures."""
     from flexmbs.batch import read_stored, run_batch, write_atomic
+    from flexmbs.fingerprint import job_fingerprint
+    fps = {v.name: job_fingerprint(optimization_job if v.multistart is None else multistart_job,
+                                   v.job()) for v in variants}
     report.settings["stored_variants"] = [v.name for v in variants
-                                          if read_stored(vstore / f"{v.name}.json") is not None]
+                                          if _stored(vstore / f"{v.name}.json", fps[v.name])]
     single = {v.name: v.job() for v in variants if v.multistart is None}
     out = {}
     if single:
         say(f"{len(single)} variant optimization(s); results in {vstore}")
         try:
             out.update(run_batch(optimization_job, single, workers=workers, dask=address,
-                                 store=vstore, progress=progress, label="variants"))
+                                 store=vstore, progress=progress, label="variants",
+                                 fingerprints={n: fps[n] for n in single}))
         except Exception as exc:    # noqa: BLE001 - report what finished, name what did not
             for n in single:
-                v = read_stored(vstore / f"{n}.json")
+                v = _stored(vstore / f"{n}.json", fps[n])
                 if v is not None:
                     out[n] = v
                 else:
@@ -1066,7 +1074,7 @@ def _run_variants(variants, vstore, report, workers, address, progress, say):
         if v.multistart is None:
             continue
         f = vstore / f"{v.name}.json"
-        stored = read_stored(f)
+        stored = _stored(f, fps[v.name], warn=True)
         if stored is not None:
             out[v.name] = stored
             continue
@@ -1080,10 +1088,27 @@ def _run_variants(variants, vstore, report, workers, address, progress, say):
             say(f"variant {v.name} failed: {type(exc).__name__}: {exc}")
             continue
         from flexmbs.optimize.result import jsonable
+        res = dict(res, fingerprint=fps[v.name])
         vstore.mkdir(parents=True, exist_ok=True)
         write_atomic(f, json.dumps(jsonable(res)))
         out[v.name] = res
     return out
+
+
+def _stored(path, fp, warn=False):
+    """The stored result at `path` when it answers `fp` (flexmbs.fingerprint), else None
+    (with warn=True, a warning naming the file and what differs when there is one)."""
+    from flexmbs.batch import read_stored, stale_result
+    value = read_stored(path)
+    if value is None:
+        return None
+    diff = stale_result(value, fp)
+    if diff:
+        if warn:
+            warnings.warn(f"stored result {path} answers another question ({'; '.join(diff)}): "
+                          "computed again", stacklevel=3)
+        return None
+    return value
 
 
 def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=41, maps=True,
@@ -1172,14 +1197,17 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
             f"({executor}); results in {store}")
         t0 = time.perf_counter()
         jobs = {r.name: r.job() for r in runs}
+        from flexmbs.fingerprint import job_fingerprint
+        fps = {n: job_fingerprint(optimization_job, kw) for n, kw in jobs.items()}
         report.settings["stored_runs"] = [n for n in jobs
-                                          if read_stored(store / f"{n}.json") is not None]
+                                          if _stored(store / f"{n}.json", fps[n]) is not None]
         try:
             results = run_batch(optimization_job, jobs, workers=workers, dask=address,
-                                store=store, progress=progress, label="optimizations")
+                                store=store, progress=progress, label="optimizations",
+                                fingerprints=fps)
         except Exception as exc:    # noqa: BLE001 - report what finished, name what did not
             results = {n: v for n in jobs
-                       if (v := read_stored(store / f"{n}.json")) is not None}
+                       if (v := _stored(store / f"{n}.json", fps[n])) is not None}
             for n in jobs:
                 if n not in results:
                     report.failures[n] = f"{type(exc).__name__}: {exc} (first error of the batch)"
@@ -1229,12 +1257,14 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
                 for region in REGIONS:
                     mj.update(map_jobs(spec, grid, region))
                 mstore = out / "jobs" / key
-                map_stored = sum(read_stored(mstore / f"{n}.json") is not None for n in mj)
+                mfps = {n: job_fingerprint(max_deviation_job, kw) for n, kw in mj.items()}
+                map_stored = sum(_stored(mstore / f"{n}.json", mfps[n]) is not None for n in mj)
                 say(f"Fig. {spec.figure}: {len(mj)} simulations (two {grid} x {grid} grids of "
                     f"{', '.join(spec.axes)}: the bounds' box and a zoom), results in "
                     f"{out / 'jobs' / key}")
                 res = run_batch(max_deviation_job, mj, workers=workers, dask=address,
-                                store=mstore, progress=progress, label=f"Fig. {spec.figure}")
+                                store=mstore, progress=progress, label=f"Fig. {spec.figure}",
+                                fingerprints=mfps)
                 grids = {}
                 for region in REGIONS:
                     grids[region], names, idx, h, units = _collect_map(spec, grid, res, region)

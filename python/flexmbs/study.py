@@ -19,6 +19,7 @@ from __future__ import annotations
 import functools
 import inspect
 import json
+import re
 import tomllib
 from dataclasses import dataclass, field, replace
 from importlib import resources
@@ -27,6 +28,7 @@ from typing import Annotated, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from flexmbs.description import Finite, Int, NoBool, NonNegative, Positive
 from flexmbs.errors import CaseError
 
 __all__ = ["load_study", "study_path", "Study", "TableSpec", "MapSpec", "Run", "Variant",
@@ -38,9 +40,6 @@ METHODS = ("weakly", "fully")
 DEFAULT_STUDY = "paper"
 
 Method = Literal["weakly", "fully"]
-Finite = Annotated[float, Field(allow_inf_nan=False)]
-Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
-NonNegative = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 Scalar = Union[bool, int, float, str]
 Design = Annotated[list[Finite], Field(min_length=1)]
 
@@ -148,7 +147,7 @@ class ReachedByAtLeast(_Check):
     """At least n starts of a multi-start variant reached the best design (within its
     best_tolerance), or, with rel, ended feasible at most (1 + rel) x the published mass."""
     type: Literal["reached_by_at_least"]
-    n: Annotated[int, Field(ge=1)]
+    n: Annotated[int, NoBool, Field(ge=1)]
     rel: NonNegative | None = None
 
 
@@ -180,16 +179,18 @@ class Scan(_Strict):
 
 
 Option = Union[Scalar, dict[str, Scalar]]
+#: a plain name (a file or folder under the output folder: no path)
+_PLAIN = re.compile(r"^[A-Za-z0-9_\-]+$")
 Slug = Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9_\-][A-Za-z0-9_.\-]*$")]
 
 
 class MultistartFile(_Strict):
     """`flexmbs.optimize.multistart.multistart` settings of a variant."""
-    starts: Annotated[int, Field(ge=1)] = 8
+    starts: Annotated[int, NoBool, Field(ge=1)] = 8
     optimizer: str = "nlopt-mma"
     sampler: Literal["sobol", "lhs"] = "sobol"
-    seed: Annotated[int, Field(ge=0)] = 0
-    candidates: Annotated[int, Field(ge=1)] | None = None
+    seed: Annotated[int, NoBool, Field(ge=0)] = 0
+    candidates: Annotated[int, NoBool, Field(ge=1)] | None = None
     best_tolerance: NonNegative = 0.003
 
 
@@ -222,9 +223,9 @@ class TableFile(_Strict):
 
 
 class MapFile(_Strict):
-    figure: int
-    table: int
-    step: Annotated[int, Field(ge=1)]
+    figure: Int
+    table: Int
+    step: Annotated[int, NoBool, Field(ge=1)]
     axes: Annotated[list[str], Field(min_length=2, max_length=2)]
     fixed: dict[str, Finite] = {}
     zoom: Annotated[list[Annotated[list[Finite], Field(min_length=2, max_length=2)]],
@@ -233,22 +234,22 @@ class MapFile(_Strict):
 
 class _Figure(_Strict):
     key: Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9_\-]+$")]
-    number: int
+    number: Int
 
 
 class TwoMethodsFigure(_Figure):
     """Objective history of a table's runs and the deviation history of their optima."""
     kind: Literal["two_methods"]
-    table: int
+    table: Int
     what: str
 
 
 class OscillationFigure(_Figure):
     """A non-converging run: mass and critical time per cycle, the last cycles' deviations."""
     kind: Literal["oscillation"]
-    table: int
+    table: Int
     method: Method = "weakly"
-    last: Annotated[int, Field(ge=1)] = 4
+    last: Annotated[int, NoBool, Field(ge=1)] = 4
     deviation_label: str = "deviation (mm)"
     title: str
     caption: str
@@ -257,7 +258,7 @@ class OscillationFigure(_Figure):
 class StartsFigure(_Figure):
     """Every start of a table, one row of panels per method."""
     kind: Literal["starts"]
-    table: int
+    table: Int
     title: str
     caption: str
 
@@ -265,7 +266,7 @@ class StartsFigure(_Figure):
 class StartDetailFigure(_Figure):
     """Both methods from one start of a table: mass, maximum deviation per iterate, optima."""
     kind: Literal["start_detail"]
-    table: int
+    table: Int
     start: Design
     title: str
     caption: str
@@ -283,7 +284,7 @@ _FIGURE_TAGS = ("two_methods", "oscillation", "starts", "start_detail", "map")
 
 
 class Demo(_Strict):
-    table: int
+    table: Int
     about: str
 
 
@@ -398,7 +399,7 @@ class TableSpec:
     options: tuple = ()         # ((method, ((keyword, value), ...)), ...)
     kind: str = "rows"
     heading: str = ""
-    cost: float = 1.0
+    cost: Finite = 1.0
     checks: tuple = ()
     scan: Scan | None = None
     figures: tuple = ()
@@ -511,6 +512,19 @@ def _optimizer_keywords(method):
             if p.kind == p.KEYWORD_ONLY or (p.default is not p.empty)]
 
 
+#: optimizer options a study file may not set: where a run writes (a path: no file names a
+#: file to write), how it is shown and whether it resumes are `flexmbs reproduce`'s
+NOT_STUDY_OPTIONS = ("history", "progress", "resume")
+
+
+def _refuse_run_options(options, where, source):
+    for opt in NOT_STUDY_OPTIONS:
+        if opt in options:
+            raise CaseError(f"{source}: key '{where}.{opt}': a study's runs are stored "
+                            f"by `flexmbs reproduce` (in its --out folder), got {opt} = "
+                            f"{options[opt]!r}; allowed: the optimizer's other options")
+
+
 def _check_options(options, where, source):
     for method, opts in options.items():
         allowed = _optimizer_keywords(method)
@@ -519,6 +533,7 @@ def _check_options(options, where, source):
                 raise CaseError(f"{source}: key '{where}.{method}.{k}' is not an option of the "
                                 f"{method} coupled optimizer, got {k!r}; allowed: "
                                 f"{', '.join(allowed)}")
+        _refuse_run_options(opts, f"{where}.{method}", source)
 
 
 def _resolve_case(case, folder):
@@ -605,11 +620,7 @@ def _variant(n, k, v, t, case, names, source):
             raise CaseError(f"{source}: key '{where}.options.{k}' is not an option of the "
                             f"{v.method} coupled optimizer, got {k!r}; allowed: "
                             f"{', '.join(allowed)}")
-    for opt in ("history", "progress", "resume"):
-        if opt in v.options:
-            raise CaseError(f"{source}: key '{where}.options.{opt}': a study's runs are stored "
-                            f"by `flexmbs reproduce`, got {opt} = {v.options[opt]!r}; allowed: "
-                            f"the optimizer's other options")
+    _refuse_run_options(v.options, f"{where}.options", source)
     ms = None
     if v.multistart is not None:
         from flexmbs.optimize.fully import OPTIMIZERS
@@ -686,6 +697,10 @@ def _load(path_text, text):
     maps = {}
     for key, m in f.maps.items():
         where = f"maps.{key}"
+        if not _PLAIN.match(key):
+            # its results go to OUT/jobs/KEY: a plain name, never a path out of the folder
+            raise CaseError(f"{source}: key '{where}': a map's key names its folder of "
+                            f"results: letters, digits, '_' and '-' only, got {key!r}")
         if m.table not in tables:
             raise CaseError(f"{source}: key '{where}.table': no table {m.table} "
                             f"(tables: {', '.join(map(str, tables))})")

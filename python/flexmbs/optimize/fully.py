@@ -42,6 +42,7 @@ from flexmbs.errors import ModelError
 from flexmbs.optimize.loops import (_check_stopping, _mma_settings, _Monitor, _run_mma,
                                     _run_slsqp, _run_sqp)
 from flexmbs.optimize.mma import MMA
+from flexmbs.fingerprint import fingerprint, run_options
 from flexmbs.optimize.result import OptimizationResult, open_history
 from flexmbs.optimize.verified import check_verify, finish
 from flexmbs.progress import check_progress, describe_iteration, reporter
@@ -198,7 +199,6 @@ class ScaledProblem:
 
         def grad(x):
             p = self.design(x)
-            prob.mechanism.set_design(p)
             return prob._response(r, p, None, True)[1] * self.scale / self.f_ref
         H = np.zeros((self.nv, self.nv))
         for i in range(self.nv):
@@ -492,8 +492,10 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
     flexmbs.errors.SimulationError
         If the simulation of the start fails.
     """
+    arguments = dict(locals())
+    options = run_options(arguments)      # the arguments: what a history answers
     # the options of a continuation on a finer step (flexmbs.optimize.verified)
-    options = {k: v for k, v in locals().items() if k not in ("problem", "x0", "history",
+    again = {k: v for k, v in arguments.items() if k not in ("problem", "x0", "history",
                                                                "resume", "verify")}
     from flexmbs.problem import load_problem
 
@@ -528,6 +530,7 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
         raise ModelError(f"x0: {problem.variables[i]} = {float(p0[i])!r} lies outside its "
                          f"bounds [{lo[i]:g}, {hi[i]:g}]")
     writer, own_writer = open_history(history, resume)
+    writer.check_fingerprint(fingerprint(problem.description, "fully", dict(options, x0=p0)))
     replay = []
     for rec in writer.previous:
         replay += rec.pop("evaluations", None) or []
@@ -619,5 +622,5 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
         history=list(writer.records), wall_time_s=wall, details=details,
         t=None if dev is None else np.asarray(fresh.t), deviation=dev, evaluation=fresh)
     return finish(problem, result, lambda fine, x: optimize_fully(fine, x, verify=False,
-                                                                  **options),
+                                                                  **again),
                   verify, coarse=fresh)

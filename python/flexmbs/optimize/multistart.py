@@ -239,7 +239,9 @@ def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0
         start in an infeasible basin that the optimizer cannot leave.
     workers, dask, store : as `flexmbs.batch.run_batch` (store: one JSON file per start, so
         an interrupted multi-start resumes where it stopped: starts already in the store are
-        not run again).
+        not run again, unless their fingerprint (flexmbs.fingerprint: the case as resolved,
+        the start, the optimizer and its options, the flexmbs version) differs: those run
+        again, with a warning naming their file).
     progress : bool, text stream or callable, optional
         True: a tqdm bar on stderr (starts done, best feasible objective so far); a text
         stream: that bar on the stream; a callable: called with each finished start's summary
@@ -335,8 +337,14 @@ def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0
             progress(dict(value, name=name))
     else:
         show = progress
+    # what each stored start answers: the description as resolved (overrides applied), the
+    # start, the optimizer and its options; a stored start that differs is run again
+    from flexmbs.fingerprint import fingerprint
+    fps = {name: fingerprint(problem.description, "multistart start",
+                             dict(start=job["start"], optimizer=optimizer, options=options))
+           for name, job in jobs.items()}
     out = run_batch(start_job, jobs, workers=workers, dask=dask, store=store,
-                    progress=show, label="starts", describe=best_so_far)
+                    progress=show, label="starts", describe=best_so_far, fingerprints=fps)
     optima = []
     sims = pre
     for name in jobs:

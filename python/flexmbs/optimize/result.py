@@ -28,6 +28,11 @@ resumed run replays.
 Resume (`HistoryWriter(path, resume=True)`, the optimizers' ``resume=True``): the records in
 the file are read back (`previous`), the records the resumed run makes again are checked
 against them instead of being written twice, and the run appends the rest.
+
+Fingerprint: the first record's line carries, in the file only, the fingerprint of what the
+history answers (flexmbs.fingerprint: the case description as resolved, the method and its
+options, the flexmbs version; `HistoryWriter.check_fingerprint`); a resume whose fingerprint
+differs, or from a file without one, is refused (ModelError naming what differs).
 """
 from __future__ import annotations
 
@@ -99,6 +104,7 @@ class HistoryWriter:
         self.path = None if path is None else os.fspath(path)
         self.records = []
         self.previous = []
+        self.fingerprint = None
         self.resume = bool(resume)
         if resume and os.path.exists(self.path):
             self.previous = read_history(self.path)
@@ -109,6 +115,23 @@ class HistoryWriter:
                     fh.write(json.dumps(rec) + "\n")
             mode = "a"
         self._fh = None if self.path is None else open(self.path, mode, encoding="utf-8")
+
+    def check_fingerprint(self, fp):
+        """Set the fingerprint (flexmbs.fingerprint.fingerprint) of what this history answers:
+        written with the first record; when resuming from records, the file's must be the
+        same, else ModelError naming the file and what differs (a history of another case,
+        overrides, method, options or flexmbs version is never replayed)."""
+        from flexmbs.fingerprint import differences
+        if self.previous:
+            diff = differences(self.previous[0].get("fingerprint"), fp)
+            if diff:
+                self.close()
+                raise ModelError(
+                    f"history {self.path!r} does not answer this run, so it cannot be "
+                    f"resumed: {'; '.join(diff)}. Resume with the same case, overrides, "
+                    "method and options, or start afresh without resume (or with another "
+                    "history file)")
+        self.fingerprint = fp
 
     def write(self, record, file_extra=None):
         """Store a record (dict) and append it to the file as one JSON line; `file_extra`
@@ -132,6 +155,8 @@ class HistoryWriter:
         self.records.append(rec)
         if self._fh is not None:
             line = rec if not file_extra else dict(rec, **jsonable(file_extra))
+            if k == 0 and self.fingerprint is not None:
+                line = dict(line, fingerprint=jsonable(self.fingerprint))
             self._fh.write(json.dumps(line) + "\n")
             self._fh.flush()
             os.fsync(self._fh.fileno())

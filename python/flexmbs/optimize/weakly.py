@@ -64,6 +64,7 @@ from flexmbs.description import Beam, Deviation, Mass, PointMass, Stress, body_p
 from flexmbs.errors import CaseError, ModelError
 from flexmbs.esl import (BodyStiffness, ChordFrame, EquivalentStaticLoads, TangentFrame,
                          equivalent_static_loads, esl_change, solve_static)
+from flexmbs.fingerprint import fingerprint, run_options
 from flexmbs.optimize.result import OptimizationResult, open_history
 from flexmbs.optimize.verified import check_verify, finish
 from flexmbs.optimize.cycles import (CycleControl, check_cycle_options, check_remedies,
@@ -326,7 +327,7 @@ class StaticModel:
     # ------------------------------------------------------------------ responses
     def _solutions(self, x, gradient):
         mech = self.mech
-        model = mech.set_design(x)
+        model = mech.design_model(x)
         props = model.element_properties()
         dprops = mech.element_property_derivatives(x)
         out = {}
@@ -686,8 +687,10 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         eq. (25) first held), static_optimizations, oscillation_period, esl_change,
         esl_bodies, frames, damping, esl_blend, design_tol.
     """
+    arguments = dict(locals())
+    options = run_options(arguments)      # the arguments: what a history answers
     # the options of a continuation on a finer step (flexmbs.optimize.verified)
-    options = {k: v for k, v in locals().items() if k not in ("problem", "x0", "history",
+    again = {k: v for k, v in arguments.items() if k not in ("problem", "x0", "history",
                                                                "resume", "verify")}
     t_start = time.perf_counter()
     verify = check_verify(verify)
@@ -719,6 +722,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
     mass_resp = [r for r in d.responses if isinstance(r, Mass)]
 
     writer, own_writer = open_history(history, resume)
+    writer.check_fingerprint(fingerprint(problem.description, "weakly", dict(options, x0=x)))
     prev_loads, pending, x_prev = None, None, x
     control = CycleControl(eps, confirm_cycles, max_cycles, stop_on_oscillation, design_tol)
     inner_total = n_static = 0
@@ -734,7 +738,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
             resumed = first - 1
         for cycle in range(first, max_cycles + 1):
             result, values, g_dyn, names, dev = _simulate_design(problem, x)
-            model = mech.set_design(x)
+            model = mech.design_model(x)
             loads = equivalent_static_loads(model, result, static.frames,
                                             stiffness=static.stiffness,
                                             props=model.element_properties())
@@ -843,7 +847,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         history=list(writer.records), wall_time_s=time.perf_counter() - t_start,
         details=details, t=np.asarray(mech.t), deviation=dev)
     return finish(problem, result, lambda fine, x: optimize_weakly(fine, x, verify=False,
-                                                                   **options), verify)
+                                                                   **again), verify)
 
 
 def _resume_cycles(problem, static, writer, control, progress, x0, max_cycles):
@@ -873,7 +877,7 @@ def _resume_cycles(problem, static, writer, control, progress, x0, max_cycles):
     if c > 1:
         xp = np.asarray(recs[-2]["design"], float)
         result = problem.simulate(xp, store="all")
-        model = problem.mechanism.set_design(xp)
+        model = problem.mechanism.design_model(xp)
         prev_loads = equivalent_static_loads(model, result, static.frames,
                                              stiffness=static.stiffness,
                                              props=model.element_properties())
