@@ -561,7 +561,7 @@ SINGULAR_RTOL = 1e-4
 def _newton_batch(P, z, law_val, accept, max_iter, live=None):
     """Newton on the poses of several times at once, z (K, ng, 3), law_val (nlaw, K), accepted
     residuals accept (K,), until every residual is below 1 % of its accepted one or has stopped
-    falling. The steps solve J dz = -Phi on the rows `live` when they are square (LU), else
+    falling (at its rounding level when accepted; none near a solution when not). The steps solve J dz = -Phi on the rows `live` when they are square (LU), else
     by minimum norm from the batched SVD of J W^-1/2. Returns (z, iterations, residuals (K,),
     Phi (K, nc))."""
     sw = np.sqrt(P.weight)
@@ -581,8 +581,9 @@ def _newton_batch(P, z, law_val, accept, max_iter, live=None):
         phi = constraint_values(P.rows, P.qa(z), law_val)
         new = np.max(np.abs(phi), axis=-1)
         floor = np.all(new <= accept) and np.all((new > 0.25 * res) | (new <= target))
+        stalled = np.all((new <= target) | (new > 0.9 * res))    # no solution near: stop
         res = new
-        if floor:
+        if floor or stalled:
             break
     return z, it, res, phi
 
@@ -704,7 +705,7 @@ def _advance(P, c, times, val, rate, acc, tol, max_iter, orient):
                f"Newton's residual {res[m]:.3g} above {accept[m]:.3g} after {it} iterations"
                if not conv[m] else
                f"a corrector's move of {corr[m]:.3g} m against a predicted move of "
-               f"{step[m]:.3g} m (a solution on another assembly branch)" if not near[m] else
+               f"{step[m]:.3g} m (the solution jumps: another assembly branch?)" if not near[m] else
                "a change of sign of the loop determinant (another assembly branch)")
     if m == 0:
         return 0, None, None, None, None, it, None, why
@@ -851,7 +852,7 @@ def _stuck(P, c, tk, why, hsub):
             f"cannot pass it towards t = {tk:.6g} s: the constraint Jacobian is rank-deficient "
             f"there (its smallest singular value is {ratio:.2g} of its largest, below "
             f"{SINGULAR_RTOL:g}): a dead centre, a toggle or the end of the mechanism's reach, "
-            f"where the drives do not determine the motion (last attempt: {why})")
+            f"where the drives do not determine the motion")
     return ModelError(
         f"rigid reference: the mechanism cannot follow its drives past t = {c.t:.6g} s towards "
         f"t = {tk:.6g} s, although the constraint Jacobian has full rank there (smallest "
