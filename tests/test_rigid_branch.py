@@ -27,7 +27,8 @@ SEC = Circle(0.02)
 
 
 def ramp_angle(t, speed, ramp):
-    """The case format's ramp_to_speed law: speed t^2/(2 ramp) up to ramp, then speed (t - ramp/2)."""
+    """The case format's ramp_to_speed law (docs/case-format.md): speed t^2/(2 ramp) up to
+    ramp, then speed (t - ramp/2)."""
     t = np.asarray(t, float)
     return np.where(t <= ramp, speed * t * t / (2 * ramp), speed * (t - ramp / 2))
 

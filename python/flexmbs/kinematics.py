@@ -561,9 +561,9 @@ SINGULAR_RTOL = 1e-4
 def _newton_batch(P, z, law_val, accept, max_iter, live=None):
     """Newton on the poses of several times at once, z (K, ng, 3), law_val (nlaw, K), accepted
     residuals accept (K,), until every residual is below 1 % of its accepted one or has stopped
-    falling (at its rounding level when accepted; none near a solution when not). The steps solve J dz = -Phi on the rows `live` when they are square (LU), else
-    by minimum norm from the batched SVD of J W^-1/2. Returns (z, iterations, residuals (K,),
-    Phi (K, nc))."""
+    falling (at its rounding level when accepted; none near a solution when not). The steps
+    solve J dz = -Phi on the rows `live` when they are square (LU), else by minimum norm from
+    the batched SVD of J W^-1/2. Returns (z, iterations, residuals (K,), Phi (K, nc))."""
     sw = np.sqrt(P.weight)
     K = z.shape[0]
     phi = constraint_values(P.rows, P.qa(z), law_val)
@@ -689,8 +689,9 @@ def _advance(P, c, times, val, rate, acc, tol, max_iter, orient):
     zd, zdd, full = _rates(P, z, qa, rra, J, rate[:, :n], acc[:, :n], orient)
     # each interval as a step of the continuation, predicted from its first posture
     z0 = np.concatenate([c.z[None], z[:-1]])
-    p = _taylor(z0, np.concatenate([c.zd[None], zd[:-1]]), np.concatenate([c.zdd[None], zdd[:-1]]),
-                np.diff(np.concatenate([[c.t], times])))
+    zd0 = np.concatenate([c.zd[None], zd[:-1]])
+    zdd0 = np.concatenate([c.zdd[None], zdd[:-1]])
+    p = _taylor(z0, zd0, zdd0, np.diff(np.concatenate([[c.t], times])))
     step, corr = P.move(p - z0), P.move(z - p)
     short = step <= STEP_MAX * P.length
     conv = res <= accept
@@ -705,7 +706,8 @@ def _advance(P, c, times, val, rate, acc, tol, max_iter, orient):
                f"Newton's residual {res[m]:.3g} above {accept[m]:.3g} after {it} iterations"
                if not conv[m] else
                f"a corrector's move of {corr[m]:.3g} m against a predicted move of "
-               f"{step[m]:.3g} m (the solution jumps: another assembly branch?)" if not near[m] else
+               f"{step[m]:.3g} m (the solution jumps: another assembly branch?)"
+               if not near[m] else
                "a change of sign of the loop determinant (another assembly branch)")
     if m == 0:
         return 0, None, None, None, None, it, None, why
