@@ -49,6 +49,19 @@ def freudenstein(theta2, a, b, c, d, sign):
     return 2 * np.arctan2(-qb + sign * np.sqrt(qb * qb - 4 * qa * qc), 2 * qa)
 
 
+def slider_crank(r, rod, law):
+    """Crank O-A (r, along x, pinned at O and driven by `law`), rod A-B (rod), B held on the
+    x axis. Returns the model, the crank and the rod."""
+    m = Model("slider-crank")
+    crank = m.add_beam("crank", (0.0, 0.0), (r, 0.0), 2, material=MAT, section=SEC)
+    link = m.add_beam("rod", (r, 0.0), (r + rod, 0.0), 2, material=MAT, section=SEC)
+    m.pin(crank.first)
+    m.hinge(crank.last, link.first)
+    m.prescribe_position(link.last, y=0.0)
+    m.drive_rotation(crank.first, law)
+    return m, crank, link
+
+
 def fourbar_model(a, b, c, d, theta2, sign, drive_follower=None):
     """Crank O-A, coupler A-B, follower C-B, pinned at O and C, assembled at crank angle
     theta2 on the branch `sign`; driven at the crank at 30 rad/s, or, with drive_follower =
@@ -106,13 +119,7 @@ def test_slider_crank_fast_ramp_on_branch():
     the closed form at every time to 1e-9 m, and its rate the closed form's derivative to
     1e-8 m/s."""
     r, rod, w, ramp = 0.1, 0.3, 150.0, 0.02
-    m = Model("slider-crank")
-    crank = m.add_beam("crank", (0.0, 0.0), (r, 0.0), 2, material=MAT, section=SEC)
-    link = m.add_beam("rod", (r, 0.0), (r + rod, 0.0), 2, material=MAT, section=SEC)
-    m.pin(crank.first)
-    m.hinge(crank.last, link.first)
-    m.prescribe_position(link.last, y=0.0)
-    m.drive_rotation(crank.first, TimeLaw(
+    m, _, link = slider_crank(r, rod, TimeLaw(
         lambda t: ramp_angle(t, w, ramp), lambda t: np.where(t <= ramp, w * t / ramp, w),
         lambda t: np.where(t <= ramp, w / ramp, 0.0)))
     t = np.linspace(0.0, 0.5, 201)
@@ -131,14 +138,8 @@ def test_links_after_many_turns_converge_at_rounding_level():
     tolerance), the crank driven at 40 rad/s: the analysis converges at that rounding level
     and the slider follows the closed form to 1e-9 m."""
     r, rod, th0 = 0.1, 0.3, 2 * math.pi * 1e5
-    m = Model("slider-crank")
-    crank = m.add_beam("crank", (0.0, 0.0), (r, 0.0), 2, material=MAT, section=SEC)
-    link = m.add_beam("rod", (r, 0.0), (r + rod, 0.0), 2, material=MAT, section=SEC)
-    m.pin(crank.first)
-    m.hinge(crank.last, link.first)
-    m.prescribe_position(link.last, y=0.0)
-    m.drive_rotation(crank.first, TimeLaw(lambda t: th0 + 40.0 * t, lambda t: 40.0 + 0 * t,
-                                          lambda t: 0 * t))
+    m, crank, link = slider_crank(r, rod, TimeLaw(lambda t: th0 + 40.0 * t,
+                                                  lambda t: 40.0 + 0 * t, lambda t: 0 * t))
     q0 = m.reference_coordinates()
     q0[3 * np.array(crank.nodes + link.nodes) + 2] += th0
     t = np.linspace(0.0, 0.3, 301)
@@ -220,14 +221,8 @@ def test_jumping_drive_is_not_singular():
     cannot follow its drives past that time (to 1e-6 s) although the Jacobian has full rank,
     not a singular posture."""
     r, rod = 0.1, 0.3
-    m = Model("slider-crank")
-    crank = m.add_beam("crank", (0.0, 0.0), (r, 0.0), 2, material=MAT, section=SEC)
-    link = m.add_beam("rod", (r, 0.0), (r + rod, 0.0), 2, material=MAT, section=SEC)
-    m.pin(crank.first)
-    m.hinge(crank.last, link.first)
-    m.prescribe_position(link.last, y=0.0)
-    m.drive_rotation(crank.first, TimeLaw(lambda t: np.where(t < 0.0503, t, t + 1.0),
-                                          lambda t: 1.0 + 0 * t, lambda t: 0 * t))
+    m, _, _ = slider_crank(r, rod, TimeLaw(lambda t: np.where(t < 0.0503, t, t + 1.0),
+                                           lambda t: 1.0 + 0 * t, lambda t: 0 * t))
     with pytest.raises(ModelError, match="cannot follow its drives") as err:
         rigid_reference(m, np.linspace(0.0, 0.1, 101))
     msg = str(err.value)
