@@ -600,9 +600,9 @@ def _square_solve(J, live, b):
     return x if np.all(np.isfinite(x)) else None
 
 
-def _rates(P, z, qa, rra, J, rate, acc, live=None):
-    """Pose rates zd and accelerations zdd (K, ng, 3) at poses z (K, ng, 3) (qa, rra, J: their
-    active coordinates, R(theta) r_n and Jacobian) from the law rates and accelerations
+def _rates(P, z, qa, J, rate, acc, live=None):
+    """Pose rates zd and accelerations zdd (K, ng, 3) at poses z (K, ng, 3) (qa, J: their
+    active coordinates and Jacobian) from the law rates and accelerations
     (nlaw, K): J zd = -Phi_t, J zdd = gamma - Phi_q q_zz[zd, zd]; and whether J has full column
     rank at each (K,). On the rows `live` when they are square (an inverse, its Frobenius
     condition number bounding the 2-norm one from above), else by minimum norm from the SVD."""
@@ -674,9 +674,9 @@ def _advance(P, c, times, val, rate, acc, tol, max_iter, orient):
     is tested as one step of the continuation: the Taylor predictor of the interval's first
     posture moves at most STEP_MAX of the size, the residual is accepted, the corrector's move
     from that predictor is small against the predicted move, and the loop determinant keeps
-    its sign. orient: the rows of the loop determinant (square), or None. Returns (m, z, zd,
-    zdd, full, iterations, residuals, why): the leading m times that pass, whether J has full
-    rank there, and why the next one did not ('' when all pass)."""
+    its sign, and J keeps its full rank. orient: the rows of the loop determinant (square), or
+    None. Returns (m, z, zd, zdd, iterations, residuals, why): the leading m times that pass,
+    and why the next one did not ('' when all pass)."""
     times = np.asarray(times, float)
     pred = _taylor(c.z, c.zd, c.zdd, times - c.t)
     n = max(1, _leading(P.move(pred - c.z) <= CHUNK_REACH * P.length))
@@ -686,7 +686,7 @@ def _advance(P, c, times, val, rate, acc, tol, max_iter, orient):
     qa = P.qa(z)
     rra = P.rotated(z, P.active)
     J = P.jacobian(z, qa, rra)
-    zd, zdd, full = _rates(P, z, qa, rra, J, rate[:, :n], acc[:, :n], orient)
+    zd, zdd, full = _rates(P, z, qa, J, rate[:, :n], acc[:, :n], orient)
     # each interval as a step of the continuation, predicted from its first posture
     z0 = np.concatenate([c.z[None], z[:-1]])
     zd0 = np.concatenate([c.zd[None], zd[:-1]])
@@ -698,7 +698,7 @@ def _advance(P, c, times, val, rate, acc, tol, max_iter, orient):
     near = corr <= CORRECTION_RATIO * step + CORRECTION_FLOOR * P.length
     same = np.ones(n, bool) if orient is None else \
         np.linalg.slogdet(J[:, orient, :])[0] == c.sign
-    m = _leading(short & conv & near & same)
+    m = _leading(short & conv & near & same & full)
     why = ""
     if m < n:
         why = (f"a predicted move of {step[m]:.3g} m (more than {STEP_MAX:g} of the "
@@ -708,10 +708,11 @@ def _advance(P, c, times, val, rate, acc, tol, max_iter, orient):
                f"a corrector's move of {corr[m]:.3g} m against a predicted move of "
                f"{step[m]:.3g} m (the solution jumps: another assembly branch?)"
                if not near[m] else
-               "a change of sign of the loop determinant (another assembly branch)")
+               "a change of sign of the loop determinant (another assembly branch)"
+               if not same[m] else "a posture where the constraint Jacobian loses rank")
     if m == 0:
-        return 0, None, None, None, None, it, None, why
-    return m, z[:m], zd[:m], zdd[:m], full[:m], it, res[:m], why
+        return 0, None, None, None, it, None, why
+    return m, z[:m], zd[:m], zdd[:m], it, res[:m], why
 
 
 def _singular_ratio(P, z):
@@ -731,9 +732,9 @@ def rigid_reference(model, t, q0=None, *, tol=1e-12, max_iter=20):
     on several times at once. A time is accepted only as the continuation of the last posture:
     a predicted move of at most STEP_MAX of the mechanism's size, a residual below tol times
     the model's scale or at the rounding level of its coordinates, a corrector's move small
-    against the predicted one (CORRECTION_RATIO, CORRECTION_FLOOR), and the same sign of the
-    loop determinant (when the constraint Jacobian's non-vanishing rows are square); otherwise
-    the interval is subdivided and the intermediate postures solved first (down to
+    against the predicted one (CORRECTION_RATIO, CORRECTION_FLOOR), the same sign of the loop
+    determinant (when the constraint Jacobian's non-vanishing rows are square) and a Jacobian
+    of full rank; otherwise the interval is subdivided and the intermediate postures solved first (down to
     2^-MAX_HALVINGS of a step).
 
     Returns
@@ -786,9 +787,8 @@ def rigid_reference(model, t, q0=None, *, tol=1e-12, max_iter=20):
     subs = np.zeros(nt, np.int64)
     resid = np.zeros(nt)
     z[0], its[0], resid[0] = first.z, first.iterations, first.residual
-    qa0, rra0 = P.qa(first.z[None]), P.rotated(first.z[None], P.active)
-    zd0, zdd0, _ = _rates(P, first.z[None], qa0, rra0, J0[None], rate[:, :1], acc[:, :1],
-                          orient)
+    zd0, zdd0, _ = _rates(P, first.z[None], P.qa(first.z[None]), J0[None], rate[:, :1],
+                          acc[:, :1], orient)
     zd[0], zdd[0] = zd0[0], zdd0[0]
     c = _Posture(t[0], z[0], zd[0], zdd[0], sign0)
     # chunks of times solved together (a chunk that is fast lets the next grow, one that
@@ -799,19 +799,10 @@ def rigid_reference(model, t, q0=None, *, tol=1e-12, max_iter=20):
         if hsub is None or t[k] - c.t <= hsub * (1 + 1e-9):
             idx = np.arange(k, min(k + size, nt))
             limit = max_iter if idx.size == 1 else _CHUNK_ITER
-            m, zk, zdk, zddk, full, it, res, why = _advance(
+            m, zk, zdk, zddk, it, res, why = _advance(
                 P, c, t[idx], val[:, idx], rate[:, idx], acc[:, idx], tol, limit, orient)
             if m:
                 acc_idx = idx[:m]
-                if not np.all(full):
-                    j = int(np.flatnonzero(~full)[0])
-                    sj = np.linalg.svd(P.jacobian(zk[j]) / sw, compute_uv=False)
-                    raise ModelError(
-                        f"rigid reference: the mechanism reaches a singular posture at "
-                        f"t = {t[acc_idx[j]]:.6g} s (the constraint Jacobian loses rank: "
-                        f"{int(np.sum(sj > RANK_RTOL * sj.max()))} of {rank0}, smallest "
-                        f"singular value {sj.min() / sj.max():.2g} of the largest); the drives "
-                        f"do not determine the motion there")
                 z[acc_idx], zd[acc_idx], zdd[acc_idx] = zk, zdk, zddk
                 its[acc_idx], resid[acc_idx] = it, res
                 its[k] += pending
@@ -829,7 +820,7 @@ def rigid_reference(model, t, q0=None, *, tol=1e-12, max_iter=20):
         else:
             ts = c.t + hsub
             lv, lr, la = law_tables(model, [ts])
-            m, zk, zdk, zddk, full, it, res, why = _advance(
+            m, zk, zdk, zddk, it, res, why = _advance(
                 P, c, np.array([ts]), lv, lr, la, tol, max_iter, orient)
             pending += it
             if m:
