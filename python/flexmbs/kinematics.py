@@ -54,6 +54,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from functools import cached_property
+from typing import NamedTuple
 
 import numpy as np
 
@@ -654,10 +655,55 @@ class _Posture:
     sign: float
 
 
+class _Step(NamedTuple):
+    """What `_advance` solved: the leading m times that pass (poses and their rates, Newton
+    iterations, residuals), why the next one did not ('' when all pass), and, when the first
+    step alone is too long, its predicted move over the longest allowed (else 0)."""
+    m: int
+    z: np.ndarray
+    zd: np.ndarray
+    zdd: np.ndarray
+    iterations: int
+    residual: np.ndarray
+    why: str
+    over: float
+
+
 def _leading(ok):
     """Number of leading True values of a 1-D boolean array."""
     bad = np.flatnonzero(~ok)
     return int(bad[0]) if bad.size else int(ok.size)
+
+
+def _step_length(P, c):
+    """The time step over which the Taylor predictor of the posture c moves the mechanism by
+    0.7 STEP_MAX of its size (from the moves v, a of its velocities and accelerations:
+    v tau + a tau^2 / 2 = S), or inf when it stands still."""
+    v, a = float(P.move(c.zd)), float(P.move(c.zdd))
+    goal = 0.7 * STEP_MAX * P.length
+    root = v + math.sqrt(v * v + 2 * a * goal)
+    return 2 * goal / root if root > 0 else math.inf
+
+
+def _chunk_times(t, k, t0, hs, size):
+    """Up to `size` times after t0: the grid times t[k], t[k+1], ..., each interval (from t0,
+    then between grid times) divided into equal substeps of at most hs. Returns the times, the
+    grid index each leads to (owner) and which are grid times."""
+    out, owner, grid = [], [], []
+    prev = t0
+    for j in range(k, t.size):
+        pieces = 1 if math.isinf(hs) else max(1, math.ceil((t[j] - prev) / hs - 1e-6))
+        take = min(pieces, size - len(out))
+        pts = prev + (t[j] - prev) * np.arange(1, take + 1) / pieces
+        if take == pieces:
+            pts[-1] = t[j]
+        out.extend(pts)
+        owner.extend([j] * take)
+        grid.extend([False] * (pieces - 1) + [True] if take == pieces else [False] * take)
+        prev = t[j]
+        if len(out) >= size:
+            break
+    return np.array(out), np.array(owner, np.int64), np.array(grid, bool)
 
 
 def _taylor(z, zd, zdd, tau):
@@ -675,11 +721,14 @@ def _advance(P, c, times, val, rate, acc, tol, max_iter, orient):
     posture moves at most STEP_MAX of the size, the residual is accepted, the corrector's move
     from that predictor is small against the predicted move, and the loop determinant keeps
     its sign, and J keeps its full rank. orient: the rows of the loop determinant (square), or
-    None. Returns (m, z, zd, zdd, iterations, residuals, why): the leading m times that pass,
-    and why the next one did not ('' when all pass)."""
+    None. Returns a _Step."""
     times = np.asarray(times, float)
     pred = _taylor(c.z, c.zd, c.zdd, times - c.t)
-    n = max(1, _leading(P.move(pred - c.z) <= CHUNK_REACH * P.length))
+    reach = P.move(pred - c.z)
+    if reach[0] > STEP_MAX * P.length:          # the first step is too long: no Newton
+        return _Step(0, None, None, None, 0, None, _too_long(P, reach[0]),
+                     reach[0] / (STEP_MAX * P.length))
+    n = _leading(reach <= CHUNK_REACH * P.length)
     times, pred, val = times[:n], pred[:n], val[:, :n]
     accept = _accepted(P, P.qa(pred), val, tol)
     z, it, res, _ = _newton_batch(P, pred, val, accept, max_iter, orient)
@@ -701,8 +750,7 @@ def _advance(P, c, times, val, rate, acc, tol, max_iter, orient):
     m = _leading(short & conv & near & same & full)
     why = ""
     if m < n:
-        why = (f"a predicted move of {step[m]:.3g} m (more than {STEP_MAX:g} of the "
-               f"mechanism's size {P.length:.3g} m)" if not short[m] else
+        why = (_too_long(P, step[m]) if not short[m] else
                f"Newton's residual {res[m]:.3g} above {accept[m]:.3g} after {it} iterations"
                if not conv[m] else
                f"a corrector's move of {corr[m]:.3g} m against a predicted move of "
@@ -711,8 +759,13 @@ def _advance(P, c, times, val, rate, acc, tol, max_iter, orient):
                "a change of sign of the loop determinant (another assembly branch)"
                if not same[m] else "a posture where the constraint Jacobian loses rank")
     if m == 0:
-        return 0, None, None, None, it, None, why
-    return m, z[:m], zd[:m], zdd[:m], it, res[:m], why
+        return _Step(0, None, None, None, it, None, why, 0.0)
+    return _Step(m, z[:m], zd[:m], zdd[:m], it, res[:m], why, 0.0)
+
+
+def _too_long(P, step):
+    return (f"a predicted move of {step:.3g} m (more than {STEP_MAX:g} of the mechanism's size "
+            f"{P.length:.3g} m)")
 
 
 def _singular_ratio(P, z):
@@ -791,46 +844,47 @@ def rigid_reference(model, t, q0=None, *, tol=1e-12, max_iter=20):
                           acc[:, :1], orient)
     zd[0], zdd[0] = zd0[0], zdd0[0]
     c = _Posture(t[0], z[0], zd[0], zdd[0], sign0)
-    # chunks of times solved together (a chunk that is fast lets the next grow, one that
-    # stops early sets the next's size); a time that fails alone is approached by substeps of
-    # hsub, halved on failure, until the remaining interval is at most hsub
-    k, size, hsub, pending = 1, 2, None, 0
+    # chunks of up to `size` times solved together: the grid's, each interval divided into
+    # substeps no longer than the predictor's reach (`_step_length`) and than hs, where steps
+    # that long failed (a chunk that passes easily lets the next grow and hs double, one that
+    # stops early sets the next's size; a first step that fails alone shrinks hs)
+    dtmax = float(np.max(np.diff(t))) if nt > 1 else 0.0
+    k, size, hs, pending = 1, 2, math.inf, 0
     while k < nt:
-        if hsub is None or t[k] - c.t <= hsub * (1 + 1e-9):
-            idx = np.arange(k, min(k + size, nt))
-            limit = max_iter if idx.size == 1 else _CHUNK_ITER
-            m, zk, zdk, zddk, it, res, why = _advance(
-                P, c, t[idx], val[:, idx], rate[:, idx], acc[:, idx], tol, limit, orient)
-            if m:
-                acc_idx = idx[:m]
-                z[acc_idx], zd[acc_idx], zdd[acc_idx] = zk, zdk, zddk
-                its[acc_idx], resid[acc_idx] = it, res
-                its[k] += pending
-                pending = 0
-                c = _Posture(t[idx[m - 1]], zk[-1], zdk[-1], zddk[-1], sign0)
-                k += m
-                hsub = None
-                size = min(2 * size, _CHUNK_MAX) if (m == idx.size and it <= 3) else max(m, 1)
-                continue
-            pending += it
-            if idx.size > 1:
-                size = 1
-                continue
-            hsub = 0.5 * (t[k] - c.t)
+        times, owner, grid = _chunk_times(t, k, c.t, min(hs, _step_length(P, c)), size)
+        if grid.all():
+            lv, lr, la = val[:, owner], rate[:, owner], acc[:, owner]
         else:
-            ts = c.t + hsub
-            lv, lr, la = law_tables(model, [ts])
-            m, zk, zdk, zddk, it, res, why = _advance(
-                P, c, np.array([ts]), lv, lr, la, tol, max_iter, orient)
-            pending += it
-            if m:
-                c = _Posture(ts, zk[0], zdk[0], zddk[0], sign0)
-                subs[k] += 1
-                continue
-            hsub *= 0.5
-        span = t[k] - t[k - 1]
-        if hsub < max(span * 2.0 ** -MAX_HALVINGS, 16 * np.finfo(float).eps * abs(t[k])):
-            raise _stuck(P, c, t[k], why, hsub)
+            lv, lr, la = law_tables(model, times)
+            for tab, full in ((lv, val), (lr, rate), (la, acc)):
+                tab[:, grid] = full[:, owner[grid]]
+        st = _advance(P, c, times, lv, lr, la, tol, max_iter if times.size == 1 else _CHUNK_ITER,
+                      orient)
+        pending += st.iterations
+        if st.m:
+            m = st.m
+            c = _Posture(times[m - 1], st.z[-1], st.zd[-1], st.zdd[-1], sign0)
+            np.add.at(subs, owner[:m][~grid[:m]], 1)
+            done = owner[:m][grid[:m]]
+            if done.size:
+                z[done], zd[done], zdd[done] = (st.z[grid[:m]], st.zd[grid[:m]],
+                                                st.zdd[grid[:m]])
+                its[done], resid[done] = st.iterations, st.residual[grid[:m]]
+                its[done[0]] += pending - st.iterations
+                pending = 0
+                k = int(done[-1]) + 1
+            if m == times.size and st.iterations <= 3:
+                size = min(2 * size, _CHUNK_MAX)
+                hs = math.inf if 2 * hs > dtmax else 2 * hs
+            elif m < times.size:
+                size = m
+            continue
+        if times.size > 1:                      # a chunk's first time: alone, then substeps
+            size = 1
+            continue
+        hs = (times[0] - c.t) / max(2.0, 2.0 * st.over)
+        if hs < max((t[k] - t[k - 1]) * 2.0 ** -MAX_HALVINGS, 16 * np.finfo(float).eps * abs(t[k])):
+            raise _stuck(P, c, t[k], st.why, hs)
     return RigidMotion(t=t, z=z, zd=zd, zdd=zdd, groups=P.groups, iterations=its,
                        residual=resid, substeps=subs, poses=P)
 
