@@ -17,12 +17,17 @@ identically.
   every row, nearest in the node positions (Gauss-Newton steps of minimum norm in the metric
   n_g |dc|^2 + sum_n |r_n|^2 dtheta^2, which is the nodes' squared displacement to second
   order; lstsq, so consistent redundant rows do no harm).
-- `rigid_reference` is the position analysis on a time grid: Newton at each time from a
-  quadratic extrapolation of the previous solutions, then velocities J zd = -Phi_t and
-  accelerations J zdd = gamma - Phi_q q_zz[zd, zd] at every time at once (batched SVD). It
-  works on the poses and on the coordinates of the nodes the constraint rows use only, so its
-  cost does not grow with the number of elements; the other nodes follow from the poses by
-  rigid transforms when asked (`RigidMotion.coordinates`, or every node: `RigidMotion.q`).
+- `rigid_reference` is the position, velocity and acceleration analysis on a time grid, by
+  continuation on the assembly branch of the first time: from each solved posture, with its
+  velocities J zd = -Phi_t and accelerations J zdd = gamma - Phi_q q_zz[zd, zd], the Taylor
+  predictor z + tau zd + tau^2/2 zdd, Newton on several times at once (batched LU on the
+  square rows, batched SVD otherwise), and each interval tested as a step of the continuation
+  (a short predicted move, a corrector's move small against it, the loop determinant's sign
+  kept); an interval that fails is subdivided. It stops only at a singular posture (the
+  Jacobian's rank deficiency is in the error) or at a drive law that jumps. It works on the
+  poses and on the coordinates of the nodes the constraint rows use only, so its cost does
+  not grow with the number of elements; the other nodes follow from the poses by rigid
+  transforms when asked (`RigidMotion.coordinates`, or every node: `RigidMotion.q`).
 - `drive_velocities` is the rigid-body velocity field the drives impose at one state (for a
   start from rest of a moving mechanism).
 
@@ -49,6 +54,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from functools import cached_property
+from typing import NamedTuple
 
 import numpy as np
 
@@ -61,6 +67,9 @@ __all__ = ["rigid_groups", "assemble", "Assembly", "rigid_reference", "RigidMoti
 
 #: relative singular value below which J is taken as rank-deficient
 RANK_RTOL = 1e-9
+#: a residual at the rounding level of the coordinates is converged: ROUNDING machine epsilons
+#: of the largest coordinate or law value (a link after 10^4 turns, at 6.3e4 rad: 9e-10)
+ROUNDING = 64
 
 
 def rigid_groups(model):
@@ -197,6 +206,17 @@ class _Poses:
         out = np.stack([-w * w * rr[..., 0], -w * w * rr[..., 1], 0.0 * w], axis=-1)
         return out.reshape(out.shape[:-2] + (-1,))
 
+    def move(self, dz):
+        """The displacement (m) of pose changes dz (..., ng, 3), (...,): the largest over the
+        groups of the root-mean-square displacement of a group's nodes (in the metric of
+        `weight`; a lone node turns as if it carried an arm of 10 % of the model)."""
+        dz = np.asarray(dz, float)
+        if not self.ng:
+            return np.zeros(dz.shape[:-2])
+        arm2 = self.weight[2::3] / self.count
+        return np.sqrt(np.max(dz[..., 0] ** 2 + dz[..., 1] ** 2 + arm2 * dz[..., 2] ** 2,
+                              axis=-1))
+
     def jacobian(self, z, qa=None, rra=None):
         """J = Phi_q dq/dz, (..., nc, 3 ng), at poses z (..., ng, 3); qa, rra: the active
         nodes' coordinates and R(theta) r_n when already known."""
@@ -261,6 +281,16 @@ def _lstsq(a, b):
     return np.linalg.lstsq(a, b, rcond=None)[0]
 
 
+def _accepted(P, qa, law_val, tol):
+    """Residual (K,) accepted at the active coordinates qa (K, 3 nactive) and law values
+    law_val (nlaw, K): tol times the model's scale, or the rounding level of the largest
+    coordinate or law value (angles grow without bound under a turning crank)."""
+    mag = np.max(np.abs(qa), axis=-1, initial=0.0)
+    if law_val.size:
+        mag = np.maximum(mag, np.max(np.abs(law_val), axis=0))
+    return np.maximum(tol * P.scale, ROUNDING * np.finfo(float).eps * mag)
+
+
 def _worst_rows(model, phi, k=3):
     order = np.argsort(-np.abs(phi))[:k]
     return "; ".join(f"'{model.row_label(int(r))}' ({phi[r]:+.3g})" for r in order
@@ -304,8 +334,10 @@ def _nearest_assembly(P, z, qg, zg, law_val, tol, max_iter):
     nz = 3 * ng
     it = 0
     while True:
-        phi = constraint_values(P.rows, P.qa(z), law_val)
+        qa = P.qa(z)
+        phi = constraint_values(P.rows, qa, law_val)
         res = float(np.max(np.abs(phi))) if phi.size else 0.0
+        accept = float(_accepted(P, qa[None], law_val[:, None], tol)[0])
         rr = P.rotated(z)
         pos = z[gi, :2] + rr
         # objective residual and its Jacobian on the poses
@@ -322,18 +354,18 @@ def _nearest_assembly(P, z, qg, zg, law_val, tol, max_iter):
         sol = _lstsq(kkt, np.concatenate([A.T @ b, -phi]))
         step = sol[:nz]
         move = float(np.max(np.abs(A[:2 * nn] @ step))) if nn else 0.0
-        if (res <= tol * P.scale and move <= tol * P.scale) or it >= max_iter:
+        if (res <= accept and move <= accept) or it >= max_iter:
             return z, it, res, phi
         # damping: halve a step that makes the constraint residual grow a lot
         lam = 1.0
         for _ in range(30):
             znew = z + lam * step.reshape(-1, 3)
             rn = float(np.max(np.abs(constraint_values(P.rows, P.qa(znew), law_val)))) if nc else 0.0
-            if rn <= max(2 * res, tol * P.scale) or lam < 1e-6:
+            if rn <= max(2 * res, accept) or lam < 1e-6:
                 break
             lam *= 0.5
         it += 1
-        if lam * move <= 1e-15 * P.scale and res > tol * P.scale:
+        if lam * move <= 1e-15 * P.scale and res > accept:
             return znew, it, rn, constraint_values(P.rows, P.qa(znew), law_val)  # stalled
         z = znew
 
@@ -355,7 +387,9 @@ def assemble(model, t=0.0, q=None, *, tol=1e-12, max_iter=50):
     q : (ndof,) array, optional
         Approximate coordinates (default: the reference).
     tol : float
-        Convergence: max |Phi| <= tol * max(1, largest |x|, |y| of the reference).
+        Convergence: max |Phi| <= tol * max(1, largest |x|, |y| of the reference), or at the
+        rounding level of the coordinates (ROUNDING machine epsilons of the largest coordinate
+        or law value: an angle of many turns).
     max_iter : int
 
     Returns
@@ -383,7 +417,7 @@ def assemble(model, t=0.0, q=None, *, tol=1e-12, max_iter=50):
     val, _, _ = _law_at(model, t)
     z0 = P.fit(qg)
     z, it, res, phi = _nearest_assembly(P, z0.copy(), qg, z0, val, tol, max_iter)
-    if not res <= tol * P.scale:
+    if not res <= _accepted(P, P.qa(z)[None], val[:, None], tol)[0]:
         raise ModelError(f"assemble: the constraints cannot be satisfied at t = {t:.6g} s with "
                          f"rigid bodies (max |Phi| = {res:.3g} after {it} iterations); largest "
                          f"residuals: {_worst_rows(model, phi)}")
@@ -428,7 +462,10 @@ class RigidMotion:
     """The rigid reference on a time grid (see `rigid_reference`).
 
     t : (nt,); z, zd, zdd : (nt, ngroups, 3) group poses and their rates; groups : the node
-    groups; iterations : (nt,) Newton iterations per time; residual : (nt,) max |Phi|.
+    groups; iterations : (nt,) Newton iterations spent on each time (the chunk that solved it,
+    with the attempts and substeps since the previous time); residual : (nt,) max |Phi|;
+    substeps : (nt,) intermediate postures the continuation solved between the previous time
+    and this one.
 
     The node histories follow from the poses by rigid transforms: `coordinates(dofs, rate)`
     gives those of some coordinates (cost and memory nt x len(dofs); the last
@@ -448,6 +485,7 @@ class RigidMotion:
     groups: list
     iterations: np.ndarray
     residual: np.ndarray
+    substeps: np.ndarray = None
     poses: object = field(default=None, repr=False)
     _memo: dict = field(default_factory=dict, init=False, repr=False)
 
@@ -503,54 +541,255 @@ class RigidMotion:
 
 _CHUNK_ITER, _CHUNK_MAX = 6, 64
 
+#: continuation of the rigid reference (`rigid_reference`), each step from a solved posture:
+#: the Taylor predictor moves the mechanism by at most STEP_MAX times its size
+#: (`_Poses.length`), and the corrector by at most CORRECTION_RATIO times the predicted move
+#: plus CORRECTION_FLOOR times the size (the predictor's error falls 8-fold when its step is
+#: halved, while a move to another assembly branch is the distance between the branches,
+#: whatever the step)
+STEP_MAX = 0.2
+CORRECTION_RATIO, CORRECTION_FLOOR = 0.1, 1e-4
+#: Newton solves at once the times of a chunk whose predictor from the last posture moves the
+#: mechanism by at most CHUNK_REACH of its size (each interval is then tested as a step)
+CHUNK_REACH = 2.0
+#: an interval of the time grid is subdivided down to 2^-MAX_HALVINGS of its length
+MAX_HALVINGS = 40
+#: a posture where the continuation stops is singular if the constraint Jacobian's smallest
+#: singular value is below SINGULAR_RTOL of its largest (2^-40 of a step from a dead centre,
+#: where it vanishes like the square root of the distance, it is ~1e-6)
+SINGULAR_RTOL = 1e-4
 
-def _extrapolate(t, z, k, idx):
-    """Guess of the poses at times t[idx] from the solutions z[:k] (quadratic extrapolation of
-    the last three, linear from two, constant from one)."""
-    tk = t[idx][:, None, None]
-    if k >= 3:
-        t0, t1, t2 = t[k - 3], t[k - 2], t[k - 1]
-        l0 = (tk - t1) * (tk - t2) / ((t0 - t1) * (t0 - t2))
-        l1 = (tk - t0) * (tk - t2) / ((t1 - t0) * (t1 - t2))
-        l2 = (tk - t0) * (tk - t1) / ((t2 - t0) * (t2 - t1))
-        return l0 * z[k - 3] + l1 * z[k - 2] + l2 * z[k - 1]
-    if k == 2:
-        return z[1] + (z[1] - z[0]) * (tk - t[1]) / (t[1] - t[0])
-    return np.broadcast_to(z[0], (idx.size,) + z.shape[1:]).copy()
 
-
-def _newton_batch(P, z, law_val, tol, max_iter):
-    """Newton on the poses of several times at once, z (K, ng, 3), law_val (nlaw, K): minimum
-    norm steps from the batched SVD of J W^-1/2. Returns (z, iterations, residuals (K,),
-    Phi (K, nc))."""
+def _newton_batch(P, z, law_val, accept, max_iter, live=None):
+    """Newton on the poses of several times at once, z (K, ng, 3), law_val (nlaw, K), accepted
+    residuals accept (K,), until every residual is below 1 % of its accepted one or has stopped
+    falling (at its rounding level when accepted; none near a solution when not). The steps
+    solve J dz = -Phi on the rows `live` when they are square (LU), else by minimum norm from
+    the batched SVD of J W^-1/2. Returns (z, iterations, residuals (K,), Phi (K, nc))."""
     sw = np.sqrt(P.weight)
     K = z.shape[0]
     phi = constraint_values(P.rows, P.qa(z), law_val)
     res = np.max(np.abs(phi), axis=-1) if phi.shape[-1] else np.zeros(K)
     it = 0
-    target = 0.01 * tol * P.scale
+    target = 0.01 * accept
     while it < max_iter and np.any(res > target):
         it += 1
-        u, s, vt = np.linalg.svd(P.jacobian(z) / sw, full_matrices=False)
-        rtol = RANK_RTOL * s.max(axis=-1)
-        z = z + (_svd_solve(u, s, vt, -phi, rtol) / sw).reshape(z.shape)
+        J = P.jacobian(z)
+        dz = _square_solve(J, live, -phi)
+        if dz is None:
+            u, s, vt = np.linalg.svd(J / sw, full_matrices=False)
+            dz = _svd_solve(u, s, vt, -phi, RANK_RTOL * s.max(axis=-1)) / sw
+        z = z + dz.reshape(z.shape)
         phi = constraint_values(P.rows, P.qa(z), law_val)
         new = np.max(np.abs(phi), axis=-1)
-        floor = np.all(new <= tol * P.scale) and np.all((new > 0.25 * res) | (new <= target))
+        floor = np.all(new <= accept) and np.all((new > 0.25 * res) | (new <= target))
+        stalled = np.all((new <= target) | (new > 0.9 * res))    # no solution near: stop
         res = new
-        if floor:
+        if floor or stalled:
             break
     return z, it, res, phi
+
+
+def _square_solve(J, live, b):
+    """Solutions of J[:, live] x = b[:, live] (K systems) by LU when `live` is given and every
+    system is regular, else None."""
+    if live is None:
+        return None
+    try:
+        x = np.linalg.solve(J[:, live, :], b[:, live, None])[..., 0]
+    except np.linalg.LinAlgError:
+        return None
+    return x if np.all(np.isfinite(x)) else None
+
+
+def _rates(P, z, qa, J, rate, acc, live=None):
+    """Pose rates zd and accelerations zdd (K, ng, 3) at poses z (K, ng, 3) (qa, J: their
+    active coordinates and Jacobian) from the law rates and accelerations
+    (nlaw, K): J zd = -Phi_t, J zdd = gamma - Phi_q q_zz[zd, zd]; and whether J has full column
+    rank at each (K,). On the rows `live` when they are square (an inverse, its Frobenius
+    condition number bounding the 2-norm one from above), else by minimum norm from the SVD."""
+    sw = np.sqrt(P.weight)
+    K, nz = z.shape[0], J.shape[-1]
+    inv = None
+    if live is not None:
+        try:
+            inv = np.linalg.inv(J[:, live, :])
+        except np.linalg.LinAlgError:
+            inv = None
+    if inv is not None and np.all(np.isfinite(inv)):
+        cond = np.linalg.norm(J[:, live, :] / sw, axis=(1, 2)) * \
+            np.linalg.norm(inv * sw[:, None], axis=(1, 2))
+        full = cond * RANK_RTOL < 1.0
+        if not np.all(full):           # the bound is not sharp: the singular values decide
+            s = np.linalg.svd(J[~full] / sw, compute_uv=False)
+            full[~full] = s.min(axis=-1) > RANK_RTOL * s.max(axis=-1)
+
+        def solve(b):
+            return np.einsum("kij,kj->ki", inv, b[:, live])
+    else:
+        u, s, vt = np.linalg.svd(J / sw, full_matrices=False)
+        smax = s.max(axis=-1, initial=0.0)
+        full = np.sum(s > RANK_RTOL * smax[:, None], axis=-1) >= nz
+
+        def solve(b):
+            return _svd_solve(u, s, vt, b, RANK_RTOL * smax) / sw
+    zd = solve(-constraint_rate(P.rows, rate)).reshape(z.shape)
+    qda = P.qd(z, zd, P.active)
+    gamma = acceleration_rhs(P.rows, qa, qda, acc)
+    cen = P.centripetal(z, zd, P.active)
+    _, _, pq = jacobian_entries(P.rows, qa)                         # Phi_q entries (K, nent)
+    r_idx, node, comp, _ = P._entries
+    pqc = np.zeros((K, P.rows.nc))
+    np.add.at(pqc.T, r_idx, (pq * cen[:, 3 * node + comp]).T)
+    zdd = solve(gamma - pqc).reshape(z.shape)
+    return zd, zdd, full
+
+
+@dataclass
+class _Posture:
+    """A solved posture of the continuation: time, poses and their rates, and the sign of the
+    loop determinant (det of the Jacobian's non-vanishing rows; 0 when not square)."""
+    t: float
+    z: np.ndarray
+    zd: np.ndarray
+    zdd: np.ndarray
+    sign: float
+
+
+class _Step(NamedTuple):
+    """What `_advance` solved: the leading m times that pass (poses and their rates, Newton
+    iterations, residuals), why the next one did not ('' when all pass), and, when the first
+    step alone is too long, its predicted move over the longest allowed (else 0)."""
+    m: int
+    z: np.ndarray
+    zd: np.ndarray
+    zdd: np.ndarray
+    iterations: int
+    residual: np.ndarray
+    why: str
+    over: float
+
+
+def _leading(ok):
+    """Number of leading True values of a 1-D boolean array."""
+    bad = np.flatnonzero(~ok)
+    return int(bad[0]) if bad.size else int(ok.size)
+
+
+def _step_length(P, c):
+    """The time step over which the Taylor predictor of the posture c moves the mechanism by
+    0.7 STEP_MAX of its size (from the moves v, a of its velocities and accelerations:
+    v tau + a tau^2 / 2 = S), or inf when it stands still."""
+    v, a = float(P.move(c.zd)), float(P.move(c.zdd))
+    goal = 0.7 * STEP_MAX * P.length
+    root = v + math.sqrt(v * v + 2 * a * goal)
+    return 2 * goal / root if root > 0 else math.inf
+
+
+def _chunk_times(t, k, t0, hs, size):
+    """Up to `size` times after t0: the grid times t[k], t[k+1], ..., each interval (from t0,
+    then between grid times) divided into equal substeps of at most hs. Returns the times, the
+    grid index each leads to (owner) and which are grid times."""
+    out, owner, grid = [], [], []
+    prev = t0
+    for j in range(k, t.size):
+        pieces = 1 if math.isinf(hs) else max(1, math.ceil((t[j] - prev) / hs - 1e-6))
+        take = min(pieces, size - len(out))
+        pts = prev + (t[j] - prev) * np.arange(1, take + 1) / pieces
+        if take == pieces:
+            pts[-1] = t[j]
+        out.extend(pts)
+        owner.extend([j] * take)
+        grid.extend([False] * (pieces - 1) + [True] if take == pieces else [False] * take)
+        prev = t[j]
+        if len(out) >= size:
+            break
+    return np.array(out), np.array(owner, np.int64), np.array(grid, bool)
+
+
+def _taylor(z, zd, zdd, tau):
+    """The Taylor predictor z + tau zd + tau^2/2 zdd (poses (..., ng, 3), tau (...,))."""
+    tau = np.asarray(tau, float)[..., None, None]
+    return z + tau * zd + 0.5 * tau * tau * zdd
+
+
+def _advance(P, c, times, val, rate, acc, tol, max_iter, orient):
+    """Continue from the posture c to the ascending times (all after c.t), law tables
+    (nlaw, K) on them. Newton solves every time at once from the Taylor predictor of c (the
+    times whose predicted move from c exceeds CHUNK_REACH of the mechanism's size are left for
+    later), then each interval between successive postures (c, the first time, the second...)
+    is tested as one step of the continuation: the Taylor predictor of the interval's first
+    posture moves at most STEP_MAX of the size, the residual is accepted, the corrector's move
+    from that predictor is small against the predicted move, and the loop determinant keeps
+    its sign, and J keeps its full rank. orient: the rows of the loop determinant (square), or
+    None. Returns a _Step."""
+    times = np.asarray(times, float)
+    pred = _taylor(c.z, c.zd, c.zdd, times - c.t)
+    reach = P.move(pred - c.z)
+    if reach[0] > STEP_MAX * P.length:          # the first step is too long: no Newton
+        return _Step(0, None, None, None, 0, None, _too_long(P, reach[0]),
+                     reach[0] / (STEP_MAX * P.length))
+    n = _leading(reach <= CHUNK_REACH * P.length)
+    times, pred, val = times[:n], pred[:n], val[:, :n]
+    accept = _accepted(P, P.qa(pred), val, tol)
+    z, it, res, _ = _newton_batch(P, pred, val, accept, max_iter, orient)
+    qa = P.qa(z)
+    rra = P.rotated(z, P.active)
+    J = P.jacobian(z, qa, rra)
+    zd, zdd, full = _rates(P, z, qa, J, rate[:, :n], acc[:, :n], orient)
+    # each interval as a step of the continuation, predicted from its first posture
+    z0 = np.concatenate([c.z[None], z[:-1]])
+    zd0 = np.concatenate([c.zd[None], zd[:-1]])
+    zdd0 = np.concatenate([c.zdd[None], zdd[:-1]])
+    p = _taylor(z0, zd0, zdd0, np.diff(np.concatenate([[c.t], times])))
+    step, corr = P.move(p - z0), P.move(z - p)
+    short = step <= STEP_MAX * P.length
+    conv = res <= accept
+    near = corr <= CORRECTION_RATIO * step + CORRECTION_FLOOR * P.length
+    same = np.ones(n, bool) if orient is None else \
+        np.linalg.slogdet(J[:, orient, :])[0] == c.sign
+    m = _leading(short & conv & near & same & full)
+    why = ""
+    if m < n:
+        why = (_too_long(P, step[m]) if not short[m] else
+               f"Newton's residual {res[m]:.3g} above {accept[m]:.3g} after {it} iterations"
+               if not conv[m] else
+               f"a corrector's move of {corr[m]:.3g} m against a predicted move of "
+               f"{step[m]:.3g} m (the solution jumps: another assembly branch?)"
+               if not near[m] else
+               "a change of sign of the loop determinant (another assembly branch)"
+               if not same[m] else "a posture where the constraint Jacobian loses rank")
+    if m == 0:
+        return _Step(0, None, None, None, it, None, why, 0.0)
+    return _Step(m, z[:m], zd[:m], zdd[:m], it, res[:m], why, 0.0)
+
+
+def _too_long(P, step):
+    return (f"a predicted move of {step:.3g} m (more than {STEP_MAX:g} of the mechanism's size "
+            f"{P.length:.3g} m)")
+
+
+def _singular_ratio(P, z):
+    """Smallest over largest singular value of J W^-1/2 at poses z (ng, 3)."""
+    J = P.jacobian(z) / np.sqrt(P.weight)
+    s = np.linalg.svd(J, compute_uv=False) if J.size else np.zeros(1)
+    return float(s.min() / s.max()) if s.max() > 0 else 0.0
 
 
 def rigid_reference(model, t, q0=None, *, tol=1e-12, max_iter=20):
     """Position, velocity and acceleration analysis of the rigid mechanism on the times t.
 
-    The first time is assembled from q0 (default: reference) with `assemble`; each next one by
-    Newton from a quadratic extrapolation of the previous solutions, so the mechanism stays on
-    its assembly branch. Velocities solve J zd = -Phi_t, accelerations
-    J zdd = gamma - Phi_q q_zz[zd, zd] (`flexmbs.constraints.acceleration_rhs`), at every time
-    at once.
+    The first time is assembled from q0 (default: reference) with `assemble`; the next ones by
+    continuation on that assembly branch: from the last posture solved, the Taylor predictor
+    z + tau zd + tau^2/2 zdd (velocities from J zd = -Phi_t, accelerations from
+    J zdd = gamma - Phi_q q_zz[zd, zd], `flexmbs.constraints.acceleration_rhs`), then Newton
+    on several times at once. A time is accepted only as the continuation of the last posture:
+    a predicted move of at most STEP_MAX of the mechanism's size, a residual below tol times
+    the model's scale or at the rounding level of its coordinates, a corrector's move small
+    against the predicted one (CORRECTION_RATIO, CORRECTION_FLOOR), the same sign of the loop
+    determinant (when the constraint Jacobian's non-vanishing rows are square) and a Jacobian
+    of full rank; otherwise the interval is subdivided and the intermediate postures solved
+    first (substeps no longer than the predictor's reach, down to 2^-MAX_HALVINGS of a step).
 
     Returns
     -------
@@ -560,8 +799,10 @@ def rigid_reference(model, t, q0=None, *, tol=1e-12, max_iter=20):
     ------
     ModelError
         If the drives leave degrees of freedom free (the message says how many and which bodies
-        they move), if the mechanism reaches a singular posture or cannot follow its drives
-        (the message names the time), or bad arguments.
+        they move); if the mechanism reaches a singular posture (a dead centre, the end of its
+        reach: the message names the time and the constraint Jacobian's rank deficiency, its
+        smallest singular value relative to its largest there), or cannot follow its drives
+        there although the Jacobian has full rank (a drive law that jumps); or bad arguments.
     """
     P = _poses(model)
     t = np.atleast_1d(np.asarray(t, float))
@@ -572,71 +813,99 @@ def rigid_reference(model, t, q0=None, *, tol=1e-12, max_iter=20):
         raise ModelError("rigid_reference: t must be strictly increasing")
     first = assemble(model, t[0], q0, tol=tol)
     nz = 3 * P.ng
-    J0 = P.jacobian(first.z) / np.sqrt(P.weight)
-    s0 = np.linalg.svd(J0, compute_uv=False) if J0.shape[0] else np.zeros(0)
-    rank0 = int(np.sum(s0 > RANK_RTOL * max(s0.max(initial=0.0), 1e-300)))
+    sw = np.sqrt(P.weight)
+    J0 = P.jacobian(first.z)
+    s0 = np.linalg.svd(J0 / sw, compute_uv=False) if J0.shape[0] else np.zeros(0)
+    smax0 = max(s0.max(initial=0.0), 1e-300)
+    rank0 = int(np.sum(s0 > RANK_RTOL * smax0))
     if rank0 < nz:
         nfree, where = free_degrees_of_freedom(model, first.q, t[0])
         raise ModelError(f"rigid reference: {nz - rank0} free degree(s) of freedom remain at "
                          f"t = {t[0]:.6g} s (moving {', '.join(where)}); a rigid reference needs "
                          f"every degree of freedom driven (add a drive, a pin or a prescribed "
                          f"position)")
+    # the loop determinant: on the rows that do not vanish (rigid links inside a group do,
+    # at any poses: tested at the first and at turned and shifted ones) when they are as many
+    # as the poses (no redundant row); Newton and the rates then solve these rows alone
+    shake = first.z + np.array([0.1 * P.length, -0.07 * P.length, 0.3])
+    size0 = np.maximum(np.abs(J0 / sw).max(axis=1, initial=0.0),
+                       np.abs(P.jacobian(shake) / sw).max(axis=1, initial=0.0))
+    live = np.flatnonzero(size0 > RANK_RTOL * smax0)
+    orient = live if live.size == nz else None
+    sign0 = float(np.linalg.slogdet(J0[live])[0]) if orient is not None else 0.0
     val, rate, acc = law_tables(model, t)
     nt = t.size
     z = np.zeros((nt, P.ng, 3))
+    zd, zdd = np.zeros_like(z), np.zeros_like(z)
     its = np.zeros(nt, np.int64)
+    subs = np.zeros(nt, np.int64)
     resid = np.zeros(nt)
     z[0], its[0], resid[0] = first.z, first.iterations, first.residual
-    # continuation in chunks of times solved together: a chunk's guess extrapolates the last
-    # three solutions; a chunk that needs more than a few Newton iterations is halved (down to
-    # one time, which gets max_iter), a fast one lets the next grow
-    k, size = 1, 2
+    zd0, zdd0, _ = _rates(P, first.z[None], P.qa(first.z[None]), J0[None], rate[:, :1],
+                          acc[:, :1], orient)
+    zd[0], zdd[0] = zd0[0], zdd0[0]
+    c = _Posture(t[0], z[0], zd[0], zdd[0], sign0)
+    # chunks of up to `size` times solved together: the grid's, each interval divided into
+    # substeps no longer than the predictor's reach (`_step_length`) and than hs, where steps
+    # that long failed (a chunk that passes easily lets the next grow and hs double, one that
+    # stops early sets the next's size; a first step that fails alone shrinks hs)
+    dtmax = float(np.max(np.diff(t))) if nt > 1 else 0.0
+    k, size, hs, pending = 1, 2, math.inf, 0
     while k < nt:
-        size = min(size, nt - k)
-        idx = np.arange(k, k + size)
-        guess = _extrapolate(t, z, k, idx)
-        limit = max_iter if size == 1 else _CHUNK_ITER
-        zk, it, res, phi = _newton_batch(P, guess, val[:, idx], tol, limit)
-        ok = res <= tol * P.scale
-        if not np.all(ok):
-            if size > 1:
-                size //= 2
-                continue
-            raise ModelError(f"rigid reference: the mechanism cannot follow its drives at "
-                             f"t = {t[k]:.6g} s (max |Phi| = {res[0]:.3g} after {it} Newton "
-                             f"iterations: past a singular posture or out of reach); largest "
-                             f"residuals: {_worst_rows(model, phi[0])}")
-        z[idx], its[idx], resid[idx] = zk, it, res
-        k += size
-        if it <= 3:
-            size = min(2 * size, _CHUNK_MAX)
-    # velocities and accelerations of the poses, on the active nodes' coordinates only
-    qa = P.qa(z)
-    rra = P.rotated(z, P.active)
-    J = P.jacobian(z, qa, rra)                                      # (nt, nc, nz)
-    sw = np.sqrt(P.weight)
-    u, s, vt = np.linalg.svd(J / sw, full_matrices=False)
-    smax = s.max(axis=-1)
-    rank = np.sum(s > RANK_RTOL * smax[:, None], axis=-1)
-    bad = np.flatnonzero(rank < rank0)
-    if bad.size:
-        k = int(bad[0])
-        raise ModelError(f"rigid reference: the mechanism reaches a singular posture at "
-                         f"t = {t[k]:.6g} s (the constraint Jacobian loses rank: {int(rank[k])} "
-                         f"of {rank0}); the drives do not determine the motion there")
-    rtol = RANK_RTOL * smax
-    zd = (_svd_solve(u, s, vt, -constraint_rate(P.rows, rate), rtol) / sw).reshape(nt, P.ng, 3)
-    qda = P.qd(z, zd, P.active)
-    gamma = acceleration_rhs(P.rows, qa, qda, acc)
-    cen = P.centripetal(z, zd, P.active)
-    _, _, pq = jacobian_entries(P.rows, qa)                         # Phi_q entries (nt, nent)
-    r_idx, node, comp, _ = P._entries
-    cols = 3 * node + comp
-    pqc = np.zeros((nt, P.rows.nc))
-    np.add.at(pqc.T, r_idx, (pq * cen[:, cols]).T)
-    zdd = (_svd_solve(u, s, vt, gamma - pqc, rtol) / sw).reshape(nt, P.ng, 3)
+        times, owner, grid = _chunk_times(t, k, c.t, min(hs, _step_length(P, c)), size)
+        if grid.all():
+            lv, lr, la = val[:, owner], rate[:, owner], acc[:, owner]
+        else:
+            lv, lr, la = law_tables(model, times)
+            for tab, on_grid in ((lv, val), (lr, rate), (la, acc)):
+                tab[:, grid] = on_grid[:, owner[grid]]
+        st = _advance(P, c, times, lv, lr, la, tol, max_iter if times.size == 1 else _CHUNK_ITER,
+                      orient)
+        pending += st.iterations
+        if st.m:
+            m = st.m
+            c = _Posture(times[m - 1], st.z[-1], st.zd[-1], st.zdd[-1], sign0)
+            np.add.at(subs, owner[:m][~grid[:m]], 1)
+            done = owner[:m][grid[:m]]
+            if done.size:
+                z[done], zd[done], zdd[done] = (st.z[grid[:m]], st.zd[grid[:m]],
+                                                st.zdd[grid[:m]])
+                its[done], resid[done] = st.iterations, st.residual[grid[:m]]
+                its[done[0]] += pending - st.iterations
+                pending = 0
+                k = int(done[-1]) + 1
+            if m == times.size and st.iterations <= 3:
+                size = min(2 * size, _CHUNK_MAX)
+                hs = math.inf if 2 * hs > dtmax else 2 * hs
+            elif m < times.size:
+                size = m
+            continue
+        if times.size > 1:                      # a chunk's first time: alone, then substeps
+            size = 1
+            continue
+        hs = (times[0] - c.t) / max(2.0, 2.0 * st.over)
+        if hs < max((t[k] - t[k - 1]) * 2.0 ** -MAX_HALVINGS, 16 * np.finfo(float).eps * abs(t[k])):
+            raise _stuck(P, c, t[k], st.why, hs)
     return RigidMotion(t=t, z=z, zd=zd, zdd=zdd, groups=P.groups, iterations=its,
-                       residual=resid, poses=P)
+                       residual=resid, substeps=subs, poses=P)
+
+
+def _stuck(P, c, tk, why, hsub):
+    """The error of a continuation that cannot go past the posture c (towards the time tk):
+    a singular posture when the constraint Jacobian is nearly rank-deficient there."""
+    ratio = _singular_ratio(P, c.z)
+    if ratio < SINGULAR_RTOL:
+        return ModelError(
+            f"rigid reference: the mechanism reaches a singular posture at t = {c.t:.6g} s and "
+            f"cannot pass it towards t = {tk:.6g} s: the constraint Jacobian is rank-deficient "
+            f"there (its smallest singular value is {ratio:.2g} of its largest, below "
+            f"{SINGULAR_RTOL:g}): a dead centre, a toggle or the end of the mechanism's reach, "
+            f"where the drives do not determine the motion")
+    return ModelError(
+        f"rigid reference: the mechanism cannot follow its drives past t = {c.t:.6g} s towards "
+        f"t = {tk:.6g} s, although the constraint Jacobian has full rank there (smallest "
+        f"singular value {ratio:.2g} of its largest): {why} on a step of {hsub:.3g} s; a drive "
+        f"law that jumps (not continuous in time)?")
 
 
 def drive_velocities(model, q, t=0.0):
