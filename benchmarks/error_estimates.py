@@ -8,7 +8,8 @@ worse than 1/2 for a response in its asymptotic range, and a 'not asymptotic' ve
 
     .venv/bin/python benchmarks/error_estimates.py [--quick] [--out results/error_estimates.txt]
 
-Cases: the robot (its start design), the four-bar at a light design near its limit, the press,
+Cases: the robot (its start design), the four-bar at a light design near its limit, the press
+(without and with 2 % material damping of the rod),
 the three-arm robot, a stiff robot (E x 100: its vibrations are far above what h resolves), and
 the spin-up beam of Simo & Vu-Quoc (tip deflection in the hub frame; flexmbs.simulate with the
 library's `richardson` on the histories).
@@ -29,6 +30,7 @@ CASES = [
     ("robot_2dof", None, {}),
     ("fourbar", [54.11, 15.14, 16.19], {}),
     ("slider_crank_press", None, {}),
+    ("slider_crank_press_damped", None, {}),
     ("three_arm_robot", None, {}),
     ("robot_2dof", None, {"materials.aluminium.E": 72e11}),
 ]

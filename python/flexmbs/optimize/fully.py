@@ -468,7 +468,7 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
         missing file starts afresh. Run it with the same problem, start and options (a
         record that differs from the file's raises ModelError). details replayed_simulations
         counts the replayed analyses; `simulations` counts only those run.
-    verify : bool or float, default True
+    verify : bool, float or 'check', default True
         Verify the final design at converged resolution (`flexmbs.optimize.verified`,
         `flexmbs.accuracy.verify`): re-simulated at h/2, h/4, ... until the objective and the
         constraints are known to 1e-3 (or the accuracy given, relative to the limits); when

@@ -254,7 +254,7 @@ def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0
         A start reached the best when it ended feasible within this relative objective.
     feasibility_tol : float, default 1e-6
         Largest re-checked violation max(0, max g) of a feasible design.
-    verify : bool or float, default True
+    verify : bool, float or 'check', default True
         Verify the best design at converged resolution (as `optimize_fully`'s verify): when
         it is infeasible at the step that resolves it, the optimization continues from it at
         that step (in this process) and its result replaces the best (best['verification'],

@@ -25,12 +25,15 @@ MAX_CONTINUATIONS = 2
 
 
 def check_verify(verify):
-    """A `verify` option: True (VERIFY_RTOL), False, or a relative accuracy in (0, 0.1]."""
-    if isinstance(verify, bool):
+    """A `verify` option: True (verify to VERIFY_RTOL, continue on the finer step when the
+    design is infeasible there), a relative accuracy in (0, 0.1] (the same to that accuracy),
+    'check' (verify to VERIFY_RTOL and report, never continue: what a reproduction of
+    published results runs) or False."""
+    if isinstance(verify, bool) or (isinstance(verify, str) and verify == "check"):
         return verify
     if isinstance(verify, (int, float, np.floating)) and 0 < float(verify) <= 0.1:
         return float(verify)
-    raise ModelError(f"verify must be True, False or a relative accuracy in (0, 0.1] "
+    raise ModelError(f"verify must be True, False, 'check' or a relative accuracy in (0, 0.1] "
                      f"(e.g. 1e-3), got {verify!r}")
 
 
@@ -38,7 +41,7 @@ def verify_rtol(verify):
     """The accuracy a `verify` option asks for (None: no verification)."""
     if verify is False:
         return None
-    return VERIFY_RTOL if verify is True else float(verify)
+    return VERIFY_RTOL if verify is True or verify == "check" else float(verify)
 
 
 def _can_verify(problem):
@@ -65,7 +68,8 @@ def finish(problem, result, rerun, verify, coarse=None):
     first = result
     # a design is continued only where its values settled: a response not in its asymptotic
     # range has no converged value to optimize against (the verification says so instead)
-    while v.verified and not v.feasible and v.level > level and len(steps) < MAX_CONTINUATIONS:
+    while (verify != "check" and v.verified and not v.feasible and v.level > level
+           and len(steps) < MAX_CONTINUATIONS):
         level = v.level
         cont = rerun(problem.refined(2 ** level), np.asarray(result.design, float))
         steps.append(dict(h=v.h, design=np.asarray(cont.design).tolist(),

@@ -668,7 +668,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         two cycles are simulated again (the previous ESL, for eq. (25), and the last cycle's
         own), and the run goes on from there exactly as the interrupted one would have,
         appending to the file. details resumed_cycles: the cycles taken from the file.
-    verify : bool or float, default True
+    verify : bool, float or 'check', default True
         Verify the final design at converged resolution (as `optimize_fully`'s verify: when
         it is infeasible at the step that resolves its responses to 1e-3, the cycles continue
         at that step from the design, and the new design is verified in turn).
