@@ -73,6 +73,18 @@ def test_richardson_histories_pointwise():
                                atol=1e-15)
 
 
+def test_peak_sampling_of_a_parabola():
+    """Samples of f(t) = 3 - 2 (t - 0.537)^2 on a grid of step 0.1: the peak lies above the
+    largest sample (t = 0.5) by 2 x 0.037^2, exactly what the parabola through the three
+    samples around it gives; zero when the peak is the last sample."""
+    from flexmbs.accuracy import peak_sampling
+
+    t = np.linspace(0, 1, 11)
+    f = 3 - 2 * (t - 0.537) ** 2
+    assert peak_sampling(f) == pytest.approx(3 - f[5], rel=1e-12)
+    assert peak_sampling(t) == 0.0
+
+
 def test_richardson_bad_ladder():
     with pytest.raises(ModelError, match="2 or 3 values"):
         richardson([1.0], [1e-3])
@@ -88,6 +100,7 @@ ESTIMATED = [
     ("robot_2dof", None, ["deviation_28", "deviation_30"]),
     ("fourbar", [54.11, 15.14, 16.19], ["deviation_A"]),
     ("three_arm_robot", None, ["tip_deviation", "shoulder_torque", "shoulder_reaction"]),
+    ("slider_crank_press_damped", None, ["ram_error"]),
 ]
 
 
@@ -95,8 +108,9 @@ ESTIMATED = [
 def test_error_estimates_against_true_errors(case, x, names):
     """Each response's estimated error at the case's step against its true error (difference
     from h/16): in its asymptotic range, and within [0.5, 4] x the true error (the estimate
-    never under-estimates by more than 2x). Measured: 1.00-1.04 (robot), 1.01 (four-bar at a
-    light design whose deviation h = 5e-4 under-predicts by 6 %), 1.01-1.02 (three-arm)."""
+    never under-estimates by more than 2x). Measured: 1.00-1.04 (robot), 1.27 (four-bar at a
+    light design whose deviation h = 5e-4 under-predicts by 6 %), 1.02-1.28 (three-arm), 1.03
+    (the press with 2 % material damping)."""
     prob = Problem(case)
     ev = prob.evaluate(x, gradient=False, error=True)
     ref = prob.refined(16).evaluate(x, gradient=False)

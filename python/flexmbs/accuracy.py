@@ -17,7 +17,9 @@ Two levels only (h, h/2) give the estimate without that check (status 'unchecked
 
 A history is judged by its maximum over time (what limits and summaries use; the peak may move
 between the levels), and its point-wise error at the time points of the coarsest level is
-kept too (`ErrorEstimate.pointwise`).
+kept too (`ErrorEstimate.pointwise`). The maximum of a history is a sampled one: its error
+also holds how far the peak may lie above the largest sample, estimated by the parabola
+through the largest sample and its two neighbours (`peak_sampling`), added to the estimate.
 
 `verify(problem, x)` checks a design at converged resolution: it walks down the ladder (h/2,
 h/4, ... h/2^MAX_LEVEL) until every constraint's largest value and the objective are estimated
@@ -35,7 +37,7 @@ import numpy as np
 from flexmbs.errors import ModelError
 
 __all__ = ["ErrorEstimate", "Verification", "ConvergenceCheck", "richardson", "estimate_errors",
-           "verify", "convergence_check", "simulate_with_error",
+           "verify", "convergence_check", "simulate_with_error", "peak_sampling",
            "ORDER", "MIN_RATIO", "MAX_RATIO", "FLOOR_REL", "MAX_LEVEL", "VERIFY_RTOL",
            "MARGIN_FRACTION"]
 
@@ -210,6 +212,21 @@ def _history_max(v):
     return float(np.max(v)) if np.ndim(v) else float(v)
 
 
+def peak_sampling(v):
+    """How far the peak of a sampled history may lie above its largest sample: the vertex
+    of the parabola through the largest sample and its neighbours, minus that sample (0 at
+    either end of the history or where the samples do not curve down)."""
+    v = np.asarray(v, float)
+    if v.ndim == 0 or v.size < 3:
+        return 0.0
+    j = int(np.argmax(v))
+    if j == 0 or j == v.size - 1:
+        return 0.0
+    a, b, c = v[j - 1], v[j], v[j + 1]
+    curve = a - 2 * b + c
+    return float((a - c) ** 2 / (-8 * curve)) if curve < 0 else 0.0
+
+
 def _constraint_maxima(ev):
     """{response: largest normalised constraint value g} of an Evaluation (smoothness rows,
     which need no simulation, left out)."""
@@ -250,6 +267,7 @@ def estimate_errors(evaluations, levels, finest=False):
         ladder = [ev.values[name] for ev in evaluations]
         if np.ndim(v):
             peak = richardson([_history_max(a) for a in ladder], levels, finest)
+            peak.error += peak_sampling(ladder[-1 if finest else 0])
             points = richardson(_common_points(ladder, nt0), levels, finest)
             peak.pointwise = points.pointwise if not finest else None
             responses[name] = peak
