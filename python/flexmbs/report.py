@@ -384,14 +384,15 @@ def _md_table(report, table):
             lines.append("| | | Δ % | " + " | ".join(
                 [_pct(r.mass_difference), "", ""] + [_pct(v) for v in r.design_differences]) + " |")
     lines.append("")
-    from flexmbs.reproduce import paper_design_text
+    from flexmbs.reproduce import paper_design_text, verification_text
     for r in rows:
         pd = paper_design_text(r)
+        ver = verification_text(r.result)
         lines.append(f"- {r.method} coupled from {_start_text(r.start_mm)}: "
                      f"{'converged' if r.converged else '**not converged**'} ({r.reason}); "
                      f"maximum deviation of the final design {r.max_deviation_m * 1e3:.4f} mm; "
                      f"{r.result.get('simulations')} simulations, {r.wall_time_s:.1f} s"
-                     + (f"; {pd}." if pd else "."))
+                     + (f"; {pd}" if pd else "") + (f"; {ver}." if ver else "."))
     missing = [n.name for n in report.study.tables[table].runs() if n.name not in report.results]
     for name in missing:
         lines.append(f"- **no result** for {name}: {report.failures.get(name, 'not run')}")
