@@ -750,9 +750,12 @@ def _variant_check(c, v):
         if pm is None:
             return None
         lim = pm * (1 + c.rel)
+        # a mass counts only for a design that holds at converged resolution
+        ver = "" if verified_feasible(v.result) else ", NOT verified feasible"
         return Check(n, f"{tag}: {c.what or f'{what} within {100 * c.rel:g} % of the paper or lighter'}",
                      c.paper or f"{pm:.3f} kg (at most {lim:.4f} kg)",
-                     f"{v.mass_kg:.4f} kg ({_pct(v.mass_difference)})", v.mass_kg <= lim)
+                     f"{v.mass_kg:.4f} kg ({_pct(v.mass_difference)}{ver})",
+                     v.mass_kg <= lim and verified_feasible(v.result))
     if c.type == "feasible":
         dev = v.result.get("max_deviation_m")
         lim = v.result.get("limit_m")
