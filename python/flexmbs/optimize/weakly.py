@@ -34,7 +34,12 @@ The static model of the responses (the generic form of the paper's eqs. 29, 31, 
 
 The ESL bodies are the beams on a chain and the beams with a stress response (frame at the chain
 entry, else at the beam's `from` point, or as `frames` says); beams that enter no constraint need
-none. Component 'angle' has no static form here (CaseError).
+none. Component 'angle' has no static form here (CaseError). The kind of each frame comes from
+the beam's joints by default (`frame_by_joints`: tangent where the beam's rotation at its frame
+point is held, chord for a beam pinned or hinged at both ends), or is given (`frame_kind`).
+At the design of its ESL the static form of a deviation is the chain sum of the frames'
+displacements (K^-1 g_eq = u); its ratio to the simulated deviation
+(`StaticModel.static_to_simulated`) is recorded every cycle and returned.
 
 Responses with no static form: a motor torque or a joint reaction (`torque`, `reaction`) is a
 dynamic quantity (inertia of the whole mechanism, not a beam's deflection under fixed loads).
