@@ -39,10 +39,10 @@ FOURBAR = CASES / "fourbar_tubes.toml"
 FOURBAR_X0 = [160.0, 40.0, 40.0, 1.5]
 
 
-def _kkt_residual(path, design):
+def _kkt_residual(path, design, h=None):
     """Relative residual of the nonnegative least-squares multiplier fit (module docstring),
     from a fresh Problem's evaluation with gradients; also the number of active rows."""
-    problem = Problem(path)
+    problem = Problem(path, overrides=None if h is None else {"time.h": h})
     ev = problem.evaluate(design, gradient=True)
     x = np.asarray(design, float)
     df = ev.d_objective * x
@@ -72,13 +72,17 @@ def fourbar_fully():
 
 @pytest.mark.parametrize("which", ["robot", "fourbar"])
 def test_fully_coupled_optimum_is_feasible_and_a_kkt_point(which, request):
-    """Fully coupled: converged; the final design re-simulated by a fresh Problem satisfies
-    every constraint (max g <= 1e-6, torque limits included for the robot); at least one
-    constraint is active (the mass alone would run to the lower bounds: robot, the tip
-    deviation; four-bar, the stress); the KKT condition holds (module docstring)."""
+    """Fully coupled: converged; the final design re-simulated by a fresh Problem at the step
+    its verification settled on (flexmbs.optimize.verified: the case's h / 4 for both)
+    satisfies every constraint (max g <= 1e-6, torque limits included for the robot); at least
+    one constraint is active (the mass alone would run to the lower bounds: robot, the tip
+    deviation; four-bar, the stress); the KKT condition holds there (module docstring)."""
     res = request.getfixturevalue(f"{which}_fully")
     assert res.converged, res.reason
-    kkt, nactive, ev = _kkt_residual(ROBOT if which == "robot" else FOURBAR, res.design)
+    assert res.verification.verified and res.verification.feasible
+    kkt, nactive, ev = _kkt_residual(ROBOT if which == "robot" else FOURBAR, res.design,
+                                     res.verification.h if "continued_from" in res.details
+                                     else None)
     assert ev.max_violation <= 1e-6
     assert ev.objective == pytest.approx(res.objective, rel=1e-12)
     assert nactive >= 1

@@ -9,10 +9,13 @@ Public API (explicit):
     Material, Circle, Tube, Rectangle, GivenSection   sections (sections.py)
     TimeLaw                      motor and load laws with derivatives (laws.py)
     simulate, Result             generalized-alpha simulation (simulate.py)
+    simulate_with_error, verify, convergence_check   time-discretisation error estimates,
+                                 designs verified at converged resolution (accuracy.py)
     check_tangent, check_iteration_matrix, taylor_test   derivative checkers (checks.py)
     FlexmbsError, ModelError, SimulationError, CaseError, ResourceError,
     InvalidResultError, ValidityWarning   exceptions and warnings (errors.py)
 """
+from flexmbs.accuracy import convergence_check, simulate_with_error, verify
 from flexmbs.checks import check_iteration_matrix, check_tangent, taylor_test
 from flexmbs.errors import (CaseError, FlexmbsError, InvalidResultError, ModelError,
                             ResourceError, SimulationError, ValidityWarning)
@@ -26,7 +29,7 @@ from flexmbs.simulate import Result, simulate
 __all__ = [
     "Problem", "load_problem", "optimize_weakly", "optimize_fully", "OptimizationResult",
     "Model", "Body", "Material", "Circle", "Tube", "Rectangle", "GivenSection", "TimeLaw",
-    "simulate", "Result", "check_tangent", "check_iteration_matrix", "taylor_test",
+    "simulate", "Result", "simulate_with_error", "verify", "convergence_check", "check_tangent", "check_iteration_matrix", "taylor_test",
     "FlexmbsError", "ModelError", "SimulationError", "CaseError", "ResourceError",
     "InvalidResultError", "ValidityWarning",
 ]

@@ -49,6 +49,7 @@ COMMANDS = [
     "flexmbs.cli:register_simulate",
     "flexmbs.cli_reproduce:register_demo",
     "flexmbs.cli_evaluate:register",
+    "flexmbs.cli_check:register",
     "flexmbs.optimize.cli:register",
     "flexmbs.cli_reproduce:register",
 ]
@@ -241,6 +242,10 @@ def add_design_arguments(p):
                    help="also compute the design gradients (exact: direct differentiation, or the "
                         "adjoint with --gradient-method adjoint|auto)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a summary")
+    p.add_argument("--error", action="store_true",
+                   help="estimate each value's time-discretisation error (the design simulated "
+                        "again at h/2 and h/4; about 6 more simulations' time) and say whether "
+                        "it is in its asymptotic range")
 
 
 def print_evaluation(prob, ev, source=None):
@@ -264,6 +269,9 @@ def print_evaluation(prob, ev, source=None):
             line = f"  {name:15s} max {v[j]:.6g} at t = {ev.t[j]:.4f} s (step {j + 1} of {v.size})"
             if g is not None:
                 line += "   gradient of the max " + ", ".join(f"{x:.4g}" for x in g[j])
+        e = (ev.errors or {}).get(name)
+        if e is not None and (e.error > 0 or np.ndim(v)):
+            line += f"   {e.describe()}"
         print(line)
     if ev.constraints.size:
         state = "feasible" if ev.feasible else "INFEASIBLE"
@@ -290,7 +298,8 @@ def run_simulate(args):
         args.out = output_file(args.out, "--out", suffix=".npz", required=_npz_estimate(prob))
     if args.plot:
         args.plot = figure_file(args.plot, "--plot")
-    ev = prob.evaluate(x, gradient=args.gradient, store="all" if (args.out or args.plot) else None)
+    ev = prob.evaluate(x, gradient=args.gradient, store="all" if (args.out or args.plot) else None,
+                       error=args.error)
     result = ev.result
     if args.out:
         _save_npz(args.out, prob, ev, result)

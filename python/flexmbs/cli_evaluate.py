@@ -24,7 +24,8 @@ def register(subparsers):
 
 def run(args):
     prob = problem_from_args(args)
-    ev = prob.evaluate(design_from_text(args.design, prob), gradient=args.gradient)
+    ev = prob.evaluate(design_from_text(args.design, prob), gradient=args.gradient,
+                       error=args.error)
     if args.json:
         json.dump(ev.to_json(), sys.stdout)
         sys.stdout.write("\n")

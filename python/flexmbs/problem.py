@@ -121,6 +121,13 @@ class Evaluation:
     #: the simulation itself (flexmbs.simulate.Result) when evaluate was asked to store
     #: coordinates (store='all' or nodes), else None
     result: object = field(default=None, repr=False)
+    #: with evaluate(..., error=True): {response: flexmbs.accuracy.ErrorEstimate} of each
+    #: value (a history: of its maximum, with point-wise errors), else None
+    errors: dict | None = None
+    #: with error=True: the objective's ErrorEstimate, and {response: ErrorEstimate} of each
+    #: constrained response's largest normalised value g (relative to its limit)
+    objective_error: object = None
+    constraint_errors: dict | None = None
 
     @property
     def feasible(self):
@@ -147,6 +154,14 @@ class Evaluation:
                 j = int(np.argmax(v))
                 out["responses"][k] = {"max": float(v[j]), "t_at_max": float(self.t[j]),
                                        "gradient_of_max": None if g is None else g[j].tolist()}
+            if self.errors is not None and k in self.errors:
+                # of the value, or of the history's maximum
+                out["responses"][k]["error"] = self.errors[k].to_json()
+        if self.errors is not None:
+            out["objective_error"] = (None if self.objective_error is None
+                                      else self.objective_error.to_json())
+            out["constraint_errors"] = {k: e.to_json()
+                                        for k, e in (self.constraint_errors or {}).items()}
         if self.d_objective is not None:
             out["d_objective"] = self.d_objective.tolist()
         # the constraint rows g <= 0 and their gradients (with the adjoint, the only gradients
@@ -188,6 +203,24 @@ class Problem:
         self.default_gradient_method = gradient_method
         _check_checkpoints(checkpoints)
         self.adjoint_checkpoints = checkpoints
+        self._refined = {}
+
+    def refined(self, factor):
+        """The same problem with the time step h / factor (factor a power of two; built once
+        per factor and kept): the finer levels of error estimates and verifications
+        (flexmbs.accuracy)."""
+        if (isinstance(factor, bool) or not isinstance(factor, (int, np.integer))
+                or factor < 1 or factor & (factor - 1)):
+            raise ModelError(f"refined: factor must be a power of two (1, 2, 4, ...), "
+                             f"got {factor!r}")
+        if factor == 1:
+            return self
+        if factor not in self._refined:
+            self._refined[factor] = Problem(
+                self.description, overrides={"time.h": self.description.time.h / factor},
+                gradient_method=self.default_gradient_method,
+                checkpoints=self.adjoint_checkpoints)
+        return self._refined[factor]
 
     # ------------------------------------------------------------------ design space
     @property
@@ -502,7 +535,7 @@ class Problem:
         return (f"{chosen} (auto: {nv} design variable{'s' * (nv != 1)}, {nf} aggregated "
                 f"row{'s' * (nf != 1)}; {rule})")
 
-    def evaluate(self, x=None, gradient=True, method=None, store=None):
+    def evaluate(self, x=None, gradient=True, method=None, store=None, error=False):
         """Every response, the objective and the constraints at design x (user units).
 
         gradient : True (every response's gradient), False (none: nothing is differentiated),
@@ -520,7 +553,15 @@ class Problem:
         store : None (default: only the coordinates the responses read) or as `simulate`'s
             ('all', or a list of nodes): those coordinates are kept too, and the run is
             returned in Evaluation.result (one simulation for the responses and for a plot or
-            a file of the motion)."""
+            a file of the motion).
+        error : False (default), True or 2
+            True: also estimate every value's time-discretisation error (flexmbs.accuracy:
+            the design simulated again at h/2 and h/4, without gradients; about 6 more
+            simulations' time) into Evaluation.errors, objective_error and
+            constraint_errors, with a verdict on whether each value is in its asymptotic
+            range; 2: h/2 only (about 2 more simulations' time, no verdict)."""
+        if error is not False:
+            return self._evaluate_with_error(x, gradient, method, store, error)
         t0 = _time.perf_counter()
         mech = self.mechanism
         x = mech.start if x is None else mech.design_values(x)
@@ -555,6 +596,28 @@ class Problem:
                           wall_time=_time.perf_counter() - t0,
                           gradient_method="direct" if gradient else None,
                           result=None if store is None else result)
+
+    def _evaluate_with_error(self, x, gradient, method, store, error):
+        from flexmbs.accuracy import estimate_errors
+
+        if error is True:
+            levels = 3
+        elif not isinstance(error, bool) and error in (2, 3):
+            levels = int(error)
+        else:
+            raise ModelError(f"evaluate: error must be False, True (h, h/2, h/4) or 2 (h, h/2), "
+                             f"got {error!r}")
+        t0 = _time.perf_counter()
+        ev = self.evaluate(x, gradient=gradient, method=method, store=store)
+        if not any(np.ndim(v) for v in ev.values.values()) and ev.stats == {}:
+            return ev            # nothing simulated: nothing has a time-discretisation error
+        evs = [ev] + [self.refined(2 ** k).evaluate(ev.x, gradient=False)
+                      for k in range(1, levels)]
+        h = self.description.time.h
+        ev.errors, ev.objective_error, ev.constraint_errors = estimate_errors(
+            evs, [h / 2 ** k for k in range(levels)])
+        ev.wall_time = _time.perf_counter() - t0
+        return ev
 
     def _adjoint_plan(self, x, responses, store=None, checkpoints=_DEFAULT, run=None):
         """(K, MemoryEstimate) of the adjoint's runs: K None for the tape of every state,

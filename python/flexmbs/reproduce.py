@@ -126,9 +126,9 @@ def multistart_job(case, overrides=None, options=None, multistart=None, workers=
     """Run a multi-start (`flexmbs.optimize.multistart.multistart`: its starts through the
     batch layer, on `workers` local processes or a Dask scheduler, each stored in `store` as it
     finishes) and return its result as a JSON-ready dict: `MultistartResult.to_dict()` plus,
-    for the best feasible design re-simulated here, ``mass_kg``, ``design``,
-    ``max_deviation_m``, ``t_at_max_s``, ``limit_m`` and ``feasible``; ``mass_kg`` None when
-    no start ended feasible.
+    for the best feasible design re-simulated here (at the step of its verification, when
+    verified), ``mass_kg``, ``design``, ``max_deviation_m``, ``t_at_max_s``, ``limit_m`` and
+    ``feasible``; ``mass_kg`` None when no start ended feasible.
 
     multistart : dict of multistart's settings {starts, optimizer, sampler, seed, candidates,
         best_tolerance}; options : keyword arguments of `optimize_fully` for every start.
@@ -146,7 +146,10 @@ def multistart_job(case, overrides=None, options=None, multistart=None, workers=
     d.update(mass_kg=None, design=None, max_deviation_m=None, feasible=False,
              case_overrides=dict(overrides or {}), case_name=case)
     if res.best is not None:
-        chk = max_deviation_job(case, res.best["design"], overrides or None)
+        # at the step its verification settled on (the case's own when not verified)
+        ver = res.details.get("verification")
+        at = dict(overrides or {}, **({"time.h": ver["h"]} if ver else {}))
+        chk = max_deviation_job(case, res.best["design"], at or None)
         d.update(mass_kg=chk["mass_kg"], design=chk["design"],
                  max_deviation_m=chk["max_deviation_m"], t_at_max_s=chk["t_at_max_s"],
                  limit_m=chk["limit_m"], feasible=bool(res.best["feasible"]))
@@ -292,6 +295,30 @@ class Row:
                     paper_design_in_flexmbs=self.paper_design)
 
 
+def verification_text(result):
+    """One line on a run's verification at converged resolution (flexmbs.optimize.verified),
+    or None when it was not verified."""
+    v = result.get("verification")
+    if not v:
+        return None
+    text = (f"{'verified' if v['verified'] else 'NOT verified'} at h = {v['h']:.4g} s (the "
+            f"case's h / {2 ** v['level']}): {'feasible' if v['feasible'] else 'INFEASIBLE'} "
+            f"within {v['rtol']:g}, largest g = {v['max_violation']:.3g}")
+    c = result.get("continued_from") or (result.get("best") or {}).get("continued_from")
+    if c:
+        text += (f"; continued on the finer step from {c['objective']:.4f} kg at h = "
+                 f"{c['h']:.4g} s, infeasible at h = {c['verification']['h']:.4g} s by "
+                 f"{c['verification']['max_violation']:.3g}")
+    return text
+
+
+def verified_feasible(result):
+    """A run's design holds at converged resolution (True when it was not verified: its own
+    re-simulation is all there is)."""
+    v = result.get("verification")
+    return True if not v else bool(v["verified"] and v["feasible"])
+
+
 def simulate_paper_designs(rows):
     """Simulate every published design of the rows with flexmbs (one simulation each) and set
     `Row.paper_design`: does the paper's optimum sit on its 1 mm constraint in flexmbs's model?
@@ -431,11 +458,14 @@ def _row_check(spec, c, r):
     if c.type == "mass_within":
         if r.paper.get("mass") is None:
             return None
-        # a mass counts only when the run converged
+        # a mass counts only when the run converged, to a design that holds at converged
+        # resolution
+        ver = "" if verified_feasible(r.result) else ", NOT verified feasible"
         return Check(n, f"{tag}: {c.what or f'converged, mass within {100 * c.rel:g} %'}",
                      c.paper or f"{r.paper['mass']:.3f} kg",
-                     f"{r.mass_kg:.4f} kg ({_pct(r.mass_difference)}{conv})",
-                     r.converged and abs(r.mass_difference) <= c.rel)
+                     f"{r.mass_kg:.4f} kg ({_pct(r.mass_difference)}{conv}{ver})",
+                     r.converged and abs(r.mass_difference) <= c.rel
+                     and verified_feasible(r.result))
     if c.type == "design_within":
         if r.paper.get("mass") is None or not r.paper.get("p"):
             return None
@@ -600,7 +630,10 @@ class VariantRow:
     @property
     def feasible(self):
         """The design is feasible: the run's own re-simulated verdict (``feasible``), else
-        its maximum violation <= 1e-6."""
+        its maximum violation <= 1e-6; and, when the run was verified, feasible at converged
+        resolution (`verified_feasible`)."""
+        if not verified_feasible(self.result):
+            return False
         if "feasible" in self.result and self.result["feasible"] is not None:
             return bool(self.result["feasible"])
         v = self.result.get("max_violation")
@@ -662,11 +695,16 @@ class VariantRow:
             return (head + f"; local optima {sp['best']:.4f}-{sp['worst']:.4f} kg; "
                     f"{sp['reached_best']} of {sp['starts']} within {tol:g} % of the best; "
                     f"maximum deviation of the best design {dev_txt}; {r.get('simulations')} "
-                    f"simulations, {float(r.get('wall_time_s', 0.0)):.1f} s")
+                    f"simulations, {float(r.get('wall_time_s', 0.0)):.1f} s"
+                    + self._verification())
         conv = "converged" if r.get("converged") else "not converged"
         return (f"{conv} ({r.get('reason')}); {'feasible' if self.feasible else 'INFEASIBLE'}, "
                 f"maximum deviation {dev_txt}; {r.get('simulations')} simulations, "
-                f"{float(r.get('wall_time_s', 0.0)):.1f} s")
+                f"{float(r.get('wall_time_s', 0.0)):.1f} s" + self._verification())
+
+    def _verification(self):
+        ver = verification_text(self.result)
+        return "" if ver is None else f"; {ver}"
 
     def to_dict(self):
         return dict(table=self.variant.table, key=self.variant.key, label=self.label,
@@ -811,6 +849,9 @@ def format_table(table, rows, checks=None, title="", names=None, unit="mm"):
         lines.append(f"    flexmbs: {'converged' if r.converged else 'NOT converged'} "
                      f"({r.reason}); max deviation {r.max_deviation_m * 1e3:.4f} mm; "
                      f"{r.result.get('simulations')} simulations; {r.wall_time_s:.1f} s")
+        ver = verification_text(r.result)
+        if ver:
+            lines.append(f"    {ver}")
     for c in checks or []:
         lines.append(f"  [{c.verdict}] {c.what}: paper {c.paper}, flexmbs {c.flexmbs}")
     return "\n".join(lines)

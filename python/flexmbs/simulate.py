@@ -98,6 +98,8 @@ class Result:
     tape : with tape=True: every converged (sub-)step's state for the discrete adjoint, a dict
         of q, qd, qdd (ndof, ncol), mu (nc, ncol), h (ncol,) (the step that led to the column)
         and grid (nt,) (the 1-based column of every time point).
+    error : with flexmbs.accuracy.simulate_with_error: the estimated time-discretisation
+        error of q (ErrorEstimate; its pointwise errors have q's shape).
     checkpoints : with checkpoints=K: the full integration state at every K-th time point,
         a dict of every (K) and states (checkpoint_rows(ndof, nc), nsteps // K + 1): q, qd,
         qdd, a, the predictor's previous qdd (ndof each), mu (nc), the previous step and the
@@ -119,6 +121,9 @@ class Result:
     dmu: np.ndarray | None = None
     tape: dict | None = None
     checkpoints: dict | None = None
+    #: with flexmbs.accuracy.simulate_with_error: the ErrorEstimate of the stored coordinates
+    #: q (point-wise (nt, nout) errors, judged by their largest change), else None
+    error: object = None
 
     def position_derivative(self, node):
         """(nt, 2, nv) design derivatives of a node's position (needs design_derivatives)."""
@@ -497,7 +502,6 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         in Result.checkpoints, `checkpoint_rows` numbers each (counted in the memory
         estimate): what the discrete adjoint restarts segments of the run from instead of a
         tape (flexmbs.adjoint, checkpointing). Not with tape or design_derivatives.
-
     Returns
     -------
     Result

@@ -86,6 +86,13 @@ def register(subparsers):
                    help="show a progress bar on stderr (default: when stderr is a terminal)")
     p.add_argument("--plot", metavar="FILE.png",
                    help="save the objective history and the final design's deviation history")
+    p.add_argument("--verify-rtol", type=float, default=1e-3, metavar="R",
+                   help="verify the final design at the step (h/2, h/4, ...) that resolves "
+                        "its objective and constraints to R (relative to the limits; default "
+                        "1e-3); when infeasible there, the optimization continues at that "
+                        "step from the design")
+    p.add_argument("--no-verify", dest="verify", action="store_false",
+                   help="leave the final design unverified (its values at the case's h only)")
     for spec in METHOD_OPTIONS:
         _load(spec)(p)
     p.set_defaults(func=run_optimize)
@@ -139,7 +146,13 @@ def run_weakly(args, problem):
                                confirm_cycles=args.confirm_cycles, move_limit=args.move_limit,
                                damping=args.damping, esl_blend=args.esl_blend,
                                design_tol=args.design_tol, frame_kind=_frame_option(args.frame),
-                               history=args.history, progress=report, resume=args.resume)
+                               history=args.history, progress=report, resume=args.resume,
+                               verify=_verify(args))
+
+
+def _verify(args):
+    """The methods' verify option from --verify-rtol / --no-verify."""
+    return args.verify_rtol if args.verify else False
 
 
 class _Reporter:
@@ -315,7 +328,7 @@ def run_fully(args, problem):
                               optimizer=args.optimizer or "auto", kkt_tol=args.kkt_tol,
                               max_iterations=args.max_iterations,
                               design_rel_change=args.design_rel_change, history=args.history,
-                              progress=report, resume=args.resume)
+                              progress=report, resume=args.resume, verify=_verify(args))
 
 
 def _iteration_line(rec):
@@ -344,4 +357,4 @@ def _run_multistart(args, problem):
                       workers=args.workers, dask=args.dask, store=args.store,
                       progress=bool(args.progress), resume=args.resume, kkt_tol=args.kkt_tol,
                       max_iterations=args.max_iterations,
-                      design_rel_change=args.design_rel_change)
+                      design_rel_change=args.design_rel_change, verify=_verify(args))

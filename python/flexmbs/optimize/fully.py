@@ -43,6 +43,7 @@ from flexmbs.optimize.loops import (_check_stopping, _mma_settings, _Monitor, _r
                                     _run_slsqp, _run_sqp)
 from flexmbs.optimize.mma import MMA
 from flexmbs.optimize.result import OptimizationResult, open_history
+from flexmbs.optimize.verified import check_verify, finish
 from flexmbs.progress import check_progress, describe_iteration, reporter
 from flexmbs.sections import real_number
 
@@ -389,7 +390,7 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
                    design_rel_change=None, kkt_tol=1e-3, active_tol=1e-3, scale=None,
                    mma_options=None, trust_radius=0.2, max_trust_radius=0.5,
                    model_fidelity=0.1, screen=-0.3, nlopt_options=None, history=None,
-                   progress=None, resume=False):
+                   progress=None, resume=False, verify=True):
     """Minimize a problem's objective under its constraints with the fully coupled method.
 
     Parameters
@@ -467,11 +468,18 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
         missing file starts afresh. Run it with the same problem, start and options (a
         record that differs from the file's raises ModelError). details replayed_simulations
         counts the replayed analyses; `simulations` counts only those run.
+    verify : bool or float, default True
+        Verify the final design at converged resolution (`flexmbs.optimize.verified`,
+        `flexmbs.accuracy.verify`): re-simulated at h/2, h/4, ... until the objective and the
+        constraints are known to 1e-3 (or the accuracy given, relative to the limits); when
+        it is infeasible there, the optimization continues at that step from the design (no
+        history file) and the new design is verified in turn. False: no verification.
 
     Returns
     -------
     flexmbs.optimize.OptimizationResult
-        method 'fully'; inner_iterations None; details: optimizer, kkt_residual,
+        method 'fully'; verification (details['verification']; after a continuation,
+        details['continued_from']: the coarse run); inner_iterations None; details: optimizer, kkt_residual,
         paper_test_iteration, gradient_evaluations, scale, stopping (the settings),
         evaluate_time_s (inside Problem.evaluate), optimizer_share (1 - evaluate_time_s /
         wall_time_s); NLopt: nlopt_result, restarts, failed_simulations,
@@ -484,9 +492,13 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
     flexmbs.errors.SimulationError
         If the simulation of the start fails.
     """
+    # the options of a continuation on a finer step (flexmbs.optimize.verified)
+    options = {k: v for k, v in locals().items() if k not in ("problem", "x0", "history",
+                                                               "resume", "verify")}
     from flexmbs.problem import load_problem
 
     t0 = time.perf_counter()
+    verify = check_verify(verify)
     if not isinstance(optimizer, str) or optimizer not in OPTIMIZERS + ("auto",):
         raise ModelError(f"optimizer must be 'auto' or one of {', '.join(OPTIMIZERS)}, got "
                          f"{optimizer!r}")
@@ -596,7 +608,7 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
     reason = mon.reason or "stopped"
     if mon.converged and not converged:
         reason += f"; but the re-simulated final design violates a constraint by {viol:.1e}"
-    return OptimizationResult(
+    result = OptimizationResult(
         method="fully", case=desc.case.name, variables=problem.variables,
         units=_units(problem), design=last.design.copy(), start=p0.copy(),
         objective=float(fresh.objective), objective_name=desc.objective.response,
@@ -606,3 +618,6 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
         simulations=P.simulations - P.replayed, converged=converged, reason=reason,
         history=list(writer.records), wall_time_s=wall, details=details,
         t=None if dev is None else np.asarray(fresh.t), deviation=dev, evaluation=fresh)
+    return finish(problem, result, lambda fine, x: optimize_fully(fine, x, verify=False,
+                                                                  **options),
+                  verify, coarse=fresh)

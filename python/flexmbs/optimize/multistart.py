@@ -78,7 +78,8 @@ def start_job(case, start, optimizer, options):
     optimizer=optimizer, **options)` summarised."""
     from flexmbs.optimize.fully import optimize_fully
     try:
-        res = optimize_fully(case, start, optimizer=optimizer, **(options or {}))
+        # each start's local optimum is not verified: multistart verifies the best one
+        res = optimize_fully(case, start, optimizer=optimizer, verify=False, **(options or {}))
     except SimulationError as exc:
         # a start whose own simulation fails (e.g. a very flexible design): no local optimum
         return dict(start=[float(v) for v in start], design=None, objective=None,
@@ -168,6 +169,17 @@ class MultistartResult:
                          f"{self.best['max_violation']:.1e}")
             lines.append(f"  {self.reached_best} of {n} starts reached it (within "
                          f"{self.best_tolerance * 100:.1f} %)")
+            v = self.best.get("verification")
+            if self.best.get("continued_from"):
+                c = self.best["continued_from"]
+                lines.append(f"  continued at a finer step from the best local optimum "
+                             f"(objective {c['objective']:.6g} at h = {c['h']:.4g} s, "
+                             f"infeasible at h = {c['verification']['h']:.4g} s by "
+                             f"{c['verification']['max_violation']:.3g})")
+            if v is not None:
+                lines.append(f"  {'verified' if v['verified'] else 'NOT verified'} at h = "
+                             f"{v['h']:.4g} s: {'feasible' if v['feasible'] else 'INFEASIBLE'} "
+                             f"within {v['rtol']:g}, largest g = {v['max_violation']:.3g}")
         for k, o in enumerate(self.optima):
             if o.get("design") is None:
                 lines.append(f"  start {k}: {o['reason']}")
@@ -204,7 +216,8 @@ class MultistartResult:
 
 def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0,
                start_range=None, candidates=None, workers=None, dask=None, store=None, progress=None,
-               best_tolerance=0.003, feasibility_tol=1e-6, resume=False, **options):
+               best_tolerance=0.003, feasibility_tol=1e-6, resume=False, verify=True,
+               **options):
     """Run the fully coupled optimization from `starts` quasi-random starting designs.
 
     Parameters
@@ -239,6 +252,11 @@ def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0
         A start reached the best when it ended feasible within this relative objective.
     feasibility_tol : float, default 1e-6
         Largest re-checked violation max(0, max g) of a feasible design.
+    verify : bool or float, default True
+        Verify the best design at converged resolution (as `optimize_fully`'s verify): when
+        it is infeasible at the step that resolves it, the optimization continues from it at
+        that step (in this process) and its result replaces the best (best['verification'],
+        best['continued_from']; details['verification']).
     **options : keyword arguments of `optimize_fully` (max_iterations, screen, ...).
 
     Returns
@@ -340,12 +358,49 @@ def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0
     best = min(feas, key=lambda o: o["objective"]) if feas else None
     reached = 0 if best is None else sum(
         o["objective"] <= best["objective"] * (1 + best_tolerance) for o in feas)
+    verification = None
+    if best is not None:
+        best, verification, extra = _verified_best(problem, best, optimizer, options, verify)
+        sims += extra
     desc = problem.description
     return MultistartResult(
         case=desc.case.name, variables=list(problem.variables),
         units=[getattr(v, "unit", "") for v in desc.design], optimizer=optimizer,
         sampler=sampler, best=best, optima=optima, reached_best=int(reached),
         best_tolerance=best_tolerance, wall_time_s=time.perf_counter() - t0,
-        simulations=sims, details=dict(seed=seed, candidates=candidates, start_lower=np.asarray(lo).tolist(),
+        simulations=sims, details=dict(seed=seed, candidates=candidates,
+                                       verification=verification,
+                                       start_lower=np.asarray(lo).tolist(),
                                        start_upper=np.asarray(hi).tolist(),
                                        options={k: v for k, v in options.items()}))
+
+
+def _verified_best(problem, best, optimizer, options, verify):
+    """(best, its verification as JSON or None, simulations run): the best local optimum
+    verified at converged resolution, continued at the finer step when infeasible there
+    (flexmbs.optimize.verified)."""
+    from flexmbs.optimize.fully import optimize_fully
+    from flexmbs.optimize.result import OptimizationResult
+    from flexmbs.optimize.verified import check_verify, finish
+
+    verify = check_verify(verify)
+    if verify is False:
+        return best, None, 0
+    stub = OptimizationResult(
+        method="fully", case=problem.description.case.name, variables=list(problem.variables),
+        units=[], design=np.asarray(best["design"], float),
+        start=np.asarray(best["start"], float), objective=float(best["objective"]),
+        objective_name="", mass_kg=None, max_violation=best["max_violation"],
+        max_deviation_m=None, iterations=0, inner_iterations=None, evaluations=0,
+        simulations=0, converged=bool(best["converged"]), reason=str(best["reason"]),
+        history=[], wall_time_s=0.0)
+    res = finish(problem, stub, lambda fine, x: optimize_fully(
+        fine, x, optimizer=optimizer, verify=False, **options), verify)
+    if res.verification is None:
+        return best, None, 0
+    best = dict(best, verification=res.details["verification"])
+    if res is not stub:                 # continued on the finer step
+        best.update(design=[float(v) for v in res.design], objective=float(res.objective),
+                    max_violation=float(res.max_violation), converged=bool(res.converged),
+                    reason=res.reason, continued_from=res.details["continued_from"])
+    return best, best["verification"], int(res.simulations)

@@ -216,6 +216,9 @@ class OptimizationResult:
     details : method-specific values (also written to JSON at the top level).
     t, deviation : time grid and constrained deviation history (nt,) of the final design
         (not in JSON); evaluation : the final `flexmbs.problem.Evaluation` (not in JSON).
+    verification : the final design checked at converged resolution
+        (`flexmbs.accuracy.Verification`; in JSON as details' ``verification``), or None when
+        the run was not verified (verify=False).
     """
     method: str
     case: str
@@ -240,6 +243,7 @@ class OptimizationResult:
     t: np.ndarray | None = field(default=None, repr=False)
     deviation: np.ndarray | None = field(default=None, repr=False)
     evaluation: object = field(default=None, repr=False)
+    verification: object = field(default=None, repr=False)
 
     @property
     def feasible(self):
@@ -294,6 +298,13 @@ class OptimizationResult:
         if self.max_deviation_m is not None:
             lines.append(f"  max deviation in the full simulation "
                          f"{self.max_deviation_m * 1e3:.4f} mm")
+        prev = self.details.get("continued_from")
+        if prev:
+            lines.append(f"  continued at a finer step from the design found at h = "
+                         f"{prev['h']:.4g} s (objective {prev['objective']:.6g}, infeasible "
+                         f"there by {prev['verification']['max_violation']:.3g})")
+        if self.verification is not None:
+            lines.append(f"  {self.verification.summary()}")
         return "\n".join(lines)
 
     def plot(self, path, limit_m=None):

@@ -70,6 +70,7 @@ from flexmbs.errors import CaseError, ModelError
 from flexmbs.esl import (BodyStiffness, ChordFrame, EquivalentStaticLoads, TangentFrame,
                          equivalent_static_loads, esl_change, solve_static)
 from flexmbs.optimize.result import OptimizationResult, open_history
+from flexmbs.optimize.verified import check_verify, finish
 from flexmbs.optimize.cycles import (CycleControl, check_cycle_options, check_remedies,
                                      damped_update, move_limited_bounds)
 from flexmbs.progress import check_progress, describe_cycle, reporter
@@ -685,7 +686,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
                     move_limit=None, frames=None, frame_kind="auto", screen=0.3,
                     ftol=1e-8, max_inner=200, active_tol=1e-3, stop_on_oscillation=True,
                     damping=1.0, esl_blend=0.0, design_tol=None, history=None, progress=None,
-                    resume=False):
+                    resume=False, verify=True):
     """Optimize a problem with the weakly coupled method (paper 5.3).
 
     Parameters
@@ -750,6 +751,10 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         two cycles are simulated again (the previous ESL, for eq. (25), and the last cycle's
         own), and the run goes on from there exactly as the interrupted one would have,
         appending to the file. details resumed_cycles: the cycles taken from the file.
+    verify : bool or float, default True
+        Verify the final design at converged resolution (as `optimize_fully`'s verify: when
+        it is infeasible at the step that resolves its responses to 1e-3, the cycles continue
+        at that step from the design, and the new design is verified in turn).
 
     Returns
     -------
@@ -768,7 +773,11 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         steps and chains / the largest simulated value} at the returned design, from its own
         ESL: `StaticModel.static_to_simulated`; also in every cycle's history record).
     """
+    # the options of a continuation on a finer step (flexmbs.optimize.verified)
+    options = {k: v for k, v in locals().items() if k not in ("problem", "x0", "history",
+                                                               "resume", "verify")}
     t_start = time.perf_counter()
+    verify = check_verify(verify)
     problem = load_problem(problem)
     d = problem.description
     mech = problem.mechanism
@@ -911,7 +920,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         mass_responses=[r.name for r in mass_resp])
     if resume:
         details["resumed_cycles"] = resumed
-    return OptimizationResult(
+    result = OptimizationResult(
         method="weakly", case=d.case.name, variables=list(mech.variables),
         units=list(mech.units), design=x.copy(), start=control.designs[0],
         objective=record["objective"], objective_name=d.objective.response,
@@ -923,6 +932,8 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         converged=control.converged, reason=reason,
         history=list(writer.records), wall_time_s=time.perf_counter() - t_start,
         details=details, t=np.asarray(mech.t), deviation=dev)
+    return finish(problem, result, lambda fine, x: optimize_weakly(fine, x, verify=False,
+                                                                   **options), verify)
 
 
 def _resume_cycles(problem, static, writer, control, progress, x0, max_cycles):
