@@ -11,7 +11,8 @@ limits on the relative design change per cycle, ESL averaged over the last two c
 (design_tol). Each runs on the paper's Table 3 (four-bar, 5 kg at A and B), Table 4 (four-bar
 without masses), both from 250 mm, Table 1 (robot, 0.65 s, from 50 mm) and Table 5 (robot,
 0.66 s, from 50 mm: the paper's oscillating case; `--tables 3,4,1,5`), with the cycle
-cap of `flexmbs.reproduce.WEAKLY_OPTIONS` unless the remedy sets its own. For each run: the
+cap and the frames of the paper's study (`PAPER`: 30 cycles, tangent frames, as
+cases/studies/paper.toml's [options]) unless the remedy sets its own. For each run: the
 mass of the returned design, its largest constraint value from a fresh simulation
 (Problem.evaluate; feasible when <= 1e-6), the cycles, the diagnosis and the wall time.
 Results are merged into benchmarks/results/weakly_remedies.json (--out), so runs can be made
@@ -33,7 +34,12 @@ import warnings  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-#: name -> options of optimize_weakly (beyond reproduce.WEAKLY_OPTIONS)
+#: the options of the paper's study for the weakly coupled runs (cases/studies/paper.toml)
+PAPER = dict(max_cycles=30, frame_kind="tangent")
+#: the four-bar's follower in a chord frame, the crank and the coupler in tangent frames
+FCHORD = {"crank": "tangent", "coupler": "tangent", "follower": "chord"}
+
+#: name -> options of optimize_weakly (beyond PAPER)
 REMEDIES = {
     "paper": {},
     "paper-100cyc": dict(max_cycles=100),
@@ -49,18 +55,18 @@ REMEDIES = {
     "damping0.5+design_tol2e-2": dict(damping=0.5, design_tol=2e-2),
     "move0.1+design_tol2e-2": dict(move_limit=0.1, design_tol=2e-2),
     # the four-bar's follower (pinned at both ends) in a chord frame C -> B: simply supported
-    "fchord": dict(frame_kind={"follower": "chord"}),
-    "fchord+damping0.5": dict(frame_kind={"follower": "chord"}, damping=0.5),
-    "fchord+damping0.3": dict(frame_kind={"follower": "chord"}, damping=0.3),
-    "fchord+move0.1": dict(frame_kind={"follower": "chord"}, move_limit=0.1),
-    "fchord+move0.2": dict(frame_kind={"follower": "chord"}, move_limit=0.2),
-    "fchord+move0.05": dict(frame_kind={"follower": "chord"}, move_limit=0.05),
-    "fchord+move0.1-60cyc": dict(frame_kind={"follower": "chord"}, move_limit=0.1,
+    "fchord": dict(frame_kind=FCHORD),
+    "fchord+damping0.5": dict(frame_kind=FCHORD, damping=0.5),
+    "fchord+damping0.3": dict(frame_kind=FCHORD, damping=0.3),
+    "fchord+move0.1": dict(frame_kind=FCHORD, move_limit=0.1),
+    "fchord+move0.2": dict(frame_kind=FCHORD, move_limit=0.2),
+    "fchord+move0.05": dict(frame_kind=FCHORD, move_limit=0.05),
+    "fchord+move0.1-60cyc": dict(frame_kind=FCHORD, move_limit=0.1,
                                  max_cycles=60),
-    "fchord+blend0.5": dict(frame_kind={"follower": "chord"}, esl_blend=0.5),
-    "fchord+damping0.5+blend0.5": dict(frame_kind={"follower": "chord"}, damping=0.5,
+    "fchord+blend0.5": dict(frame_kind=FCHORD, esl_blend=0.5),
+    "fchord+damping0.5+blend0.5": dict(frame_kind=FCHORD, damping=0.5,
                                        esl_blend=0.5),
-    "fchord+damping0.5-60cyc": dict(frame_kind={"follower": "chord"}, damping=0.5,
+    "fchord+damping0.5-60cyc": dict(frame_kind=FCHORD, damping=0.5,
                                     max_cycles=60),
 }
 
@@ -74,9 +80,8 @@ def run_one(table, options):
     """One weakly coupled run: a dict of the measured numbers."""
     from flexmbs.optimize import optimize_weakly
     from flexmbs.problem import Problem
-    from flexmbs.reproduce import WEAKLY_OPTIONS
     case, overrides, start = TABLES[table]
-    opts = dict(WEAKLY_OPTIONS[case])
+    opts = dict(PAPER)
     opts.update(options)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -554,7 +554,7 @@ def test_optimize_fully_history_must_be_a_path(robot):
     (dict(screen=2), "screen must lie in [0, 1], got 2"),
     (dict(move_limit=-1), "move_limit (or None) must be a positive finite number, got -1"),
     (dict(max_inner=0), "max_inner must be an integer >= 1, got 0"),
-    (dict(frame_kind="polar"), "frame_kind must be 'tangent' or 'chord', got 'polar'"),
+    (dict(frame_kind="polar"), "frame_kind must be 'auto', 'tangent', 'chord', got 'polar'"),
     (dict(frames=3), "frames must be a dict beam -> point or None, got 3"),
     (dict(frames={"arm9": "A"}), "frames: 'arm9' is not a beam (beams: arm1, arm2)"),
     (dict(frames={"arm1": "Z"}), "frames: beam 'arm1' has no end point 'Z' (its ends: O, A)"),

@@ -166,20 +166,23 @@ def test_bad_arguments_are_typed_errors():
         optimize_weakly(case, [70.0])
     with pytest.raises(ModelError, match="frames must be a dict"):
         optimize_weakly(case, frames=["rod"])
-    with pytest.raises(ModelError, match="frame_kind must be 'tangent' or 'chord', got 'arc'"):
+    with pytest.raises(ModelError, match="frame_kind must be 'auto', 'tangent', 'chord', "
+                                         "got 'arc'"):
         optimize_weakly(case, frame_kind="arc")
 
 
 def test_frame_kind_per_beam():
-    """frame_kind={'follower': 'chord'} on the four-bar: the follower (pinned at C and B) gets
-    a chord frame C -> B, the crank and the coupler keep tangent frames. By the chord frame's
+    """frame_kind={'crank': 'tangent', 'coupler': 'tangent', 'follower': 'chord'} on the
+    four-bar: the follower (pinned at C and B) gets a chord frame C -> B, the crank and the
+    coupler tangent frames. By the chord frame's
     definition B lies on its x axis, so the follower's static displacement at B has no
     transverse component: (35)'s follower term is its axial stretch only (|u_y(B)| = 0, against
     an axial |u_x(B)| > 0)."""
     from flexmbs.esl import ChordFrame, TangentFrame
     pb = Problem(GENERAL / "fourbar.toml")
     x = pb.mechanism.design_values([70.0, 88.0, 40.0])
-    st = StaticModel(pb, frame_kind={"follower": "chord"})
+    st = StaticModel(pb, frame_kind={"crank": "tangent", "coupler": "tangent",
+                                     "follower": "chord"})
     kinds = {n: type(f) for n, f in st.frames}
     assert kinds == {"crank": TangentFrame, "coupler": TangentFrame, "follower": ChordFrame}
     model = pb.mechanism.set_design(x)
@@ -194,11 +197,11 @@ def test_frame_kind_per_beam():
 
 def test_frame_kind_per_beam_bad_input():
     """A frame_kind dict naming no beam is a CaseError naming it and the beams; a kind other
-    than tangent/chord a ModelError naming the beam and the kind."""
+    than auto/tangent/chord a ModelError naming the beam and the kind."""
     from flexmbs.errors import ModelError
     pb = Problem(GENERAL / "fourbar.toml")
     with pytest.raises(CaseError, match="frame_kind: 'mass_A' is not a beam"):
         StaticModel(pb, frame_kind={"mass_A": "chord"})
-    with pytest.raises(ModelError, match="frame_kind of beam 'follower' must be 'tangent' or "
-                                         "'chord', got 'arc'"):
+    with pytest.raises(ModelError, match="frame_kind of beam 'follower' must be 'auto', "
+                                         "'tangent', 'chord', got 'arc'"):
         StaticModel(pb, frame_kind={"follower": "arc"})

@@ -155,8 +155,10 @@ def test_shipped_variants_keep_the_run_names():
     assert set(v) == {"fully-multistart8", "weakly-chord-move0.1"}
     assert v["fully-multistart8"].multistart["starts"] == 8
     assert v["fully-multistart8"].multistart["candidates"] == 32
-    assert v["weakly-chord-move0.1"].options == {"frame_kind": {"follower": "chord"},
-                                                 "move_limit": 0.1}
+    assert v["weakly-chord-move0.1"].options == {
+        "frame_kind": {"crank": "tangent", "coupler": "tangent", "follower": "chord"},
+        "move_limit": 0.1}
+    assert dict(dict(study.tables[3].options)["weakly"])["frame_kind"] == "tangent"
     runs = {r.name for t in study.tables.values() for r in t.runs()}
     assert {x.name for x in v.values()} == {"table3-fully-multistart8",
                                             "table3-weakly-chord-move0.1"}

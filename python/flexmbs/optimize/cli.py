@@ -7,7 +7,7 @@ Usage::
                           [--progress | --no-progress] [--plot FILE.png]
         weakly: [--eps E] [--max-cycles N] [--confirm-cycles N] [--move-limit F]
                 [--damping W] [--esl-blend B] [--design-tol TOL]
-                [--frame tangent|chord|BEAM=KIND,...]
+                [--frame auto|tangent|chord|BEAM=KIND,...]
         fully:  [--optimizer mma|sqp|slsqp|nlopt-mma|nlopt-ccsaq|nlopt-slsqp] [--kkt-tol TOL]
                 [--max-iterations N] [--design-rel-change TOL]
                 [--starts N [--candidates M] [--sampler sobol|lhs] [--seed S]
@@ -116,13 +116,15 @@ def add_weakly_options(p):
     g.add_argument("--design-tol", type=float, default=None, metavar="TOL",
                    help="also converged when the design changes by less than TOL (relative) "
                         "between cycles with the design feasible; default none")
-    g.add_argument("--frame", default="tangent", metavar="KIND|BEAM=KIND,...",
-                   help="corotational frame of the beams, tangent or chord (default: tangent, as "
-                        "the paper), or per beam, e.g. follower=chord (others tangent)")
+    g.add_argument("--frame", default="auto", metavar="KIND|BEAM=KIND,...",
+                   help="corotational frame of the beams: auto (default: from each beam's "
+                        "joints, tangent where its rotation is held, chord between free "
+                        "hinges), tangent (the paper's) or chord; or per beam, e.g. "
+                        "follower=chord (others auto)")
 
 
 def _frame_option(text):
-    """--frame: 'tangent', 'chord' or 'BEAM=KIND,...' -> optimize_weakly's frame_kind."""
+    """--frame: 'auto', 'tangent', 'chord' or 'BEAM=KIND,...' -> optimize_weakly's frame_kind."""
     if "=" not in text:
         return text
     kinds = {}

@@ -312,6 +312,14 @@ class OptimizationResult:
             lines.append(f"  optimizer: {self.details['optimizer_reason']}")
         if self.details.get("gradient_method_reason"):
             lines.append(f"  gradients: {self.details['gradient_method_reason']}")
+        ratios = self.details.get("static_to_simulated")
+        if ratios:
+            kinds = self.details.get("frame_kinds") or {}
+            lines.append("  static form / simulation at this design: "
+                         + ", ".join(f"{n} {'n/a' if v is None else f'{v:.3g}'}"
+                                     for n, v in ratios.items())
+                         + (" (frames: " + ", ".join(f"{b} {k}" for b, k in kinds.items())
+                            + ")" if kinds else ""))
         if self.max_deviation_m is not None:
             lines.append(f"  max deviation in the full simulation "
                          f"{self.max_deviation_m * 1e3:.4f} mm")

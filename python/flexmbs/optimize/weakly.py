@@ -34,7 +34,12 @@ The static model of the responses (the generic form of the paper's eqs. 29, 31, 
 
 The ESL bodies are the beams on a chain and the beams with a stress response (frame at the chain
 entry, else at the beam's `from` point, or as `frames` says); beams that enter no constraint need
-none. Component 'angle' has no static form here (CaseError).
+none. Component 'angle' has no static form here (CaseError). The kind of each frame comes from
+the beam's joints by default (`frame_by_joints`: tangent where the beam's rotation at its frame
+point is held, chord for a beam pinned or hinged at both ends), or is given (`frame_kind`).
+At the design of its ESL the static form of a deviation is the chain sum of the frames'
+displacements (K^-1 g_eq = u); its ratio to the simulated deviation
+(`StaticModel.static_to_simulated`) is recorded every cycle and returned.
 
 Responses with no static form: a motor torque or a joint reaction (`torque`, `reaction`) is a
 dynamic quantity (inertia of the whole mechanism, not a beam's deflection under fixed loads).
@@ -73,7 +78,7 @@ from flexmbs.progress import check_progress, describe_cycle, reporter
 from flexmbs.problem import _scalar, constraint_rows, load_problem
 from flexmbs.responses.strain import raw_strain_derivatives, raw_strains, shape, gauss_points
 
-__all__ = ["optimize_weakly", "chains", "StaticModel", "blend_loads"]
+__all__ = ["optimize_weakly", "chains", "frame_by_joints", "StaticModel", "blend_loads"]
 
 #: at most this many chain combinations per deviation response (loops multiply them)
 MAX_VARIANTS = 16
@@ -185,25 +190,78 @@ def _difference(chain, rel):
     return {k: v for k, v in out.items() if v != 0.0}
 
 
+# ---------------------------------------------------------------------------- frames
+#: the frame kinds a beam can be given; 'auto' is resolved per beam by `frame_by_joints`
+FRAME_KINDS = ("auto", "tangent", "chord")
+
+
+def _rotation_held(description, body, point):
+    """Whether the joints or drives hold or tie the rotation of `body` at `point`: a clamp,
+    a slider (the body does not rotate), a weld or a prismatic joint there, a rotation drive of
+    the body there, or a rotation drive of another body relative to it there."""
+    for j in description.joints:
+        if j.at != point:
+            continue
+        if j.type in ("clamp", "slider") and j.body == body:
+            return True
+        if j.type in ("weld", "prismatic") and body in j.bodies:
+            return True
+    return any(dr.type == "rotation" and dr.at == point
+               and body in (dr.body, dr.relative_to) for dr in description.drives)
+
+
+def _joined(description, body, point):
+    """Whether a joint (to the ground or to another body) holds `body` at `point`."""
+    return any(j.at == point and (j.body == body or body in (j.bodies or ()))
+               for j in description.joints)
+
+
+def frame_by_joints(description, beam, point):
+    """The corotational frame kind that the joints give `beam` at its frame point `point`.
+
+    'tangent' where the beam's rotation at `point` is held or tied to another body (clamp,
+    slider, weld, prismatic joint, a rotation drive of the beam, or of another body relative to
+    it): the static load cases clamped there, as the paper's eqs. (16-19). 'chord' where the
+    rotation at `point` is free (a pin or hinge) and the beam's other end is joined too (to the
+    ground or another body): both end rotations are free, so the elastic deflection is measured
+    from the chord between the ends; in a tangent frame the free end slope would count as
+    deflection (the other end's offset: slope times length). 'tangent' again where the other end
+    is free (nothing there fixes a chord: in a chord frame the free end's transverse
+    displacement would be zero by definition).
+    """
+    beams = {b.name: b for b in description.bodies if isinstance(b, Beam)}
+    if beam not in beams:
+        raise CaseError(f"frame_by_joints: {beam!r} is not a beam "
+                        f"(beams: {', '.join(beams) or 'none'})")
+    b = beams[beam]
+    if point not in (b.start, b.end):
+        raise CaseError(f"frame_by_joints: beam {beam!r} has no end point {point!r} (its ends: "
+                        f"{b.start}, {b.end})")
+    if _rotation_held(description, beam, point):
+        return "tangent"
+    far = b.end if point == b.start else b.start
+    return "chord" if _joined(description, beam, far) else "tangent"
+
+
 # ---------------------------------------------------------------------------- static model
 def _frame_kinds(frame_kind, beams):
-    """{beam: 'tangent' | 'chord'} from one kind for all beams or a dict beam -> kind."""
-    ok = ("tangent", "chord")
+    """{beam: 'auto' | 'tangent' | 'chord'} from one kind for all beams or a dict beam -> kind
+    (beams not named: 'auto')."""
+    ok = "', '".join(FRAME_KINDS)
     if isinstance(frame_kind, str):
-        if frame_kind not in ok:
-            raise ModelError(f"frame_kind must be 'tangent' or 'chord', got {frame_kind!r} "
+        if frame_kind not in FRAME_KINDS:
+            raise ModelError(f"frame_kind must be '{ok}', got {frame_kind!r} "
                              "(or a dict beam -> kind)")
         return dict.fromkeys(beams, frame_kind)
     if not isinstance(frame_kind, dict):
-        raise ModelError(f"frame_kind must be 'tangent', 'chord' or a dict beam -> kind, got "
+        raise ModelError(f"frame_kind must be '{ok}' or a dict beam -> kind, got "
                          f"{frame_kind!r}")
     for name, kind in frame_kind.items():
         if name not in beams:
             raise CaseError(f"frame_kind: {name!r} is not a beam (beams: {', '.join(beams)})")
-        if kind not in ok:
-            raise ModelError(f"frame_kind of beam {name!r} must be 'tangent' or 'chord', got "
-                             f"{kind!r}")
-    return {n: frame_kind.get(n, "tangent") for n in beams}
+        if kind not in FRAME_KINDS:
+            raise ModelError(f"frame_kind of beam {name!r} must be '{ok}', got {kind!r}")
+    return {n: frame_kind.get(n, "auto") for n in beams}
 
 
 class StaticModel:
@@ -213,11 +271,12 @@ class StaticModel:
     ----------
     problem : Problem
     frames : dict body -> point, optional (frame point of a beam).
-    frame_kind : 'tangent' (default) or 'chord' (from the frame point to the beam's other end),
-        for every beam; or a dict beam -> kind (beams not named: 'tangent').
+    frame_kind : 'auto' (default: `frame_by_joints` per beam), 'tangent' or 'chord' (from the
+        frame point to the beam's other end), for every beam; or a dict beam -> kind (beams not
+        named: 'auto').
     """
 
-    def __init__(self, problem, frames=None, frame_kind="tangent"):
+    def __init__(self, problem, frames=None, frame_kind="auto"):
         self.problem = problem
         d = problem.description
         mech = problem.mechanism
@@ -308,6 +367,8 @@ class StaticModel:
         for name in beams:
             if name not in entry:
                 continue
+            if kinds[name] == "auto":
+                kinds[name] = frame_by_joints(d, name, entry[name])
             body = model.body(name)
             node = mech.node[(name, entry[name])]
             far = body.last if node == body.first else body.first
@@ -460,6 +521,26 @@ class StaticModel:
                 values[r.name], grads[r.name] = self._stress(r, x, sol, nv, gradient)
         return values, grads
 
+    def static_to_simulated(self, x, loads, values):
+        """{deviation response: ratio} of the static form to the simulation at design x, whose
+        own ESL are `loads` and simulated response values `values` (the constrained deviations
+        only). At the ESL design K^-1 g_eq = u (eq. 19): the static form is then the chain sum
+        of the beams' displacements in their frames, so the ratio, the largest static value over
+        the steps and chains divided by the largest simulated value over the steps, measures the
+        frames alone (1: the chains reproduce the simulated deviation at its peak). Sets the
+        static model's loads to `loads`."""
+        constrained = {c.response for c in self.problem.description.constraints}
+        devs = [r for r in self.responses if isinstance(r, Deviation) and r.name in constrained]
+        if not devs:
+            return {}
+        self.set_loads(loads)
+        static, _ = self.responses_at(x, gradient=False)
+        out = {}
+        for r in devs:
+            sim = float(np.max(values[r.name]))
+            out[r.name] = float(np.max(static[r.name])) / sim if sim > 0 else None
+        return out
+
     def evaluate(self, x, gradient=True):
         """(f, df, g, J, groups, names): objective and constraint rows g <= 0 of the static
         model; a deviation with several chains gives each chain's rows (paper 34-35)."""
@@ -603,7 +684,7 @@ def _active_rows(g, names, active_tol):
 
 
 def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles=1,
-                    move_limit=None, frames=None, frame_kind="tangent", screen=0.3,
+                    move_limit=None, frames=None, frame_kind="auto", screen=0.3,
                     ftol=1e-8, max_inner=200, active_tol=1e-3, stop_on_oscillation=True,
                     damping=1.0, esl_blend=0.0, design_tol=None, history=None, progress=None,
                     resume=False, verify=True):
@@ -626,11 +707,14 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         against oscillation.
     frames : dict beam -> point, optional
         Frame point of a beam (default: where the chains enter it; stress-only beams: `from`).
-    frame_kind : {'tangent', 'chord'} or dict beam -> kind, default 'tangent'
-        Corotational frame of every ESL beam at its frame point: tangent to the beam there
-        (static load cases clamped at that point), or 'chord', from that point to the beam's
-        other end (simply supported); a dict sets it per beam (others: 'tangent'). The
-        four-bar's follower, pinned at both ends, with {'follower': 'chord'}: docs/optimizers.md.
+    frame_kind : {'auto', 'tangent', 'chord'} or dict beam -> kind, default 'auto'
+        Corotational frame of every ESL beam at its frame point: 'tangent' to the beam there
+        (static load cases clamped at that point; the paper's eqs. 16-19), 'chord', from that
+        point to the beam's other end (simply supported), or 'auto': chosen per beam from its
+        joints by `frame_by_joints` (tangent where the beam's rotation at its frame point is
+        held: clamp, weld, driven rotation; chord for a beam pinned or hinged at both ends,
+        as the four-bar's coupler and follower and the press's rod). A dict sets it per beam
+        (beams not named: 'auto'). docs/optimizers.md, "Corotational frames".
     screen : float in [0, 1], default 0.3
         The static problem starts with the rows (time steps) whose value is at least
         `screen` times the current maximum of its constraint (0: all rows); rows found
@@ -685,7 +769,10 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         'oscillating', 'diverging' or 'cap'), predicted_max_violation (static model,
         normalised g of the final design), feasible, paper_test_cycle (the cycle at which
         eq. (25) first held), static_optimizations, oscillation_period, esl_change,
-        esl_bodies, frames, damping, esl_blend, design_tol.
+        esl_bodies, frames, frame_kinds (the kind each ESL beam got), damping, esl_blend,
+        design_tol, static_to_simulated ({constrained deviation: the largest static value over
+        steps and chains / the largest simulated value} at the returned design, from its own
+        ESL: `StaticModel.static_to_simulated`; also in every cycle's history record).
     """
     arguments = dict(locals())
     options = run_options(arguments)      # the arguments: what a history answers
@@ -744,6 +831,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
                                             props=model.element_properties())
             changes = None if prev_loads is None else esl_change(loads, prev_loads)
             change = None if changes is None else max(changes.values())
+            ratios = static.static_to_simulated(x, loads, values)
             record = dict(
                 iteration=cycle, design=x, mass_kg=problem.design_mass(x, values),
                 objective=float(_scalar(values[d.objective.response], None, d.objective.over,
@@ -757,7 +845,8 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
                 active_steps=None if pending is None else pending.active_steps,
                 simulation_active_steps=_active_rows(g_dyn, names, active_tol),
                 static_message=None if pending is None or pending.success else pending.message,
-                static_design=None if pending is None else pending.x)
+                static_design=None if pending is None else pending.x,
+                static_to_simulated=ratios)
             control.observe(cycle, x, change, record, objective=record["objective"],
                             violation=record["max_violation"],
                             data=(record, values, g_dyn, names, dev),
@@ -827,6 +916,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         confirm_cycles=confirm_cycles,
         move_limit=move_limit, frame=frame_kind if isinstance(frame_kind, str) else "mixed",
         frame_kinds=dict(static.kinds), frames=dict(static.entry),
+        static_to_simulated=record.get("static_to_simulated"),
         esl_bodies=[n for n, _ in static.frames], variables=list(mech.variables),
         t_end=float(mech.t[-1]),
         active_steps=(record["active_steps"] if use_best else
