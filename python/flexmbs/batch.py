@@ -56,7 +56,7 @@ from flexmbs.errors import ModelError, ResourceError, SimulationError
 
 __all__ = ["run_batch", "sweep_jobs", "max_deviation_job", "local_cluster", "Progress",
            "atomic_open", "save_figure", "write_atomic", "read_stored", "check_writable",
-           "check_disk_space", "START_METHODS"]
+           "check_disk_space", "check_dask", "START_METHODS"]
 
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
@@ -192,6 +192,26 @@ def check_disk_space(folder, required, what):
         raise ResourceError(f"{what}: about {required / 1e6:.1f} MB will be written in "
                             f"{str(folder)!r} but only {free / 1e6:.1f} MB are free",
                             required=required, available=free)
+
+
+def check_dask(dask, what="dask"):
+    """Check a Dask scheduler address once, before any job: None, 'local', or an address
+    whose host resolves and that has a port (tcp://host:8786, host:8786, tls://..., inproc://...;
+    distributed.comm.resolve_address). ModelError naming `what` and the value otherwise (no
+    connection is made here: an unreachable scheduler is found by the first Client)."""
+    if dask is None or (isinstance(dask, str) and dask == "local"):
+        return dask
+    if not isinstance(dask, str) or not dask.strip():
+        raise ModelError(f"{what} must be a Dask scheduler address (tcp://HOST:PORT) or "
+                         f"'local', got {dask!r}")
+    from distributed.comm.addressing import resolve_address
+    try:
+        resolve_address(dask)
+    except (ValueError, TypeError, OSError) as exc:
+        reason = getattr(exc, "strerror", None) or exc
+        raise ModelError(f"{what} {dask!r} is not a Dask scheduler address ({reason}); "
+                         "expected 'local' or SCHEME://HOST:PORT, e.g. tcp://host:8786") from None
+    return dask
 
 
 def stale_result(value, fp):
@@ -365,6 +385,7 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
     if not isinstance(start_method, str) or start_method not in START_METHODS:
         raise ModelError(f"start_method must be one of {', '.join(map(repr, START_METHODS))}, "
                          f"got {start_method!r}")
+    check_dask(dask)
     results = {}
     todo = dict(jobs)
     if fingerprints is True:

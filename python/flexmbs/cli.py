@@ -42,6 +42,7 @@ from flexmbs.errors import CaseError, FlexmbsError, ModelError
 
 __all__ = ["main", "build_parser", "COMMANDS", "add_case_arguments", "problem_from_args",
            "design_from_text", "parse_values", "parse_set", "register_simulate", "positive_int",
+           "nonnegative_int",
            "output_file", "figure_file", "print_evaluation", "add_design_arguments"]
 
 #: Subcommand registration functions, "module:function", in the order of the help text.
@@ -164,6 +165,17 @@ def positive_int(text):
         raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {value}")
+    return value
+
+
+def nonnegative_int(text):
+    """argparse type: an integer >= 0 (e.g. --seed)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {value}")
     return value
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from flexmbs.batch import check_dask
 from flexmbs.cli import positive_int, printable
 from flexmbs.errors import ModelError
 from flexmbs.optimize.library import preload
@@ -57,6 +58,7 @@ def run_reproduce(args):
     grid = args.grid if args.grid is not None else (11 if args.quick else 41)
     if grid < 2:
         raise ModelError(f"--grid must be an integer >= 2, got {grid}")
+    check_dask(args.dask, "--dask")
     study = load_study(args.study)
     if tables is not None:
         bad = [t for t in tables if t not in study.tables]

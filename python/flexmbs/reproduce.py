@@ -1162,7 +1162,9 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int)
                                 or workers < 1):
         raise ModelError(f"workers must be an integer >= 1, got {workers!r}")
-    from flexmbs.batch import check_disk_space, check_writable, read_stored, write_atomic
+    from flexmbs.batch import (check_dask, check_disk_space, check_writable, read_stored,
+                               write_atomic)
+    check_dask(dask)        # once, before any job (not once per failing job)
     say = log or (lambda s: None)
     out = Path(out)
     runs = table_runs(tables, study)

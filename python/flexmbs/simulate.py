@@ -564,6 +564,8 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     if tape:
         est.parts[TAPE_PART] = tape_bytes(ntape)
     nckr = checkpoint_rows(model.ndof, len(model._rows))
+    if checkpoints:     # an interval beyond the run: the initial state only (the core's int)
+        checkpoints = min(checkpoints, max(int(nsteps), 1))
     nck = checkpoint_count(nsteps, checkpoints) if checkpoints else 1
     if checkpoints:
         est.parts[CHECKPOINT_PART] = checkpoint_bytes(model, nsteps, checkpoints)

@@ -36,8 +36,9 @@ import argparse
 import importlib
 import sys
 
-from flexmbs.cli import (add_case_arguments, design_from_text, figure_file, output_file,
-                         print_json, problem_from_args)
+from flexmbs.batch import check_dask
+from flexmbs.cli import (add_case_arguments, design_from_text, figure_file, nonnegative_int,
+                         output_file, print_json, problem_from_args)
 from flexmbs.errors import CaseError, ModelError
 from flexmbs.optimize.fully import OPTIMIZERS
 from flexmbs.optimize.library import preload
@@ -302,7 +303,7 @@ def add_fully_options(parser):
     m.add_argument("--candidates", type=int, default=None, metavar="M",
                    help="draw M >= N designs, simulate each once, and start from the N "
                         "feasible ones of lowest objective")
-    m.add_argument("--seed", type=int, default=0, metavar="S",
+    m.add_argument("--seed", type=nonnegative_int, default=0, metavar="S",
                    help="seed of the sampler (default 0: the same starts every run)")
     m.add_argument("--workers", type=int, default=None, metavar="N",
                    help="local worker processes for the starts (default: the number of cores)")
@@ -347,6 +348,7 @@ def _run_multistart(args, problem):
     if args.history.path is not None:
         raise CaseError("--history is written by one run; with --starts give --store FOLDER "
                         "(one result file per start)")
+    check_dask(args.dask, "--dask")
     if args.resume and args.store is None:
         raise CaseError("--resume with --starts continues from the --store FOLDER of the "
                         "interrupted run: give --store")

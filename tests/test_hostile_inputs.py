@@ -1,0 +1,105 @@
+"""Hostile inputs: absurd numbers, deeply nested files, special files, wrong stored content.
+
+On the command line every bad argument is one line on stderr with exit status 2 (no
+traceback); in Python a typed error (ModelError, CaseError, ResourceError) names the input, the
+value and what is allowed. Nothing may hang, read without end or exhaust the memory first.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from flexmbs.cli import main
+from flexmbs.errors import ModelError, ResourceError
+
+
+def _one_error_line(capsys):
+    """The single line on stderr (no traceback, nothing on stdout)."""
+    out, err = capsys.readouterr()
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    return lines[0]
+
+
+def _no_simulation(monkeypatch):
+    """Make any simulation fail the test: the error must come before the run."""
+    from flexmbs.problem import Problem
+
+    def forbidden(self, *a, **k):
+        raise AssertionError("simulation started although an argument was bad")
+    monkeypatch.setattr(Problem, "simulate", forbidden)
+    monkeypatch.setattr(Problem, "evaluate", forbidden)
+
+
+# ----------------------------------------------------------------------------- command line
+def test_checkpoint_interval_beyond_the_run_gives_the_adjoint_gradient():
+    """checkpoints=10**20 (beyond a C int): the adjoint keeps the initial state only (as
+    K = N) and its gradient equals the direct differentiation's (the discrete adjoint of the
+    same discretisation: equal to rounding, rtol 1e-6), where the core's int overflowed."""
+    from flexmbs.problem import Problem
+
+    ov = {"time.t_end": 0.01}
+    direct = Problem("robot_2dof", overrides=ov).evaluate(None, gradient=True)
+    adj = Problem("robot_2dof", overrides=ov, gradient_method="adjoint",
+                  checkpoints=10 ** 20).evaluate(None, gradient=True)
+    g_d, g_a = direct.gradients["mass"], adj.gradients["mass"]
+    np.testing.assert_allclose(g_a, g_d, rtol=1e-6)
+    k = adj.stats.get("checkpoints") if adj.stats else None
+    assert k is None or k <= 20
+
+
+@pytest.mark.parametrize("address", ["not a url", "bogus", "tcp://host-without-port"])
+def test_bad_dask_address_is_one_line_before_any_job(monkeypatch, capsys, address):
+    """--dask with an address that has no port or no host: one line naming --dask and the
+    value, exit 2, before any simulation (optimize --starts) and before any job (reproduce:
+    once, not once per job)."""
+    _no_simulation(monkeypatch)
+    import flexmbs.batch as batch
+
+    def forbidden(*a, **k):
+        raise AssertionError("a batch started although --dask was bad")
+    monkeypatch.setattr(batch, "run_batch", forbidden)
+    assert main(["optimize", "robot_2dof", "--method", "fully", "--starts", "2",
+                 "--dask", address]) == 2
+    line = _one_error_line(capsys)
+    assert "--dask" in line and repr(address) in line
+    assert main(["reproduce", "--table", "1", "--dask", address, "--out", "unused"]) == 2
+    line = _one_error_line(capsys)
+    assert "--dask" in line and repr(address) in line
+
+
+def test_bad_dask_address_in_python():
+    """run_batch(dask='bogus') is a ModelError naming dask and the value, before any job."""
+    from flexmbs.batch import run_batch
+
+    with pytest.raises(ModelError, match=r"dask 'bogus' is not a Dask scheduler address"):
+        run_batch(abs, {"a": dict(x=1)}, dask="bogus")
+
+
+def test_negative_seed(capsys):
+    """--seed=-1: numpy refused it from deep inside the sampler (ValueError); it is an argument
+    error naming --seed, and start_designs(seed=-1) a ModelError naming seed."""
+    from flexmbs.optimize.multistart import start_designs
+
+    with pytest.raises(ModelError, match=r"seed must be an integer >= 0.*-1"):
+        start_designs([1.0], [2.0], 2, seed=-1)
+    assert main(["optimize", "robot_2dof", "--method", "fully", "--starts", "2",
+                 "--seed=-1"]) == 2
+    err = capsys.readouterr().err
+    assert "--seed" in err and "-1" in err and "Traceback" not in err
+
+
+def test_candidates_beyond_memory_are_refused(monkeypatch, capsys):
+    """--candidates 10**9 with 4 variables: at least 8 bytes x 4 values x 10**9 = 32 GB of
+    designs alone, beyond a 1 GB limit: a ResourceError naming --candidates before drawing
+    (a raw MemoryError before)."""
+    _no_simulation(monkeypatch)
+    monkeypatch.setenv("FLEXMBS_MEMORY_LIMIT", "1G")
+    assert main(["optimize", "robot_2dof", "--method", "fully", "--starts", "2",
+                 "--candidates", "1000000000"]) == 2
+    line = _one_error_line(capsys)
+    assert "ResourceError" in line and "--candidates" in line and "1000000000" in line
+    from flexmbs.optimize.multistart import multistart
+    with pytest.raises(ResourceError, match="candidates = 1000000000"):
+        multistart("robot_2dof", 2, candidates=10 ** 9)
