@@ -103,3 +103,58 @@ def test_candidates_beyond_memory_are_refused(monkeypatch, capsys):
     from flexmbs.optimize.multistart import multistart
     with pytest.raises(ResourceError, match="candidates = 1000000000"):
         multistart("robot_2dof", 2, candidates=10 ** 9)
+
+
+# ----------------------------------------------------------------------------- deep nesting
+DEEP = 10_000
+
+
+def _study(folder, published_text=None, extra=""):
+    """A minimal study file beside its published JSON (as tests/test_file_safety.py)."""
+    (folder / "published.json").write_text(published_text or '{"a": {"b": {}}}')
+    f = folder / "study.toml"
+    f.write_text(f'''{extra}
+[study]
+name = "mine"
+published = "published.json"
+
+[tables.1]
+title = "t"
+case = "robot_2dof"
+published = ["a", "b"]
+starts = [[50.0, 50.0, 50.0, 50.0]]
+''')
+    return f
+
+
+@pytest.mark.parametrize("value", ["[" * DEEP + "1" + "]" * DEEP,
+                                   "{a = " * DEEP + "1" + "}" * DEEP])
+def test_case_nested_too_deeply(tmp_path, capsys, value):
+    """A case value nested 10 000 levels (arrays, inline tables): a CaseError naming the file
+    and 'nested too deeply' (a RecursionError with thousands of lines before), and one line on
+    the command line."""
+    from flexmbs.casefile import read_description
+    from flexmbs.errors import CaseError
+
+    f = tmp_path / "deep.toml"
+    f.write_text(f'x = {value}\n[[bodies]]\nname = "a"\n')
+    with pytest.raises(CaseError, match=r"deep\.toml: nested too deeply"):
+        read_description(f)
+    assert main(["simulate", str(f)]) == 2
+    assert "nested too deeply" in _one_error_line(capsys)
+
+
+def test_study_nested_too_deeply(tmp_path):
+    """A study file with a value nested 10 000 levels, and a study whose published JSON nests
+    100 000 levels: CaseError naming the file and 'nested too deeply'."""
+    from flexmbs.errors import CaseError
+    from flexmbs.study import load_study
+
+    f = _study(tmp_path, extra="x = " + "[" * DEEP + "1" + "]" * DEEP + "\n")
+    with pytest.raises(CaseError, match=r"study\.toml: nested too deeply"):
+        load_study(f)
+    g = tmp_path / "other"
+    g.mkdir()
+    f = _study(g, published_text="[" * 100_000 + "]" * 100_000)
+    with pytest.raises(CaseError, match=r"published\.json: nested too deeply"):
+        load_study(f)

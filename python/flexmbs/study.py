@@ -472,7 +472,7 @@ class Study:
 
     def published_data(self):
         """The published numbers (the JSON file `published`)."""
-        return json.loads(self.published.read_text(encoding="utf-8"))
+        return read_published(self.published)
 
     def figure_table(self, fig):
         """The table a figure belongs to."""
@@ -671,19 +671,24 @@ def _format_errors(exc, source):
 def _load(path_text, text):
     path = Path(path_text)
     source = str(path)
+    from flexmbs.casefile import nesting_guard
     try:
-        raw = tomllib.loads(text)
+        with nesting_guard(source):
+            raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise CaseError(f"{source}: not valid TOML: {exc}") from None
     try:
-        f = StudyFile.model_validate(raw)
+        with nesting_guard(source):
+            f = StudyFile.model_validate(raw)
     except ValidationError as exc:
         raise CaseError(_format_errors(exc, source)) from None
     folder = path.parent
     _check_options(f.options, "options", source)
     pub = _published_file(f.study.published, folder, source)
     try:
-        published = json.loads(pub.read_text(encoding="utf-8"))
+        published = read_published(pub, f"{source}: key 'study.published': {pub}")
+    except CaseError:
+        raise
     except (OSError, ValueError) as exc:
         raise CaseError(f"{source}: key 'study.published': {pub} is not readable JSON: "
                         f"{exc}") from None
@@ -741,6 +746,14 @@ def _load(path_text, text):
     return Study(path=path, name=f.study.name, reference=f.study.reference,
                  introduction=f.study.introduction, published=pub, tables=tables, maps=maps,
                  figures=tuple(f.figures), demo=f.study.demo)
+
+
+def read_published(path, source=None):
+    """The JSON content of a study's published numbers; CaseError naming the file when it is
+    nested too deeply to read (json recurses per level)."""
+    from flexmbs.casefile import nesting_guard
+    with nesting_guard(source or path):
+        return json.loads(Path(path).read_text(encoding="utf-8"))
 
 
 def load_study(study=None):
