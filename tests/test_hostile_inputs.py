@@ -158,3 +158,61 @@ def test_study_nested_too_deeply(tmp_path):
     f = _study(g, published_text="[" * 100_000 + "]" * 100_000)
     with pytest.raises(CaseError, match=r"published\.json: nested too deeply"):
         load_study(f)
+
+
+# ----------------------------------------------------------------------------- extreme numbers
+ALU = dict(E=72e9, nu=0.3, rho=2700.0)
+
+
+@pytest.mark.parametrize("make", [lambda d: __import__("flexmbs").Circle(d),
+                                  lambda d: __import__("flexmbs").Tube.with_wall_ratio(d, 0.1),
+                                  lambda d: __import__("flexmbs").Tube(d, d / 4),
+                                  lambda d: __import__("flexmbs").Rectangle(d, d)],
+                         ids=["Circle", "Tube.with_wall_ratio", "Tube", "Rectangle"])
+@pytest.mark.parametrize("d", [1e308, 1e-300, 1e-200])
+def test_section_sizes_beyond_double_precision(make, d):
+    """A section of size 1e308 (d^4 overflows: OverflowError before) or 1e-300 / 1e-200 (d^4
+    underflows to 0: ZeroDivisionError, or a singular system blamed on missing joints,
+    before): ModelError naming the section and the range of sizes, for its properties and
+    their derivatives."""
+    import flexmbs as fx
+
+    sec, mat = make(d), fx.Material(**ALU)
+    for call in (sec.properties, sec.property_derivatives):
+        with pytest.raises(ModelError, match=r"overflow or underflow double precision"):
+            call(mat)
+        with pytest.raises(ModelError, match=type(sec).__name__):
+            call(mat)
+
+
+@pytest.mark.parametrize("design", ["1e308", "1e-300", "1e-200"])
+def test_design_beyond_double_precision_on_the_command_line(capsys, design):
+    """simulate --design 1e308 (or 1e-300, 1e-200): one line naming the beam, the element and
+    the section, exit 2."""
+    assert main(["simulate", "robot_2dof", "--design", design]) == 2
+    line = _one_error_line(capsys)
+    assert "ModelError" in line and "beam 'arm1', element 1" in line and "Tube(" in line
+
+
+@pytest.mark.parametrize("interpolation", ["cubic", "pchip"])
+@pytest.mark.parametrize("t, values", [
+    ([0.0, 1.0, 2.0, 3.0], [0.0, 1e308, -1e308, 0.0]),
+    ([0.0, 1.0, 2.0], [0.0, 1e308, 0.0]),
+    ([0.0, 1e-300, 2e-300], [0.0, 1.0, 2.0]),
+])
+def test_samples_beyond_double_precision(interpolation, t, values):
+    """TimeLaw.samples through +-1e308 (scipy's ValueError before) or over times 1e-300
+    apart (infinite slopes): ModelError naming the law, at construction."""
+    from flexmbs.laws import TimeLaw
+
+    with pytest.raises(ModelError, match=r"TimeLaw\.samples 'push'"):
+        TimeLaw.samples(t, values, name="push", interpolation=interpolation)
+
+
+def test_samples_beyond_double_precision_in_a_case(capsys):
+    """A case's sampled load law through +-1e308: one line naming the law, exit 2."""
+    assert main(["simulate", "slider_crank_press", "--set",
+                 "loads.0.law.values=[0.0, 0.0, 1e308, -1e308, 0.0, 0.0]",
+                 "--set", "loads.0.law.interpolation='cubic'"]) == 2
+    line = _one_error_line(capsys)
+    assert "ModelError" in line and "'load 1'" in line
