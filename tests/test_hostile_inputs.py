@@ -74,7 +74,7 @@ def test_bad_dask_address_in_python():
     from flexmbs.batch import run_batch
 
     with pytest.raises(ModelError, match=r"dask 'bogus' is not a Dask scheduler address"):
-        run_batch(abs, {"a": dict(x=1)}, dask="bogus")
+        run_batch(_double, {"a": dict(x=1)}, dask="bogus")
 
 
 def test_negative_seed(capsys):
@@ -216,3 +216,97 @@ def test_samples_beyond_double_precision_in_a_case(capsys):
                  "--set", "loads.0.law.interpolation='cubic'"]) == 2
     line = _one_error_line(capsys)
     assert "ModelError" in line and "'load 1'" in line
+
+
+# ----------------------------------------------------------------------------- special files
+def _double(x):
+    """A batch job: 2 x."""
+    return 2 * x
+
+
+def _run_with_timeout(func, seconds=20):
+    """func() in a thread: the test fails (instead of hanging) when it does not return."""
+    import threading
+
+    out = {}
+
+    def run():
+        try:
+            out["value"] = func()
+        except BaseException as exc:       # noqa: BLE001 - re-raised below
+            out["error"] = exc
+    th = threading.Thread(target=run, daemon=True)
+    th.start()
+    th.join(seconds)
+    assert not th.is_alive(), f"{func} did not return within {seconds} s (hangs)"
+    if "error" in out:
+        raise out["error"]
+    return out.get("value")
+
+
+def test_binary_history_to_resume(tmp_path, capsys):
+    """A binary file given to --resume: ModelError naming the file and 'not UTF-8' (a
+    UnicodeDecodeError before), one line on the command line."""
+    from flexmbs.optimize.result import read_history
+
+    f = tmp_path / "h.jsonl"
+    f.write_bytes(bytes(range(128, 256)) * 4)
+    with pytest.raises(ModelError, match=r"h\.jsonl.*not UTF-8"):
+        read_history(f)
+    assert main(["optimize", "robot_2dof", "--history", str(f), "--resume"]) == 2
+    assert "not UTF-8" in _one_error_line(capsys)
+
+
+def test_fifo_history_is_refused(tmp_path, capsys):
+    """A FIFO given as --history (opening it for writing blocked until a reader came): refused
+    at once, naming the file and 'FIFO'; with --resume too (the read blocked)."""
+    import os
+    from flexmbs.optimize.result import HistoryWriter, read_history
+
+    f = tmp_path / "pipe"
+    os.mkfifo(f)
+    with pytest.raises(ModelError, match="FIFO"):
+        _run_with_timeout(lambda: HistoryWriter(f))
+    with pytest.raises(ModelError, match="FIFO"):
+        _run_with_timeout(lambda: read_history(f))
+    assert _run_with_timeout(lambda: main(["optimize", "robot_2dof", "--history", str(f),
+                                           "--resume"])) == 2
+    line = _one_error_line(capsys)
+    assert "FIFO" in line and str(f) in line
+
+
+@pytest.mark.parametrize("what", ["history", "study", "case", "store"])
+def test_dev_zero_is_refused(capsys, what):
+    """/dev/zero as a history, a study, a case or a store (read until the memory ran out):
+    refused at once as a character device (or as no folder), naming it."""
+    import os
+    if not os.path.exists("/dev/zero"):
+        pytest.skip("no /dev/zero")
+    from flexmbs.batch import run_batch
+    from flexmbs.casefile import read_description
+    from flexmbs.optimize.result import HistoryWriter, read_history
+    from flexmbs.study import load_study
+
+    call = {"history": lambda: read_history("/dev/zero"),
+            "study": lambda: load_study("/dev/zero"),
+            "case": lambda: read_description("/dev/zero"),
+            "store": lambda: run_batch(_double, {"a": dict(x=1)}, workers=1,
+                                        store="/dev/zero")}
+    with pytest.raises(ModelError, match="/dev/zero"):
+        _run_with_timeout(call[what])
+    if what == "history":
+        with pytest.raises(ModelError, match="character device"):
+            _run_with_timeout(lambda: HistoryWriter("/dev/zero", resume=True))
+
+
+def test_special_file_in_a_store_is_not_a_result(tmp_path):
+    """A FIFO under a stored job's name (reading it blocked): not a result; the job runs
+    again, with a warning naming the file."""
+    import os
+    from flexmbs.batch import run_batch
+
+    os.mkfifo(tmp_path / "a.json")
+    with pytest.warns(UserWarning, match=r"a\.json"):
+        out = _run_with_timeout(lambda: run_batch(_double, {"a": dict(x=-3)}, workers=1,
+                                                  store=tmp_path))
+    assert out == {"a": -6}

@@ -40,6 +40,7 @@ import os
 import re
 import shutil
 import signal
+import stat
 import sys
 import tempfile
 import threading
@@ -56,7 +57,7 @@ from flexmbs.errors import ModelError, ResourceError, SimulationError
 
 __all__ = ["run_batch", "sweep_jobs", "max_deviation_job", "local_cluster", "Progress",
            "atomic_open", "save_figure", "write_atomic", "read_stored", "check_writable",
-           "check_disk_space", "check_dask", "START_METHODS"]
+           "check_disk_space", "check_dask", "check_regular_file", "check_store", "START_METHODS"]
 
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
@@ -145,9 +146,42 @@ def save_figure(fig, path, **savefig_kw):
     return path
 
 
+def _kind(mode):
+    """What a non-regular file is, in words."""
+    for test, name in ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                       (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def check_regular_file(path, what, error=ModelError):
+    """Refuse, before opening it, a file that exists and is not a regular file: a FIFO (which
+    would block the read or the write), a device such as /dev/zero (read without end), a
+    folder. `error` (ModelError, or CaseError for case and study files) naming `what` (e.g.
+    "--history"), the path and its kind; True when the file exists, False when it does not."""
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return False
+    except OSError as exc:
+        raise error(f"{what} {os.fspath(path)!r} cannot be read: "
+                    f"{exc.strerror or exc}") from None
+    if not stat.S_ISREG(mode):
+        raise error(f"{what} {os.fspath(path)!r} is {_kind(mode)}, not a regular file; "
+                    "give the path of a file")
+    return True
+
+
 def read_stored(path):
     """The JSON content of a stored result file, or None when it is missing or unreadable
-    (truncated, not JSON): such a file does not count as a result."""
+    (truncated, not JSON, not a regular file): such a file does not count as a result."""
+    try:
+        if not check_regular_file(path, "stored result"):
+            return None
+    except ModelError:
+        return None
     try:
         return json.loads(Path(path).read_text(encoding="utf-8"))
     except FileNotFoundError:
@@ -179,6 +213,23 @@ def check_writable(folder, what, create=False):
         raise ModelError(f"{what}: cannot write in folder {str(folder)!r}: "
                          f"{exc.strerror or exc}") from None
     return folder
+
+
+def check_store(store, what="store"):
+    """Create the folder `store` of run_batch's results (with its parents) or check the one
+    there; ModelError naming `what` and the path when it is a file (or cannot be created)."""
+    path = Path(store)
+    if path.exists() and not path.is_dir():
+        mode = path.stat().st_mode
+        kind = "a file" if stat.S_ISREG(mode) else _kind(mode)
+        raise ModelError(f"{what} {os.fspath(store)!r} is {kind}, not a folder: give a folder "
+                         "for the results (one file per job)")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ModelError(f"{what} {os.fspath(store)!r}: cannot create the folder: "
+                         f"{exc.strerror or exc}") from None
+    return path
 
 
 def check_disk_space(folder, required, what):
@@ -392,7 +443,7 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
         from flexmbs.fingerprint import job_fingerprint
         fingerprints = {name: job_fingerprint(func, kw) for name, kw in jobs.items()}
     if store is not None:
-        Path(store).mkdir(parents=True, exist_ok=True)
+        check_store(store)
         unreadable, stale = [], []
         for name in list(todo):
             path = Path(store) / f"{name}.json"

@@ -106,6 +106,9 @@ class HistoryWriter:
         self.previous = []
         self.fingerprint = None
         self.resume = bool(resume)
+        if self.path is not None:
+            from flexmbs.batch import check_regular_file
+            check_regular_file(self.path, "history")
         if resume and os.path.exists(self.path):
             self.previous = read_history(self.path)
             # keep only whole records: a line cut short is dropped before appending
@@ -196,8 +199,14 @@ def read_history(path):
     full disk) is skipped with a warning; an invalid line elsewhere raises ModelError naming
     the file and the line.
     """
-    with open(path, encoding="utf-8") as fh:
-        lines = fh.readlines()
+    from flexmbs.batch import check_regular_file
+    check_regular_file(path, "history")
+    try:
+        with open(path, encoding="utf-8") as fh:
+            lines = fh.readlines()
+    except UnicodeDecodeError as exc:
+        raise ModelError(f"history {os.fspath(path)!r} is not a history (JSON lines written "
+                         f"by flexmbs): not UTF-8 text at byte {exc.start}") from None
     out = []
     for k, line in enumerate(lines, 1):
         if not line.strip():
