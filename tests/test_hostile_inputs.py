@@ -310,3 +310,82 @@ def test_special_file_in_a_store_is_not_a_result(tmp_path):
         out = _run_with_timeout(lambda: run_batch(_double, {"a": dict(x=-3)}, workers=1,
                                                   store=tmp_path))
     assert out == {"a": -6}
+
+
+# ----------------------------------------------------------------------------- stored results
+def _square(x):
+    """A batch job whose result has a schema: {'x': x, 'square': x * x}."""
+    return {"x": x, "square": x * x}
+
+
+def _square_schema():
+    from flexmbs.batch import StoredResult
+
+    class SquareResult(StoredResult):
+        x: float
+        square: float
+    return SquareResult
+
+
+@pytest.mark.parametrize("content", ["[]", '{"foo": 1}', '{"x": "3", "square": "9"}', "null",
+                                     '"a string"', '{"x": 3, "square": [9]}'])
+def test_stored_result_of_the_wrong_content_is_computed_again(tmp_path, content):
+    """A stored job file that is valid JSON but not a result (a list, another object, strings
+    for numbers): not reused (a TypeError or KeyError in the reader before); the job runs
+    again, with a warning naming the file and the key, and the result is the job's (3^2 = 9)."""
+    from flexmbs.batch import run_batch
+
+    _square.result_schema = _square_schema()
+    f = tmp_path / "a.json"
+    f.write_text(content)
+    with pytest.warns(UserWarning, match=r"a\.json"):
+        out = run_batch(_square, {"a": dict(x=3.0)}, workers=1, store=tmp_path)
+    assert out == {"a": {"x": 3.0, "square": 9.0}}
+    # the file now holds the result: a rerun reuses it without a warning
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert run_batch(_square, {"a": dict(x=3.0)}, workers=1, store=tmp_path) == out
+
+
+def test_stored_multistart_start_of_the_wrong_content(tmp_path):
+    """multistart's store: a start's file rewritten with its fingerprint kept but its values
+    as strings (or removed) is computed again with a warning naming the file, and the
+    multi-start ends at the same optimum as the run that wrote the file (the same start,
+    optimizer and iterations: equal to rounding)."""
+    import json
+    from flexmbs.optimize.multistart import multistart
+    from flexmbs.problem import Problem
+
+    prob = Problem("robot_2dof", overrides={"time.t_end": 0.05})
+    first = multistart(prob, 1, store=tmp_path, max_iterations=2, verify=False)
+    f = tmp_path / "start000.json"
+    good = json.loads(f.read_text())
+    for bad in ({"fingerprint": good["fingerprint"], "foo": 1},
+                dict(good, objective=str(good["objective"]), simulations="3")):
+        f.write_text(json.dumps(bad))
+        with pytest.warns(UserWarning, match=r"start000\.json.*key '"):
+            again = multistart(prob, 1, store=tmp_path, max_iterations=2, verify=False)
+        assert again.optima[0]["objective"] == pytest.approx(first.optima[0]["objective"],
+                                                             rel=1e-12)
+
+
+def test_stored_reproduce_results_are_checked(tmp_path):
+    """reproduce's reader of stored results (its `_stored`): a file with the right fingerprint
+    but without the keys the report reads is None (computed again), with a warning naming the
+    file; a real result of max_deviation_job passes."""
+    import json
+    from flexmbs.batch import MaxDeviationResult, max_deviation_job
+    from flexmbs.reproduce import _stored
+
+    fp = {"flexmbs": "x", "method": "m", "options": {}, "description": {}}
+    good = dict(max_deviation_job("robot_2dof", [50.0] * 4, {"time.t_end": 0.05}),
+                fingerprint=fp)
+    f = tmp_path / "p.json"
+    f.write_text(json.dumps(good))
+    assert _stored(f, fp, MaxDeviationResult) == good
+    f.write_text(json.dumps(dict(good, mass_kg="2.3")))
+    with pytest.warns(UserWarning, match=r"p\.json.*'mass_kg'"):
+        assert _stored(f, fp, MaxDeviationResult, warn=True) is None
+    f.write_text(json.dumps({"fingerprint": dict(fp, options="x")}))
+    assert _stored(f, fp) is None          # a malformed fingerprint: stale, not a crash

@@ -52,12 +52,14 @@ from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict
 
 from flexmbs.errors import ModelError, ResourceError, SimulationError
 
 __all__ = ["run_batch", "sweep_jobs", "max_deviation_job", "local_cluster", "Progress",
            "atomic_open", "save_figure", "write_atomic", "read_stored", "check_writable",
-           "check_disk_space", "check_dask", "check_regular_file", "check_store", "START_METHODS"]
+           "check_disk_space", "check_dask", "check_regular_file", "check_store", "invalid_result",
+           "result_schema", "StoredResult", "MaxDeviationResult", "START_METHODS"]
 
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
@@ -265,6 +267,37 @@ def check_dask(dask, what="dask"):
     return dask
 
 
+def invalid_result(value, schema):
+    """Why a stored result does not have the content of its job's results (a short phrase
+    naming the first wrong key), or None when it does. `schema`: a pydantic model of the
+    result (strict: a string is no number), or None (any JSON value)."""
+    if schema is None:
+        return None
+    from pydantic import ValidationError
+    if not isinstance(value, dict):
+        return f"a {type(value).__name__}, not a result (a JSON object)"
+    try:
+        schema.model_validate(value)
+    except ValidationError as exc:
+        errs = exc.errors()
+        e = errs[0]
+        where = ".".join(map(str, e["loc"])) or "(top level)"
+        more = f" (and {len(errs) - 1} more)" if len(errs) > 1 else ""
+        got = "" if e["type"] == "missing" else f", got {_short_value(e.get('input'))}"
+        return f"key {where!r}: {e['msg']}{got}{more}"
+    return None
+
+
+def _short_value(v, n=40):
+    text = repr(v)
+    return text if len(text) <= n else text[:n - 3] + "..."
+
+
+def result_schema(func):
+    """The pydantic model of `func`'s results (its attribute ``result_schema``), or None."""
+    return getattr(func, "result_schema", None)
+
+
 def stale_result(value, fp):
     """What differs (flexmbs.fingerprint.differences) between a stored result's fingerprint
     and `fp`; [] when it answers `fp`."""
@@ -371,7 +404,8 @@ def _run_isolated(func, todo, workers, finish, start_method="spawn"):
 
 
 def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None, label="jobs",
-              retries=2, describe=None, start_method="spawn", fingerprints=None):
+              retries=2, describe=None, start_method="spawn", fingerprints=None,
+              schema=result_schema):
     """Run `func(**jobs[name])` for every name; return {name: result}.
 
     Parameters
@@ -389,6 +423,11 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
     store : path, optional
         Folder where each result is saved as it finishes; names already stored are not
         run again (their stored result is returned).
+    schema : pydantic model, None or callable, default `result_schema`
+        The content a stored result must have to be reused (`invalid_result`; default: the
+        job function's attribute ``result_schema``, e.g. `max_deviation_job`'s): a stored
+        file that is JSON but not such a result (``[]``, ``{"foo": 1}``, strings for numbers)
+        is not reused: its job runs again, with a warning naming the file and the key.
     fingerprints : dict {name: fingerprint} or True, optional
         What each job answers (flexmbs.fingerprint; True: `job_fingerprint(func, kwargs)`
         of each job, its case read and resolved): saved in its result (a dict) under
@@ -439,18 +478,24 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
     check_dask(dask)
     results = {}
     todo = dict(jobs)
+    if schema is result_schema:
+        schema = result_schema(func)
     if fingerprints is True:
         from flexmbs.fingerprint import job_fingerprint
         fingerprints = {name: job_fingerprint(func, kw) for name, kw in jobs.items()}
     if store is not None:
         check_store(store)
-        unreadable, stale = [], []
+        unreadable, stale, invalid = [], [], []
         for name in list(todo):
             path = Path(store) / f"{name}.json"
-            if path.exists():
+            if path.exists() or path.is_symlink():
                 value = read_stored(path)
                 if value is None:
                     unreadable.append(str(path))
+                    continue
+                why = invalid_result(value, schema)
+                if why:
+                    invalid.append(f"{path} ({why})")
                     continue
                 if fingerprints is not None:
                     diff = stale_result(value, fingerprints[name])
@@ -465,6 +510,10 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
         if stale:
             warnings.warn(f"{len(stale)} stored result(s) answer another question, their jobs "
                           f"run again: {', '.join(stale)}", stacklevel=2)
+        if invalid:
+            warnings.warn(f"{len(invalid)} stored result(s) are JSON but not results of "
+                          f"{getattr(func, '__name__', 'the job')}, their jobs run again: "
+                          f"{', '.join(invalid)}", stacklevel=2)
     callback = progress if callable(progress) and not hasattr(progress, "write") else None
     if callback is not None:
         bar = Progress(len(jobs), label, enabled=False)
@@ -594,6 +643,25 @@ def _problem(case, overrides):
     return cache[key]
 
 
+class StoredResult(BaseModel):
+    """Base of the schemas of stored results: strict types (a string is no number), other
+    keys allowed."""
+    model_config = ConfigDict(extra="allow", strict=True)
+
+
+class MaxDeviationResult(StoredResult):
+    """A stored result of `max_deviation_job`."""
+    design: list[float]
+    mass_kg: float
+    max_deviation_m: float
+    t_at_max_s: float
+    step_at_max: int
+    max_violation: float
+    limit_m: float | None = None
+    deviation_m: list[float] | None = None
+    deviation_at_steps_m: list[float] | None = None
+
+
 def max_deviation_job(case, design, overrides=None, steps=None):
     """Simulate one design of a case (a shipped case's name or a path; `overrides` as
     `flexmbs.problem.Problem`): its mass, the largest constrained deviation (the step-by-step
@@ -613,3 +681,6 @@ def max_deviation_job(case, design, overrides=None, steps=None):
     elif steps is not None:
         out["deviation_at_steps_m"] = [float(dev[s]) for s in steps]
     return out
+
+
+max_deviation_job.result_schema = MaxDeviationResult

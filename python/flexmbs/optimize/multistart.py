@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flexmbs.batch import StoredResult
 from flexmbs.errors import ModelError, ResourceError, SimulationError
 from flexmbs.problem import load_problem
 
@@ -102,6 +103,18 @@ def start_designs(lower, upper, starts, sampler="sobol", seed=0):
     return np.clip(x, lower, upper)
 
 
+class StartResult(StoredResult):
+    """A stored result of `start_job` (a start whose simulation failed has design None)."""
+    start: list[float]
+    design: list[float] | None
+    objective: float | None
+    max_violation: float | None
+    converged: bool
+    simulations: int
+    wall_time_s: float
+    reason: str | None = None
+
+
 def start_job(case, start, optimizer, options):
     """One start (a batch job: plain data in, JSON out): `optimize_fully(case, start,
     optimizer=optimizer, **options)` summarised."""
@@ -120,6 +133,9 @@ def start_job(case, start, optimizer, options):
                 converged=bool(res.converged), reason=res.reason,
                 simulations=int(res.simulations), wall_time_s=float(res.wall_time_s),
                 optimizer_share=float(res.details.get("optimizer_share", float("nan"))))
+
+
+start_job.result_schema = StartResult
 
 
 @dataclass
