@@ -663,8 +663,8 @@ class Problem:
                 checkpoint_interval(model, nsteps)
         elif checkpoints == "auto":
             k = checkpoint_interval(model, nsteps)
-        else:       # an interval beyond the run keeps the initial state only
-            k = min(int(checkpoints), max(nsteps, 1))
+        else:
+            k = int(checkpoints)
         del est.parts[TAPE_PART]
         est.parts[CHECKPOINT_PART], est.parts[SEGMENT_PART] = checkpoint_memory(model, nsteps, k)
         est.checkpoints = k

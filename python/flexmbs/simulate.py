@@ -333,6 +333,12 @@ TAPE_PART = "tape of every (sub-)step (adjoint)"
 CHECKPOINT_PART = "checkpoints of the full state (adjoint)"
 
 
+def _core_every(checkpoints, nsteps):
+    """The checkpoint interval given to the core (a C int): any interval beyond the run keeps
+    the initial state only, as nsteps + 1 does (a K of 10**20 overflowed the C int)."""
+    return int(min(checkpoints, int(nsteps) + 1)) if checkpoints else 0
+
+
 def checkpoint_rows(ndof, nc):
     """Numbers of one checkpoint (simulate(checkpoints=K), generalized_alpha.f90 ckpt_rows):
     q, qd, qdd, a, the predictor's previous qdd, mu, the previous step, k and p."""
@@ -564,8 +570,6 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     if tape:
         est.parts[TAPE_PART] = tape_bytes(ntape)
     nckr = checkpoint_rows(model.ndof, len(model._rows))
-    if checkpoints:     # an interval beyond the run: the initial state only (the core's int)
-        checkpoints = min(checkpoints, max(int(nsteps), 1))
     nck = checkpoint_count(nsteps, checkpoints) if checkpoints else 1
     if checkpoints:
         est.parts[CHECKPOINT_PART] = checkpoint_bytes(model, nsteps, checkpoints)
@@ -616,7 +620,7 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
             penalty=float(penalty or 0.0), out_dofs=(out + 1).astype(np.int32),
             nv=nv, dprop=dprop_f, sens_dofs=(sdofs + 1).astype(np.int32),
             want_dmu=int(want_dmu), ndmu=max(cm.nc, 1) if want_dmu else 1, polish=int(polish),
-            ntape=ncol, nckr=nckr, nck=nck, ckpt_every=int(checkpoints or 0), restart=0,
+            ntape=ncol, nckr=nckr, nck=nck, ckpt_every=_core_every(checkpoints, nsteps), restart=0,
             x_start=np.zeros(nckr), j_start=0, klu_analysis=klu_analysis(model, solver))
 
     try:
