@@ -45,8 +45,6 @@ def test_checkpoint_interval_beyond_the_run_gives_the_adjoint_gradient():
                   checkpoints=10 ** 20).evaluate(None, gradient=True)
     g_d, g_a = direct.gradients["mass"], adj.gradients["mass"]
     np.testing.assert_allclose(g_a, g_d, rtol=1e-6)
-    k = adj.stats.get("checkpoints") if adj.stats else None
-    assert k is None or k <= 20
 
 
 @pytest.mark.parametrize("address", ["not a url", "bogus", "tcp://host-without-port"])
@@ -389,3 +387,47 @@ def test_stored_reproduce_results_are_checked(tmp_path):
         assert _stored(f, fp, MaxDeviationResult, warn=True) is None
     f.write_text(json.dumps({"fingerprint": dict(fp, options="x")}))
     assert _stored(f, fp) is None          # a malformed fingerprint: stale, not a crash
+
+
+# ----------------------------------------------------------------------------- memory
+def test_rigid_reference_memory_is_refused_before_computing_it(monkeypatch, capsys):
+    """FLEXMBS_MEMORY_LIMIT=600M, robot_2dof at h = 5e-10 s to 0.0015 s: 3 000 001 time
+    points, whose rigid reference (at least 3 poses x 3 values x 2 groups x 8 bytes = 144 bytes
+    a point: 432 MB, and its laws) reached 5.85 GB before the simulation's estimate refused:
+    a ResourceError naming time.h and t_end before the reference is computed."""
+    import flexmbs.kinematics as kin
+    from flexmbs.problem import Problem
+
+    def forbidden(*a, **k):
+        raise AssertionError("the rigid reference was computed although it does not fit")
+    monkeypatch.setattr(kin, "rigid_reference", forbidden)
+    monkeypatch.setenv("FLEXMBS_MEMORY_LIMIT", "600M")
+    with pytest.raises(ResourceError, match=r"rigid reference over 3000001 time points.*time\.h"):
+        Problem("robot_2dof", overrides={"time.h": 5e-10, "time.t_end": 0.0015})
+    assert main(["evaluate", "robot_2dof", "--h", "5e-10", "--t-end", "0.0015"]) == 2
+    assert "ResourceError" in _one_error_line(capsys)
+
+
+@pytest.mark.parametrize("case", ["robot_2dof", "fourbar"])
+def test_rigid_reference_memory_estimate_bounds_the_traced_peak(case):
+    """flexmbs.kinematics.reference_memory is an upper bound of the memory the rigid reference
+    allocates (its peak traced by tracemalloc over 20 001 time points, numpy arrays included)
+    and within a factor 2 of it (the resources' estimates' promise, flexmbs.resources)."""
+    import tracemalloc
+    from flexmbs.casefile import read_description
+    from flexmbs.kinematics import reference_memory
+    from flexmbs.mechanism import Mechanism
+
+    d0 = read_description(case)
+    Mechanism(d0).reference                      # imports and caches outside the trace
+    d = read_description(case, overrides={"time.h": d0.time.t_end / 20000})
+    tracemalloc.start()
+    try:
+        m = Mechanism(d)
+        m.reference
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    following = sum(dr.law.type == "reference" for dr in d.drives)
+    est = reference_memory(m.reference_model, m.t.size, following)
+    assert peak <= est <= 2 * peak, (peak, est)
