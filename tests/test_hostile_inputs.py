@@ -431,3 +431,35 @@ def test_rigid_reference_memory_estimate_bounds_the_traced_peak(case):
     following = sum(dr.law.type == "reference" for dr in d.drives)
     est = reference_memory(m.reference_model, m.t.size, following)
     assert peak <= est <= 2 * peak, (peak, est)
+
+
+# ----------------------------------------------------------------------------- unclear -> clear
+@pytest.mark.parametrize("args", [
+    ["simulate", "robot_2dof", "--out="], ["simulate", "robot_2dof", "--plot", " "],
+    ["optimize", "robot_2dof", "--history="], ["reproduce", "--out="],
+    ["optimize", "robot_2dof", "--method", "fully", "--starts", "2", "--store="],
+])
+def test_empty_output_name_is_refused(monkeypatch, capsys, args):
+    """--out '' (and --plot, --history, --store, reproduce --out): an empty name wrote nothing
+    and said nothing; it is a one-line usage error naming the option, exit 2, before any
+    simulation."""
+    _no_simulation(monkeypatch)
+    assert main(args) == 2
+    line = _one_error_line(capsys)
+    option = next(a for a in args if a.startswith("--") and a.rstrip("=") in
+                  ("--out", "--plot", "--history", "--store")).rstrip("=")
+    assert f"argument {option}" in line and "expected a file or folder name" in line
+
+
+@pytest.mark.parametrize("args", [
+    ["simulate"], ["bogus"], ["simulate", "robot_2dof", "--no-such-option"],
+    ["simulate", "robot_2dof", "--design", "-40,30,35,25"],
+    ["optimize", "robot_2dof", "--method", "fully", "--starts", "2", "--seed=-1"],
+    ["reproduce", "--table", "x"],
+])
+def test_usage_errors_are_one_line(capsys, args):
+    """argparse's usage errors (a missing CASE, an unknown command or option, a bad value)
+    printed the usage, 2-7 lines, before the error: one line now, exit 2, naming --help."""
+    assert main(args) == 2
+    line = _one_error_line(capsys)
+    assert line.startswith("flexmbs") and "error:" in line and "--help" in line

@@ -38,7 +38,7 @@ import sys
 
 from flexmbs.batch import check_dask
 from flexmbs.cli import (add_case_arguments, design_from_text, figure_file, nonnegative_int,
-                         output_file, print_json, problem_from_args)
+                         output_file, path_text, print_json, problem_from_args)
 from flexmbs.errors import CaseError, ModelError
 from flexmbs.optimize.fully import OPTIMIZERS
 from flexmbs.optimize.library import preload
@@ -77,7 +77,7 @@ def register(subparsers):
                         "default: the case's")
     p.add_argument("--json", action="store_true",
                    help="print one JSON object (the result) instead of the progress and summary")
-    p.add_argument("--history", metavar="FILE",
+    p.add_argument("--history", type=path_text, metavar="FILE",
                    help="write one JSON line per cycle/iteration to FILE as the run goes")
     p.add_argument("--resume", action="store_true",
                    help="continue an interrupted run from its --history FILE (with --starts: "
@@ -85,7 +85,7 @@ def register(subparsers):
                         "simulating and ends at the same optimum; a missing FILE starts afresh")
     p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                    help="show a progress bar on stderr (default: when stderr is a terminal)")
-    p.add_argument("--plot", metavar="FILE.png",
+    p.add_argument("--plot", type=path_text, metavar="FILE.png",
                    help="save the objective history and the final design's deviation history")
     p.add_argument("--verify-rtol", type=float, default=1e-3, metavar="R",
                    help="verify the final design at the step (h/2, h/4, ...) that resolves "
@@ -309,7 +309,7 @@ def add_fully_options(parser):
                    help="local worker processes for the starts (default: the number of cores)")
     m.add_argument("--dask", metavar="ADDRESS",
                    help="run the starts on a Dask scheduler (tcp://host:8786, or 'local')")
-    m.add_argument("--store", metavar="FOLDER",
+    m.add_argument("--store", type=path_text, metavar="FOLDER",
                    help="save each start's result as it finishes; a rerun skips those stored")
 
 
