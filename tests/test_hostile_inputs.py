@@ -463,3 +463,67 @@ def test_usage_errors_are_one_line(capsys, args):
     assert main(args) == 2
     line = _one_error_line(capsys)
     assert line.startswith("flexmbs") and "error:" in line and "--help" in line
+
+
+@pytest.mark.parametrize("design", [np.array([50 + 1j] * 4), [50.0, 50.0, 50.0, complex(50, 0)],
+                                    np.array([50.0] * 4, dtype=complex)])
+def test_complex_design_is_refused(design):
+    """A complex design (even with zero imaginary parts) was cast to float with numpy's
+    ComplexWarning only: a ModelError naming the design and 'complex'."""
+    from flexmbs.problem import Problem
+
+    p = Problem("robot_2dof", overrides={"time.t_end": 0.01})
+    with pytest.raises(ModelError, match=r"design must be 4 real numbers.*complex"):
+        p.evaluate(design, gradient=False)
+
+
+@pytest.mark.parametrize("which", ["q0", "qd0"])
+def test_complex_initial_state_is_refused(which):
+    """simulate(q0=complex) or qd0: a ModelError naming the argument and 'complex'."""
+    import flexmbs as fx
+    from flexmbs.problem import Problem
+
+    model = Problem("robot_2dof", overrides={"time.t_end": 0.01}).mechanism.model
+    state = model.compile().qref.astype(complex)
+    if which == "qd0":
+        state = np.zeros_like(state)
+    with pytest.raises(ModelError, match=rf"{which} must be an array of real numbers.*complex"):
+        fx.simulate(model, 0.01, **{which: state})
+
+
+def test_unknown_mma_option_lists_the_valid_keys():
+    """mma_options={'bogus': 1} was a TypeError of MMA.__init__: a ModelError naming the key
+    and listing the allowed ones (as nlopt_options does), before any simulation."""
+    from flexmbs.optimize import optimize_fully
+
+    with pytest.raises(ModelError, match=r"mma_options: unknown key\(s\) 'bogus'; allowed: "
+                                         r"conservative, move.*max_inner"):
+        optimize_fully("robot_2dof", optimizer="mma", mma_options={"bogus": 1})
+
+
+@pytest.mark.parametrize("scale", [-1.0, [50.0, 50.0, -1.0, 50.0], [1.0, 2.0]])
+def test_bad_scale_is_named(scale):
+    """optimize_fully(scale=-1.0) was reported as a bad design: the error names `scale`."""
+    from flexmbs.optimize import optimize_fully
+
+    with pytest.raises(ModelError, match=r"^scale must be 4 positive finite numbers"):
+        optimize_fully("robot_2dof", scale=scale, max_iterations=1)
+
+
+def test_history_that_is_a_folder(tmp_path):
+    """optimize_fully(history=<a folder>) was IsADirectoryError: a ModelError naming the
+    history and 'a folder'."""
+    from flexmbs.optimize import optimize_fully
+
+    with pytest.raises(ModelError, match=r"history .* is a folder"):
+        optimize_fully("robot_2dof", history=tmp_path, max_iterations=1)
+
+
+def test_store_that_is_a_file(tmp_path):
+    """run_batch(store=<a file>) was FileExistsError: a ModelError naming the store."""
+    from flexmbs.batch import run_batch
+
+    f = tmp_path / "f"
+    f.write_text("x")
+    with pytest.raises(ModelError, match=r"store '.*/f' is a file, not a folder"):
+        run_batch(_double, {"a": dict(x=1)}, workers=1, store=f)

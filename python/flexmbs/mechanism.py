@@ -24,7 +24,7 @@ from flexmbs.description import (GROUND, Beam, Description, PointMass, Rigid, Se
 from flexmbs.errors import CaseError, ModelError, ResourceError
 from flexmbs.laws import TimeLaw
 from flexmbs.model import Model
-from flexmbs.sections import Circle, GivenSection, Material, Rectangle, Tube
+from flexmbs.sections import Circle, GivenSection, Material, Rectangle, Tube, has_complex
 from flexmbs.simulate import MAX_STEPS, time_steps
 
 __all__ = ["Mechanism", "make_law", "section_at"]
@@ -456,6 +456,9 @@ class Mechanism:
     def design_values(self, x):
         """x (user units) as a checked float array: numbers only (a bool or a string is
         refused, even a numeric one)."""
+        if has_complex(x):
+            raise ModelError(f"design must be {len(self.variables)} real numbers "
+                             f"({self._summary()}), got complex values {x!r}")
         items = np.ravel(np.asarray(x, dtype=object)) if not isinstance(x, (str, bytes)) else [x]
         if any(isinstance(v, (bool, np.bool_, str, bytes)) for v in items):
             raise ModelError(f"design must be {len(self.variables)} numbers "

@@ -14,7 +14,7 @@ import numpy as np
 from flexmbs.errors import ModelError
 
 __all__ = ["Material", "Section", "Circle", "Tube", "Rectangle", "GivenSection",
-           "section_properties", "real_number", "whole_number"]
+           "section_properties", "real_number", "whole_number", "has_complex"]
 
 
 def _is_real(value):
@@ -24,6 +24,24 @@ def _is_real(value):
     if isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "iuf":
         return True
     return isinstance(value, (int, float, np.integer, np.floating))
+
+
+def has_complex(value):
+    """True when `value` (a number or an array-like) holds a complex number, even with a zero
+    imaginary part: numpy would cast it to float with a warning only, dropping the
+    imaginary part."""
+    if isinstance(value, (complex, np.complexfloating)):
+        return True
+    try:
+        a = np.asarray(value)
+    except (TypeError, ValueError):
+        return False
+    if a.dtype.kind == "c":
+        return True
+    if a.dtype == object:
+        return any(isinstance(v, (complex, np.complexfloating)) or
+                   (isinstance(v, np.ndarray) and v.dtype.kind == "c") for v in a.ravel())
+    return False
 
 
 def real_number(name, value, *, positive=False, nonnegative=False):

@@ -12,6 +12,7 @@ from flexmbs import _core
 from flexmbs.core import core_model_args, klu_analysis, system_matrices
 from flexmbs.errors import ModelError, ResourceError, SimulationError
 from flexmbs.model import Model
+from flexmbs.sections import has_complex
 from flexmbs.resources import (call_with_stack, check_memory, estimate_memory, format_bytes,
                                limit_source)
 from flexmbs.resources import memory_limit as _memory_limit
@@ -247,6 +248,9 @@ def _numeric_array(name, value, kind=float):
     """np.asarray(value, kind), or a ModelError naming the argument (strings, ragged lists)."""
     if isinstance(value, (str, bytes)) or np.asarray(value, dtype=object).dtype.kind not in "biufO":
         raise ModelError(f"{name} must be an array of numbers, got {value!r}")
+    if has_complex(value):
+        raise ModelError(f"{name} must be an array of real numbers, got complex values "
+                         f"(numpy dtype {np.asarray(value).dtype})")
     try:
         if kind is int and np.asarray(value).dtype.kind not in "iu":
             raise TypeError
