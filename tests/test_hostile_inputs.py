@@ -527,3 +527,19 @@ def test_store_that_is_a_file(tmp_path):
     f.write_text("x")
     with pytest.raises(ModelError, match=r"store '.*/f' is a file, not a folder"):
         run_batch(_double, {"a": dict(x=1)}, workers=1, store=f)
+
+
+def test_case_and_study_files_with_a_bom(tmp_path):
+    """A UTF-8 byte-order mark at the start of a case file ("Invalid statement" before) or a
+    study file is dropped: the case reads as the same file without it (equal descriptions)."""
+    from pathlib import Path
+    from flexmbs.casefile import case_path, read_description
+    from flexmbs.study import load_study
+
+    text = Path(case_path("robot_2dof")).read_text(encoding="utf-8")
+    f = tmp_path / "bom.toml"
+    f.write_bytes(b"\xef\xbb\xbf" + text.encode("utf-8"))
+    assert read_description(f) == read_description("robot_2dof")
+    s = _study(tmp_path)
+    s.write_bytes(b"\xef\xbb\xbf" + s.read_bytes())
+    assert load_study(s).name == "mine"

@@ -160,7 +160,7 @@ def read_description(path, overrides=None):
     from flexmbs.batch import check_regular_file
     check_regular_file(p, "case file", CaseError)
     try:
-        text = p.read_text(encoding="utf-8")
+        text = p.read_text(encoding="utf-8-sig")     # a leading BOM is dropped
     except OSError as exc:
         raise CaseError(f"case file {str(path)!r} cannot be read: {exc.strerror or exc}") from None
     except UnicodeDecodeError as exc:

@@ -755,7 +755,7 @@ def read_published(path, source=None):
     from flexmbs.casefile import nesting_guard
     check_regular_file(path, source or "published numbers", CaseError)
     with nesting_guard(source or path):
-        return json.loads(Path(path).read_text(encoding="utf-8"))
+        return json.loads(Path(path).read_text(encoding="utf-8-sig"))
 
 
 def load_study(study=None):
@@ -767,7 +767,7 @@ def load_study(study=None):
     from flexmbs.batch import check_regular_file
     check_regular_file(p, "study file", CaseError)
     try:
-        text = p.read_text(encoding="utf-8")
+        text = p.read_text(encoding="utf-8-sig")     # a leading BOM is dropped
     except (OSError, UnicodeDecodeError) as exc:
         raise CaseError(f"{p}: cannot be read: {exc}") from None
     return _load(str(p), text)          # read again when the file changed
