@@ -543,3 +543,26 @@ def test_case_and_study_files_with_a_bom(tmp_path):
     s = _study(tmp_path)
     s.write_bytes(b"\xef\xbb\xbf" + s.read_bytes())
     assert load_study(s).name == "mine"
+
+
+def test_job_names_of_a_case_file_with_a_space(tmp_path):
+    """A study table whose case is 'my case.toml': its runs' job names held the space, which
+    run_batch refuses, so every job failed; they are valid job names now, distinct from those
+    of 'my_case.toml' (a hash of the original name is added), and the shipped names are
+    unchanged."""
+    import shutil
+    from flexmbs.batch import _NAME, job_name
+    from flexmbs.casefile import case_path
+    from flexmbs.reproduce import table_runs
+    from flexmbs.study import load_study
+
+    shutil.copy(case_path("robot_2dof"), tmp_path / "my case.toml")
+    f = _study(tmp_path)
+    f.write_text(f.read_text().replace('case = "robot_2dof"',
+                                       f'case = "{(tmp_path / "my case.toml").as_posix()}"'))
+    runs = table_runs([1], load_study(f))
+    assert runs and all(_NAME.match(r.name) for r in runs)
+    assert all(r.name.startswith("my_case-") for r in runs)
+    assert job_name("my case-weakly") != job_name("my_case-weakly") == "my_case-weakly"
+    assert job_name("robot_2dof-t0.65-weakly-50-50-50-50") == \
+        "robot_2dof-t0.65-weakly-50-50-50-50"

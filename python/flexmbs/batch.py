@@ -59,9 +59,21 @@ from flexmbs.errors import ModelError, ResourceError, SimulationError
 __all__ = ["run_batch", "sweep_jobs", "max_deviation_job", "local_cluster", "Progress",
            "atomic_open", "save_figure", "write_atomic", "read_stored", "check_writable",
            "check_disk_space", "check_dask", "check_regular_file", "check_store", "invalid_result",
-           "result_schema", "StoredResult", "MaxDeviationResult", "START_METHODS"]
+           "result_schema", "StoredResult", "MaxDeviationResult", "job_name", "START_METHODS"]
 
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
+
+
+def job_name(text):
+    """A job name (letters, digits, '_', '-', '.') made from any text, e.g. a case file's name
+    'my case.toml': every other character becomes '_', and a short hash of the text is added
+    when any did, so that two texts never share a name ('my case' -> 'my_case-1b2c3d', not
+    'my_case')."""
+    import hashlib
+    clean = re.sub(r"[^A-Za-z0-9_.\-]", "_", text).strip(".") or "_"
+    if clean == text:
+        return text
+    return f"{clean}-{hashlib.sha1(text.encode('utf-8', 'surrogatepass')).hexdigest()[:6]}"
 
 
 class Progress:

@@ -318,7 +318,8 @@ class Run:
     @property
     def name(self):
         """The job name: case, end time, other overrides, method and start, e.g.
-        ``case-t0.65-weakly-50-50-50-50``."""
+        ``case-t0.65-weakly-50-50-50-50`` (characters a job name may not hold, e.g. the space
+        of 'my case.toml', replaced: flexmbs.batch.job_name)."""
         ov = dict(self.overrides)
         t_end = ov.pop("time.t_end", None)
         case = Path(self.case).stem if self.case.endswith(".toml") else self.case
@@ -328,7 +329,8 @@ class Run:
         parts += [f"{k}{v}" for k, v in sorted(ov.items())]
         parts.append(self.method)
         parts.append("-".join(f"{v:g}" for v in self.start_mm))
-        return "-".join(parts)
+        from flexmbs.batch import job_name
+        return job_name("-".join(parts))
 
     def job(self):
         """Keyword arguments of `flexmbs.reproduce.optimization_job`."""
