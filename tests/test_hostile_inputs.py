@@ -566,3 +566,35 @@ def test_job_names_of_a_case_file_with_a_space(tmp_path):
     assert job_name("my case-weakly") != job_name("my_case-weakly") == "my_case-weakly"
     assert job_name("robot_2dof-t0.65-weakly-50-50-50-50") == \
         "robot_2dof-t0.65-weakly-50-50-50-50"
+
+
+@pytest.mark.parametrize("table_options, variant_options, key, got", [
+    ("{ weakly = { frame_kind = [1, 2] } }", "{}", "tables.1.options.weakly.frame_kind",
+     "[1, 2]"),
+    ("{}", "{ mma_options = [1] }", "tables.1.variants[0].options.mma_options", "[1]"),
+    ("{}", "{ mma_options = { move = [1] } }",
+     "tables.1.variants[0].options.mma_options.move", "[1]"),
+])
+def test_study_option_of_a_wrong_kind_is_one_sentence(tmp_path, table_options, variant_options,
+                                                      key, got):
+    """A study option that is no scalar nor a table of scalars (a list for frame_kind or
+    mma_options) gave one pydantic error per member of the union (4 to 8 lines naming 'bool',
+    'int', 'float', 'str'): one sentence naming the key, what it may be and the value."""
+    from flexmbs.errors import CaseError
+    from flexmbs.study import load_study
+
+    f = _study(tmp_path)
+    f.write_text(f.read_text() + f'''options = {table_options}
+[[tables.1.variants]]
+key = "v"
+label = "v"
+method = "fully"
+options = {variant_options}
+start = [50.0, 50.0, 50.0, 50.0]
+''')
+    with pytest.raises(CaseError) as err:
+        load_study(f)
+    msg = str(err.value)
+    assert msg.count("key '") == 1, msg
+    assert f"key '{key}' must be a number, a string or true/false" in msg and msg.endswith(got)
+    assert ".bool" not in msg and ".str" not in msg

@@ -661,10 +661,42 @@ def _variant(n, k, v, t, case, names, source):
                    options=dict(v.options), multistart=ms, checks=tuple(v.checks))
 
 
+#: pydantic's tags of the members of a value's union (an option: a scalar, or a table of
+#: scalars such as frame_kind's or mma_options'), added to an error's location
+_MEMBER_TAGS = ("bool", "int", "float", "str")
+
+
+def _member_tag(part):
+    return isinstance(part, str) and (part in _MEMBER_TAGS or part.startswith("dict["))
+
+
+def _union_lines(errors, source_loc):
+    """One sentence per option value that fits no member of its union (pydantic gives one
+    error per member, 4 to 8 of them): the deepest key at fault, what it may be, the value."""
+    groups = {}
+    for e in errors:
+        loc = tuple(p for p in e["loc"] if not _member_tag(p))
+        g = groups.setdefault(loc, dict(input=e.get("input"), table=False))
+        last = e["loc"][-1] if e["loc"] else None        # a table is allowed at this key
+        g["table"] |= isinstance(last, str) and last.startswith("dict[")
+    out = []
+    for loc, g in groups.items():
+        if any(other != loc and other[:len(loc)] == loc for other in groups):
+            continue                 # a key inside this value is named instead
+        what = "a number, a string or true/false" + (", or a table of those (e.g. "
+                                                     "frame_kind = { follower = \"chord\" })"
+                                                     if g["table"] else "")
+        out.append(f"key '{source_loc(loc)}' must be {what}, got {g['input']!r}")
+    return out
+
+
 def _format_errors(exc, source):
-    from flexmbs.casefile import friendly_error
+    from flexmbs.casefile import _loc, friendly_error
+    errors = exc.errors()
+    union = [e for e in errors if any(_member_tag(p) for p in e["loc"])]
     lines = [friendly_error(e, StudyFile, "docs/study-format.md",
-                            tags=_CHECK_TAGS + _FIGURE_TAGS) for e in exc.errors()]
+                            tags=_CHECK_TAGS + _FIGURE_TAGS) for e in errors if e not in union]
+    lines += _union_lines(union, _loc)
     more = f" (and {len(lines) - 5} more)" if len(lines) > 5 else ""
     return f"{source}: " + "; ".join(lines[:5]) + more
 
