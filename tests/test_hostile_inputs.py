@@ -598,3 +598,25 @@ start = [50.0, 50.0, 50.0, 50.0]
     assert msg.count("key '") == 1, msg
     assert f"key '{key}' must be a number, a string or true/false" in msg and msg.endswith(got)
     assert ".bool" not in msg and ".str" not in msg
+
+
+def _failed_start(x):
+    """A batch job whose result holds non-finite numbers (as a failed start's)."""
+    return {"x": x, "share": float("nan"), "values": np.array([1.0, np.inf, -np.inf]),
+            "nested": [{"y": np.float64("nan")}]}
+
+
+def test_stored_result_is_standard_json(tmp_path):
+    """A stored result holding NaN or infinities (a failed start's optimizer_share) was written
+    as bare NaN, which is not JSON (a strict parser refuses it): null instead, and the file
+    parses with NaN refused."""
+    import json
+    from flexmbs.batch import run_batch
+
+    run_batch(_failed_start, {"a": dict(x=1.0)}, workers=1, store=tmp_path)
+
+    def refuse(name):
+        raise ValueError(f"not JSON: {name}")
+    got = json.loads((tmp_path / "a.json").read_text(), parse_constant=refuse)
+    assert got == {"x": 1.0, "share": None, "values": [1.0, None, None],
+                   "nested": [{"y": None}]}

@@ -318,7 +318,24 @@ def stale_result(value, fp):
 
 
 def _save(store, name, value):
-    write_atomic(Path(store) / f"{name}.json", json.dumps(value, default=_to_json))
+    """Write a result as standard JSON: NaN and infinities (not JSON; Python's json writes
+    them as bare NaN, which other readers refuse) become null."""
+    write_atomic(Path(store) / f"{name}.json",
+                 json.dumps(_finite(value), default=_to_json, allow_nan=False))
+
+
+def _finite(obj):
+    """A copy of obj with every non-finite float (Python's or numpy's, in dicts, lists,
+    tuples and arrays) replaced by None."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _finite(obj.tolist())
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if np.isfinite(obj) else None
+    return obj
 
 
 def _to_json(obj):
