@@ -620,3 +620,71 @@ def test_stored_result_is_standard_json(tmp_path):
     got = json.loads((tmp_path / "a.json").read_text(), parse_constant=refuse)
     assert got == {"x": 1.0, "share": None, "values": [1.0, None, None],
                    "nested": [{"y": None}]}
+
+
+def test_existing_history_needs_resume(tmp_path, monkeypatch, capsys):
+    """optimize --history h.jsonl again without --resume truncated the earlier run's history
+    without a word: one line naming the file and suggesting --resume or another name, exit
+    2, before any simulation, and the file is left as it was."""
+    _no_simulation(monkeypatch)
+    h = tmp_path / "h.jsonl"
+    h.write_text('{"iteration": 1}\n')
+    assert main(["optimize", "robot_2dof", "--history", str(h)]) == 2
+    line = _one_error_line(capsys)
+    assert str(h) in line and "--resume" in line and "another --history" in line
+    assert h.read_text() == '{"iteration": 1}\n'
+
+
+def test_history_is_locked_against_a_second_run(tmp_path):
+    """Two runs writing one history left it unreadable (interleaved lines): the second
+    HistoryWriter on a file that another process holds is refused at once (ModelError naming
+    the file and 'locked'), and the first run's records are untouched (they read back)."""
+    import subprocess
+    import sys
+    from flexmbs.optimize.result import HistoryWriter, read_history
+
+    h = tmp_path / "h.jsonl"
+    w = HistoryWriter(h)
+    w.write({"iteration": 1, "design": [1.0]})
+    code = ("import sys\nfrom flexmbs.optimize.result import HistoryWriter\n"
+            "from flexmbs.errors import ModelError\n"
+            "try:\n    HistoryWriter(sys.argv[1])\nexcept ModelError as e:\n"
+            "    print(e); sys.exit(3)\n")
+    other = subprocess.run([sys.executable, "-c", code, str(h)], capture_output=True,
+                           text=True, timeout=120)
+    assert other.returncode == 3, other.stderr
+    assert "locked" in other.stdout and str(h) in other.stdout
+    w.write({"iteration": 2, "design": [2.0]})
+    w.close()
+    assert [r["iteration"] for r in read_history(h)] == [1, 2]
+    # closed: the file can be resumed by another writer (lock released)
+    again = subprocess.run([sys.executable, "-c", code.replace("HistoryWriter(sys.argv[1])",
+                                                               "HistoryWriter(sys.argv[1], "
+                                                               "resume=True)"), str(h)],
+                           capture_output=True, text=True, timeout=120)
+    assert again.returncode == 0, again.stdout + again.stderr
+
+
+def test_resumed_history_keeps_whole_records(tmp_path):
+    """Resuming a history whose last line is cut short (an interrupted write) drops that line
+    and appends after the whole records; a whole last record without its newline gets one."""
+    import warnings
+    from flexmbs.optimize.result import HistoryWriter, read_history
+
+    h = tmp_path / "h.jsonl"
+    h.write_text('{"iteration": 1, "design": [1.0]}\n{"iteration": 2, "des')
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        w = HistoryWriter(h, resume=True)
+    assert [r["iteration"] for r in w.previous] == [1]
+    w.write({"iteration": 1, "design": [1.0]})          # the record the file holds
+    w.write({"iteration": 2, "design": [2.0]})
+    w.close()
+    assert [r["iteration"] for r in read_history(h)] == [1, 2]
+    g = tmp_path / "g.jsonl"
+    g.write_text('{"iteration": 1, "design": [1.0]}')
+    w = HistoryWriter(g, resume=True)
+    w.write({"iteration": 1, "design": [1.0]})
+    w.write({"iteration": 2, "design": [2.0]})
+    w.close()
+    assert [r["iteration"] for r in read_history(g)] == [1, 2]

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from flexmbs.batch import check_dask
@@ -78,7 +79,9 @@ def register(subparsers):
     p.add_argument("--json", action="store_true",
                    help="print one JSON object (the result) instead of the progress and summary")
     p.add_argument("--history", type=path_text, metavar="FILE",
-                   help="write one JSON line per cycle/iteration to FILE as the run goes")
+                   help="write one JSON line per cycle/iteration to FILE as the run goes (a "
+                        "FILE holding an earlier run's history is refused without --resume; "
+                        "FILE is locked while the run writes it)")
     p.add_argument("--resume", action="store_true",
                    help="continue an interrupted run from its --history FILE (with --starts: "
                         "from its --store FOLDER): it follows the recorded path without "
@@ -241,6 +244,11 @@ def run_optimize(args):
     history_path = args.history
     if history_path:
         history_path = output_file(history_path, "--history")
+        if not args.resume and os.path.isfile(history_path) and \
+                os.path.getsize(history_path) > 0:
+            raise CaseError(f"--history {history_path!r} holds the history of an earlier run "
+                            "and would be overwritten: add --resume to continue that run, or "
+                            "give another --history name (or delete the file)")
     if args.plot:
         args.plot = figure_file(args.plot, "--plot")
     writer = HistoryWriter(history_path, resume=args.resume and bool(history_path))
