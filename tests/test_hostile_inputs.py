@@ -108,20 +108,12 @@ DEEP = 10_000
 
 
 def _study(folder, published_text=None, extra=""):
-    """A minimal study file beside its published JSON (as tests/test_file_safety.py)."""
-    (folder / "published.json").write_text(published_text or '{"a": {"b": {}}}')
-    f = folder / "study.toml"
-    f.write_text(f'''{extra}
-[study]
-name = "mine"
-published = "published.json"
+    """A minimal study file beside its published JSON (tests/test_file_safety.py's)."""
+    from test_file_safety import _study as study_file
 
-[tables.1]
-title = "t"
-case = "robot_2dof"
-published = ["a", "b"]
-starts = [[50.0, 50.0, 50.0, 50.0]]
-''')
+    f = study_file(folder, extra=extra)
+    if published_text is not None:
+        (folder / "published.json").write_text(published_text)
     return f
 
 

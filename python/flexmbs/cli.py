@@ -157,15 +157,24 @@ def design_from_text(text, problem, option="--design"):
         raise CaseError(f"{option} {text!r}: {exc}") from None
 
 
-def positive_int(text):
-    """argparse type: an integer >= 1 (e.g. --workers)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {value}")
-    return value
+def _int_at_least(minimum):
+    """argparse type: an integer >= minimum."""
+    def parse(text):
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got "
+                                             f"{text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {value}")
+        return value
+    return parse
+
+
+#: argparse type: an integer >= 1 (e.g. --workers).
+positive_int = _int_at_least(1)
+#: argparse type: an integer >= 0 (e.g. --seed).
+nonnegative_int = _int_at_least(0)
 
 
 def path_text(text):
@@ -174,17 +183,6 @@ def path_text(text):
     if not text.strip():
         raise argparse.ArgumentTypeError(f"expected a file or folder name, got {text!r}")
     return text
-
-
-def nonnegative_int(text):
-    """argparse type: an integer >= 0 (e.g. --seed)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {value}")
-    return value
 
 
 def output_file(path, option, suffix=None, required=0.0):

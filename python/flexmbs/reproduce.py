@@ -1144,16 +1144,12 @@ def _stored(path, fp, schema=None, warn=False):
     if value is None:
         return None
     why = invalid_result(value, schema)
-    if why:
+    diff = None if why else stale_result(value, fp)
+    if why or diff:
         if warn:
-            warnings.warn(f"stored result {path} is JSON but not a result ({why}): computed "
-                          "again", stacklevel=3)
-        return None
-    diff = stale_result(value, fp)
-    if diff:
-        if warn:
-            warnings.warn(f"stored result {path} answers another question ({'; '.join(diff)}): "
-                          "computed again", stacklevel=3)
+            what = (f"is JSON but not a result ({why})" if why else
+                    f"answers another question ({'; '.join(diff)})")
+            warnings.warn(f"stored result {path} {what}: computed again", stacklevel=3)
         return None
     return value
 
