@@ -40,6 +40,7 @@ import os
 import re
 import shutil
 import signal
+import stat
 import sys
 import tempfile
 import threading
@@ -51,14 +52,28 @@ from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict
 
 from flexmbs.errors import ModelError, ResourceError, SimulationError
 
 __all__ = ["run_batch", "sweep_jobs", "max_deviation_job", "local_cluster", "Progress",
            "atomic_open", "save_figure", "write_atomic", "read_stored", "check_writable",
-           "check_disk_space", "START_METHODS"]
+           "check_disk_space", "check_dask", "check_regular_file", "check_store", "invalid_result",
+           "result_schema", "StoredResult", "MaxDeviationResult", "job_name", "START_METHODS"]
 
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
+
+
+def job_name(text):
+    """A job name (letters, digits, '_', '-', '.') made from any text, e.g. a case file's name
+    'my case.toml': every other character becomes '_', and a short hash of the text is added
+    when any did, so that two texts never share a name ('my case' -> 'my_case-1b2c3d', not
+    'my_case')."""
+    import hashlib
+    clean = re.sub(r"[^A-Za-z0-9_.\-]", "_", text).strip(".") or "_"
+    if clean == text:
+        return text
+    return f"{clean}-{hashlib.sha1(text.encode('utf-8', 'surrogatepass')).hexdigest()[:6]}"
 
 
 class Progress:
@@ -145,9 +160,42 @@ def save_figure(fig, path, **savefig_kw):
     return path
 
 
+def _kind(mode):
+    """What a non-regular file is, in words."""
+    for test, name in ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                       (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def check_regular_file(path, what, error=ModelError):
+    """Refuse, before opening it, a file that exists and is not a regular file: a FIFO (which
+    would block the read or the write), a device such as /dev/zero (read without end), a
+    folder. `error` (ModelError, or CaseError for case and study files) naming `what` (e.g.
+    "--history"), the path and its kind; True when the file exists, False when it does not."""
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return False
+    except OSError as exc:
+        raise error(f"{what} {os.fspath(path)!r} cannot be read: "
+                    f"{exc.strerror or exc}") from None
+    if not stat.S_ISREG(mode):
+        raise error(f"{what} {os.fspath(path)!r} is {_kind(mode)}, not a regular file; "
+                    "give the path of a file")
+    return True
+
+
 def read_stored(path):
     """The JSON content of a stored result file, or None when it is missing or unreadable
-    (truncated, not JSON): such a file does not count as a result."""
+    (truncated, not JSON, not a regular file): such a file does not count as a result."""
+    try:
+        if not check_regular_file(path, "stored result"):
+            return None
+    except ModelError:
+        return None
     try:
         return json.loads(Path(path).read_text(encoding="utf-8"))
     except FileNotFoundError:
@@ -181,6 +229,23 @@ def check_writable(folder, what, create=False):
     return folder
 
 
+def check_store(store, what="store"):
+    """Create the folder `store` of run_batch's results (with its parents) or check the one
+    there; ModelError naming `what` and the path when it is a file (or cannot be created)."""
+    path = Path(store)
+    if path.exists() and not path.is_dir():
+        mode = path.stat().st_mode
+        kind = "a file" if stat.S_ISREG(mode) else _kind(mode)
+        raise ModelError(f"{what} {os.fspath(store)!r} is {kind}, not a folder: give a folder "
+                         "for the results (one file per job)")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ModelError(f"{what} {os.fspath(store)!r}: cannot create the folder: "
+                         f"{exc.strerror or exc}") from None
+    return path
+
+
 def check_disk_space(folder, required, what):
     """Raise ResourceError when the file system of `folder` has less than `required` bytes
     free (a rough estimate of what a run will write)."""
@@ -194,6 +259,57 @@ def check_disk_space(folder, required, what):
                             required=required, available=free)
 
 
+def check_dask(dask, what="dask"):
+    """Check a Dask scheduler address once, before any job: None, 'local', or an address
+    whose host resolves and that has a port (tcp://host:8786, host:8786, tls://..., inproc://...;
+    distributed.comm.resolve_address). ModelError naming `what` and the value otherwise (no
+    connection is made here: an unreachable scheduler is found by the first Client)."""
+    if dask is None or (isinstance(dask, str) and dask == "local"):
+        return dask
+    if not isinstance(dask, str) or not dask.strip():
+        raise ModelError(f"{what} must be a Dask scheduler address (tcp://HOST:PORT) or "
+                         f"'local', got {dask!r}")
+    from distributed.comm.addressing import resolve_address
+    try:
+        resolve_address(dask)
+    except (ValueError, TypeError, OSError) as exc:
+        reason = getattr(exc, "strerror", None) or exc
+        raise ModelError(f"{what} {dask!r} is not a Dask scheduler address ({reason}); "
+                         "expected 'local' or SCHEME://HOST:PORT, e.g. tcp://host:8786") from None
+    return dask
+
+
+def invalid_result(value, schema):
+    """Why a stored result does not have the content of its job's results (a short phrase
+    naming the first wrong key), or None when it does. `schema`: a pydantic model of the
+    result (strict: a string is no number), or None (any JSON value)."""
+    if schema is None:
+        return None
+    from pydantic import ValidationError
+    if not isinstance(value, dict):
+        return f"a {type(value).__name__}, not a result (a JSON object)"
+    try:
+        schema.model_validate(value)
+    except ValidationError as exc:
+        errs = exc.errors()
+        e = errs[0]
+        where = ".".join(map(str, e["loc"])) or "(top level)"
+        more = f" (and {len(errs) - 1} more)" if len(errs) > 1 else ""
+        got = "" if e["type"] == "missing" else f", got {_short_value(e.get('input'))}"
+        return f"key {where!r}: {e['msg']}{got}{more}"
+    return None
+
+
+def _short_value(v, n=40):
+    text = repr(v)
+    return text if len(text) <= n else text[:n - 3] + "..."
+
+
+def result_schema(func):
+    """The pydantic model of `func`'s results (its attribute ``result_schema``), or None."""
+    return getattr(func, "result_schema", None)
+
+
 def stale_result(value, fp):
     """What differs (flexmbs.fingerprint.differences) between a stored result's fingerprint
     and `fp`; [] when it answers `fp`."""
@@ -202,7 +318,24 @@ def stale_result(value, fp):
 
 
 def _save(store, name, value):
-    write_atomic(Path(store) / f"{name}.json", json.dumps(value, default=_to_json))
+    """Write a result as standard JSON: NaN and infinities (not JSON; Python's json writes
+    them as bare NaN, which other readers refuse) become null."""
+    write_atomic(Path(store) / f"{name}.json",
+                 json.dumps(_finite(value), default=_to_json, allow_nan=False))
+
+
+def _finite(obj):
+    """A copy of obj with every non-finite float (Python's or numpy's, in dicts, lists,
+    tuples and arrays) replaced by None."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _finite(obj.tolist())
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if np.isfinite(obj) else None
+    return obj
 
 
 def _to_json(obj):
@@ -300,7 +433,8 @@ def _run_isolated(func, todo, workers, finish, start_method="spawn"):
 
 
 def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None, label="jobs",
-              retries=2, describe=None, start_method="spawn", fingerprints=None):
+              retries=2, describe=None, start_method="spawn", fingerprints=None,
+              schema=result_schema):
     """Run `func(**jobs[name])` for every name; return {name: result}.
 
     Parameters
@@ -318,6 +452,11 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
     store : path, optional
         Folder where each result is saved as it finishes; names already stored are not
         run again (their stored result is returned).
+    schema : pydantic model, None or callable, default `result_schema`
+        The content a stored result must have to be reused (`invalid_result`; default: the
+        job function's attribute ``result_schema``, e.g. `max_deviation_job`'s): a stored
+        file that is JSON but not such a result (``[]``, ``{"foo": 1}``, strings for numbers)
+        is not reused: its job runs again, with a warning naming the file and the key.
     fingerprints : dict {name: fingerprint} or True, optional
         What each job answers (flexmbs.fingerprint; True: `job_fingerprint(func, kwargs)`
         of each job, its case read and resolved): saved in its result (a dict) under
@@ -365,20 +504,27 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
     if not isinstance(start_method, str) or start_method not in START_METHODS:
         raise ModelError(f"start_method must be one of {', '.join(map(repr, START_METHODS))}, "
                          f"got {start_method!r}")
+    check_dask(dask)
     results = {}
     todo = dict(jobs)
+    if schema is result_schema:
+        schema = result_schema(func)
     if fingerprints is True:
         from flexmbs.fingerprint import job_fingerprint
         fingerprints = {name: job_fingerprint(func, kw) for name, kw in jobs.items()}
     if store is not None:
-        Path(store).mkdir(parents=True, exist_ok=True)
-        unreadable, stale = [], []
+        check_store(store)
+        unreadable, stale, invalid = [], [], []
         for name in list(todo):
             path = Path(store) / f"{name}.json"
-            if path.exists():
+            if path.exists() or path.is_symlink():
                 value = read_stored(path)
                 if value is None:
                     unreadable.append(str(path))
+                    continue
+                why = invalid_result(value, schema)
+                if why:
+                    invalid.append(f"{path} ({why})")
                     continue
                 if fingerprints is not None:
                     diff = stale_result(value, fingerprints[name])
@@ -393,6 +539,10 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
         if stale:
             warnings.warn(f"{len(stale)} stored result(s) answer another question, their jobs "
                           f"run again: {', '.join(stale)}", stacklevel=2)
+        if invalid:
+            warnings.warn(f"{len(invalid)} stored result(s) are JSON but not results of "
+                          f"{getattr(func, '__name__', 'the job')}, their jobs run again: "
+                          f"{', '.join(invalid)}", stacklevel=2)
     callback = progress if callable(progress) and not hasattr(progress, "write") else None
     if callback is not None:
         bar = Progress(len(jobs), label, enabled=False)
@@ -522,6 +672,25 @@ def _problem(case, overrides):
     return cache[key]
 
 
+class StoredResult(BaseModel):
+    """Base of the schemas of stored results: strict types (a string is no number), other
+    keys allowed."""
+    model_config = ConfigDict(extra="allow", strict=True)
+
+
+class MaxDeviationResult(StoredResult):
+    """A stored result of `max_deviation_job`."""
+    design: list[float]
+    mass_kg: float
+    max_deviation_m: float
+    t_at_max_s: float
+    step_at_max: int
+    max_violation: float
+    limit_m: float | None = None
+    deviation_m: list[float] | None = None
+    deviation_at_steps_m: list[float] | None = None
+
+
 def max_deviation_job(case, design, overrides=None, steps=None):
     """Simulate one design of a case (a shipped case's name or a path; `overrides` as
     `flexmbs.problem.Problem`): its mass, the largest constrained deviation (the step-by-step
@@ -541,3 +710,6 @@ def max_deviation_job(case, design, overrides=None, steps=None):
     elif steps is not None:
         out["deviation_at_steps_m"] = [float(dev[s]) for s in steps]
     return out
+
+
+max_deviation_job.result_schema = MaxDeviationResult

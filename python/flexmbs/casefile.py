@@ -8,7 +8,9 @@ table array is addressed by its ``name`` or its index: ``{"bodies.arm1.elements"
 """
 from __future__ import annotations
 
+import contextlib
 import copy
+import sys
 import tomllib
 import types
 import typing
@@ -21,7 +23,7 @@ from flexmbs.description import Description
 from flexmbs.errors import CaseError
 
 __all__ = ["read_description", "description_from_dict", "is_general_format", "apply_overrides",
-           "parse_override", "case_path", "case_folders", "available_cases"]
+           "parse_override", "case_path", "case_folders", "available_cases", "nesting_guard"]
 
 
 def _loc(loc):
@@ -113,6 +115,19 @@ def friendly_error(err, model=None, doc="docs/case-format.md", tags=None):
 _TAGS = ("beam", "rigid", "mass", "deviation", "stress", "torque", "reaction")
 
 
+@contextlib.contextmanager
+def nesting_guard(source):
+    """Turn a RecursionError of reading or validating a file (TOML or JSON nested thousands
+    of levels deep: tomllib, json and the validation recurse per level) into a CaseError
+    naming `source`."""
+    try:
+        yield
+    except RecursionError:
+        raise CaseError(f"{source}: nested too deeply (arrays or tables within each other "
+                        f"beyond Python's recursion limit, {sys.getrecursionlimit()} levels); "
+                        "a case or study nests a few levels") from None
+
+
 def description_from_dict(data, source="<dict>", overrides=None):
     """Validate a parsed case (a dict) into a Description; CaseError naming source and keys.
 
@@ -122,9 +137,11 @@ def description_from_dict(data, source="<dict>", overrides=None):
     if not isinstance(data, dict):
         raise CaseError(f"{source}: a case must be a table, got {type(data).__name__}")
     if overrides:
-        data = apply_overrides(data, overrides, source)
+        with nesting_guard(source):         # a deep copy of the data
+            data = apply_overrides(data, overrides, source)
     try:
-        return Description.model_validate(data)
+        with nesting_guard(source):
+            return Description.model_validate(data)
     except ValidationError as exc:
         lines = [friendly_error(e) for e in exc.errors()]
         more = f" (and {len(lines) - 5} more)" if len(lines) > 5 else ""
@@ -140,14 +157,17 @@ def read_description(path, overrides=None):
     """Read and validate a case file (a path, or the name of a shipped case, `case_path`);
     `overrides` as in `description_from_dict`."""
     p = case_path(path)
+    from flexmbs.batch import check_regular_file
+    check_regular_file(p, "case file", CaseError)
     try:
-        text = p.read_text(encoding="utf-8")
+        text = p.read_text(encoding="utf-8-sig")     # a leading BOM is dropped
     except OSError as exc:
         raise CaseError(f"case file {str(path)!r} cannot be read: {exc.strerror or exc}") from None
     except UnicodeDecodeError as exc:
         raise CaseError(f"{p}: not a UTF-8 text file ({exc.reason})") from None
     try:
-        data = tomllib.loads(text)
+        with nesting_guard(p):
+            data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise CaseError(f"{p}: not valid TOML: {exc}") from None
     if not is_general_format(data):

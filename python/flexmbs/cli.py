@@ -42,6 +42,7 @@ from flexmbs.errors import CaseError, FlexmbsError, ModelError
 
 __all__ = ["main", "build_parser", "COMMANDS", "add_case_arguments", "problem_from_args",
            "design_from_text", "parse_values", "parse_set", "register_simulate", "positive_int",
+           "nonnegative_int", "path_text",
            "output_file", "figure_file", "print_evaluation", "add_design_arguments"]
 
 #: Subcommand registration functions, "module:function", in the order of the help text.
@@ -156,15 +157,32 @@ def design_from_text(text, problem, option="--design"):
         raise CaseError(f"{option} {text!r}: {exc}") from None
 
 
-def positive_int(text):
-    """argparse type: an integer >= 1 (e.g. --workers)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {value}")
-    return value
+def _int_at_least(minimum):
+    """argparse type: an integer >= minimum."""
+    def parse(text):
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got "
+                                             f"{text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {value}")
+        return value
+    return parse
+
+
+#: argparse type: an integer >= 1 (e.g. --workers).
+positive_int = _int_at_least(1)
+#: argparse type: an integer >= 0 (e.g. --seed).
+nonnegative_int = _int_at_least(0)
+
+
+def path_text(text):
+    """argparse type of a file or folder name (--out, --plot, --history, --store, --study):
+    not empty or blank (an empty --out wrote nothing and said nothing)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"expected a file or folder name, got {text!r}")
+    return text
 
 
 def output_file(path, option, suffix=None, required=0.0):
@@ -224,10 +242,10 @@ def register_simulate(subparsers):
                     "gradients, the results (.npz) and an overview figure.")
     add_case_arguments(p)
     add_design_arguments(p)
-    p.add_argument("--out", metavar="FILE.npz",
+    p.add_argument("--out", type=path_text, metavar="FILE.npz",
                    help="save time, coordinates, rigid reference and response histories "
                         "(.npz is added to a name without it)")
-    p.add_argument("--plot", metavar="FILE.png",
+    p.add_argument("--plot", type=path_text, metavar="FILE.png",
                    help="save an overview figure: motion (deflection magnified) and the "
                         "constrained responses (format from the extension: png, pdf, svg, ...)")
     p.set_defaults(func=run_simulate)
@@ -418,8 +436,9 @@ def main(argv=None):
     try:
         args = parser.parse_args(argv)
     except _UsageError as exc:
-        exc.parser.print_usage(sys.stderr)
-        print(f"{exc.parser.prog}: error: {exc.message}{_usage_hint(exc.message, argv)}",
+        # one line, as every other error (the usage is in `--help`)
+        message = printable(" ".join(f"{exc.message}{_usage_hint(exc.message, argv)}".split()))
+        print(f"{exc.parser.prog}: error: {message} (see '{exc.parser.prog} --help')",
               file=sys.stderr)
         return 2
     if getattr(args, "func", None) is None:

@@ -6,7 +6,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from flexmbs.cli import positive_int, printable
+from flexmbs.batch import check_dask
+from flexmbs.cli import path_text, positive_int, printable
 from flexmbs.errors import ModelError
 from flexmbs.optimize.library import preload
 from flexmbs.report import publish
@@ -27,14 +28,14 @@ def register(subparsers):
                     "Dask cluster), print every row beside the published one, draw the figures "
                     "and write DIR/README.md. Finished jobs are saved under DIR/jobs/ and not "
                     "run again.")
-    p.add_argument("--study", metavar="FILE",
+    p.add_argument("--study", type=path_text, metavar="FILE",
                    help="a study file (docs/study-format.md) or the name of a shipped study; "
                         "default: the paper's (cases/studies/paper.toml)")
     p.add_argument("--table", type=int, nargs="+", action="extend",
                    metavar="N", help="tables to reproduce (numbers of the study's tables, "
                                      "repeatable); default: all")
     p.add_argument("--all", action="store_true", help="every table (the default)")
-    p.add_argument("--out", default="reproduction", metavar="DIR",
+    p.add_argument("--out", type=path_text, default="reproduction", metavar="DIR",
                    help="output folder (default: reproduction)")
     ex = p.add_mutually_exclusive_group()
     ex.add_argument("--workers", type=positive_int, metavar="N",
@@ -57,6 +58,7 @@ def run_reproduce(args):
     grid = args.grid if args.grid is not None else (11 if args.quick else 41)
     if grid < 2:
         raise ModelError(f"--grid must be an integer >= 2, got {grid}")
+    check_dask(args.dask, "--dask")
     study = load_study(args.study)
     if tables is not None:
         bad = [t for t in tables if t not in study.tables]
@@ -117,7 +119,7 @@ def register_demo(subparsers):
                     "coupled methods from its start design, print the results beside the "
                     "paper's, draw its figure and write a report (DIR/README.md). `flexmbs "
                     "reproduce` does the same for every table.")
-    p.add_argument("--out", default="reproduction/demo", metavar="DIR",
+    p.add_argument("--out", type=path_text, default="reproduction/demo", metavar="DIR",
                    help="output folder (default: reproduction/demo)")
     p.add_argument("--workers", type=positive_int, default=2, metavar="N",
                    help="local worker processes (default 2: one per method; 1: serial)")

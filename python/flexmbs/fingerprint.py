@@ -102,6 +102,8 @@ def differences(stored, current):
     if not isinstance(stored, dict) or not {"flexmbs", "method", "options",
                                             "description"} <= set(stored):
         return ["no fingerprint (written before fingerprints, or by another program)"]
+    if not all(isinstance(stored[k], (dict, type(None))) for k in ("options", "description")):
+        return ["a malformed fingerprint (its options or description is not a table)"]
     out = []
     if stored["flexmbs"] != current["flexmbs"]:
         out.append(f"flexmbs {stored['flexmbs']} -> {current['flexmbs']}")

@@ -123,8 +123,25 @@ class TimeLaw:
                              f"got {arrays[0].size} and {arrays[1].size}")
         if np.any(np.diff(arrays[0]) <= 0):
             raise ModelError(f"TimeLaw.samples {name!r}: t must be strictly increasing")
-        spline = (CubicSpline if interpolation == "cubic" else PchipInterpolator)(arrays[0],
-                                                                                 arrays[1])
+        with np.errstate(all="ignore"):
+            dt, dv = np.diff(arrays[0]), np.diff(arrays[1])
+            slopes = dv / dt
+            curvature = slopes / dt
+        if not (np.all(np.isfinite(dt)) and np.all(np.isfinite(dv)) and np.all(dt > 0)
+                and np.all(np.isfinite(slopes)) and np.all(np.isfinite(curvature))):
+            raise ModelError(f"TimeLaw.samples {name!r}: the differences of t and values and "
+                             f"the slopes between samples overflow or underflow double "
+                             f"precision (t from {arrays[0].min():.3g} to "
+                             f"{arrays[0].max():.3g} s, values from {arrays[1].min():.3g} to "
+                             f"{arrays[1].max():.3g}); give samples whose rate and acceleration "
+                             f"are finite numbers")
+        try:
+            with np.errstate(all="ignore"):
+                spline = (CubicSpline if interpolation == "cubic" else PchipInterpolator)(
+                    arrays[0], arrays[1])
+        except ValueError as exc:
+            raise ModelError(f"TimeLaw.samples {name!r}: no interpolant through the samples "
+                             f"({exc})") from None
         ends = _Ends(arrays[0], spline, extrapolate)
         return cls(ends.value, ends.rate, ends.accel, name=name)
 

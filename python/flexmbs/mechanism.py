@@ -21,10 +21,10 @@ import numpy as np
 
 from flexmbs.description import (GROUND, Beam, Description, PointMass, Rigid, Section,
                                  body_points, design_layout)
-from flexmbs.errors import CaseError, ModelError
+from flexmbs.errors import CaseError, ModelError, ResourceError
 from flexmbs.laws import TimeLaw
 from flexmbs.model import Model
-from flexmbs.sections import Circle, GivenSection, Material, Rectangle, Tube
+from flexmbs.sections import Circle, GivenSection, Material, Rectangle, Tube, has_complex
 from flexmbs.simulate import MAX_STEPS, time_steps
 
 __all__ = ["Mechanism", "make_law", "section_at"]
@@ -400,6 +400,24 @@ class Mechanism:
         return TimeLaw(spline, spline.rate, lambda s: np.interp(s, t, a), name=name)
 
     # ------------------------------------------------------------------ rigid reference
+    def _check_reference_memory(self, ref):
+        """ResourceError, before the rigid reference is computed, when its memory over the
+        time grid (flexmbs.kinematics.reference_memory) exceeds the memory limit
+        (flexmbs.resources.memory_limit: FLEXMBS_MEMORY_LIMIT, else the memory available)."""
+        from flexmbs.kinematics import reference_memory
+        from flexmbs.resources import format_bytes, limit_source, memory_limit
+        d = self.description
+        following = sum(dr.law.type == "reference" for dr in d.drives)
+        need = reference_memory(ref, self.t.size, following)
+        avail = memory_limit()
+        if need > avail:
+            raise ResourceError(
+                f"case {d.case.name!r}: the rigid reference over {self.t.size} time points "
+                f"(time.t_end = {d.time.t_end:g} s, time.h = {d.time.h:g} s) needs about "
+                f"{format_bytes(need)}, more than {limit_source()} ({format_bytes(avail)}), "
+                "before any simulation: use a coarser time.h or a shorter time.t_end "
+                "(FLEXMBS_MEMORY_LIMIT sets the limit)", required=need, available=avail)
+
     @property
     def reference(self):
         """The rigid reference motion on the time grid (flexmbs.kinematics.RigidMotion)."""
@@ -408,6 +426,7 @@ class Mechanism:
                 from flexmbs.kinematics import assemble, rigid_reference
                 ref, _ = self._structure(self.description.case.name + " (rigid reference)")
                 self._add_constraints(ref, reference=True)
+                self._check_reference_memory(ref)
                 q0 = assemble(ref, 0.0).q
                 self.reference_model = ref
                 self._reference = rigid_reference(ref, self.t, q0=q0)
@@ -437,6 +456,9 @@ class Mechanism:
     def design_values(self, x):
         """x (user units) as a checked float array: numbers only (a bool or a string is
         refused, even a numeric one)."""
+        if has_complex(x):
+            raise ModelError(f"design must be {len(self.variables)} real numbers "
+                             f"({self._summary()}), got complex values {x!r}")
         items = np.ravel(np.asarray(x, dtype=object)) if not isinstance(x, (str, bytes)) else [x]
         if any(isinstance(v, (bool, np.bool_, str, bytes)) for v in items):
             raise ModelError(f"design must be {len(self.variables)} numbers "

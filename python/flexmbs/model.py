@@ -236,7 +236,10 @@ class Model:
     def set_section(self, body, section):
         """Change the section of a beam (all its elements): a new design, same structure."""
         b = self._beam_of(body, "set_section")
-        section_properties(section, b.material)
+        try:
+            section_properties(section, b.material)
+        except ModelError as exc:
+            raise ModelError(f"beam {b.name!r}: {exc}") from None
         b.section = section
 
     def set_element_sections(self, body, sections):
@@ -247,8 +250,11 @@ class Model:
                              f"Sections (one per element of beam {b.name!r}), got {sections!r}")
         if len(sections) != len(b.elements):
             raise ModelError(f"beam {b.name!r} has {len(b.elements)} elements, got {len(sections)} sections")
-        for s in sections:
-            section_properties(s, b.material)
+        for k, s in enumerate(sections):
+            try:
+                section_properties(s, b.material)
+            except ModelError as exc:
+                raise ModelError(f"beam {b.name!r}, element {k + 1}: {exc}") from None
         b.section = list(sections)
 
     def with_sections(self, sections):

@@ -192,7 +192,8 @@ class Problem:
         when it fits in the memory limit and checkpoints otherwise (every K time points, K
         the largest that fits: `flexmbs.adjoint.checkpoint_interval`); 'auto' always
         checkpoints, every ceil(sqrt(N)) of N steps (about the least memory); K (>= 1) every
-        K time points. Checkpointing costs about one more forward run.
+        K time points (a K beyond the N steps: the initial state only, as K = N).
+        Checkpointing costs about one more forward run.
 
     Evaluation is re-entrant: `evaluate` and `simulate` put a design's sections into a model
     of their own (Mechanism.design_model, sharing the structure, its compiled arrays and KLU

@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flexmbs.batch import MaxDeviationResult, StoredResult
 from flexmbs.errors import ModelError
 from flexmbs.study import MapSpec, Run, Study, TableSpec, Variant, load_study
 
@@ -88,6 +89,40 @@ def table_runs(numbers, study=None):
             seen.setdefault(r.name, r)
             cost[r.name] = max(cost.get(r.name, 0.0), spec.cost)
     return sorted(seen.values(), key=lambda r: (-cost[r.name], 0 if r.method == "fully" else 1))
+
+
+class OptimizationJobResult(StoredResult):
+    """A stored result of `optimization_job` (what the report reads; other keys allowed)."""
+    design: list[float]
+    mass_kg: float | None
+    max_deviation_m: float | None
+    max_violation: float | None = None
+    iterations: int
+    inner_iterations: int | None = None
+    converged: bool
+    reason: str
+    wall_time_s: float
+    simulations: int | None = None
+    deviation_m: list[float] | None
+    h_s: float
+    history: list[dict] = []
+
+
+class MultistartJobResult(StoredResult):
+    """A stored result of `multistart_job` (what the report reads; other keys allowed)."""
+    optima: list[dict]
+    best: dict | None
+    mass_kg: float | None
+    design: list[float] | None
+    max_deviation_m: float | None
+    feasible: bool
+    wall_time_s: float
+    simulations: int | None = None
+    reached_best: int | None = None
+
+
+def _schema(variant):
+    return OptimizationJobResult if variant.multistart is None else MultistartJobResult
 
 
 def optimization_job(case, method, start, overrides=None, options=None):
@@ -164,6 +199,10 @@ def multistart_job(case, overrides=None, options=None, multistart=None, workers=
                  max_deviation_m=chk["max_deviation_m"], t_at_max_s=chk["t_at_max_s"],
                  limit_m=chk["limit_m"], feasible=bool(res.best["feasible"]))
     return d
+
+
+optimization_job.result_schema = OptimizationJobResult
+multistart_job.result_schema = MultistartJobResult
 
 
 # ============================================================================ design-domain maps
@@ -1062,7 +1101,8 @@ def _run_variants(variants, vstore, report, workers, address, progress, say):
     fps = {v.name: job_fingerprint(optimization_job if v.multistart is None else multistart_job,
                                    v.job()) for v in variants}
     report.settings["stored_variants"] = [v.name for v in variants
-                                          if _stored(vstore / f"{v.name}.json", fps[v.name])]
+                                          if _stored(vstore / f"{v.name}.json", fps[v.name],
+                                                     _schema(v))]
     single = {v.name: v.job() for v in variants if v.multistart is None}
     out = {}
     if single:
@@ -1073,7 +1113,7 @@ def _run_variants(variants, vstore, report, workers, address, progress, say):
                                  fingerprints={n: fps[n] for n in single}))
         except Exception as exc:    # noqa: BLE001 - report what finished, name what did not
             for n in single:
-                v = _stored(vstore / f"{n}.json", fps[n])
+                v = _stored(vstore / f"{n}.json", fps[n], OptimizationJobResult)
                 if v is not None:
                     out[n] = v
                 else:
@@ -1083,7 +1123,7 @@ def _run_variants(variants, vstore, report, workers, address, progress, say):
         if v.multistart is None:
             continue
         f = vstore / f"{v.name}.json"
-        stored = _stored(f, fps[v.name], warn=True)
+        stored = _stored(f, fps[v.name], MultistartJobResult, warn=True)
         if stored is not None:
             out[v.name] = stored
             continue
@@ -1104,18 +1144,21 @@ def _run_variants(variants, vstore, report, workers, address, progress, say):
     return out
 
 
-def _stored(path, fp, warn=False):
-    """The stored result at `path` when it answers `fp` (flexmbs.fingerprint), else None
-    (with warn=True, a warning naming the file and what differs when there is one)."""
-    from flexmbs.batch import read_stored, stale_result
+def _stored(path, fp, schema=None, warn=False):
+    """The stored result at `path` when it answers `fp` (flexmbs.fingerprint) and has the
+    content of `schema` (flexmbs.batch.invalid_result), else None (with warn=True, a warning
+    naming the file and what differs or is wrong)."""
+    from flexmbs.batch import invalid_result, read_stored, stale_result
     value = read_stored(path)
     if value is None:
         return None
-    diff = stale_result(value, fp)
-    if diff:
+    why = invalid_result(value, schema)
+    diff = None if why else stale_result(value, fp)
+    if why or diff:
         if warn:
-            warnings.warn(f"stored result {path} answers another question ({'; '.join(diff)}): "
-                          "computed again", stacklevel=3)
+            what = (f"is JSON but not a result ({why})" if why else
+                    f"answers another question ({'; '.join(diff)})")
+            warnings.warn(f"stored result {path} {what}: computed again", stacklevel=3)
         return None
     return value
 
@@ -1171,7 +1214,9 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int)
                                 or workers < 1):
         raise ModelError(f"workers must be an integer >= 1, got {workers!r}")
-    from flexmbs.batch import check_disk_space, check_writable, read_stored, write_atomic
+    from flexmbs.batch import (check_dask, check_disk_space, check_writable, read_stored,
+                               write_atomic)
+    check_dask(dask)        # once, before any job (not once per failing job)
     say = log or (lambda s: None)
     out = Path(out)
     runs = table_runs(tables, study)
@@ -1195,7 +1240,9 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
     data = study.published_data()
     report = Report(out=out, tables=tables, study=study)
     tfile = out / "jobs" / "timings.json"
-    report.timings = read_stored(tfile) or {}
+    report.timings = read_stored(tfile)
+    if not isinstance(report.timings, dict):       # missing, or not what reproduce writes
+        report.timings = {}
     address, cluster = _resolve_dask(dask, workers)
     executor = (f"Dask scheduler {address}" + (" (LocalCluster)" if cluster else "")
                 if address else ("serial" if workers == 1 else
@@ -1209,14 +1256,16 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
         from flexmbs.fingerprint import job_fingerprint
         fps = {n: job_fingerprint(optimization_job, kw) for n, kw in jobs.items()}
         report.settings["stored_runs"] = [n for n in jobs
-                                          if _stored(store / f"{n}.json", fps[n]) is not None]
+                                          if _stored(store / f"{n}.json", fps[n],
+                                                     OptimizationJobResult) is not None]
         try:
             results = run_batch(optimization_job, jobs, workers=workers, dask=address,
                                 store=store, progress=progress, label="optimizations",
                                 fingerprints=fps)
         except Exception as exc:    # noqa: BLE001 - report what finished, name what did not
             results = {n: v for n in jobs
-                       if (v := _stored(store / f"{n}.json", fps[n])) is not None}
+                       if (v := _stored(store / f"{n}.json", fps[n],
+                                        OptimizationJobResult)) is not None}
             for n in jobs:
                 if n not in results:
                     report.failures[n] = f"{type(exc).__name__}: {exc} (first error of the batch)"
@@ -1267,7 +1316,8 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
                     mj.update(map_jobs(spec, grid, region))
                 mstore = out / "jobs" / key
                 mfps = {n: job_fingerprint(max_deviation_job, kw) for n, kw in mj.items()}
-                map_stored = sum(_stored(mstore / f"{n}.json", mfps[n]) is not None for n in mj)
+                map_stored = sum(_stored(mstore / f"{n}.json", mfps[n], MaxDeviationResult)
+                                 is not None for n in mj)
                 say(f"Fig. {spec.figure}: {len(mj)} simulations (two {grid} x {grid} grids of "
                     f"{', '.join(spec.axes)}: the bounds' box and a zoom), results in "
                     f"{out / 'jobs' / key}")

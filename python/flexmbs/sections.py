@@ -14,7 +14,7 @@ import numpy as np
 from flexmbs.errors import ModelError
 
 __all__ = ["Material", "Section", "Circle", "Tube", "Rectangle", "GivenSection",
-           "section_properties", "real_number", "whole_number"]
+           "section_properties", "real_number", "whole_number", "has_complex"]
 
 
 def _is_real(value):
@@ -24,6 +24,24 @@ def _is_real(value):
     if isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "iuf":
         return True
     return isinstance(value, (int, float, np.integer, np.floating))
+
+
+def has_complex(value):
+    """True when `value` (a number or an array-like) holds a complex number, even with a zero
+    imaginary part: numpy would cast it to float with a warning only, dropping the
+    imaginary part."""
+    if isinstance(value, (complex, np.complexfloating)):
+        return True
+    try:
+        a = np.asarray(value)
+    except (TypeError, ValueError):
+        return False
+    if a.dtype.kind == "c":
+        return True
+    if a.dtype == object:
+        return any(isinstance(v, (complex, np.complexfloating)) or
+                   (isinstance(v, np.ndarray) and v.dtype.kind == "c") for v in a.ravel())
+    return False
 
 
 def real_number(name, value, *, positive=False, nonnegative=False):
@@ -113,6 +131,11 @@ class Material:
         return self.E / (2.0 * (1.0 + self.nu))
 
 
+#: Sizes (m) of a section whose second moment of area (size^4) and its products with a
+#: material's E or rho are normal doubles, roughly.
+SIZE_RANGE = (1e-70, 1e70)
+
+
 class Section:
     """A cross section; `properties(material)` gives EA, kGA, EI, rhoA, rhoI."""
 
@@ -123,17 +146,50 @@ class Section:
         """Return (A, I, k) and their derivatives d/dparam, arrays of shape (nparam,)."""
         raise NotImplementedError
 
+    def _values(self, nu):
+        """`area_inertia_shear`, or a ModelError naming the section when its sizes overflow
+        (1e308) or underflow (1e-300) double precision on the way."""
+        try:
+            with np.errstate(over="raise", divide="raise", invalid="raise"):
+                return self.area_inertia_shear(nu)
+        except (OverflowError, ZeroDivisionError, FloatingPointError):
+            raise ModelError(self._out_of_range()) from None
+
+    def _out_of_range(self, values=None):
+        shown = "" if values is None else (
+            ": [EA, kGA, EI, rhoA, rhoI] = [" + ", ".join(f"{v:.3g}" for v in values) + "]")
+        return (f"{self!r}: its sizes overflow or underflow double precision (area, second "
+                f"moment of area and their derivatives must be positive finite numbers{shown}); "
+                f"sizes must lie roughly between {SIZE_RANGE[0]:g} and {SIZE_RANGE[1]:g} m")
+
+    def _checked(self, values):
+        """`values` ([EA, kGA, EI, rhoA, rhoI], or their derivatives: 2-d) when finite, and
+        for the values themselves positive; else ModelError naming the section."""
+        values = np.asarray(values, float)
+        bad = not np.all(np.isfinite(values))
+        if values.ndim == 1:
+            bad = bad or bool(np.any(values <= 0.0))
+        if bad:
+            raise ModelError(self._out_of_range(values if values.ndim == 1 else None))
+        return values
+
     def properties(self, material: Material):
-        """Stiffness and inertia per unit length: array [EA, kGA, EI, rhoA, rhoI]."""
-        a, i, k, _, _, _ = self.area_inertia_shear(material.nu)
-        return np.array([material.E * a, k * material.G * a, material.E * i,
-                         material.rho * a, material.rho * i])
+        """Stiffness and inertia per unit length: array [EA, kGA, EI, rhoA, rhoI]; ModelError
+        when a size overflows or underflows (they must be positive and finite)."""
+        a, i, k, _, _, _ = self._values(material.nu)
+        with np.errstate(over="ignore", under="ignore"):
+            return self._checked([material.E * a, k * material.G * a, material.E * i,
+                                  material.rho * a, material.rho * i])
 
     def property_derivatives(self, material: Material):
-        """d[EA, kGA, EI, rhoA, rhoI]/d(param), shape (5, nparam)."""
-        a, i, k, da, di, dk = self.area_inertia_shear(material.nu)
+        """d[EA, kGA, EI, rhoA, rhoI]/d(param), shape (5, nparam); ModelError as
+        `properties` when the section's sizes overflow or underflow."""
+        self.properties(material)
+        a, i, k, da, di, dk = self._values(material.nu)
         E, G, rho = material.E, material.G, material.rho
-        return np.array([E * da, G * (dk * a + k * da), E * di, rho * da, rho * di])
+        with np.errstate(over="ignore", invalid="ignore", under="ignore"):
+            return self._checked(np.array([E * da, G * (dk * a + k * da), E * di, rho * da,
+                                           rho * di]))
 
 
 @dataclass(frozen=True)

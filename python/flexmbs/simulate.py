@@ -12,6 +12,7 @@ from flexmbs import _core
 from flexmbs.core import core_model_args, klu_analysis, system_matrices
 from flexmbs.errors import ModelError, ResourceError, SimulationError
 from flexmbs.model import Model
+from flexmbs.sections import has_complex
 from flexmbs.resources import (call_with_stack, check_memory, estimate_memory, format_bytes,
                                limit_source)
 from flexmbs.resources import memory_limit as _memory_limit
@@ -247,6 +248,9 @@ def _numeric_array(name, value, kind=float):
     """np.asarray(value, kind), or a ModelError naming the argument (strings, ragged lists)."""
     if isinstance(value, (str, bytes)) or np.asarray(value, dtype=object).dtype.kind not in "biufO":
         raise ModelError(f"{name} must be an array of numbers, got {value!r}")
+    if has_complex(value):
+        raise ModelError(f"{name} must be an array of real numbers, got complex values "
+                         f"(numpy dtype {np.asarray(value).dtype})")
     try:
         if kind is int and np.asarray(value).dtype.kind not in "iu":
             raise TypeError
@@ -331,6 +335,12 @@ def stored_dofs(model, store="all"):
 TAPE_PART = "tape of every (sub-)step (adjoint)"
 #: The part of a MemoryEstimate holding a checkpointed run's states (simulate(checkpoints=K)).
 CHECKPOINT_PART = "checkpoints of the full state (adjoint)"
+
+
+def _core_every(checkpoints, nsteps):
+    """The checkpoint interval given to the core (a C int): any interval beyond the run keeps
+    the initial state only, as nsteps + 1 does (a K of 10**20 overflowed the C int)."""
+    return int(min(checkpoints, int(nsteps) + 1)) if checkpoints else 0
 
 
 def checkpoint_rows(ndof, nc):
@@ -614,7 +624,7 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
             penalty=float(penalty or 0.0), out_dofs=(out + 1).astype(np.int32),
             nv=nv, dprop=dprop_f, sens_dofs=(sdofs + 1).astype(np.int32),
             want_dmu=int(want_dmu), ndmu=max(cm.nc, 1) if want_dmu else 1, polish=int(polish),
-            ntape=ncol, nckr=nckr, nck=nck, ckpt_every=int(checkpoints or 0), restart=0,
+            ntape=ncol, nckr=nckr, nck=nck, ckpt_every=_core_every(checkpoints, nsteps), restart=0,
             x_start=np.zeros(nckr), j_start=0, klu_analysis=klu_analysis(model, solver))
 
     try:

@@ -318,7 +318,8 @@ class Run:
     @property
     def name(self):
         """The job name: case, end time, other overrides, method and start, e.g.
-        ``case-t0.65-weakly-50-50-50-50``."""
+        ``case-t0.65-weakly-50-50-50-50`` (characters a job name may not hold, e.g. the space
+        of 'my case.toml', replaced: flexmbs.batch.job_name)."""
         ov = dict(self.overrides)
         t_end = ov.pop("time.t_end", None)
         case = Path(self.case).stem if self.case.endswith(".toml") else self.case
@@ -328,7 +329,8 @@ class Run:
         parts += [f"{k}{v}" for k, v in sorted(ov.items())]
         parts.append(self.method)
         parts.append("-".join(f"{v:g}" for v in self.start_mm))
-        return "-".join(parts)
+        from flexmbs.batch import job_name
+        return job_name("-".join(parts))
 
     def job(self):
         """Keyword arguments of `flexmbs.reproduce.optimization_job`."""
@@ -472,7 +474,7 @@ class Study:
 
     def published_data(self):
         """The published numbers (the JSON file `published`)."""
-        return json.loads(self.published.read_text(encoding="utf-8"))
+        return read_published(self.published)
 
     def figure_table(self, fig):
         """The table a figure belongs to."""
@@ -659,10 +661,42 @@ def _variant(n, k, v, t, case, names, source):
                    options=dict(v.options), multistart=ms, checks=tuple(v.checks))
 
 
+#: pydantic's tags of the members of a value's union (an option: a scalar, or a table of
+#: scalars such as frame_kind's or mma_options'), added to an error's location
+_MEMBER_TAGS = ("bool", "int", "float", "str")
+
+
+def _member_tag(part):
+    return isinstance(part, str) and (part in _MEMBER_TAGS or part.startswith("dict["))
+
+
+def _union_lines(errors, source_loc):
+    """One sentence per option value that fits no member of its union (pydantic gives one
+    error per member, 4 to 8 of them): the deepest key at fault, what it may be, the value."""
+    groups = {}
+    for e in errors:
+        loc = tuple(p for p in e["loc"] if not _member_tag(p))
+        g = groups.setdefault(loc, dict(input=e.get("input"), table=False))
+        last = e["loc"][-1] if e["loc"] else None        # a table is allowed at this key
+        g["table"] |= isinstance(last, str) and last.startswith("dict[")
+    out = []
+    for loc, g in groups.items():
+        if any(other != loc and other[:len(loc)] == loc for other in groups):
+            continue                 # a key inside this value is named instead
+        what = "a number, a string or true/false" + (", or a table of those (e.g. "
+                                                     "frame_kind = { follower = \"chord\" })"
+                                                     if g["table"] else "")
+        out.append(f"key '{source_loc(loc)}' must be {what}, got {g['input']!r}")
+    return out
+
+
 def _format_errors(exc, source):
-    from flexmbs.casefile import friendly_error
+    from flexmbs.casefile import _loc, friendly_error
+    errors = exc.errors()
+    union = [e for e in errors if any(_member_tag(p) for p in e["loc"])]
     lines = [friendly_error(e, StudyFile, "docs/study-format.md",
-                            tags=_CHECK_TAGS + _FIGURE_TAGS) for e in exc.errors()]
+                            tags=_CHECK_TAGS + _FIGURE_TAGS) for e in errors if e not in union]
+    lines += _union_lines(union, _loc)
     more = f" (and {len(lines) - 5} more)" if len(lines) > 5 else ""
     return f"{source}: " + "; ".join(lines[:5]) + more
 
@@ -671,19 +705,24 @@ def _format_errors(exc, source):
 def _load(path_text, text):
     path = Path(path_text)
     source = str(path)
+    from flexmbs.casefile import nesting_guard
     try:
-        raw = tomllib.loads(text)
+        with nesting_guard(source):
+            raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise CaseError(f"{source}: not valid TOML: {exc}") from None
     try:
-        f = StudyFile.model_validate(raw)
+        with nesting_guard(source):
+            f = StudyFile.model_validate(raw)
     except ValidationError as exc:
         raise CaseError(_format_errors(exc, source)) from None
     folder = path.parent
     _check_options(f.options, "options", source)
     pub = _published_file(f.study.published, folder, source)
     try:
-        published = json.loads(pub.read_text(encoding="utf-8"))
+        published = read_published(pub, f"{source}: key 'study.published': {pub}")
+    except CaseError:
+        raise
     except (OSError, ValueError) as exc:
         raise CaseError(f"{source}: key 'study.published': {pub} is not readable JSON: "
                         f"{exc}") from None
@@ -743,14 +782,26 @@ def _load(path_text, text):
                  figures=tuple(f.figures), demo=f.study.demo)
 
 
+def read_published(path, source=None):
+    """The JSON content of a study's published numbers; CaseError naming the file when it is
+    nested too deeply to read (json recurses per level)."""
+    from flexmbs.batch import check_regular_file
+    from flexmbs.casefile import nesting_guard
+    check_regular_file(path, source or "published numbers", CaseError)
+    with nesting_guard(source or path):
+        return json.loads(Path(path).read_text(encoding="utf-8-sig"))
+
+
 def load_study(study=None):
     """Read and validate a study: a path to a study file or the name of a shipped study
     (default: the paper's). Returns a `Study`; CaseError naming the file and the key."""
     if isinstance(study, Study):
         return study
     p = study_path(study).resolve()
+    from flexmbs.batch import check_regular_file
+    check_regular_file(p, "study file", CaseError)
     try:
-        text = p.read_text(encoding="utf-8")
+        text = p.read_text(encoding="utf-8-sig")     # a leading BOM is dropped
     except (OSError, UnicodeDecodeError) as exc:
         raise CaseError(f"{p}: cannot be read: {exc}") from None
     return _load(str(p), text)          # read again when the file changed

@@ -34,10 +34,12 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
-from flexmbs.cli import (add_case_arguments, design_from_text, figure_file, output_file,
-                         print_json, problem_from_args)
+from flexmbs.batch import check_dask
+from flexmbs.cli import (add_case_arguments, design_from_text, figure_file, nonnegative_int,
+                         output_file, path_text, print_json, problem_from_args)
 from flexmbs.errors import CaseError, ModelError
 from flexmbs.optimize.fully import OPTIMIZERS
 from flexmbs.optimize.library import preload
@@ -76,15 +78,17 @@ def register(subparsers):
                         "default: the case's")
     p.add_argument("--json", action="store_true",
                    help="print one JSON object (the result) instead of the progress and summary")
-    p.add_argument("--history", metavar="FILE",
-                   help="write one JSON line per cycle/iteration to FILE as the run goes")
+    p.add_argument("--history", type=path_text, metavar="FILE",
+                   help="write one JSON line per cycle/iteration to FILE as the run goes (a "
+                        "FILE holding an earlier run's history is refused without --resume; "
+                        "FILE is locked while the run writes it)")
     p.add_argument("--resume", action="store_true",
                    help="continue an interrupted run from its --history FILE (with --starts: "
                         "from its --store FOLDER): it follows the recorded path without "
                         "simulating and ends at the same optimum; a missing FILE starts afresh")
     p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                    help="show a progress bar on stderr (default: when stderr is a terminal)")
-    p.add_argument("--plot", metavar="FILE.png",
+    p.add_argument("--plot", type=path_text, metavar="FILE.png",
                    help="save the objective history and the final design's deviation history")
     p.add_argument("--verify-rtol", type=float, default=1e-3, metavar="R",
                    help="verify the final design at the step (h/2, h/4, ...) that resolves "
@@ -242,6 +246,11 @@ def run_optimize(args):
     history_path = args.history
     if history_path:
         history_path = output_file(history_path, "--history")
+        if not args.resume and os.path.isfile(history_path) and \
+                os.path.getsize(history_path) > 0:
+            raise CaseError(f"--history {history_path!r} holds the history of an earlier run "
+                            "and would be overwritten: add --resume to continue that run, or "
+                            "give another --history name (or delete the file)")
     if args.plot:
         args.plot = figure_file(args.plot, "--plot")
     writer = HistoryWriter(history_path, resume=args.resume and bool(history_path))
@@ -304,13 +313,13 @@ def add_fully_options(parser):
     m.add_argument("--candidates", type=int, default=None, metavar="M",
                    help="draw M >= N designs, simulate each once, and start from the N "
                         "feasible ones of lowest objective")
-    m.add_argument("--seed", type=int, default=0, metavar="S",
+    m.add_argument("--seed", type=nonnegative_int, default=0, metavar="S",
                    help="seed of the sampler (default 0: the same starts every run)")
     m.add_argument("--workers", type=int, default=None, metavar="N",
                    help="local worker processes for the starts (default: the number of cores)")
     m.add_argument("--dask", metavar="ADDRESS",
                    help="run the starts on a Dask scheduler (tcp://host:8786, or 'local')")
-    m.add_argument("--store", metavar="FOLDER",
+    m.add_argument("--store", type=path_text, metavar="FOLDER",
                    help="save each start's result as it finishes; a rerun skips those stored")
 
 
@@ -349,6 +358,7 @@ def _run_multistart(args, problem):
     if args.history.path is not None:
         raise CaseError("--history is written by one run; with --starts give --store FOLDER "
                         "(one result file per start)")
+    check_dask(args.dask, "--dask")
     if args.resume and args.store is None:
         raise CaseError("--resume with --starts continues from the --store FOLDER of the "
                         "interrupted run: give --store")

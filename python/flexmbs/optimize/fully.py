@@ -141,7 +141,14 @@ class ScaledProblem:
             raise ModelError("the case has no [[design]] variables: nothing to optimize")
         if problem.description.objective is None:
             raise ModelError("the case has no [objective]: nothing to minimize")
-        scale = problem.start if scale is None else problem.mechanism.design_values(scale)
+        if scale is not None:
+            try:
+                scale = problem.mechanism.design_values(scale)
+            except ModelError:
+                raise ModelError(f"scale must be {self.nv} positive finite numbers (the design "
+                                 f"scale, x = p / scale, in the variables' units), got "
+                                 f"{scale!r}") from None
+        scale = problem.start if scale is None else scale
         self.scale = np.asarray(scale, float)
         self.lower = problem.lower / self.scale
         self.upper = problem.upper / self.scale
@@ -428,7 +435,8 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
     scale : array, optional
         Design scale, x = p / scale; default the start.
     mma_options : dict, optional
-        Keyword arguments of `flexmbs.optimize.mma.MMA` and max_inner (default 20).
+        Keyword arguments of `flexmbs.optimize.mma.MMA` and max_inner (default 20); an
+        unknown key is a ModelError listing the allowed ones.
     trust_radius, max_trust_radius : float, default 0.2, 0.5
         'sqp': initial and largest relative trust-region radius.
     model_fidelity : float or None, default 0.1

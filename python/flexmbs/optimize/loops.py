@@ -487,5 +487,13 @@ def _mma_settings(mma_options):
     if mma_options is not None and not isinstance(mma_options, dict):
         raise ModelError(f"mma_options must be a dict or None, got {mma_options!r}")
     mma_kw = dict(mma_options or {})
+    import inspect
+    from flexmbs.optimize.mma import MMA
+    allowed = [name for name, par in inspect.signature(MMA.__init__).parameters.items()
+               if par.kind is inspect.Parameter.KEYWORD_ONLY] + ["max_inner"]
+    bad = [k for k in mma_kw if k not in allowed]
+    if bad:
+        raise ModelError(f"mma_options: unknown key(s) {', '.join(map(repr, bad))}; allowed: "
+                         f"{', '.join(allowed)}")
     max_inner = whole_number("mma_options max_inner", mma_kw.pop("max_inner", 20), 1)
     return mma_kw, max_inner

@@ -26,13 +26,39 @@ from pathlib import Path
 
 import numpy as np
 
-from flexmbs.errors import ModelError, SimulationError
+from flexmbs.batch import StoredResult
+from flexmbs.errors import ModelError, ResourceError, SimulationError
 from flexmbs.problem import load_problem
 
-__all__ = ["multistart", "start_designs", "MultistartResult", "SAMPLERS", "start_job"]
+__all__ = ["multistart", "start_designs", "sample_memory", "check_sample_memory", "MultistartResult", "SAMPLERS", "start_job"]
 
 #: quasi-random samplers of the starting designs
 SAMPLERS = ("sobol", "lhs")
+
+
+#: Bytes per drawn design beside its values (the screening's sort key and index, Python
+#: objects) and arrays of its values (the sampler's points, the scaled designs, temporaries).
+SAMPLE_OVERHEAD_BYTES = 250
+SAMPLE_ARRAYS = 4
+
+
+def sample_memory(count, nv):
+    """Bytes (rough upper bound) of `count` drawn designs of `nv` variables and their
+    screening (start_designs and multistart's candidates)."""
+    return float(count) * (SAMPLE_ARRAYS * 8.0 * nv + SAMPLE_OVERHEAD_BYTES)
+
+
+def check_sample_memory(count, nv, name="starts"):
+    """ResourceError naming `name` when `count` designs of `nv` variables (`sample_memory`) do
+    not fit in the memory limit (flexmbs.resources.memory_limit)."""
+    from flexmbs.resources import format_bytes, limit_source, memory_limit
+    need, avail = sample_memory(count, nv), memory_limit()
+    if need > avail:
+        option = {"starts": "--starts", "candidates": "--candidates"}.get(name, name)
+        raise ResourceError(f"{name} = {count} ({option} on the command line): {count} designs "
+                            f"of {nv} variables need about {format_bytes(need)}, more than "
+                            f"{limit_source()} ({format_bytes(avail)}); draw fewer",
+                            required=need, available=avail)
 
 
 def start_designs(lower, upper, starts, sampler="sobol", seed=0):
@@ -54,9 +80,13 @@ def start_designs(lower, upper, starts, sampler="sobol", seed=0):
         raise ModelError(f"starts must be a positive integer, got {starts!r}")
     if sampler not in SAMPLERS:
         raise ModelError(f"sampler must be one of {', '.join(SAMPLERS)}, got {sampler!r}")
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))
+                             or seed < 0):
+        raise ModelError(f"seed must be an integer >= 0 (or None), got {seed!r}")
     if lower.shape != upper.shape or np.any(~np.isfinite(lower)) or np.any(upper < lower):
         raise ModelError(f"start range: lower {lower.tolist()} and upper {upper.tolist()} must "
                          f"be finite, of the same length, with lower <= upper")
+    check_sample_memory(starts, lower.size)
     nv = lower.size
     if sampler == "sobol":
         eng = qmc.Sobol(d=nv, scramble=True, seed=seed)
@@ -71,6 +101,18 @@ def start_designs(lower, upper, starts, sampler="sobol", seed=0):
         ll, lu = np.log(lower[log]), np.log(upper[log])
         x[:, log] = np.exp(ll + u[:, log] * (lu - ll))
     return np.clip(x, lower, upper)
+
+
+class StartResult(StoredResult):
+    """A stored result of `start_job` (a start whose simulation failed has design None)."""
+    start: list[float]
+    design: list[float] | None
+    objective: float | None
+    max_violation: float | None
+    converged: bool
+    simulations: int
+    wall_time_s: float
+    reason: str | None = None
 
 
 def start_job(case, start, optimizer, options):
@@ -91,6 +133,9 @@ def start_job(case, start, optimizer, options):
                 converged=bool(res.converged), reason=res.reason,
                 simulations=int(res.simulations), wall_time_s=float(res.wall_time_s),
                 optimizer_share=float(res.details.get("optimizer_share", float("nan"))))
+
+
+start_job.result_schema = StartResult
 
 
 @dataclass
@@ -275,6 +320,8 @@ def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0
     from flexmbs.progress import check_progress, describe_start
 
     check_progress(progress)
+    from flexmbs.batch import check_dask
+    check_dask(dask)
     if not isinstance(resume, bool):
         raise ModelError(f"resume must be True or False, got {resume!r}")
     if resume and store is None:
@@ -302,6 +349,7 @@ def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0
         if isinstance(candidates, bool) or not isinstance(candidates, int) or candidates < starts:
             raise ModelError(f"candidates must be an integer >= starts ({starts}), got "
                              f"{candidates!r}")
+        check_sample_memory(candidates, lo.size, "candidates")
         cand = start_designs(lo, hi, candidates, sampler, seed)
         key = []
         for x in cand:

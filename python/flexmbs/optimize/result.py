@@ -69,6 +69,46 @@ def jsonable(obj):
     return obj
 
 
+def _locked(path):
+    """The file at `path` opened for reading and appending without truncating it (created
+    when missing), with an exclusive advisory lock (fcntl.flock) held until it is closed;
+    ModelError naming the file when another process holds it."""
+    import fcntl
+    fh = open(os.open(path, os.O_RDWR | os.O_CREAT, 0o666), "r+", encoding="utf-8")
+    try:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        fh.close()
+        raise ModelError(f"history {os.fspath(path)!r} is being written by another run (it is "
+                         "locked): wait for that run to end, or give another history "
+                         "file") from None
+    return fh
+
+
+def _whole_lines(fh):
+    """Keep only whole records at the end of a history opened by `_locked`: a last line cut
+    short (no newline, not JSON: an interrupted write) is cut off; a last line that is a
+    whole record without its newline gets one."""
+    fh.seek(0, os.SEEK_END)
+    size = fh.tell()
+    if not size:
+        return
+    raw = fh.buffer if hasattr(fh, "buffer") else fh
+    raw.seek(0)
+    data = raw.read()
+    if data.endswith(b"\n"):
+        return
+    cut = data.rfind(b"\n") + 1
+    try:
+        json.loads(data[cut:])
+    except ValueError:
+        fh.truncate(cut)
+        return
+    raw.seek(0, os.SEEK_END)
+    raw.write(b"\n")
+    raw.flush()
+
+
 class HistoryWriter:
     """Append one JSON object per line to a file, flushed at every record.
 
@@ -106,15 +146,24 @@ class HistoryWriter:
         self.previous = []
         self.fingerprint = None
         self.resume = bool(resume)
-        if resume and os.path.exists(self.path):
-            self.previous = read_history(self.path)
-            # keep only whole records: a line cut short is dropped before appending
-            from flexmbs.batch import atomic_open
-            with atomic_open(self.path) as fh:
-                for rec in self.previous:
-                    fh.write(json.dumps(rec) + "\n")
-            mode = "a"
-        self._fh = None if self.path is None else open(self.path, mode, encoding="utf-8")
+        self._fh = None
+        if self.path is None:
+            return
+        from flexmbs.batch import check_regular_file
+        existed = check_regular_file(self.path, "history")
+        # opened without truncating, then locked: a second run on the same file is refused
+        # before it can touch the first one's records
+        self._fh = _locked(self.path)
+        try:
+            if resume and existed:
+                self.previous = read_history(self.path)
+                _whole_lines(self._fh)
+            elif mode == "w":
+                self._fh.truncate(0)
+            self._fh.seek(0, os.SEEK_END)
+        except BaseException:
+            self.close()
+            raise
 
     def check_fingerprint(self, fp):
         """Set the fingerprint (flexmbs.fingerprint.fingerprint) of what this history answers:
@@ -196,8 +245,14 @@ def read_history(path):
     full disk) is skipped with a warning; an invalid line elsewhere raises ModelError naming
     the file and the line.
     """
-    with open(path, encoding="utf-8") as fh:
-        lines = fh.readlines()
+    from flexmbs.batch import check_regular_file
+    check_regular_file(path, "history")
+    try:
+        with open(path, encoding="utf-8") as fh:
+            lines = fh.readlines()
+    except UnicodeDecodeError as exc:
+        raise ModelError(f"history {os.fspath(path)!r} is not a history (JSON lines written "
+                         f"by flexmbs): not UTF-8 text at byte {exc.start}") from None
     out = []
     for k, line in enumerate(lines, 1):
         if not line.strip():
