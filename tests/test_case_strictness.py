@@ -2,7 +2,6 @@
 boolean where a number is expected, a relative drive's constant law, overflowing or empty
 inputs. Each is refused with an error naming the input, or done as the case says.
 """
-import copy
 import tomllib
 from pathlib import Path
 

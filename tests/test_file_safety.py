@@ -3,7 +3,6 @@ file to write, every path derived from a study stays in the output folder, and t
 file reaches the terminal with its control characters escaped.
 """
 import json
-import tomllib
 from pathlib import Path
 
 import pytest

@@ -15,7 +15,8 @@ import pytest
 
 from flexmbs.batch import run_batch
 from flexmbs.cli import main
-from flexmbs.fingerprint import differences, fingerprint, job_fingerprint
+from flexmbs.batch import job_fingerprint
+from flexmbs.fingerprint import differences, fingerprint
 from flexmbs.optimize.result import read_history
 from flexmbs.problem import Problem
 

@@ -306,7 +306,7 @@ def test_reproduce_report_from_stored_runs(optimized, tmp_path, capsys):
     run leaves it: each with its job's fingerprint) runs no optimization, prints every row
     beside the paper's and writes README.md, comparison.json and Fig. 5. The stored results
     are this session's, so the printed numbers are the ones test_table1 checked."""
-    from flexmbs.fingerprint import job_fingerprint
+    from flexmbs.batch import job_fingerprint
     store = tmp_path / "jobs" / "optimizations"
     store.mkdir(parents=True)
     runs = TABLES[1].runs()

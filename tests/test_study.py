@@ -260,7 +260,7 @@ def test_user_study_variant_rows_and_findings(tmp_path):
     variant's job (with the variant job's fingerprint), so nothing is optimized; against the
     paper's 0.962 kg it is within 0.3 % or lighter (-0.35 %), and feasible; against a
     published 0.95 kg it is not (+0.9 %)."""
-    from flexmbs.fingerprint import job_fingerprint
+    from flexmbs.batch import job_fingerprint
     from flexmbs.reproduce import optimization_job
     for mass, verdict in ((0.962, "yes"), (0.95, "**no**")):
         out = tmp_path / f"out{mass}"

@@ -432,23 +432,6 @@ class ConvergenceCheck:
                                           "verdict": r["verdict"]} for r in self.rows}}
 
 
-def _refined_mesh(problem):
-    """(Problem with twice the elements of every beam, None) or (None, why not)."""
-    from flexmbs.description import Beam
-    from flexmbs.problem import Problem
-
-    d = problem.description
-    elementwise = [v.name for v in d.design if v.elementwise]
-    if elementwise:
-        return None, (f"element-wise design variables ({', '.join(elementwise)}) are tied to "
-                      f"the elements")
-    beams = {b.name: b.elements for b in d.bodies if isinstance(b, Beam)}
-    if not beams:
-        return None, "the case has no beam"
-    over = {f"bodies.{n}.elements": 2 * e for n, e in beams.items()}
-    return Problem(d, overrides=over), None
-
-
 def convergence_check(problem, x=None, rtol=1e-2):
     """Each simulated response of `problem` at design x (default: its start) at the case's
     step h, its estimated time-discretisation error (h, h/2, h/4: `richardson`), and its change
@@ -458,7 +441,7 @@ def convergence_check(problem, x=None, rtol=1e-2):
     if not (isinstance(rtol, (int, float)) and not isinstance(rtol, bool) and 0 < rtol < 1):
         raise ModelError(f"convergence_check: rtol must be a number in (0, 1), got {rtol!r}")
     ev = problem.evaluate(x, gradient=False, error=True)
-    mesh, note = _refined_mesh(problem)
+    mesh, note = problem.refined_mesh()
     fine = None if mesh is None else mesh.evaluate(ev.x, gradient=False)
     rows = []
     for name, e in (ev.errors or {}).items():

@@ -55,10 +55,12 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict
 
 from flexmbs.errors import ModelError, ResourceError, SimulationError
+from flexmbs.files import check_regular_file, file_kind
 
 __all__ = ["run_batch", "sweep_jobs", "max_deviation_job", "local_cluster", "Progress",
            "atomic_open", "save_figure", "write_atomic", "read_stored", "check_writable",
            "check_disk_space", "check_dask", "check_regular_file", "check_store", "invalid_result",
+           "job_fingerprint",
            "result_schema", "StoredResult", "MaxDeviationResult", "job_name", "START_METHODS"]
 
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
@@ -160,32 +162,34 @@ def save_figure(fig, path, **savefig_kw):
     return path
 
 
-def _kind(mode):
-    """What a non-regular file is, in words."""
-    for test, name in ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
-                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
-                       (stat.S_ISSOCK, "a socket")):
-        if test(mode):
-            return name
-    return "not a regular file"
+#: descriptions' digests by (case file, its modification time and size, overrides)
+_DESCRIPTIONS = {}
 
 
-def check_regular_file(path, what, error=ModelError):
-    """Refuse, before opening it, a file that exists and is not a regular file: a FIFO (which
-    would block the read or the write), a device such as /dev/zero (read without end), a
-    folder. `error` (ModelError, or CaseError for case and study files) naming `what` (e.g.
-    "--history"), the path and its kind; True when the file exists, False when it does not."""
-    try:
-        mode = os.stat(path).st_mode
-    except FileNotFoundError:
-        return False
-    except OSError as exc:
-        raise error(f"{what} {os.fspath(path)!r} cannot be read: "
-                    f"{exc.strerror or exc}") from None
-    if not stat.S_ISREG(mode):
-        raise error(f"{what} {os.fspath(path)!r} is {_kind(mode)}, not a regular file; "
-                    "give the path of a file")
-    return True
+def job_fingerprint(func, kwargs):
+    """The fingerprint (flexmbs.fingerprint) of a batch job `func(**kwargs)` whose `case` (a
+    case name or path, or a Description or dict) and `overrides` give its description (read
+    and resolved here, once per case and overrides: the case file's content counts, not its
+    name); the other arguments are its options."""
+    from flexmbs.fingerprint import canonical, description_digest, fingerprint
+    from flexmbs.problem import _description
+    kwargs = dict(kwargs)
+    case, overrides = kwargs.pop("case", None), kwargs.pop("overrides", None)
+    if isinstance(case, (str, bytes)) or hasattr(case, "__fspath__"):
+        from flexmbs.casefile import case_path
+        path = case_path(case)
+        stamp = Path(path).stat()
+        key = (str(path), stamp.st_mtime_ns, stamp.st_size,
+               json.dumps(canonical(overrides or {}), sort_keys=True))
+        if key not in _DESCRIPTIONS:
+            _DESCRIPTIONS[key] = description_digest(_description(case, overrides or None))
+        digest = _DESCRIPTIONS[key]
+    else:
+        digest = description_digest(_description(case, overrides or None)
+                                    if case is not None else None)
+    fp = fingerprint(None, getattr(func, "__name__", str(func)), kwargs)
+    fp["description"] = digest
+    return fp
 
 
 def read_stored(path):
@@ -235,7 +239,7 @@ def check_store(store, what="store"):
     path = Path(store)
     if path.exists() and not path.is_dir():
         mode = path.stat().st_mode
-        kind = "a file" if stat.S_ISREG(mode) else _kind(mode)
+        kind = "a file" if stat.S_ISREG(mode) else file_kind(mode)
         raise ModelError(f"{what} {os.fspath(store)!r} is {kind}, not a folder: give a folder "
                          "for the results (one file per job)")
     try:
@@ -510,7 +514,6 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
     if schema is result_schema:
         schema = result_schema(func)
     if fingerprints is True:
-        from flexmbs.fingerprint import job_fingerprint
         fingerprints = {name: job_fingerprint(func, kw) for name, kw in jobs.items()}
     if store is not None:
         check_store(store)

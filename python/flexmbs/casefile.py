@@ -157,7 +157,7 @@ def read_description(path, overrides=None):
     """Read and validate a case file (a path, or the name of a shipped case, `case_path`);
     `overrides` as in `description_from_dict`."""
     p = case_path(path)
-    from flexmbs.batch import check_regular_file
+    from flexmbs.files import check_regular_file
     check_regular_file(p, "case file", CaseError)
     try:
         text = p.read_text(encoding="utf-8-sig")     # a leading BOM is dropped

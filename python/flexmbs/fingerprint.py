@@ -20,7 +20,7 @@ from __future__ import annotations
 import hashlib
 import json
 
-__all__ = ["fingerprint", "description_digest", "differences", "job_fingerprint", "run_options"]
+__all__ = ["fingerprint", "description_digest", "differences", "run_options", "canonical"]
 
 #: arguments of an optimizer that do not change its answer (where it is written, how it is
 #: shown, whether it resumes), that only say how far it goes (a resumed run may go further:
@@ -29,10 +29,10 @@ NOT_OPTIONS = ("problem", "history", "progress", "resume", "max_iterations", "ma
                "max_cycles")
 
 
-def _canonical(obj):
+def canonical(obj):
     """obj as plain JSON data (what a JSON round trip gives back: tuples -> lists, numpy ->
     numbers; anything else as its str)."""
-    from flexmbs.optimize.result import jsonable
+    from flexmbs.files import jsonable
     return json.loads(json.dumps(jsonable(obj), sort_keys=True, default=str))
 
 
@@ -48,7 +48,7 @@ def description_digest(description):
         data = description
     else:
         return {"object": type(description).__qualname__}
-    data = _canonical(data)
+    data = canonical(data)
     return {k: hashlib.sha256(json.dumps(v, sort_keys=True).encode()).hexdigest()[:16]
             for k, v in sorted(data.items())}
 
@@ -62,37 +62,8 @@ def fingerprint(description, method, options=None):
     """The fingerprint (module docstring) of `method` run with `options` on `description`."""
     from flexmbs import __version__
     return {"flexmbs": __version__, "method": str(method),
-            "options": _canonical(dict(options or {})),
+            "options": canonical(dict(options or {})),
             "description": description_digest(description)}
-
-
-_DESCRIPTIONS = {}
-
-
-def job_fingerprint(func, kwargs):
-    """The fingerprint of a batch job `func(**kwargs)` whose `case` (a case name or path, or
-    a Description or dict) and `overrides` give its description (read and resolved here, once
-    per case and overrides: the case file's content counts, not its name); the other
-    arguments are its options."""
-    from flexmbs.problem import _description
-    kwargs = dict(kwargs)
-    case, overrides = kwargs.pop("case", None), kwargs.pop("overrides", None)
-    if isinstance(case, (str, bytes)) or hasattr(case, "__fspath__"):
-        from pathlib import Path
-        from flexmbs.casefile import case_path
-        path = case_path(case)
-        stamp = Path(path).stat()
-        key = (str(path), stamp.st_mtime_ns, stamp.st_size,
-               json.dumps(_canonical(overrides or {}), sort_keys=True))
-        if key not in _DESCRIPTIONS:
-            _DESCRIPTIONS[key] = description_digest(_description(case, overrides or None))
-        digest = _DESCRIPTIONS[key]
-    else:
-        digest = description_digest(_description(case, overrides or None)
-                                    if case is not None else None)
-    fp = fingerprint(None, getattr(func, "__name__", str(func)), kwargs)
-    fp["description"] = digest
-    return fp
 
 
 def differences(stored, current):

@@ -26,7 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from flexmbs.casefile import description_from_dict, read_description
-from flexmbs.description import GROUND, Deviation, Description, Mass, Reaction, Stress, Torque
+from flexmbs.description import (GROUND, Beam, Deviation, Description, Mass, Reaction, Stress,
+                                 Torque)
 from flexmbs.errors import CaseError, ModelError, ResourceError
 from flexmbs.mechanism import Mechanism
 from flexmbs.responses.aggregate import aggregate, aggregate_weights
@@ -227,6 +228,22 @@ class Problem:
                 gradient_method=self.default_gradient_method,
                 checkpoints=self.adjoint_checkpoints)
         return self._refined[factor]
+
+    def refined_mesh(self):
+        """(the same problem with twice the elements of every beam, None), or (None, why
+        not): element-wise design variables are tied to the elements (flexmbs.accuracy's
+        convergence check)."""
+        d = self.description
+        elementwise = [v.name for v in d.design if v.elementwise]
+        if elementwise:
+            return None, (f"element-wise design variables ({', '.join(elementwise)}) are "
+                          f"tied to the elements")
+        beams = {b.name: b.elements for b in d.bodies if isinstance(b, Beam)}
+        if not beams:
+            return None, "the case has no beam"
+        return Problem(d, overrides={f"bodies.{n}.elements": 2 * e for n, e in beams.items()},
+                       gradient_method=self.default_gradient_method,
+                       checkpoints=self.adjoint_checkpoints), None
 
     # ------------------------------------------------------------------ design space
     @property

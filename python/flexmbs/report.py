@@ -584,7 +584,7 @@ def _map_axes(m, g):
 
 def write_report(report):
     """Write ``README.md`` and ``comparison.json`` into report.out; return the README path."""
-    from flexmbs.optimize.result import jsonable
+    from flexmbs.files import jsonable
     out = Path(report.out)
     from flexmbs.batch import write_atomic
     write_atomic(out / "README.md", markdown(report))

@@ -1096,8 +1096,7 @@ def _run_variants(variants, vstore, report, workers, address, progress, say):
     """The variants' jobs, stored under ``jobs/variants/``: the single runs in one batch, then
     each multi-start in turn (its starts a batch of their own, each start stored in
     ``jobs/variants/NAME/``). Returns {name: result}; failures go to report.failures."""
-    from flexmbs.batch import read_stored, run_batch, write_atomic
-    from flexmbs.fingerprint import job_fingerprint
+    from flexmbs.batch import job_fingerprint, run_batch, write_atomic
     fps = {v.name: job_fingerprint(optimization_job if v.multistart is None else multistart_job,
                                    v.job()) for v in variants}
     report.settings["stored_variants"] = [v.name for v in variants
@@ -1136,7 +1135,7 @@ def _run_variants(variants, vstore, report, workers, address, progress, say):
             report.failures[v.name] = f"{type(exc).__name__}: {exc}"
             say(f"variant {v.name} failed: {type(exc).__name__}: {exc}")
             continue
-        from flexmbs.optimize.result import jsonable
+        from flexmbs.files import jsonable
         res = dict(res, fingerprint=fps[v.name])
         vstore.mkdir(parents=True, exist_ok=True)
         write_atomic(f, json.dumps(jsonable(res)))
@@ -1253,7 +1252,7 @@ def reproduce(tables=None, out="reproduction", *, workers=None, dask=None, grid=
             f"({executor}); results in {store}")
         t0 = time.perf_counter()
         jobs = {r.name: r.job() for r in runs}
-        from flexmbs.fingerprint import job_fingerprint
+        from flexmbs.batch import job_fingerprint
         fps = {n: job_fingerprint(optimization_job, kw) for n, kw in jobs.items()}
         report.settings["stored_runs"] = [n for n in jobs
                                           if _stored(store / f"{n}.json", fps[n],

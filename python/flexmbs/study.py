@@ -785,7 +785,7 @@ def _load(path_text, text):
 def read_published(path, source=None):
     """The JSON content of a study's published numbers; CaseError naming the file when it is
     nested too deeply to read (json recurses per level)."""
-    from flexmbs.batch import check_regular_file
+    from flexmbs.files import check_regular_file
     from flexmbs.casefile import nesting_guard
     check_regular_file(path, source or "published numbers", CaseError)
     with nesting_guard(source or path):
@@ -798,7 +798,7 @@ def load_study(study=None):
     if isinstance(study, Study):
         return study
     p = study_path(study).resolve()
-    from flexmbs.batch import check_regular_file
+    from flexmbs.files import check_regular_file
     check_regular_file(p, "study file", CaseError)
     try:
         text = p.read_text(encoding="utf-8-sig")     # a leading BOM is dropped

@@ -186,7 +186,7 @@ class MultistartResult:
         return (min(f), max(f)) if f else None
 
     def to_dict(self, history=True):
-        from flexmbs.optimize.result import jsonable
+        from flexmbs.files import jsonable
         d = dict(method="fully", multistart=True, case=self.case, variables=self.variables,
                  units=self.units, optimizer=self.optimizer, sampler=self.sampler,
                  starts=len(self.optima), best=self.best, optima=self.optima,

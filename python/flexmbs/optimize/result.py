@@ -37,7 +37,6 @@ differs, or from a file without one, is refused (ModelError naming what differs)
 from __future__ import annotations
 
 import json
-import math
 import os
 import warnings
 from dataclasses import dataclass, field
@@ -45,28 +44,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from flexmbs.errors import ModelError
+from flexmbs.files import check_regular_file, jsonable
 
 __all__ = ["OptimizationResult", "HistoryWriter", "read_history", "jsonable", "open_history"]
-
-
-def jsonable(obj):
-    """A copy of obj made of JSON types (numpy arrays/scalars -> lists/floats, NaN -> None)."""
-    if isinstance(obj, dict):
-        return {str(k): jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        if obj.dtype.kind in "iub" or (obj.dtype.kind == "f" and np.all(np.isfinite(obj))):
-            return obj.tolist()                 # plain ints / bools / finite floats: fast
-        return jsonable(obj.tolist())
-    if isinstance(obj, (np.bool_, bool)):
-        return bool(obj)
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        v = float(obj)
-        return v if math.isfinite(v) else None
-    return obj
 
 
 def _locked(path):
@@ -149,7 +129,6 @@ class HistoryWriter:
         self._fh = None
         if self.path is None:
             return
-        from flexmbs.batch import check_regular_file
         existed = check_regular_file(self.path, "history")
         # opened without truncating, then locked: a second run on the same file is refused
         # before it can touch the first one's records
@@ -245,7 +224,6 @@ def read_history(path):
     full disk) is skipped with a warning; an invalid line elsewhere raises ModelError naming
     the file and the line.
     """
-    from flexmbs.batch import check_regular_file
     check_regular_file(path, "history")
     try:
         with open(path, encoding="utf-8") as fh:
