@@ -196,7 +196,8 @@ def job_fingerprint(func, kwargs):
 
 def read_stored(path):
     """The JSON content of a stored result file, or None when it is missing or unreadable
-    (truncated, not JSON, not a regular file): such a file does not count as a result."""
+    (truncated, not JSON, nested too deeply for Python's json, not a regular file): such a
+    file does not count as a result."""
     try:
         if not check_regular_file(path, "stored result"):
             return None
@@ -206,7 +207,7 @@ def read_stored(path):
         return json.loads(Path(path).read_text(encoding="utf-8"))
     except FileNotFoundError:
         return None
-    except (ValueError, UnicodeDecodeError):     # JSONDecodeError is a ValueError
+    except (ValueError, UnicodeDecodeError, RecursionError):    # JSONDecodeError: a ValueError
         return None
 
 
