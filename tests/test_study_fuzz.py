@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import copy
 import json
-import math
 import tomllib
 import warnings
 from pathlib import Path
@@ -28,6 +27,7 @@ from flexmbs.batch import StoredResult, invalid_result, read_stored, run_batch
 from flexmbs.errors import CaseError
 from flexmbs.study import Study, load_study
 from test_casefile_fuzz import ODD_VALUES, mutate
+from test_casefile_fuzz import _value as scalar_value
 
 STUDY = Path(__file__).resolve().parents[1] / "cases" / "studies" / "paper.toml"
 
@@ -40,23 +40,16 @@ class Deep:
 
 
 def _value(v):
+    """TOML text of a value; strings and keys quoted as JSON (newlines, any key)."""
     if isinstance(v, Deep):
         return "[" * v.depth + "]" * v.depth
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if math.isnan(v):
-            return "nan"
-        return ("inf" if v > 0 else "-inf") if math.isinf(v) else repr(v)
     if isinstance(v, str):
         return json.dumps(v, ensure_ascii=False)     # JSON's escapes are TOML's
     if isinstance(v, list):
         return "[" + ", ".join(_value(x) for x in v) + "]"
     if isinstance(v, dict):
         return "{" + ", ".join(f"{json.dumps(k)} = {_value(x)}" for k, x in v.items()) + "}"
-    raise TypeError(type(v))
+    return scalar_value(v)          # booleans and numbers (nan, inf)
 
 
 def to_toml(data):
