@@ -13,7 +13,9 @@ A local worker process that dies in the middle of a batch (killed by the kernel 
 memory, or by a user) breaks the process pool: the jobs that were running or waiting are run
 again on a new pool, up to `retries` times (default 2), and the results already finished are
 kept. Ctrl-C stops the workers (they ignore SIGINT; the main process ends them) and raises
-KeyboardInterrupt in the caller, with every finished job stored.
+KeyboardInterrupt in the caller, with every finished job stored. A local worker whose caller
+dies without ending it (killed with SIGKILL) exits by itself within about a second
+(`_watch_parent`).
 
 Executors:
 - ``workers=1``: in this process (serial);
@@ -194,7 +196,8 @@ def job_fingerprint(func, kwargs):
 
 def read_stored(path):
     """The JSON content of a stored result file, or None when it is missing or unreadable
-    (truncated, not JSON, not a regular file): such a file does not count as a result."""
+    (truncated, not JSON, nested too deeply for Python's json, not a regular file): such a
+    file does not count as a result."""
     try:
         if not check_regular_file(path, "stored result"):
             return None
@@ -204,7 +207,7 @@ def read_stored(path):
         return json.loads(Path(path).read_text(encoding="utf-8"))
     except FileNotFoundError:
         return None
-    except (ValueError, UnicodeDecodeError):     # JSONDecodeError is a ValueError
+    except (ValueError, UnicodeDecodeError, RecursionError):    # JSONDecodeError: a ValueError
         return None
 
 
@@ -355,9 +358,58 @@ def _call(func, kwargs):
 
 
 def _ignore_sigint():
-    """Worker initializer: Ctrl-C (sent to the whole process group) is handled by the main
-    process, which ends the workers; they must not print tracebacks of their own."""
+    """Ctrl-C (sent to the whole process group) is handled by the main process, which ends the
+    workers; they must not print tracebacks of their own."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+#: How often (seconds) a local worker checks that the process that started the batch lives.
+PARENT_POLL_S = 1.0
+
+
+def _alive(pid):
+    """Whether process `pid` exists and is not a zombie (killed, not yet reaped)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as fh:
+            return fh.read().rsplit(b")", 1)[1].split()[0] != b"Z"
+    except (OSError, IndexError):
+        return True
+
+
+def _watch_parent(caller):
+    """End this worker (os._exit) when the process that started the batch (`caller`) dies, e.g.
+    killed with SIGKILL, which gives it no chance to end its workers: on Linux at once by the
+    kernel (prctl PR_SET_PDEATHSIG: SIGTERM when the worker's parent dies -- the caller with
+    'spawn', the fork server, which exits with the caller, with 'forkserver'); everywhere by a
+    daemon thread that checks every PARENT_POLL_S seconds that the caller lives and that the
+    worker's parent is still the one it started with."""
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(Exception):
+            import ctypes
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)     # 1 = PR_SET_PDEATHSIG
+    parent = os.getppid()
+
+    def watch():
+        while os.getppid() == parent and _alive(caller):
+            time.sleep(PARENT_POLL_S)
+        os._exit(1)
+
+    # the parent may have died before prctl: the thread's first check sees it
+    threading.Thread(target=watch, name="flexmbs-parent-watch", daemon=True).start()
+
+
+def _init_worker(caller):
+    """Worker initializer: ignore Ctrl-C (`_ignore_sigint`) and exit when the caller, the
+    process that started the batch (pid `caller`), dies (`_watch_parent`)."""
+    _ignore_sigint()
+    _watch_parent(caller)
 
 
 #: How local worker processes start (run_batch's `start_method`).
@@ -393,7 +445,7 @@ def _run_pool(func, todo, workers, finish, start_method="spawn"):
     broke) and so have no result."""
     broken = []
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=_context(start_method, func),
-                               initializer=_ignore_sigint)
+                               initializer=_init_worker, initargs=(os.getpid(),))
     try:
         futs = {pool.submit(_call, func, kw): name for name, kw in todo.items()}
         for fut in as_completed(futs):
