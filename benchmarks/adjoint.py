@@ -1,4 +1,4 @@
-"""Cost of a gradient by the discrete adjoint against direct differentiation (issue 18).
+"""Cost of a gradient by the discrete adjoint against direct differentiation.
 
 The robot of the paper (cases/robot_2dof.toml: 0.65 s, h = 5e-4, static start, the case's
 automatic Newton), one functional (a weighted sum over the history, what the adjoint sees of

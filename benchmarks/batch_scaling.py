@@ -1,4 +1,4 @@
-"""Many designs (issue 16): one batch of designs serially, on 2 local worker processes and on Dask.
+"""Many designs: one batch of designs serially, on 2 local worker processes and on Dask.
 
 The batch: 64 designs of the robot (cases/robot_2dof.toml, 1300 steps) with 128 elements per
 arm (about 0.45 s each on one core), each `flexmbs.batch.max_deviation_job` (one simulation
@@ -15,7 +15,7 @@ without gradients: the mass and the largest constrained deviation), run through
    apart: a cluster is started once for many batches).
 
 Printed per run: the wall time (what the user waits for) and its ratio to the serial run (the
-issue asks >= 1.8 on 2 cores), then where the time goes:
+target is >= 1.8 on 2 cores), then where the time goes:
 - start-up: from the call of run_batch to each worker's first job (process start, imports,
   receiving the job), mean over the workers; first build: the Problem built by each worker's
   first job (model, rigid reference; the first time also imports what only a build needs);
@@ -33,7 +33,7 @@ issue asks >= 1.8 on 2 cores), then where the time goes:
 Every run's deviations are compared with the serial ones (max |dev - serial|, 0 expected).
 
 The machine's speed drifts by up to +-30 % over minutes (VM neighbours): one serial run
-against one parallel run minutes later measured 1.52 to 2.42 (session 7), the steady job's
+against one parallel run minutes later measured 1.52 to 2.42 (2-core reference machine), the steady job's
 CPU time moving 0.39 <-> 0.50 s between the runs. ``--rounds R`` therefore also alternates
 R serial and R default parallel (spawn) runs, each round's speed-up against the serial run
 just before it, and the ratio of the summed wall times (what drift does not bias).

@@ -1,8 +1,8 @@
-"""Shared pieces of the benchmarks: timing, tables, plots, and the robot of CASES.md.
+"""Shared pieces of the benchmarks: timing, tables, plots, and the robot of docs/paper-cases.md.
 
-The robot (paper section 6, fixed in ../shared/CASES.md) is built twice, the same way:
+The robot (paper section 6, fixed in docs/paper-cases.md) is built twice, the same way:
 
-- in flexmbs (`robot_flexmbs`), exactly as /tmp/notes/robot_example.py and the robot case do,
+- in flexmbs (`robot_flexmbs`), exactly as the robot case cases/robot_2dof.toml does,
   with any number of quadratic 3-node elements per arm;
 - in Exudyn (`ExudynRobot`), with ObjectBeamGeometricallyExact2D in its 3-node (quadratic)
   form, NodeRigidBody2D nodes, the same section numbers (taken from flexmbs.Tube so that EA,
@@ -184,7 +184,7 @@ def section_properties(p=0.05):
 
 
 def robot_flexmbs(elements_per_arm=2, p=0.05, stiffness_factor=1.0, drive_laws=None):
-    """The robot of CASES.md in flexmbs: (model, arm1 Body, arm2 Body).
+    """The robot of docs/paper-cases.md in flexmbs: (model, arm1 Body, arm2 Body).
 
     Quadratic elements, pin + absolute drive at O, hinge + absolute drive of arm 2's root at A,
     2 kg at A, 1 kg at the tip, gravity -y. `stiffness_factor` scales E (robustness tests);
@@ -263,7 +263,7 @@ class ExudynFailed(RuntimeError):
 
 
 class ExudynRobot:
-    """The robot of CASES.md in Exudyn; one instance per simulation (Exudyn keeps state).
+    """The robot of docs/paper-cases.md in Exudyn; one instance per simulation (Exudyn keeps state).
 
     Parameters
     ----------

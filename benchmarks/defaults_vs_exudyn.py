@@ -1,6 +1,6 @@
-"""flexmbs with its default settings against Exudyn, side by side in one process (issue 16).
+"""flexmbs with its default settings against Exudyn, side by side in one process.
 
-A reduced form of work_precision.py: the robot of CASES.md (p = 50 mm, static start, 0.65 s) in
+A reduced form of work_precision.py: the robot of docs/paper-cases.md (p = 50 mm, static start, 0.65 s) in
 both codes (common.py), at each mesh and step asked; flexmbs runs `flexmbs.simulate` with its
 defaults (solver 'auto', newton 'auto', as `flexmbs simulate` does) and, beside it, full Newton
 and 'reuse' (KLU); Exudyn runs its sparse (EigenSparse) solver with full and modified Newton

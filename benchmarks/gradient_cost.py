@@ -1,5 +1,5 @@
 """Cost of a gradient against the number of variables: finite differences, direct
-differentiation and the discrete adjoint, through `Problem.evaluate` (issue 18's table).
+differentiation and the discrete adjoint, through `Problem.evaluate` (the table of docs/adjoint.md).
 
 Rows:
 

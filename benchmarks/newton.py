@@ -1,4 +1,4 @@
-"""Newton strategies side by side (issue 16): full / reuse / auto, simulation and simulation with
+"""Newton strategies side by side: full / reuse / auto, simulation and simulation with
 direct design sensitivities, on the paper's robot (cases/robot_2dof.toml: 2 elements per
 arm, 1300 steps, 4 design variables) and the same robot with 32 and 128 elements per arm (a dict
 override of `elements`).
@@ -6,7 +6,7 @@ override of `elements`).
 For each size and strategy: process CPU time of Problem.simulate (the whole call, and the
 Fortran core alone: flexmbs.simulate's `_core` wrapped by a timer, as in where_time_goes.py),
 minimum over interleaved repeats (the six runs of a size alternate, so that a change of the
-machine's load hits them alike); the ratios sensitivities / simulation (issue 16 asks <= 1.5 in
+machine's load hits them alike); the ratios sensitivities / simulation (target <= 1.5 in
 every mode) and time / full Newton's; Newton iterations and factorizations (of which, made for
 the derivative solves); and the largest difference of the coordinates from full Newton's.
 

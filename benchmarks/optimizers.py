@@ -3,12 +3,12 @@
     .venv/bin/python benchmarks/optimizers.py                       # robot_2dof and fourbar
     .venv/bin/python benchmarks/optimizers.py --cases fourbar --optimizers nlopt-ccsaq,mma
     .venv/bin/python benchmarks/optimizers.py --starts 8            # + a multi-start row each
-    .venv/bin/python benchmarks/optimizers.py --cases issue17        # Tables 1,2,5,6,7 + examples
+    .venv/bin/python benchmarks/optimizers.py --cases comparison     # Tables 1,2,5,6,7 + examples
 
 A run is a case name, optionally with overrides and a start (mm, one value per variable or
-one for all): ``robot_2dof:time.t_end=0.66@55,45,35,25``. ``--cases issue17`` is the set the
-issue asks for: the robot's Tables 1, 2, 5, 6 and 7 (the four starts of 6 and 7) and the three
-new examples (slider_crank_press, three_arm_robot, fourbar_tubes).
+one for all): ``robot_2dof:time.t_end=0.66@55,45,35,25``. ``--cases comparison`` is the set
+docs/optimizers.md reports: the robot's Tables 1, 2, 5, 6 and 7 (the four starts of 6 and 7) and
+three mechanisms beyond the paper (slider_crank_press, three_arm_robot, fourbar_tubes).
 
 For each case (cases/NAME.toml, from the case's start) and optimizer
 (flexmbs.optimize.fully.OPTIMIZERS): wall time, simulations, final objective (mass),
@@ -47,8 +47,8 @@ def _commit():
         return "unknown"
 
 
-#: The runs of issue 17's comparison: label -> run spec (see the module's docstring).
-ISSUE17 = {
+#: The runs of the comparison of docs/optimizers.md: label -> run spec (see the module's docstring).
+COMPARISON = {
     "T1": "robot_2dof:time.t_end=0.65",
     "T2": "robot_2dof_tracking:time.t_end=0.65",
     "T5": "robot_2dof:time.t_end=0.66",
@@ -128,7 +128,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", default="robot_2dof,fourbar",
                     help="comma-separated run specs (case[:k=v][@start]; ';'-separated when a "
-                         "start is given), or 'issue17' (default robot_2dof,fourbar)")
+                         "start is given), or 'comparison' (default robot_2dof,fourbar)")
     ap.add_argument("--optimizers", default=",".join(OPTIMIZERS))
     ap.add_argument("--max-simulations", type=int, default=300)
     ap.add_argument("--starts", type=int, default=0,
@@ -136,8 +136,8 @@ def main(argv=None):
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", default=str(HERE / "results"))
     args = ap.parse_args(argv)
-    if args.cases == "issue17":
-        cases = dict(ISSUE17)
+    if args.cases == "comparison":
+        cases = dict(COMPARISON)
     else:
         cases = {c: c for c in args.cases.split(";" if "@" in args.cases else ",") if c}
     opts = [o for o in args.optimizers.split(",") if o]

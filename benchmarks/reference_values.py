@@ -3,7 +3,7 @@
     .venv/bin/python -m pip install exudyn        # the `bench` extra; 1.13.6 when recorded
     .venv/bin/python benchmarks/reference_values.py
 
-prints, for the robot of ../shared/CASES.md built in Exudyn by `common.ExudynRobot` (p = 50 mm,
+prints, for the robot of docs/paper-cases.md built in Exudyn by `common.ExudynRobot` (p = 50 mm,
 2 quadratic ObjectBeamGeometricallyExact2D elements per arm, absolute drives, static start,
 generalized-alpha, fixed steps, Newton relative tolerance 1e-8), the peak of deviation (30)
 of the tip over 0.64 s at h = 6.25e-5 s for every rho_inf of
@@ -41,7 +41,7 @@ def main():
     if not ok:
         print(f"Exudyn is not available ({version}): pip install exudyn", file=sys.stderr)
         return 1
-    print(f"Exudyn {version}, {datetime.date.today().isoformat()}; robot of CASES.md at "
+    print(f"Exudyn {version}, {datetime.date.today().isoformat()}; robot of docs/paper-cases.md at "
           f"p = 50 mm, 2 quadratic elements per arm, t_end = {T_END} s")
     print("rho_inf   peak dev (30) at h = 6.25e-5 s (mm)   at h/2 (mm)   est. time error (mm)")
     for rho in RHO_INFS:

@@ -15,7 +15,7 @@ cancel. N2 is chosen from a trial run so that the difference takes about a secon
 Dense runs stop above DENSE_MAX_N unknowns (a dense factorization of 3000 unknowns already
 takes ~1 s on one core, and memory grows as n^2).
 
-The KLU sweep (`klu_sweep`, issue 16 "Scaling") goes on to ~10^5 unknowns (16 000 elements,
+The KLU sweep (`klu_sweep`) goes on to ~10^5 unknowns (16 000 elements,
 96 006 unknowns) with the default settings (KLU, newton='auto'): time per step, time per step
 and unknown, and memory beside it: the process's peak resident memory (getrusage ru_maxrss),
 its growth during the simulations and flexmbs's own estimate (flexmbs.simulate.memory_estimate).

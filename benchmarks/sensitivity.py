@@ -1,4 +1,4 @@
-"""Cost of design sensitivities for the robot (issue 5).
+"""Cost of design sensitivities for the robot.
 
 Prints, measured side by side in one run: the wall time of a plain simulation, of a
 simulation with direct sensitivities for the 4 design variables, and of forward finite

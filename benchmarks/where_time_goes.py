@@ -1,6 +1,6 @@
 """Where the time of a flexmbs simulation goes, against a lower bound.
 
-For the robot of CASES.md (p = 50 mm, h = 5e-4 s, 0.65 s = 1300 steps, static start) with
+For the robot of docs/paper-cases.md (p = 50 mm, h = 5e-4 s, 0.65 s = 1300 steps, static start) with
 2, 8, 32, 128 quadratic elements per arm, in four configurations (dense LAPACK LU or KLU, full
 Newton or reuse_jacobian=True):
 

@@ -1,4 +1,4 @@
-"""Work-precision of flexmbs against Exudyn on the robot of CASES.md (p = 50 mm, deviation (30)).
+"""Work-precision of flexmbs against Exudyn on the robot of docs/paper-cases.md (p = 50 mm, deviation (30)).
 
 Both codes run the same model (see common.py): quadratic 3-node geometrically exact beams,
 2, 8, 32, 128 elements per arm, static start, generalized-alpha with rho_inf = 0.5, steps
@@ -332,7 +332,7 @@ def report(out, log=print):
                            "front (log-log interpolation; '-' = flexmbs never that accurate)"))
     log(format_table(["el/arm", "min ratio", "geo-mean ratio", "max ratio"],
                      [[k, v["min"], v["geomean"], v["max"]] for k, v in summary.items()],
-                     title="\nSummary of ex/fx time ratios at equal error (issue 16's goal: >= 10 "
+                     title="\nSummary of ex/fx time ratios at equal error (target: >= 10 "
                            "everywhere; 'N default': flexmbs with simulate's defaults alone)"))
     out["ratio_summary"] = summary
 

@@ -120,8 +120,8 @@ module generalized_alpha
         !! with 0.47 factorizations per step (610 on the robot's 1300 steps) and 2.66 solves
         !! (unpolished: 0.35 and 2.51). With 'reuse' the run takes 'auto''s refresh rules
         !! (its held matrices, at contraction rates up to reuse_rate, left the gradient 2e-8
-        !! off; its full Newton steps from each step's second iteration, as polish took for
-        !! both until session 6, accepted a first held increment below tol: 5e-6)
+        !! off; full Newton steps from each step's second iteration instead, with a first held
+        !! increment below tol accepted, left it 5e-6 off)
         logical :: polish = .false.
         !> KLU's symbolic analysis of the pattern, made once per model (klu_shim.c
         !! fx_klu_analyze, owned by Python: flexmbs.core.KluAnalysis); null: each run
@@ -762,7 +762,7 @@ contains
         !! next step's first iteration too. A step that converged in its first, modified,
         !! iteration: S assembled and factored here, and kept for the next step.
         !! Iterative refinement of the solve with an older factorization was measured
-        !! slower than one factorization (issue 16, robot with 2 and 32 elements per arm:
+        !! slower than one factorization (robot with 2 and 32 elements per arm:
         !! each sweep costs a product with S and a solve, each about a triangular solve,
         !! and the derivatives, unlike Newton's corrections, start from O(1): 3 sweeps did
         !! not reach 1e-10 on most steps).

@@ -131,7 +131,7 @@ int fx_klu_analysed(void *handle)
 
 /* 1 if no value is Inf or NaN (exponent bits all ones): a branch-free OR over the bit
  * patterns, which the compiler vectorizes (an isfinite loop with an early return was
- * 1.8 % of an adjoint evaluation's samples, perf, session 7) */
+ * 1.8 % of an adjoint evaluation's samples under perf on the 2-core reference machine) */
 static int all_finite(const double *x, int n)
 {
     const uint64_t expo = 0x7ff0000000000000ULL;
@@ -172,7 +172,7 @@ static int refactor(fx_klu *h, const double *ax, int scale)
  * (scale = -1, which also skips KLU's index check: the pattern was checked when the
  * handle was made): with fixed pivots the factors of D A are D L D^-1 and D U, so the
  * scaling changes rounding only, and KLU recomputing it at every refactorization was
- * 5.3 % of an adjoint evaluation's samples (perf, session 7; without it: simulations
+ * 5.3 % of an adjoint evaluation's samples (perf, 2-core reference machine; without it: simulations
  * 7-8 %, adjoint evaluations 6-10 % faster, interleaved, tapered tubes at 8 and 32
  * elements per arm). A fresh factorization is refactored once without scaling too, so
  * that a run's factors do not depend on which of its factorizations were fresh: a

@@ -125,8 +125,7 @@ def test_auto_picks_the_adjoint_past_the_margin(monkeypatch):
 
 
 def test_the_automatic_choice_is_reported():
-    """The choice of 'auto' is said with its reason (issue 18: "the choice is automatic and
-    reported"): the robot's 4 variables and 1 KS row give direct, and an explicit method is
+    """The choice of 'auto' is said with its reason: the robot's 4 variables and 1 KS row give direct, and an explicit method is
     reported as asked."""
     p = _problem("robot_2dof", 0.02, "ks")
     why = p.gradient_method_reason("auto")
@@ -233,7 +232,7 @@ def test_automatic_newton_paper_horizon(monkeypatch, newton):
     polished: every step converged to the rounding level, by 'auto''s rules in both) is
     within 1e-8 relative of the exact one (direct differentiation, full Newton, tol 1e-12;
     measured 8e-10 with both; 'reuse' polished by full Newton steps from each step's second
-    iteration, as before session 6: 5e-6). Without polishing, modified Newton's states
+    iteration, with a first held increment below tol accepted: 5e-6). Without polishing, modified Newton's states
     (8e-12 m off) made it 2e-6 off: adjoint_gradient refuses such runs."""
     p = Problem("robot_2dof", {"constraints.0.over": "ks", "time.newton": newton})
     adj = p.evaluate(p.start, method="adjoint")

@@ -1,4 +1,4 @@
-"""The discrete adjoint on element-wise designs (issue 18): the memory of its forward tape and
+"""The discrete adjoint on element-wise designs: the memory of its forward tape and
 backward pass against the number of steps, its refusal under a memory limit, and a property
 test of adjoint = direct differentiation over random designs (docs/adjoint.md, section 3).
 """

@@ -1,4 +1,4 @@
-"""Bad input gives a documented Python exception naming the input (issue 9).
+"""Bad input gives a documented Python exception naming the input.
 
 ModelError (a ValueError) for invalid sections, settings, names and laws, raised before any
 simulation; SimulationError (with .time, .residual, .iterations, .code) when the core finds no
@@ -292,7 +292,7 @@ def test_core_failures_do_not_crash_the_interpreter():
     assert "simulation errors 12 of 12" in proc.stdout
 
 
-# --------------------------------------------------------------------------- issue 14: API types
+# --------------------------------------------------------------------------- API argument types
 # Each bad argument gives a flexmbs error naming the argument, the value given and what is
 # allowed (strings where numbers belong, bools, None, NaN, nested or wrong-length designs).
 STR, NONE = "2", None
@@ -450,7 +450,7 @@ def test_problem_of_an_unknown_case_name_lists_the_shipped_cases():
 ], ids=repr)
 def test_override_messages_name_file_key_and_value(overrides, text):
     """Problem(name, overrides=...): a non-dict, an item name that is not there, an unknown key
-    or a bad value is a CaseError naming the case file, the key and the value (issue 14)."""
+    or a bad value is a CaseError naming the case file, the key and the value."""
     with pytest.raises(fx.CaseError) as err:
         Problem("robot_2dof", overrides=overrides)
     msg = str(err.value)
@@ -575,7 +575,7 @@ def test_optimize_weakly_arguments(robot, kw, text):
 
 def test_result_and_model_accessors():
     """Result accessors, Model.pattern/row_label and simulate(store=...) refuse non-ids with a
-    ModelError naming the argument (they raised TypeError/ValueError before issue 14)."""
+    ModelError naming the argument, not a bare TypeError/ValueError."""
     m, b = driven_arm()
     r = fx.simulate(m, 0.003, 1e-3)
     for call in (r.position, r.rotation, r.velocity):

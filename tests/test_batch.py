@@ -47,8 +47,8 @@ def _assert_same(a, b):
 def test_serial_results_against_published_numbers(serial):
     """The batch jobs give numbers known independently of the code: the beam mass of every
     design is rho * A * L summed over the four 0.3 m tube elements (A = 0.36 pi/4 p^2, rho =
-    2700 kg/m^3, /work/shared/CASES.md: m = 229.02 sum p^2), and at the paper's Table 1 optimum
-    (d0000) the maximum deviation sits on the 1 mm limit (CASES.md: 0.99-1.00 mm at the Table 1
+    2700 kg/m^3, docs/paper-cases.md: m = 229.02 sum p^2), and at the paper's Table 1 optimum
+    (d0000) the maximum deviation sits on the 1 mm limit (docs/paper-cases.md: 0.99-1.00 mm at the Table 1
     optima; tolerance 3 %, the spread the paper's stopping test allows between designs), while
     the 50 mm start (stiffer everywhere) stays well inside it."""
     for name, p in zip(sorted(serial), DESIGNS):

@@ -1,4 +1,4 @@
-"""Fuzzing of the case files (issue 14): only documented errors come out of a damaged case file.
+"""Fuzzing of the case files: only documented errors come out of a damaged case file.
 
 For every shipped case file (cases/*.toml) hypothesis draws a few mutations -- a key or a
 whole table or an item of an array of tables ([[bodies]], [[design]], ...) deleted, a value's
@@ -174,8 +174,7 @@ def mutate(data, mutations):
 @pytest.mark.parametrize("case_file", CASE_FILES, ids=[p.stem for p in CASE_FILES])
 def test_damaged_case_file_gives_only_documented_errors(case_file, tmp_path_factory):
     """Mutated case files: read_description raises only CaseError naming the file, and
-    building the Problem and a three-step evaluation raise only FlexmbsError subclasses
-    (issue 14)."""
+    building the Problem and a three-step evaluation raise only FlexmbsError subclasses."""
     original = tomllib.loads(case_file.read_text(encoding="utf-8"))
     original["time"]["t_end"] = 3 * original["time"]["h"]
     folder = tmp_path_factory.mktemp(case_file.stem)
@@ -237,8 +236,8 @@ OVERRIDE_KEYS = st.one_of(
        st.dictionaries(OVERRIDE_KEYS, ODD_VALUES, min_size=1, max_size=2))
 def test_random_overrides_give_only_case_errors(name, overrides):
     """read_description(name, overrides) with random keys (dotted paths with items by name,
-    leaf names, nonsense) and values of any type either reads or raises CaseError (issue 14:
-    `--set` and Python overrides); building the Problem of what was read raises only
+    leaf names, nonsense) and values of any type either reads or raises CaseError (as
+    `--set` and Python overrides do); building the Problem of what was read raises only
     FlexmbsError subclasses."""
     try:
         description = read_description(name, overrides)

@@ -4,7 +4,7 @@ fourbar.toml, fourbar_no_masses.toml) against published and analytic values.
 Published numbers are read from tests/data/paper_tables.json, a copy of the tables of the paper
 (Tromme, Bruls, Duysinx, "Weakly and fully coupled methods for structural optimization of
 flexible mechanisms"); calibrated values of an independent code are quoted from
-shared/CASES.md where used. The robot's rigid reference is checked against the closed-form
+docs/paper-cases.md where used. The robot's rigid reference is checked against the closed-form
 inverse kinematics of tests/robot_kinematics.py (the library computes it by position analysis).
 """
 import functools
@@ -38,7 +38,7 @@ def _robot_rows():
         for k, row in enumerate(ROBOT["table6_formulation28_tend0.65_initial_points"][method]):
             rows.append((f"T6-{method}-{k}", "robot_2dof", None, row))
         for k, row in enumerate(ROBOT["table7_formulation28_tend0.6687_initial_points"][method]):
-            # 0.6687 s is not a multiple of h: the paper's step 1338 is t = 0.6685 s (CASES.md)
+            # 0.6687 s is not a multiple of h: the paper's step 1338 is t = 0.6685 s (docs/paper-cases.md)
             rows.append((f"T7-{method}-{k}", "robot_2dof", 0.6685, row))
     return rows
 
@@ -65,7 +65,7 @@ def maxdev(prob, x):
 @pytest.mark.parametrize("label,name,t_end,row", ROBOT_ROWS, ids=[r[0] for r in ROBOT_ROWS])
 def test_beam_mass_of_published_robot_optima(label, name, t_end, row):
     """Beam mass of every published robot optimum (Tables 1, 2, 5, 6, 7) within 0.1 %, and
-    CASES.md's m = 229.02 sum(p_i^2) (p in m) within 1e-4."""
+    docs/paper-cases.md's m = 229.02 sum(p_i^2) (p in m) within 1e-4."""
     prob = problem(name)
     assert prob.design_mass(row["p"]) == pytest.approx(row["mass"], rel=1e-3)
     assert prob.design_mass(row["p"]) == pytest.approx(
@@ -239,8 +239,8 @@ def test_robot_start_design_is_well_inside():
 
 
 def test_fourbar_start_design():
-    """Paper 7.2: at p = 250 mm the maximum deviation of A is "around 50 um" (53-58 um on the
-    independent code of CASES.md), over 0.5 s (1001 time points)."""
+    """Paper 7.2: at p = 250 mm the maximum deviation of A is about 50 um (53-58 um on the
+    independent code of docs/paper-cases.md), over 0.5 s (1001 time points)."""
     prob = problem("fourbar")
     assert 40e-6 < maxdev(prob, FOURBAR["start_mm"]) < 65e-6
     assert prob.mechanism.t.size == 1001
@@ -248,7 +248,7 @@ def test_fourbar_start_design():
 
 @pytest.mark.parametrize("method", ["weakly", "fully"])
 def test_fourbar_table3_optima_near_their_constraint(method):
-    """Both Table 3 optima sit near the 1 mm limit with theta0 = 90 deg (CASES.md: 0.96-1.03 mm
+    """Both Table 3 optima sit near the 1 mm limit with theta0 = 90 deg (docs/paper-cases.md: 0.96-1.03 mm
     depending on the element). Tolerance 5 %: the fully coupled optimum's maximum is a sharp
     vibration peak that moves by 6 % when h is halved (measured; fourbar.toml)."""
     row = FOURBAR["table3_with_lumped_masses"][method]
@@ -256,7 +256,7 @@ def test_fourbar_table3_optima_near_their_constraint(method):
 
 
 def test_calibrated_alternatives_of_cases_md():
-    """CASES.md, at the Table 1 weakly optimum on an independent code: undeformed start
+    """docs/paper-cases.md, at the Table 1 weakly optimum on an independent code: undeformed start
     (start = "rest") 1.16 mm; 2 linear elements per arm 0.90 mm, 8 linear 0.989 mm."""
     assert maxdev(problem("robot_2dof", time__start="rest"), T1_WEAKLY) == pytest.approx(
         1.16e-3, rel=0.03)
@@ -311,7 +311,7 @@ def test_convergence_in_elements_per_arm():
 # ----------------------------------------------------------------------------- case settings
 def test_time_grids_of_the_paper_problems():
     """t_end = 0.65 s is Table 1's problem (1301 time points), 0.66 s Table 5's (1321),
-    0.6685 s Tables 7-8's (1338, the paper's step 1338, CASES.md); the four-bar 0.5 s (1001)."""
+    0.6685 s Tables 7-8's (1338, the paper's step 1338, docs/paper-cases.md); the four-bar 0.5 s (1001)."""
     assert problem("robot_2dof").mechanism.t.size == 1301
     mech = problem("robot_2dof", 0.66).mechanism
     assert mech.t.size == 1321 and mech.t[-1] == pytest.approx(0.66)

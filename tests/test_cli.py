@@ -1,7 +1,7 @@
 """The command line (flexmbs.cli): every bad argument or unwritable output path is one line on
 stderr with exit status 2 and no traceback, found before the run; the names reported are the
 files written; Ctrl-C during `optimize` and `reproduce` prints one line naming where the results
-are and how to resume, exits with 130, and loses nothing already written (issue 14)."""
+are and how to resume, exits with 130, and loses nothing already written."""
 import json
 import os
 import signal
@@ -270,7 +270,7 @@ def test_ctrl_c_during_reproduce(tmp_path):
 def test_simulate_json_gives_the_published_table1_design(capsys):
     """`flexmbs simulate robot_2dof --design <Table 1 weakly optimum> --json`: the paper's mass
     0.962 kg (Table 1; 229.02 sum p^2 = 0.9623 kg) and its deviation (28) on the 1 mm limit
-    (CASES.md: 0.99-1.00 mm at the published optima; tolerance 1 %), at the last step of the
+    (docs/paper-cases.md: 0.99-1.00 mm at the published optima; tolerance 1 %), at the last step of the
     1301-step grid."""
     assert main(["simulate", "robot_2dof", "--design", "39.29,28.33,34.94,25.19", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)

@@ -51,7 +51,7 @@ def test_period_seven_is_not_an_oscillation():
 
 
 def test_converging_alternation_is_not_an_oscillation():
-    """x_k = 50 + 10 (-0.5)^k alternates around 50 while converging (its ESL change halves
+    """x_k = 50 + 10 (-0.5)^k alternates about 50 while converging (its ESL change halves
     each cycle): never 'oscillating'; it converges by eq. (25) once the change is below eps in
     two consecutive cycles (cycle k's change 0.2 * 0.5^(k-1) < 1e-2 from cycle 6 on: stops at
     cycle 7)."""

@@ -1,4 +1,4 @@
-"""Diagnosis of failed simulations (issue 14, "wrong diagnoses"): redundant constraints,
+"""Diagnosis of failed simulations: redundant constraints,
 a body not held, and an input that overflows are told apart and named in the message."""
 import numpy as np
 import pytest
@@ -91,8 +91,8 @@ def test_huge_load_is_reported_as_overflow_naming_the_load():
 
 
 def test_held_structure_with_too_large_load_blames_the_load():
-    """A clamped arm of 4 elements under 1e9 N transverse (the load of the 1e9 N case of the
-    issue): Newton diverges although the constraints are independent and nothing is free; the
+    """A clamped arm of 4 elements under 1e9 N transverse (the load of the 1e9 N cantilever of
+    test_validity.py): Newton diverges although the constraints are independent and nothing is free; the
     message must say so and name the load rather than "may not be held"."""
     m, b = arm(elements=4)
     m.clamp(b.first)

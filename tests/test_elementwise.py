@@ -1,4 +1,4 @@
-"""Element-wise design variables (issue 18; docs/case-format.md, "Element-wise variables"):
+"""Element-wise design variables (docs/case-format.md, "Element-wise variables"):
 the expansion of a variable into one component per element or group (names, bounds, start,
 the element each component sizes), exact gradients of mass, deviation and stress with respect
 to the components (the tube's mass formula; central finite differences), the same mechanism

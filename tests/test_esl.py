@@ -71,7 +71,7 @@ def test_esl_applied_to_isolated_body_reproduces_local_displacements(robot, fram
 
 
 def test_component_forms_equal_inertial_deviations(robot):
-    """With the absolute motors of the calibrated robot (CASES.md) the frames' angles are the
+    """With the absolute motors of the calibrated robot (docs/paper-cases.md) the frames' angles are the
     rigid ones, so eq. (29) from the local displacements equals deviation (28) of the full
     simulation, and eq. (31) equals (30), to round-off (paper 6.2-6.3)."""
     _, _, values, model, loads, _ = robot

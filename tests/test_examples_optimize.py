@@ -1,4 +1,4 @@
-"""The general-format examples of issue 15 optimized by both methods: the three-arm robot
+"""Two mechanisms beyond the paper, in the general case format, optimized by both methods: the three-arm robot
 (cases/three_arm_robot.toml) and the tube four-bar (cases/fourbar_tubes.toml).
 (The press, cases/slider_crank_press.toml: tests/test_problem_optimize.py and
 tests/test_problem_weakly.py.)

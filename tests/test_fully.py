@@ -1,8 +1,9 @@
 """Tests of the fully coupled method (flexmbs.optimize.fully, .loops, .mma) on the paper's robot
 (cases/robot_2dof.toml) and on the slider-crank press (cases/slider_crank_press.toml).
 
-Published values: the paper (shared/paper, Tromme, Bruls, Duysinx), Tables 1 and 6, as stored
-in shared/reference/paper_tables.json; K. Svanberg (1987), "The method of moving asymptotes",
+Published values: Tromme, Bruls, Duysinx, "Weakly and fully coupled methods for structural
+optimization of flexible mechanisms", Tables 1 and 6, as transcribed in
+tests/data/paper_tables.json; K. Svanberg (1987), "The method of moving asymptotes",
 Int. J. Numer. Meth. Engng 24, 359-373, section 5 (the cantilever beam); for the press, an
 independent 1-D root find (bisection on Problem.evaluate without gradients).
 """
@@ -33,7 +34,7 @@ TABLE6_STARTS = [[55, 55, 55, 55], [55, 45, 35, 25], [45, 45, 45, 45]]
 
 
 def beam_mass_formula(p_mm):
-    """Robot beam mass (CASES.md): each p_i is one 0.3 m element of a tube with outer diameter
+    """Robot beam mass (docs/paper-cases.md): each p_i is one 0.3 m element of a tube with outer diameter
     p_i and wall 0.1 p_i, A = 0.36 pi/4 p^2, rho = 2700 kg/m^3: 229.02 sum p_i^2 (p in m)."""
     p = np.asarray(p_mm, float) * 1e-3
     return 2700.0 * 0.36 * np.pi / 4 * 0.3 * np.sum(p ** 2)
@@ -168,7 +169,7 @@ def test_table1_from_50mm(table1_direct, robot):
     assert r.evaluation.values["deviation_28"].max() == pytest.approx(r.max_deviation_m)
     assert r.details["kkt_residual"] < 1e-3
     assert r.inner_iterations is None
-    # the mass reported is the beam mass of the design, CASES.md: m = rho * 0.36 pi/4 p^2 * 0.3 m
+    # the mass reported is the beam mass of the design, docs/paper-cases.md: m = rho * 0.36 pi/4 p^2 * 0.3 m
     # per element = 229.02 sum p_i^2 (p in m), written out here independently of the library
     assert r.mass_kg == pytest.approx(beam_mass_formula(r.design), rel=1e-12)
     assert r.objective == r.mass_kg
@@ -179,7 +180,7 @@ def test_table6_other_starts(robot, start):
     """Table 6, fully coupled: from [55]*4, [55, 45, 35, 25] and [45]*4 the paper's optimizer
     reached 0.962, 0.961, 0.962 kg; the mass must be within 1 % of 0.962 kg, on the limit.
     (The paper calls [45]*4 infeasible; in the calibrated model its maximum deviation over
-    0.65 s is 0.47 mm, it is infeasible at 0.6685 s, Table 7: 1.26 mm, CASES.md.)"""
+    0.65 s is 0.47 mm, it is infeasible at 0.6685 s, Table 7: 1.26 mm, docs/paper-cases.md.)"""
     r = optimize_fully(robot, start)
     print(f"\nstart {start}: p = {np.round(r.design, 2)} mm, {r.mass_kg:.4f} kg, "
           f"{r.iterations} iterations, {r.simulations} simulations, {r.wall_time_s:.2f} s")
@@ -191,7 +192,7 @@ def test_table6_other_starts(robot, start):
 @pytest.mark.parametrize("start", [[55, 55, 55, 55], [55, 45, 35, 25]], ids=["55", "55-45-35-25"])
 def test_trust_region_sqp_other_starts(robot, start):
     """The trust-region SQP converges from the starts where plain SLSQP stalls on the bounds
-    (CASES.md), to a mass within 1 % of the paper's 0.962 kg (Table 6)."""
+    (docs/paper-cases.md), to a mass within 1 % of the paper's 0.962 kg (Table 6)."""
     r = optimize_fully(robot, start, optimizer="sqp")
     print(f"\nSQP from {start}: p = {np.round(r.design, 2)} mm, {r.mass_kg:.4f} kg, "
           f"{r.iterations} iterations, {r.simulations} simulations, {r.wall_time_s:.2f} s")

@@ -1,7 +1,7 @@
 """The 'integral' aggregate (flexmbs.responses.aggregate.integral, over = "integral" in a case's
 objective and constraints): the time integral of a history by the trapezoid rule on the output
-grid, its gradient by direct differentiation and by the discrete adjoint (issue 18: "any
-response that is a function of the whole history: ... integral ...")."""
+grid, its gradient by direct differentiation and by the discrete adjoint (like any
+response that is a function of the whole history)."""
 import math
 
 import numpy as np

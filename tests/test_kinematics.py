@@ -86,7 +86,7 @@ def fourbar():
 
 
 def test_fourbar_matches_closed_form(fourbar):
-    """Rigid reference of the paper's four-bar (CASES.md section 7, 1001 steps): positions,
+    """Rigid reference of the paper's four-bar (docs/paper-cases.md section 7, 1001 steps): positions,
     velocities and accelerations of A and B equal the closed-form loop closure
     (tests/fourbar_kinematics.py) to 1e-10 relative to their largest magnitude."""
     case, model, ref = fourbar
@@ -147,7 +147,7 @@ def test_groups_are_bodies(fourbar):
 
 # --------------------------------------------------------------------------- robot
 def test_robot_tip_follows_eq26():
-    """Robot (CASES.md section 6, cases/robot_2dof.toml, 1301 steps): the rigid reference that
+    """Robot (docs/paper-cases.md section 6, cases/robot_2dof.toml, 1301 steps): the rigid reference that
     flexmbs computes by position analysis from the case's [[paths]] (Mechanism.reference):
     tip path, velocity and acceleration equal eq. (26) within 1e-10 (relative to the largest
     value), arm 2's angle equals planar_2r_inverse (tests/robot_kinematics.py), and at
@@ -157,7 +157,7 @@ def test_robot_tip_follows_eq26():
     mech = Problem("robot_2dof").mechanism
     model = mech.model
     t = mech.t
-    # CASES.md: arms of 0.6 m at 120 deg and -30 deg (absolute) at t = 0; T = 0.5 s, D = 0.5 m
+    # docs/paper-cases.md: arms of 0.6 m at 120 deg and -30 deg (absolute) at t = 0; T = 0.5 s, D = 0.5 m
     l1 = l2 = 0.6
     t10, t20 = math.radians(120.0), math.radians(-150.0)
     x0 = l1 * math.cos(t10) + l2 * math.cos(t10 + t20)

@@ -1,4 +1,4 @@
-"""Linear solvers of the compiled core (issue 2): LAPACK LU and KLU from Fortran.
+"""Linear solvers of the compiled core: LAPACK LU and KLU from Fortran.
 
 ``flexmbs._core.dense_solve`` factors with dgetrf and solves with dgetrs;
 ``flexmbs._core.sparse_solve`` runs the KLU symbolic analysis once, factors and
@@ -371,8 +371,7 @@ def test_two_models_alternately_and_in_threads_match_running_alone(solver):
 
 # ------------------------------------------------------------------ KLU's analysis once per model
 def test_klu_analysis_is_made_once_per_model_and_borrowed_by_every_run(monkeypatch):
-    """Issue 16 ("the model, its sparsity pattern and the KLU symbolic analysis are built
-    once per case"): three simulations of one model at three designs make one analysis
+    """The KLU symbolic analysis is built once per model: three simulations of one model at three designs make one analysis
     (flexmbs.core.KluAnalysis) and none of their own (stats 'symbolic_analyses' 0); a run
     that analyses the pattern itself (the core's klu_analysis = 0) makes 1 and gives
     bit-identical states (KLU's ordering depends on the pattern only). Each design's states

@@ -1,4 +1,4 @@
-"""Newton strategies of simulate (issue 16): newton='auto' (the default), 'full', 'reuse'.
+"""Newton strategies of simulate: newton='auto' (the default), 'full', 'reuse'.
 
 'auto' keeps the factorization of the iteration matrix across iterations and steps and must
 give the responses and design derivatives of full Newton within a bound that follows from the

@@ -6,9 +6,9 @@ paper's tables). Every optimization runs once per session (`optimized`, cached) 
 exactly as `flexmbs reproduce` runs it (`flexmbs.reproduce.optimization_job` with the same
 options), so the report and these tests check the same numbers.
 
-Tolerances (issue 8): masses within 1 % of the paper, every design variable within 3 % (Table 5:
+Tolerances: masses within 1 % of the paper, every design variable within 3 % (Table 5:
 5 %; its single active constraint leaves the design flat); Table 7's fully coupled masses within
-3 %; the four-bar's (Tables 3, 4) within 5 % (FOURBAR_MASS_TOL, justified there). CASES.md
+3 %; the four-bar's (Tables 3, 4) within 5 % (FOURBAR_MASS_TOL, justified there). docs/paper-cases.md
 explains why designs are compared more loosely than masses: moving 1 % along the
 constraint costs about 0.015 % of mass, so the paper's stopping test accepts designs 2-3 %
 apart. Iteration counts depend on the optimizer and the variable scaling: they are printed
@@ -166,7 +166,7 @@ def test_table7_finding(optimized):
 # Tolerance of the four-bar masses: 5 %. The paper's own Table 3 designs, simulated by flexmbs,
 # sit 2.2 % below (weakly) and 3.1 % above (fully) the 1 mm limit (docs/reproduction), and the
 # maximum deviation is a vibration peak that moves by several per cent with h and rho_inf
-# (CASES.md); the deviation grows like p^-3 to p^-4 and the mass like p^2, so a few per cent of
+# (docs/paper-cases.md); the deviation grows like p^-3 to p^-4 and the mass like p^2, so a few per cent of
 # deviation are 1.5-2 % of mass. 5 % leaves room for that, not for a different local optimum.
 FOURBAR_MASS_TOL = 0.05
 _F250 = (250.0, 250.0, 250.0)
@@ -195,7 +195,7 @@ _T3_XFAIL = {
 def test_table3_mass(optimized, method):
     """Table 3 (four-bar with 5 kg at A and B, start 250 mm): weakly coupled 20.703 kg after 73
     converged cycles, fully coupled 2.967 kg (paper 7.2). Converged, mass within 5 %
-    (FOURBAR_MASS_TOL); designs not compared (both are local optima, CASES.md)."""
+    (FOURBAR_MASS_TOL); designs not compared (both are local optima, docs/paper-cases.md)."""
     res = optimized(_run(3, method))
     _report(3, method, _F250, res, paper_row(3, method, _F250, _PAPER))
     assert res["converged"], res["reason"]

@@ -49,7 +49,7 @@ def test_fourbar_mass_is_the_papers_formula(fourbar):
 def test_rigid_reference_of_the_robot_follows_the_tip_path(robot):
     """The rigid reference's tip follows eq. (26): x = x0 + D(t), y = y0 + D(t),
     D(t) = 0.5 (t/T - sin(2 pi t/T)/(2 pi)), T = 0.5 s; at t = 0.5 s the tip is at
-    (0.71962, 0.71962) m (CASES.md)."""
+    (0.71962, 0.71962) m (docs/paper-cases.md)."""
     mech = robot.mechanism
     tip = mech.node[("arm2", "tip")]
     ref = mech.reference

@@ -23,7 +23,7 @@ def _raw(name):
 
 
 def test_chains_open_the_paper_mechanisms():
-    """The chains found from the joints are the paper's openings (CASES.md): robot, arm 1 O->A
+    """The chains found from the joints are the paper's openings (docs/paper-cases.md): robot, arm 1 O->A
     then arm 2 A->tip (eq. 29); four-bar point A through the crank O->A (eq. 34) and through the
     follower C->B and the coupler B->A (eq. 35), frames crank at O, follower at C, coupler at B;
     the press's ram through the rod A->B (the slider does not start a chain)."""

@@ -1,4 +1,4 @@
-"""Memory safety (issue 14): every allocation of the core returns a status that becomes a
+"""Memory safety: every allocation of the core returns a status that becomes a
 ResourceError naming what was allocated and its size (the interpreter survives), and a run
 that cannot fit is refused before it starts, quickly, with the estimate and what to change.
 

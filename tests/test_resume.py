@@ -1,4 +1,4 @@
-"""Long runs (issue 17): progress shown only when asked (flexmbs.progress, tqdm), and resumable
+"""Long runs: progress shown only when asked (flexmbs.progress, tqdm), and resumable
 optimizations (`resume=` / ``--resume``) that end at the same design as an uninterrupted run
 with fewer simulations.
 

@@ -1,7 +1,7 @@
-"""Numerical stability stress tests of flexmbs.simulate (issue 9).
+"""Numerical stability stress tests of flexmbs.simulate.
 
 Every test asserts: no crash, no NaN, the constraints held on the stored coordinates (pin,
-hinge and the two drive rows of the robot of ../shared/CASES.md), energy bounded for a free
+hinge and the two drive rows of the robot of docs/paper-cases.md), energy bounded for a free
 system, or a clear exception where no solution exists. The model is the paper's robot
 (section 6; 2 quadratic elements per arm, tubes of outer diameter p, wall 0.1 p, absolute drives,
 static start, rho_inf = 0.5, h = 5e-4 s unless a test varies them).
@@ -30,7 +30,7 @@ TIP0 = ARM * math.cos(THETA1_0) + ARM * math.cos(THETA1_0 + THETA2_0)   # x0 = y
 
 
 def robot(p_mm=(50.0, 50.0, 50.0, 50.0), stiffness_factor=1.0, laws=None):
-    """The CASES.md robot: (model, arm1, arm2, theta1 law, theta1+theta2 law)."""
+    """The docs/paper-cases.md robot: (model, arm1, arm2, theta1 law, theta1+theta2 law)."""
     mat = fx.Material(E=72e9 * stiffness_factor, nu=0.3, rho=2700)
     secs = [fx.Tube.with_wall_ratio(p * 1e-3, 0.1) for p in p_mm]
     th1, _, th12 = robot_joint_laws() if laws is None else (laws[0], None, laws[1])

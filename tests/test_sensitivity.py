@@ -1,5 +1,5 @@
 """Design sensitivities of a Problem (flexmbs.problem.Problem.evaluate(x, gradient=True)):
-Taylor tests of the direct derivatives and central finite differences written here (issue 14).
+Taylor tests of the direct derivatives and central finite differences written here.
 
 A finite-difference comparison at one step and one tolerance measures the truncation and
 rounding of the finite differences, not the derivative (it failed at 1.17e-5 against 1e-5 on
@@ -162,7 +162,7 @@ def test_each_design_variable_passes_the_taylor_test(var):
 
 
 def test_mass_gradient_is_analytic_and_passes_the_taylor_test():
-    """Beam mass m = rho A L, A = 0.36 pi/4 p^2 (CASES.md), robot: the mass response's
+    """Beam mass m = rho A L, A = 0.36 pi/4 p^2 (docs/paper-cases.md), robot: the mass response's
     gradient and the objective's (the case minimizes the mass) are 2 * 229.02 p_i * 1e-6 kg/mm
     (to rounding); the mass is quadratic in p, so the Taylor remainder is exactly second
     order (order 2 to rounding)."""
@@ -288,7 +288,7 @@ def test_design_derivative_at_the_maximum_is_consistent():
 
 
 def test_cli_gradient_json_reports_the_library_derivatives():
-    """`flexmbs evaluate CASE --design ... --gradient --json` (issue 15) reports the direct
+    """`flexmbs evaluate CASE --design ... --gradient --json` reports the direct
     derivatives of Problem.evaluate (Taylor-tested above): the gradient of each history at its
     maximum and the mass's gradient, equal to rounding of the JSON output (1e-12)."""
     p = DESIGNS["robot_2dof"]

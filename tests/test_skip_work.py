@@ -1,4 +1,4 @@
-"""Skip what a scene does not need (issue 16): a Problem stores only the coordinates its
+"""Skip what a scene does not need: a Problem stores only the coordinates its
 responses read, computes the rigid reference only for deviations (or drives that follow it),
 differentiates nothing without gradients; the rigid reference's position analysis works on the
 constraint rows' nodes only, whatever the number of elements.
@@ -138,7 +138,7 @@ def test_rigid_reference_work_does_not_grow_with_the_elements(monkeypatch):
     analysis evaluates the node map only on the nodes the constraint rows use (4: O, A on
     each arm, the tip), whatever the mesh; its node histories follow by rigid transforms: the
     middle node of arm 1 lies halfway between O and A, and the tip on the path of eq. (26)
-    (x0 + D(t), y0 + D(t), D the cycloid of CASES.md), to 1e-12 m."""
+    (x0 + D(t), y0 + D(t), D the cycloid of docs/paper-cases.md), to 1e-12 m."""
     calls = []          # (times, nodes) of each evaluation of the node map
     original = kinematics._Poses.q
 

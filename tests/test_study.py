@@ -146,7 +146,7 @@ checks = [{{ type = "mass_at_most", rel = 0.003 }}, {{ type = "reached_by_at_lea
 
 
 def test_shipped_variants_keep_the_run_names():
-    """The paper's study declares Table 3's two variants (issue 17: a fully coupled multi-start
+    """The paper's study declares Table 3's two variants (a fully coupled multi-start
     and the weakly coupled chord frame with a 0.1 move limit) as jobs of their own,
     jobs/variants/table3-KEY, beside, not among, the 24 stored runs (whose names the variants
     leave unchanged: test_shipped_study_runs_are_the_stored_reproduction)."""

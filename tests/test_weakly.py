@@ -1,5 +1,5 @@
 """The weakly coupled method (paper 5.3): ESL cycles on the paper's robot, against Tables 1, 2,
-5 and 7 (shared/reference/paper_tables.json)."""
+5 and 7 (published values: tests/data/paper_tables.json)."""
 import json
 
 import numpy as np
@@ -20,11 +20,11 @@ def table1():
 def test_table1_weakly_optimum(table1):
     """Paper Table 1, weakly coupled: p = [39.29, 28.33, 34.94, 25.19] mm, 0.962 kg, 57 inner
     iterations. The design within 2 % and the mass within 1 % (the designs are far less
-    determined than the mass: 1 % along the constraint costs ~0.015 % of mass, CASES.md); the
-    inner iterations depend on scaling and SLSQP settings, so within a factor 2 (CASES.md).
+    determined than the mass: 1 % along the constraint costs ~0.015 % of mass, docs/paper-cases.md); the
+    inner iterations depend on scaling and SLSQP settings, so within a factor 2 (docs/paper-cases.md).
     At a converged cycle the ESL no longer change, so the static model's deviation (active at
     the limit: normalised g = 0 within 1e-6) and the full simulation's agree within the ESL
-    tolerance (1 %). CASES.md's independent prototype reaches 0.958 kg at
+    tolerance (1 %). docs/paper-cases.md's independent prototype reaches 0.958 kg at
     [39.31, 28.32, 34.78, 25.05] mm: mass within 0.5 %, design within 1 %. The ESL frames sit
     where the paper puts them: arm 1 at O, arm 2 at A."""
     r = table1
@@ -44,7 +44,7 @@ def test_table1_weakly_optimum(table1):
 
 
 def test_table1_active_steps(table1):
-    """CASES.md (independent prototype): at the Table 1 optimum both the peak near 0.10 s
+    """docs/paper-cases.md (independent prototype): at the Table 1 optimum both the peak near 0.10 s
     (step ~204) and the last step (1301) are active."""
     act = table1.details["active_steps"]["deviation_28#1"]
     assert 1301 in act
@@ -52,7 +52,7 @@ def test_table1_active_steps(table1):
 
 
 def test_result_json_fields(table1):
-    """The --json object of both methods carries these fields (issues 6 and 7), and its masses
+    """The --json object of both methods carries these fields, and its masses
     are the analytic beam masses of its designs."""
     d = json.loads(table1.to_json())
     for key in ("method", "design", "mass_kg", "iterations", "inner_iterations",
@@ -60,7 +60,7 @@ def test_result_json_fields(table1):
         assert key in d
     assert d["method"] == "weakly" and len(d["history"]) == table1.iterations
     assert d["history"][0]["esl_change"] is None          # no previous ESL in the first cycle
-    # the masses written are the beam masses of the designs written (CASES.md: 229.02 sum p^2,
+    # the masses written are the beam masses of the designs written (docs/paper-cases.md: 229.02 sum p^2,
     # p in m; spelled out here, not case.mass)
     def beam_mass(p_mm):
         return 2700.0 * 0.36 * np.pi / 4 * 0.3 * np.sum((np.asarray(p_mm) * 1e-3) ** 2)
@@ -98,7 +98,7 @@ def test_table2_weakly_formulation_30():
 
 def test_table5_weakly_oscillates():
     """Paper 8.1 / Table 5 (0.66 s): the weakly coupled method does not converge, the objective
-    oscillates between cycles (CASES.md prototype: between about 1.076 and 1.133 kg). The run
+    oscillates between cycles (docs/paper-cases.md prototype: between about 1.076 and 1.133 kg). The run
     must stop as not converged and the masses must keep swinging by several per cent."""
     r = optimize_weakly(Problem("robot_2dof", overrides={"time.t_end": 0.66}), max_cycles=15)
     assert not r.converged
@@ -151,7 +151,7 @@ def test_bad_input():
 
 def test_cli_optimize_weakly(tmp_path, capsys):
     """``flexmbs optimize robot_2dof --method weakly --json --history F --plot P``: one JSON
-    object with the fields of issue 6, a history line per cycle, a PNG figure."""
+    object with the result fields (test_result_json_fields), a history line per cycle, a PNG figure."""
     hist, png = tmp_path / "h.jsonl", tmp_path / "fig.png"
     rc = main(["optimize", "robot_2dof", "--method", "weakly", "--json", "--history", str(hist),
                "--plot", str(png)])

@@ -142,7 +142,7 @@ def constraint_values_t(cm, qt, law_val):
     """constraint_values on time-last arrays: qt (ndof, T) states as columns, law_val (nlaw, T)
     or None -> Phi (nc, T). The states last make numpy's inner loops run over them instead of
     over a row's 4 coordinates, and the rotations are evaluated only when a row turns (the
-    drift check of a 1301-step robot run took 1.7 ms, session 7)."""
+    drift check of a 1301-step robot run took 1.7 ms on the 2-core reference machine)."""
     rows = _rows(cm)
     used = rows.dofs >= 0
     qd = qt[np.where(used, rows.dofs, 0)]                             # (nc, 4, T)

@@ -474,7 +474,8 @@ class RigidMotion:
     ndof values each).
     """
     #: `coordinates` results kept (a response asks for the same few coordinates at every
-    #: design: 4 calls and ~1.3 ms of a 17 ms evaluation of the paper's robot, session 7)
+    #: design: 4 calls and ~1.3 ms of a 17 ms evaluation of the paper's robot, measured on the
+    #: 2-core reference machine)
     MEMO_ENTRIES = 32
     #: ... of at most this many values each (8 MB; larger ones are computed at every call)
     MEMO_VALUES = 1 << 20

@@ -200,9 +200,9 @@ def _strain_checks(model, cm, result, lim):
         # axial strain where the element computes N (its reduced-integration Gauss points);
         # curvature, linear along a 3-node element, at the element's ends (its extremes).
         # Time last (the element's coordinates of a chunk as rows of time points): numpy's
-        # inner loops then run over the time points, not over 1-2 stations (session 7, with
-        # the drift check: 6.9 -> 2.9 ms for a 1301-step run of the 4-element robot, 68.7 ->
-        # 17.4 ms with 64 elements)
+        # inner loops then run over the time points, not over 1-2 stations (measured on the
+        # 2-core reference machine with the drift check: 6.9 -> 2.9 ms for a 1301-step run of the
+        # 4-element robot, 68.7 -> 17.4 ms with 64 elements)
         xg = gauss_points(nen)
         ng, dng = shape(nen, xg)
         _, dnn = shape(nen, np.array([-1.0, 1.0]))

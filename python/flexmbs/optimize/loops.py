@@ -4,7 +4,7 @@ with lower, upper (scaled bounds), simulations, gradient_evaluations, sensitivit
 objective_hessian, record_fields(ev, active_tol), record_tail(ev, active_tol) and
 evaluate(x, gradient) returning evaluations with x, f, df, g, dg and violation.
 
-Optimizers. CASES.md reports that plain SLSQP fails from three of the paper's four robot
+Optimizers. docs/paper-cases.md reports that plain SLSQP fails from three of the paper's four robot
 starts: the deviation grows like p^-3 to p^-4, the first linearized step lands on the bounds
 with hundreds of violated steps, and the late time steps are vibration samples whose
 linearizations hold only for small design changes (on the four-bar a sample can cross the
@@ -31,7 +31,7 @@ limit for a change of p of 0.01 mm). Hence:
     the ratio.
 ``_run_slsqp``
     scipy's SLSQP as it is (the paper's kind of optimizer, without move limits), kept as a
-    baseline: it stalls on the bounds from the starts CASES.md names.
+    baseline: it stalls on the bounds from the starts docs/paper-cases.md names.
 
 Stopping test (`_Monitor`, every optimizer, applied to the iterates; iteration 0 is the
 start): the paper's, i.e. the relative change of the objective between two iterations < 1e-3

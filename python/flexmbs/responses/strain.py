@@ -53,7 +53,7 @@ def _time_last(qe):
     T and put last: the sums over an element's nodes then run over rows of T values. With the
     leading axes first, numpy's innermost loop had npt (1 or 2) values: raw_strains took
     1.6 ms for the robot's 4 elements x 1301 time points, a simulation's validity check 4.4 ms
-    of its 18 (session 7)."""
+    of its 18 (2-core reference machine)."""
     nel, m = qe.shape[-2:]
     return np.ascontiguousarray(np.moveaxis(qe.reshape((-1, nel, m)), 0, -1))
 
