@@ -9,10 +9,10 @@ estimates here are Richardson's: the same design simulated with h, h/2 and h/4 (
 When r >= MIN_RATIO (the changes fall at least as fast as first order), the error of R(h) is
 |d1| r / (r - 1) and that of the finest value R(h/4) is |d2| / (r - 1), with r capped at
 MAX_RATIO = 4 (second order): a faster fall met by chance (a peak that moves between levels
-can show r = 19 and then rise again) never claims a smaller error than second order would. When r < MIN_RATIO the response is *not in its asymptotic range*
-(e.g. a stress peak set by which high modes the integrator's numerical damping lets through):
-the estimate says so (`ErrorEstimate.status`) and gives the larger of the changes seen, which is
-no bound. Changes below the rounding of the response (FLOOR_REL of its size) count as converged.
+can show r = 19 and then rise again) never claims a smaller error than second order would.
+When r < MIN_RATIO the response is *not in its asymptotic range* (e.g. a stress peak set by
+which high modes the integrator's numerical damping lets through): the estimate says so
+(`ErrorEstimate.status`) and gives the larger of the changes seen, which is no bound. Changes below the rounding of the response (FLOOR_REL of its size) count as converged.
 Two levels only (h, h/2) give the estimate without that check (status 'unchecked').
 
 A history is judged by its maximum over time (what limits and summaries use; the peak may move
@@ -295,7 +295,8 @@ class Verification:
     verified : the objective and every constraint's largest value are estimated to within
         `rtol` in their asymptotic range at step `h`.
     feasible : every constraint holds there within rtol (largest g <= rtol).
-    h : the step of the values reported; case_h : the case's own step; level : h = case_h / 2**level.
+    h : the step of the values reported; case_h : the case's own step;
+    level : h = case_h / 2**level.
     objective, constraints : ErrorEstimates of the objective and of each constrained response's
         largest g at h (g relative to the limit).
     responses : {name: ErrorEstimate} of every response at h (a history: its maximum).
@@ -343,9 +344,10 @@ def verify(problem, x, rtol=VERIFY_RTOL, max_level=MAX_LEVEL, coarse=None):
     on the finest three levels, the objective and every constraint's largest value have an
     estimated error (`richardson`, finest=True) below `rtol` (relative to the objective, to the
     constraints' limits) in their asymptotic range; a constraint far from its limit may
-    instead have an error (or largest change seen) below MARGIN_FRACTION of its margin. Returns a `Verification`; the values it
-    reports are those of the finest level reached. `coarse`: the Evaluation of x at the case's
-    h when the caller has it (saves a simulation).
+    instead have an error (or largest change seen) below MARGIN_FRACTION of its margin.
+    Returns a `Verification`; the values it reports are those of the finest level reached.
+    `coarse`: the Evaluation of x at the case's h when the caller has it (saves a
+    simulation).
     """
     if not (isinstance(rtol, (int, float)) and not isinstance(rtol, bool) and 0 < rtol < 1):
         raise ModelError(f"verify: rtol must be a number in (0, 1), e.g. 1e-3, got {rtol!r}")

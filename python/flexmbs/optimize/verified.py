@@ -7,9 +7,10 @@ limit at a converged step). `finish` re-simulates the final design down a ladder
 to `rtol`) and, when the design is infeasible there, continues the same optimization on that
 step from the design, then verifies again (a continued design infeasible on a still finer step
 is continued there once more). A design whose responses do not settle (not in their asymptotic
-range down to the finest step) is not continued: the result says it is not verified. The result states the verification
-(`OptimizationResult.verification`, details["verification"]) and, after a continuation, the
-coarse run it started from (details["continued_from"]).
+range down to the finest step) is not continued: the result says it is not verified. The
+result states the verification (`OptimizationResult.verification`, details["verification"])
+and, after a continuation, the coarse run it started from (details["continued_from"]) and each
+continuation (details["continuations"]).
 """
 from __future__ import annotations
 
