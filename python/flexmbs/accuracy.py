@@ -13,7 +13,8 @@ can show r = 19 and then rise again) never claims a smaller error than second or
 When r < MIN_RATIO the response is *not in its asymptotic range* (e.g. a stress peak set by
 which high modes the integrator's numerical damping lets through): the estimate says so
 (`ErrorEstimate.status`) and gives the larger of the changes seen, which is no bound. Changes
-below the rounding of the response (FLOOR_REL of its size) count as converged. Two levels only (h, h/2) give the estimate without that check (status 'unchecked').
+below the rounding of the response (FLOOR_REL of its size) count as converged. Two levels
+only (h, h/2) give the estimate without that check (status 'unchecked').
 
 A history is judged by its maximum over time (what limits and summaries use; the peak may move
 between the levels), and its point-wise error at the time points of the coarsest level is
