@@ -39,6 +39,7 @@ from flexmbs.errors import ModelError
 
 __all__ = ["ErrorEstimate", "Verification", "ConvergenceCheck", "richardson", "estimate_errors",
            "verify", "convergence_check", "simulate_with_error", "peak_sampling",
+           "describe_verification",
            "ORDER", "MIN_RATIO", "MAX_RATIO", "FLOOR_REL", "MAX_LEVEL", "VERIFY_RTOL",
            "MARGIN_FRACTION"]
 
@@ -318,16 +319,8 @@ class Verification:
     evaluation: object = field(default=None, repr=False)
 
     def summary(self):
-        """One line for people."""
-        state = ("verified" if self.verified else "NOT verified (no level of the ladder "
-                 f"reached {self.rtol:g} in the asymptotic range)")
-        feas = ("feasible" if self.feasible else "INFEASIBLE") + f" within {self.rtol:g}"
-        worst = max(self.constraints.items(), key=lambda kv: kv[1].value, default=None)
-        text = (f"{state} at h = {self.h:.4g} s (the case's h / {2 ** self.level}): {feas}, "
-                f"largest g = {self.max_violation:.3g}")
-        if worst is not None:
-            text += f" ({worst[0]} {worst[1].describe()})"
-        return text
+        """One line for people (`describe_verification`)."""
+        return describe_verification({"verification": self.to_json()})
 
     def to_json(self):
         return {"verified": self.verified, "feasible": self.feasible, "h": self.h,
@@ -336,6 +329,29 @@ class Verification:
                 "objective": None if self.objective is None else self.objective.to_json(),
                 "constraints": {k: e.to_json() for k, e in self.constraints.items()},
                 "responses": {k: e.to_json() for k, e in self.responses.items()}}
+
+
+def describe_verification(record):
+    """One line on a run's verification from its JSON record (an OptimizationResult's
+    details or JSON, a multi-start's best start: keys ``verification`` (Verification.to_json)
+    and, after a continuation on a finer step, ``continued_from``); None without a
+    verification."""
+    v = record.get("verification")
+    if not v:
+        return None
+    text = (f"{'verified' if v['verified'] else 'NOT verified'} at h = {v['h']:.4g} s (the "
+            f"case's h / {2 ** v['level']}): {'feasible' if v['feasible'] else 'INFEASIBLE'} "
+            f"within {v['rtol']:g}, largest g = {v['max_violation']:.3g}")
+    worst = max((v.get("constraints") or {}).items(), key=lambda kv: kv[1]["value"],
+                default=None)
+    if worst is not None:
+        text += f" ({worst[0]} ± {worst[1]['error']:.3g}, {worst[1]['status']})"
+    c = record.get("continued_from")
+    if c:
+        text += (f"; continued on a finer step from the design of objective "
+                 f"{c['objective']:.6g} found at h = {c['h']:.4g} s, infeasible at h = "
+                 f"{c['verification']['h']:.4g} s by {c['verification']['max_violation']:.3g}")
+    return text
 
 
 def verify(problem, x, rtol=VERIFY_RTOL, max_level=MAX_LEVEL, coarse=None):

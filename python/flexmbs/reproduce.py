@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flexmbs.accuracy import describe_verification
 from flexmbs.batch import MaxDeviationResult, StoredResult
 from flexmbs.errors import ModelError
 from flexmbs.study import MapSpec, Run, Study, TableSpec, Variant, load_study
@@ -345,20 +346,11 @@ class Row:
 
 
 def verification_text(result):
-    """One line on a run's verification at converged resolution (flexmbs.optimize.verified),
-    or None when it was not verified."""
-    v = result.get("verification")
-    if not v:
-        return None
-    text = (f"{'verified' if v['verified'] else 'NOT verified'} at h = {v['h']:.4g} s (the "
-            f"case's h / {2 ** v['level']}): {'feasible' if v['feasible'] else 'INFEASIBLE'} "
-            f"within {v['rtol']:g}, largest g = {v['max_violation']:.3g}")
-    c = result.get("continued_from") or (result.get("best") or {}).get("continued_from")
-    if c:
-        text += (f"; continued on the finer step from {c['objective']:.4f} kg at h = "
-                 f"{c['h']:.4g} s, infeasible at h = {c['verification']['h']:.4g} s by "
-                 f"{c['verification']['max_violation']:.3g}")
-    return text
+    """One line on a run's verification at converged resolution (a single run's, or a
+    multi-start's with its best start's continuation), or None when it was not verified."""
+    best = result.get("best") or {}
+    return describe_verification(dict(result, continued_from=result.get("continued_from")
+                                      or best.get("continued_from")))
 
 
 def verified_feasible(result):

@@ -26,11 +26,13 @@ from pathlib import Path
 
 import numpy as np
 
+from flexmbs.accuracy import describe_verification
 from flexmbs.batch import StoredResult
 from flexmbs.errors import ModelError, ResourceError, SimulationError
 from flexmbs.problem import load_problem
 
-__all__ = ["multistart", "start_designs", "sample_memory", "check_sample_memory", "MultistartResult", "SAMPLERS", "start_job"]
+__all__ = ["multistart", "start_designs", "sample_memory", "check_sample_memory",
+           "MultistartResult", "SAMPLERS", "start_job"]
 
 #: quasi-random samplers of the starting designs
 SAMPLERS = ("sobol", "lhs")
@@ -214,17 +216,9 @@ class MultistartResult:
                          f"{self.best['max_violation']:.1e}")
             lines.append(f"  {self.reached_best} of {n} starts reached it (within "
                          f"{self.best_tolerance * 100:.1f} %)")
-            v = self.best.get("verification")
-            if self.best.get("continued_from"):
-                c = self.best["continued_from"]
-                lines.append(f"  continued at a finer step from the best local optimum "
-                             f"(objective {c['objective']:.6g} at h = {c['h']:.4g} s, "
-                             f"infeasible at h = {c['verification']['h']:.4g} s by "
-                             f"{c['verification']['max_violation']:.3g})")
-            if v is not None:
-                lines.append(f"  {'verified' if v['verified'] else 'NOT verified'} at h = "
-                             f"{v['h']:.4g} s: {'feasible' if v['feasible'] else 'INFEASIBLE'} "
-                             f"within {v['rtol']:g}, largest g = {v['max_violation']:.3g}")
+            ver = describe_verification(self.best)
+            if ver:
+                lines.append(f"  {ver}")
         for k, o in enumerate(self.optima):
             if o.get("design") is None:
                 lines.append(f"  start {k}: {o['reason']}")

@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from flexmbs.accuracy import describe_verification
 from flexmbs.errors import ModelError
 from flexmbs.files import check_regular_file, jsonable
 
@@ -356,13 +357,9 @@ class OptimizationResult:
         if self.max_deviation_m is not None:
             lines.append(f"  max deviation in the full simulation "
                          f"{self.max_deviation_m * 1e3:.4f} mm")
-        prev = self.details.get("continued_from")
-        if prev:
-            lines.append(f"  continued at a finer step from the design found at h = "
-                         f"{prev['h']:.4g} s (objective {prev['objective']:.6g}, infeasible "
-                         f"there by {prev['verification']['max_violation']:.3g})")
-        if self.verification is not None:
-            lines.append(f"  {self.verification.summary()}")
+        ver = describe_verification(self.details)
+        if ver:
+            lines.append(f"  {ver}")
         return "\n".join(lines)
 
     def plot(self, path, limit_m=None):
