@@ -29,7 +29,8 @@ from flexmbs.simulate import Result, simulate
 __all__ = [
     "Problem", "load_problem", "optimize_weakly", "optimize_fully", "OptimizationResult",
     "Model", "Body", "Material", "Circle", "Tube", "Rectangle", "GivenSection", "TimeLaw",
-    "simulate", "Result", "simulate_with_error", "verify", "convergence_check", "check_tangent", "check_iteration_matrix", "taylor_test",
+    "simulate", "Result", "simulate_with_error", "verify", "convergence_check",
+    "check_tangent", "check_iteration_matrix", "taylor_test",
     "FlexmbsError", "ModelError", "SimulationError", "CaseError", "ResourceError",
     "InvalidResultError", "ValidityWarning",
 ]

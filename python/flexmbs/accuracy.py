@@ -181,8 +181,6 @@ def richardson(values, levels, finest=False, floor=None):
             err = np.maximum(d1, np.abs(d[-1]))
         else:
             err = d1 * rc / (rc - 1.0)
-    if status == "converged":
-        err = np.maximum(err, 0.0)
     k = -1 if finest else 0
     scalar = v[k].ndim == 0
     return ErrorEstimate(value=float(v[k]) if scalar else float(np.max(v[k])),

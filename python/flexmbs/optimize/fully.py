@@ -487,7 +487,8 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
     -------
     flexmbs.optimize.OptimizationResult
         method 'fully'; verification (details['verification']; after a continuation,
-        details['continued_from']: the coarse run); inner_iterations None; details: optimizer, kkt_residual,
+        details['continued_from']: the coarse run); inner_iterations None; details:
+        optimizer, kkt_residual,
         paper_test_iteration, gradient_evaluations, scale, stopping (the settings),
         evaluate_time_s (inside Problem.evaluate), optimizer_share (1 - evaluate_time_s /
         wall_time_s); NLopt: nlopt_result, restarts, failed_simulations,
