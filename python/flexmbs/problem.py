@@ -649,8 +649,6 @@ class Problem:
         ev.variables = self.variables
         ev.units = unit_table(self)
         ev.resolution = resolution(self)
-        if ev.result is not None and "wall_time" not in ev.stats:
-            ev.stats = dict(ev.stats, wall_time=ev.result.wall_time)
         return ev
 
     def _evaluate(self, x, gradient, method, store, t0):
@@ -683,7 +681,7 @@ class Problem:
                           gradients={k: v for k, v in grads.items() if k in want},
                           objective=f, d_objective=df if gradient else None, constraints=cons,
                           jacobian=jac, constraint_names=names,
-                          stats=result.stats if result is not None else {},
+                          stats=_stats(result),
                           wall_time=_time.perf_counter() - t0,
                           gradient_method="direct" if gradient else None,
                           result=None if store is None else result)
@@ -860,7 +858,7 @@ class Problem:
         return Evaluation(x=x, t=t, values=values,
                           gradients={n: (None if n in partials else g) for n, g in grads.items()},
                           objective=f, d_objective=df, constraints=cons, jacobian=jac,
-                          constraint_names=names, stats=result.stats,
+                          constraint_names=names, stats=_stats(result),
                           wall_time=_time.perf_counter() - t0, gradient_method="adjoint",
                           result=None if store is None else result)
 
@@ -890,6 +888,12 @@ class Problem:
         limits = [c.upper for c in self.description.constraints
                   if c.upper is not None and isinstance(self._resp[c.response], Deviation)]
         return min(limits) if limits else None
+
+
+def _stats(result):
+    """An Evaluation's stats: the simulation's (Result.stats) with its wall_time (s); {}
+    without a simulation."""
+    return {} if result is None else dict(result.stats, wall_time=result.wall_time)
 
 
 def _check_checkpoints(checkpoints, name="checkpoints"):
