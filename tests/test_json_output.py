@@ -85,7 +85,7 @@ def test_a_case_without_responses_simulates_its_motion(tmp_path, capsys):
     """A case without [[responses]]: `simulate` runs the motion (its 100 steps of the
     0.05 s given), prints its summary and what to add in the case's words; --out writes the
     motion (before: 'wall time 0.000 s' having done nothing, and --out refused with "store=
-    asks for coordinates"). The crank's largest deflection from the rigid motion is at least
+    asks for coordinates"); `check` says there is nothing to check. The crank's largest deflection from the rigid motion is at least
     the deviation (33) of its tip A, which the full case computes on the same run (eq. 33:
     the norm of A's displacement from its rigid position; A is a node of the crank)."""
     case = _without_responses(tmp_path)
@@ -104,6 +104,8 @@ def test_a_case_without_responses_simulates_its_motion(tmp_path, capsys):
     assert out["motion"]["drives"]["motor"]["max_abs"] > 0
     ev = _json(capsys, ["evaluate", str(case), "--t-end", "0.05", "--json"])
     assert ev["run"]["steps"] == 100 and "motion" in ev
+    assert main(["check", str(case)]) == 2            # it said "every response converged"
+    assert "add a [[responses]] table" in capsys.readouterr().err
 
 
 # ----------------------------------------------------------------------------- digits, tolerance
