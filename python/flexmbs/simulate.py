@@ -90,7 +90,8 @@ class Result:
         static_iterations, steps, sensitivity_factorizations (of the factorizations, those
         made for the derivative solves), symbolic_analyses (KLU's symbolic analyses of the
         pattern made by the run: 0, the model's one being borrowed,
-        flexmbs.core.KluAnalysis), solver, unknowns, newton (the strategy).
+        flexmbs.core.KluAnalysis), solver, unknowns, newton (the strategy), memory_estimate
+        (bytes: the estimate checked against the memory limit before the run).
     wall_time : seconds spent in the simulation (including the set-up in Python).
     validity : flexmbs.validity.Validity, the checks run after the simulation (strains of the
         beams, constraint drift, energy of a free system); see simulate(validity=...).
