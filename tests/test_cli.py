@@ -281,10 +281,13 @@ def test_simulate_json_gives_the_published_table1_design(capsys):
 
 
 def test_simulate_summary_names_every_response_and_the_overrides(capsys):
-    """The summary lists each response of the case with its maximum; --t-end (0.05 s: 101
-    steps of 5e-4 s) and --set time.h=1e-3 (51 steps) change the grid."""
+    """The summary lists each response of the case with its maximum; --t-end (0.05 s: 100
+    steps of 5e-4 s, as Result.stats['steps'] counts them) and --set time.h=1e-3 (50 steps)
+    change the grid."""
     assert main(["simulate", "robot_2dof", "--t-end", "0.05"]) == 0
     out = capsys.readouterr().out
-    assert "deviation_28" in out and "deviation_30" in out and "of 101)" in out
+    assert "deviation_28" in out and "deviation_30" in out and "of 100)" in out
+    assert "100 steps of h = 0.0005 s" in out
     assert main(["simulate", "robot_2dof", "--t-end", "0.05", "--set", "time.h=1e-3"]) == 0
-    assert "of 51)" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "of 50)" in out and "50 steps of h = 0.001 s" in out

@@ -13,16 +13,17 @@ Public API (explicit):
                                  designs verified at converged resolution (accuracy.py)
     check_tangent, check_iteration_matrix, taylor_test   derivative checkers (checks.py)
     FlexmbsError, ModelError, SimulationError, CaseError, ResourceError,
-    InvalidResultError, ValidityWarning   exceptions and warnings (errors.py)
+    InvalidResultError, ValidityWarning, SettingWarning   exceptions and warnings (errors.py)
+    FEASIBILITY_TOL              the one feasibility tolerance (problem.py)
 """
 from flexmbs.accuracy import convergence_check, simulate_with_error, verify
 from flexmbs.checks import check_iteration_matrix, check_tangent, taylor_test
 from flexmbs.errors import (CaseError, FlexmbsError, InvalidResultError, ModelError,
-                            ResourceError, SimulationError, ValidityWarning)
+                            ResourceError, SettingWarning, SimulationError, ValidityWarning)
 from flexmbs.laws import TimeLaw
 from flexmbs.model import Body, Model
 from flexmbs.optimize import OptimizationResult, optimize_fully, optimize_weakly
-from flexmbs.problem import Problem, load_problem
+from flexmbs.problem import FEASIBILITY_TOL, Problem, load_problem
 from flexmbs.sections import Circle, GivenSection, Material, Rectangle, Tube
 from flexmbs.simulate import Result, simulate
 
@@ -32,6 +33,6 @@ __all__ = [
     "simulate", "Result", "simulate_with_error", "verify", "convergence_check",
     "check_tangent", "check_iteration_matrix", "taylor_test",
     "FlexmbsError", "ModelError", "SimulationError", "CaseError", "ResourceError",
-    "InvalidResultError", "ValidityWarning",
+    "InvalidResultError", "ValidityWarning", "SettingWarning", "FEASIBILITY_TOL",
 ]
 __version__ = "0.1.0"

@@ -43,7 +43,8 @@ from flexmbs.errors import CaseError, FlexmbsError, ModelError
 __all__ = ["main", "build_parser", "COMMANDS", "add_case_arguments", "problem_from_args",
            "design_from_text", "parse_values", "parse_set", "register_simulate", "positive_int",
            "nonnegative_int", "path_text",
-           "output_file", "figure_file", "print_evaluation", "add_design_arguments"]
+           "output_file", "figure_file", "print_evaluation", "add_design_arguments",
+           "evaluate_case", "evaluation_json", "needs_motion"]
 
 #: Subcommand registration functions, "module:function", in the order of the help text.
 COMMANDS = [
@@ -266,27 +267,81 @@ def add_design_arguments(p):
                         "it is in its asymptotic range")
 
 
-def print_evaluation(prob, ev, source=None):
-    """The summary of an Evaluation for people: design, every response, the constraints."""
+def _gradient_text(g, gunits):
+    """A gradient with its units: '1.2e-06, 3.4e-07 (m/mm)' when every component has the
+    same unit, else each component with its own."""
+    gunits = list(gunits or [])
+    if len(gunits) != len(g) or None in gunits:
+        return ", ".join(f"{x:.6g}" for x in g)
+    if len(set(gunits)) == 1:
+        return ", ".join(f"{x:.6g}" for x in g) + f" ({gunits[0]})"
+    return ", ".join(f"{x:.6g} {u}" for x, u in zip(g, gunits))
+
+
+def needs_motion(prob):
+    """Whether a response of the problem needs a simulation (any but a mass)."""
+    return any(r.type != "mass" for r in prob.description.responses)
+
+
+def evaluate_case(prob, x, args, store=None):
+    """(Evaluation, motion summary or None) of `simulate` and `evaluate`: the responses at
+    design x as the options ask; a case whose responses need no simulation (none, or masses
+    only) has its motion simulated all the same and summarized (flexmbs.output.motion_summary)."""
+    from flexmbs.output import motion_summary
+
+    motion = not needs_motion(prob)
+    ev = prob.evaluate(x, gradient=args.gradient, store="all" if motion else store,
+                       error=args.error)
+    return ev, (motion_summary(prob, ev.result) if motion else None)
+
+
+def evaluation_json(prob, ev, motion=None):
+    """The JSON object of `simulate --json` and `evaluate --json` (docs/json-output.md)."""
+    from flexmbs.output import NO_RESPONSES
+
+    out = ev.to_json()
+    out["case"] = prob.description.case.name
+    if motion is not None:
+        out["motion"] = motion
+        out["units"]["motion"] = {"deflection": "m", "t": "s"}
+        if not prob.description.responses:
+            out["notes"] = [NO_RESPONSES]
+    return out
+
+
+def print_evaluation(prob, ev, source=None, motion=None):
+    """The summary of an Evaluation for people: design, every response with its unit (and
+    its gradient's), the constraints, warnings, the resolution and the run's statistics;
+    with `motion` (flexmbs.output.motion_summary), the motion's largest deflections and drive
+    forces."""
+    from flexmbs.output import NO_RESPONSES
+    from flexmbs.problem import FEASIBILITY_TOL
+    from flexmbs.resources import format_bytes
+
     d = prob.description
     units = prob.mechanism.units
+    resp_units = (ev.units or {}).get("responses", {})
+    grad_units = (ev.units or {}).get("gradients", {})
     print(f"{d.case.name}: {printable(d.case.description or '')}")
     if source:
         print(f"  case file       {printable(source)}")
     if prob.variables:
-        print("  design          " + ", ".join(f"{n} = {v:.5g} {u}" for n, v, u in
+        print("  design          " + ", ".join(f"{n} = {v:.10g} {u}" for n, v, u in
                                                zip(prob.variables, ev.x, units)))
     for name, v in ev.values.items():
         g = ev.gradients.get(name)
+        u = resp_units.get(name)
+        us = f" {u}" if u else ""
         if np.ndim(v) == 0:
-            line = f"  {name:15s} {float(v):.6g}"
+            line = f"  {name:15s} {float(v):.10g}{us}"
             if g is not None:
-                line += "   gradient " + ", ".join(f"{x:.4g}" for x in g)
+                line += "   gradient " + _gradient_text(g, grad_units.get(name))
         else:
             j = int(np.argmax(v))
-            line = f"  {name:15s} max {v[j]:.6g} at t = {ev.t[j]:.4f} s (step {j + 1} of {v.size})"
+            line = (f"  {name:15s} max {v[j]:.10g}{us} at t = {ev.t[j]:.6g} s "
+                    f"(step {j} of {v.size - 1})")
             if g is not None:
-                line += "   gradient of the max " + ", ".join(f"{x:.4g}" for x in g[j])
+                line += "   gradient of the max " + _gradient_text(g[j], grad_units.get(name))
         e = (ev.errors or {}).get(name)
         if e is not None and (e.error > 0 or np.ndim(v)):
             line += f"   {e.describe()}"
@@ -294,13 +349,38 @@ def print_evaluation(prob, ev, source=None):
     if ev.constraints.size:
         state = "feasible" if ev.feasible else "INFEASIBLE"
         print(f"  constraints     {state}: largest g = {ev.max_violation:.4g} "
-              f"({ev.constraints.size} rows, g <= 0, relative to the limits)")
+              f"({ev.constraints.size} rows g <= 0, relative to the limits; feasible when "
+              f"g <= {FEASIBILITY_TOL:g})")
+    for w in ev.gradient_warnings():
+        print(f"  warning         {printable(w)}")
+    if motion is not None:
+        if not d.responses:
+            print(f"  no responses    {NO_RESPONSES}")
+        for name, m in motion["deflection"].items():
+            print(f"  {name:15s} largest deflection from the rigid motion {m['max']:.6g} m "
+                  f"at t = {m['t']:.6g} s")
+        for name, m in motion["drives"].items():
+            what = "torque" if m["unit"] == "N m" else "force"
+            print(f"  {name:15s} largest |{what}| {m['max_abs']:.6g} {m['unit']} "
+                  f"at t = {m['t']:.6g} s")
     s = ev.stats or {}
+    r = ev.resolution or {}
     if s:
-        print(f"  simulation      {ev.t.size} steps of {prob.description.time.h:g} s, "
-              f"{s.get('newton_iterations', '?')} Newton iterations, {ev.wall_time:.3f} s")
+        steps = s.get("steps", r.get("steps", ev.t.size - 1))
+        print(f"  simulation      {steps} steps of h = {d.time.h:g} s to t = "
+              f"{r.get('t_end', ev.t[-1]):.10g} s: {s.get('newton_iterations', '?')} Newton "
+              f"iterations, {s.get('factorizations', '?')} factorizations, "
+              f"{s.get('step_cuts', '?')} step cuts")
+        if r.get("elements"):
+            print("  resolution      elements " + ", ".join(
+                f"{b} {n}" for b, n in r["elements"].items())
+                + f"; rho_inf {d.time.rho_inf:g}, start {d.time.start}")
+        mem = s.get("memory_estimate")
+        print(f"  time            wall {ev.wall_time:.3f} s, CPU {ev.cpu_time:.3f} s"
+              + (f"; memory estimate {format_bytes(mem)}" if mem is not None else ""))
     else:
-        print(f"  wall time       {ev.wall_time:.3f} s")
+        print(f"  time            wall {ev.wall_time:.3f} s, CPU {ev.cpu_time:.3f} s (nothing "
+              f"simulated: no response needs the motion)")
 
 
 def _npz_estimate(prob):
@@ -316,8 +396,7 @@ def run_simulate(args):
         args.out = output_file(args.out, "--out", suffix=".npz", required=_npz_estimate(prob))
     if args.plot:
         args.plot = figure_file(args.plot, "--plot")
-    ev = prob.evaluate(x, gradient=args.gradient, store="all" if (args.out or args.plot) else None,
-                       error=args.error)
+    ev, motion = evaluate_case(prob, x, args, store="all" if (args.out or args.plot) else None)
     result = ev.result
     if args.out:
         _save_npz(args.out, prob, ev, result)
@@ -325,14 +404,13 @@ def run_simulate(args):
         from flexmbs.plots import plot_overview
         save_figure(plot_overview(prob, result, ev), args.plot, dpi=150, bbox_inches="tight")
     if args.json:
-        out = ev.to_json()
-        out["case"] = prob.description.case.name
+        out = evaluation_json(prob, ev, motion)
         for key in ("out", "plot"):
             if getattr(args, key):
                 out[key] = getattr(args, key)
         print_json(out)
     else:
-        print_evaluation(prob, ev)
+        print_evaluation(prob, ev, motion=motion)
         for what, f in (("results", args.out), ("figure", args.plot)):
             if f:
                 print(f"  {what:<15s} {f}")

@@ -4,6 +4,7 @@ the elements of every beam, with a verdict (flexmbs.accuracy.convergence_check).
 from __future__ import annotations
 
 from flexmbs.cli import add_case_arguments, design_from_text, print_json, problem_from_args
+from flexmbs.errors import CaseError
 
 __all__ = ["register", "run"]
 
@@ -31,6 +32,10 @@ def run(args):
     from flexmbs.accuracy import convergence_check
 
     prob = problem_from_args(args)
+    if not prob.description.responses:
+        raise CaseError(f"case {prob.description.case.name!r} has no responses: nothing to "
+                        f"check; add a [[responses]] table (docs/case-format.md), or "
+                        f"`flexmbs simulate` for the motion alone")
     report = convergence_check(prob, design_from_text(args.design, prob), rtol=args.rtol)
     if args.json:
         print_json(report.to_json())

@@ -2,11 +2,9 @@
 (exact, direct differentiation), as a summary or one JSON object."""
 from __future__ import annotations
 
-import json
-import sys
-
 from flexmbs.cli import (add_case_arguments, add_design_arguments, design_from_text,
-                         print_evaluation, problem_from_args)
+                         evaluate_case, evaluation_json, print_evaluation, print_json,
+                         problem_from_args)
 
 __all__ = ["register", "run"]
 
@@ -24,11 +22,9 @@ def register(subparsers):
 
 def run(args):
     prob = problem_from_args(args)
-    ev = prob.evaluate(design_from_text(args.design, prob), gradient=args.gradient,
-                       error=args.error)
+    ev, motion = evaluate_case(prob, design_from_text(args.design, prob), args)
     if args.json:
-        json.dump(ev.to_json(), sys.stdout)
-        sys.stdout.write("\n")
+        print_json(evaluation_json(prob, ev, motion))
         return 0
-    print_evaluation(prob, ev)
+    print_evaluation(prob, ev, motion=motion)
     return 0

@@ -1,7 +1,7 @@
 """Exceptions raised by flexmbs. Every message names the input or the time step at fault."""
 
 __all__ = ["FlexmbsError", "ModelError", "SimulationError", "CaseError", "ResourceError",
-           "InvalidResultError", "ValidityWarning"]
+           "InvalidResultError", "ValidityWarning", "SettingWarning"]
 
 
 class FlexmbsError(Exception):
@@ -67,3 +67,8 @@ class InvalidResultError(FlexmbsError, RuntimeError):
 
 class ValidityWarning(UserWarning):
     """A result is suspicious but not certainly wrong (a validity check near its limit)."""
+
+
+class SettingWarning(UserWarning):
+    """A setting is allowed but likely not what was meant (e.g. a static start, which assumes
+    rest, with a drive already moving at t = 0); the message says what to change."""

@@ -30,6 +30,8 @@ from flexmbs.description import (GROUND, Beam, Deviation, Description, Mass, Rea
                                  Torque)
 from flexmbs.errors import CaseError, ModelError, ResourceError
 from flexmbs.mechanism import Mechanism
+from flexmbs.output import max_gradient_warning, resolution, run_statistics
+from flexmbs.output import units as unit_table
 from flexmbs.responses.aggregate import aggregate, aggregate_weights
 from flexmbs.responses.deviation import deviation, deviation_terms
 from flexmbs.responses.forces import constraint_force, joint_reaction
@@ -37,7 +39,21 @@ from flexmbs.responses.stress import beam_stress
 from flexmbs.resources import format_bytes, limit_source, memory_limit
 from flexmbs.simulate import CHECKPOINT_PART, TAPE_PART, memory_estimate, simulate
 
-__all__ = ["Problem", "Evaluation", "load_problem", "constraint_rows", "GRADIENT_METHODS"]
+__all__ = ["Problem", "Evaluation", "load_problem", "constraint_rows", "GRADIENT_METHODS",
+           "FEASIBILITY_TOL", "is_feasible"]
+
+#: The one feasibility tolerance of flexmbs: a design is feasible when its largest normalised
+#: constraint value g (relative to the limits, g <= 0 asked) is <= FEASIBILITY_TOL. Evaluation,
+#: the command line's summaries, every optimizer's verdict and stopping test and the
+#: reproduction's checks use it (docs/json-output.md).
+FEASIBILITY_TOL = 1e-6
+
+
+def is_feasible(max_violation, tol=None):
+    """A largest constraint value g is feasible: None (no constraint) or g <= tol
+    (FEASIBILITY_TOL unless given)."""
+    return max_violation is None or float(max_violation) <= (FEASIBILITY_TOL if tol is None
+                                                             else tol)
 
 #: Gradient methods of Problem.evaluate (see Problem.gradient_method).
 GRADIENT_METHODS = ("direct", "adjoint", "auto")
@@ -129,11 +145,33 @@ class Evaluation:
     #: constrained response's largest normalised value g (relative to its limit)
     objective_error: object = None
     constraint_errors: dict | None = None
+    #: CPU seconds of the process during the evaluation (with wall_time)
+    cpu_time: float = 0.0
+    #: the design variables' names (the order of x) and, as `flexmbs.output.units` and
+    #: `flexmbs.output.resolution`, the units of every number and the discretisation used
+    #: (set by Problem.evaluate; empty for an Evaluation made otherwise)
+    variables: list = field(default_factory=list)
+    units: dict = field(default_factory=dict)
+    resolution: dict = field(default_factory=dict)
 
     @property
     def feasible(self):
-        """All constraints hold (g <= 1e-9)."""
-        return bool(np.all(self.constraints <= 1e-9))
+        """All constraints hold: the largest g <= FEASIBILITY_TOL."""
+        return is_feasible(self.max_violation if self.constraints.size else None)
+
+    def gradient_warnings(self):
+        """Sentences on the gradients of the histories' maxima that are not differentiable
+        (two peaks within flexmbs.output.PEAK_TIE_REL of each other with other gradients:
+        `flexmbs.output.max_gradient_warning`)."""
+        out = []
+        for name, v in self.values.items():
+            g = self.gradients.get(name)
+            if g is not None and np.ndim(v) == 1:
+                w = max_gradient_warning(name, v, g, self.t,
+                                         (self.units.get("responses") or {}).get(name))
+                if w:
+                    out.append(w)
+        return out
 
     @property
     def max_violation(self):
@@ -141,10 +179,16 @@ class Evaluation:
         return float(self.constraints.max()) if self.constraints.size else -np.inf
 
     def to_json(self):
-        """A JSON-serialisable dict (histories as their maximum and time of maximum)."""
+        """A JSON-serialisable dict (histories as their maximum and time of maximum), its
+        keys documented in docs/json-output.md."""
         out = {"design": self.x.tolist(), "objective": self.objective,
                "feasible": self.feasible,
                "max_violation": self.max_violation if self.constraints.size else None,
+               "feasibility_tol": FEASIBILITY_TOL,
+               "variables": list(self.variables), "units": dict(self.units),
+               "resolution": dict(self.resolution),
+               "run": run_statistics(self.stats, self.wall_time, self.cpu_time),
+               "warnings": self.gradient_warnings(),
                "responses": {}}
         for k, v in self.values.items():
             g = self.gradients.get(k)
@@ -585,7 +629,8 @@ class Problem:
         store : None (default: only the coordinates the responses read) or as `simulate`'s
             ('all', or a list of nodes): those coordinates are kept too, and the run is
             returned in Evaluation.result (one simulation for the responses and for a plot or
-            a file of the motion).
+            a file of the motion). Given when no response needs a simulation (a case without
+            responses, or with mass responses only), the motion is simulated all the same.
         error : False (default), True or 2
             True: also estimate every value's time-discretisation error (flexmbs.accuracy:
             the design simulated again at h/2 and h/4, without gradients; about 6 more
@@ -594,7 +639,19 @@ class Problem:
             range; 2: h/2 only (about 2 more simulations' time, no verdict)."""
         if error is not False:
             return self._evaluate_with_error(x, gradient, method, store, error)
-        t0 = _time.perf_counter()
+        t0, c0 = _time.perf_counter(), _time.process_time()
+        return self._described(self._evaluate(x, gradient, method, store, t0), c0)
+
+    def _described(self, ev, c0):
+        """ev with its CPU time since c0, the variables' names, the units of its numbers and
+        the resolution (flexmbs.output)."""
+        ev.cpu_time = _time.process_time() - c0
+        ev.variables = self.variables
+        ev.units = unit_table(self)
+        ev.resolution = resolution(self)
+        return ev
+
+    def _evaluate(self, x, gradient, method, store, t0):
         mech = self.mechanism
         x = mech.start if x is None else mech.design_values(x)
         want = self._gradient_names(gradient) if mech.variables else []
@@ -603,11 +660,10 @@ class Problem:
         chosen = self.gradient_method(method)
         if gradient and timed and chosen == "adjoint":
             return self._evaluate_adjoint(x, timed, t0, store)
-        if store is not None and not timed:
-            raise ModelError("evaluate: store= asks for coordinates, but no response of this "
-                             "problem needs a simulation")
-        result = self.simulate(x, gradient=gradient, responses=timed, store=store,
-                               differentiate=[n for n in timed if n in want]) if timed else None
+        # the motion is simulated when a response needs it, or when store= asks for it
+        result = self.simulate(x, gradient=gradient and bool(timed), responses=timed,
+                               store=store, differentiate=[n for n in timed if n in want]) \
+            if timed or store is not None else None
         model = mech.design_model(x) if result is None else result.design_model
         values, grads = {}, {}
         for name, r in self._resp.items():
@@ -625,7 +681,7 @@ class Problem:
                           gradients={k: v for k, v in grads.items() if k in want},
                           objective=f, d_objective=df if gradient else None, constraints=cons,
                           jacobian=jac, constraint_names=names,
-                          stats=result.stats if result is not None else {},
+                          stats=_stats(result),
                           wall_time=_time.perf_counter() - t0,
                           gradient_method="direct" if gradient else None,
                           result=None if store is None else result)
@@ -640,9 +696,9 @@ class Problem:
         else:
             raise ModelError(f"evaluate: error must be False, True (h, h/2, h/4) or 2 (h, h/2), "
                              f"got {error!r}")
-        t0 = _time.perf_counter()
+        t0, c0 = _time.perf_counter(), _time.process_time()
         ev = self.evaluate(x, gradient=gradient, method=method, store=store)
-        if not any(np.ndim(v) for v in ev.values.values()) and ev.stats == {}:
+        if not any(np.ndim(v) for v in ev.values.values()):
             return ev            # nothing simulated: nothing has a time-discretisation error
         evs = [ev] + [self.refined(2 ** k).evaluate(ev.x, gradient=False)
                       for k in range(1, levels)]
@@ -650,6 +706,7 @@ class Problem:
         ev.errors, ev.objective_error, ev.constraint_errors = estimate_errors(
             evs, [h / 2 ** k for k in range(levels)])
         ev.wall_time = _time.perf_counter() - t0
+        ev.cpu_time = _time.process_time() - c0
         return ev
 
     def _adjoint_plan(self, x, responses, store=None, checkpoints=_DEFAULT, run=None):
@@ -801,7 +858,7 @@ class Problem:
         return Evaluation(x=x, t=t, values=values,
                           gradients={n: (None if n in partials else g) for n, g in grads.items()},
                           objective=f, d_objective=df, constraints=cons, jacobian=jac,
-                          constraint_names=names, stats=result.stats,
+                          constraint_names=names, stats=_stats(result),
                           wall_time=_time.perf_counter() - t0, gradient_method="adjoint",
                           result=None if store is None else result)
 
@@ -831,6 +888,12 @@ class Problem:
         limits = [c.upper for c in self.description.constraints
                   if c.upper is not None and isinstance(self._resp[c.response], Deviation)]
         return min(limits) if limits else None
+
+
+def _stats(result):
+    """An Evaluation's stats: the simulation's (Result.stats) with its wall_time (s); {}
+    without a simulation."""
+    return {} if result is None else dict(result.stats, wall_time=result.wall_time)
 
 
 def _check_checkpoints(checkpoints, name="checkpoints"):

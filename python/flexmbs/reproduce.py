@@ -44,6 +44,7 @@ from flexmbs.accuracy import describe_verification
 from flexmbs.batch import MaxDeviationResult, StoredResult
 from flexmbs.errors import ModelError
 from flexmbs.study import MapSpec, Run, Study, TableSpec, Variant, load_study
+from flexmbs.problem import is_feasible
 
 # TABLES and MAPS (the shipped study's tables and maps) are read when first used (__getattr__)
 __all__ = ["reproduce", "Report", "Row", "TableSpec", "Run", "paper_tables",
@@ -671,14 +672,14 @@ class VariantRow:
     @property
     def feasible(self):
         """The design is feasible: the run's own re-simulated verdict (``feasible``), else
-        its maximum violation <= 1e-6; and, when the run was verified, feasible at converged
+        its maximum violation <= FEASIBILITY_TOL (flexmbs.problem); and, when the run was verified, feasible at converged
         resolution (`verified_feasible`)."""
         if not verified_feasible(self.result):
             return False
         if "feasible" in self.result and self.result["feasible"] is not None:
             return bool(self.result["feasible"])
         v = self.result.get("max_violation")
-        return v is not None and float(v) <= 1e-6
+        return v is not None and is_feasible(v)
 
     @property
     def mass_difference(self):

@@ -10,7 +10,7 @@ import numpy as np
 
 from flexmbs import _core
 from flexmbs.core import core_model_args, klu_analysis, system_matrices
-from flexmbs.errors import ModelError, ResourceError, SimulationError
+from flexmbs.errors import ModelError, ResourceError, SettingWarning, SimulationError
 from flexmbs.model import Model
 from flexmbs.sections import has_complex
 from flexmbs.resources import (call_with_stack, check_memory, estimate_memory, format_bytes,
@@ -90,7 +90,8 @@ class Result:
         static_iterations, steps, sensitivity_factorizations (of the factorizations, those
         made for the derivative solves), symbolic_analyses (KLU's symbolic analyses of the
         pattern made by the run: 0, the model's one being borrowed,
-        flexmbs.core.KluAnalysis), solver, unknowns, newton (the strategy).
+        flexmbs.core.KluAnalysis), solver, unknowns, newton (the strategy), memory_estimate
+        (bytes: the estimate checked against the memory limit before the run).
     wall_time : seconds spent in the simulation (including the set-up in Python).
     validity : flexmbs.validity.Validity, the checks run after the simulation (strains of the
         beams, constraint drift, energy of a free system); see simulate(validity=...).
@@ -303,6 +304,23 @@ def _drives_move_at_start(cm, margs):
     rows = cm.c_law[:cm.nc]
     used = rows[rows > 0] - 1
     return bool(used.size) and bool(np.any(np.asarray(margs["law_der"])[used, 0] != 0.0))
+
+
+def _static_start_note(model, cm, margs):
+    """Why a static start with drives moving at t = 0 may fail, and what to do instead."""
+    rows = cm.c_law[:cm.nc]
+    rate = np.asarray(margs["law_der"])[:, 0]
+    laws = model.laws()
+
+    def name(r):          # the law's name (a case's drive: 'drive motor'), else the row's
+        law = getattr(laws[rows[r] - 1], "name", None)
+        return law if law and law != "law" else model.row_label(r)
+    moving = list(dict.fromkeys(name(r) for r in range(cm.nc)
+                                if rows[r] > 0 and rate[rows[r] - 1] != 0.0))
+    return (f"start = 'static' assumes the mechanism at rest at t = 0, but "
+            f"{', '.join(moving)} already move{'s' * (len(moving) == 1)} then (the velocity "
+            f"jumps in the first step): use start = 'rest' (the velocities the drives impose "
+            f"at t = 0) or a law that starts at zero speed (ramp_to_speed, smooth_step)")
 
 
 def stored_dofs(model, store="all"):
@@ -598,6 +616,8 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     for name, v in (("q0", q_init), ("qd0", qd_init)):
         if v.shape != (cm.ndof,) or not np.all(np.isfinite(v)):
             raise ModelError(f"{name} must be a finite array of {cm.ndof} coordinates")
+    if start == "static" and qd0 is None and _drives_move_at_start(cm, margs):
+        warnings.warn(_static_start_note(model, cm, margs), SettingWarning, stacklevel=2)
 
     nel = cm.el_dofs.shape[1]
     if design_derivatives is not None:
@@ -651,6 +671,7 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     st["newton"] = newton
     st["solver"] = solver
     st["unknowns"] = cm.n
+    st["memory_estimate"] = est.total        # bytes, the estimate checked before the run
     if status == _NO_MEMORY:
         raise _no_memory_error(cm, solver, info)
     if status != 0:
@@ -659,7 +680,10 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
                                          props=props)
         except Exception as exc:     # the diagnosis must never hide the failure itself
             diagnosis = f"(no diagnosis: {type(exc).__name__}: {exc})"
-        raise SimulationError(_messages(model, int(status), info, max_cuts, diagnosis),
+        message = _messages(model, int(status), info, max_cuts, diagnosis)
+        if start == "static" and qd0 is None and _drives_move_at_start(cm, margs):
+            message += f"; {_static_start_note(model, cm, margs)}"
+        raise SimulationError(message,
                               time=float(info[0]), residual=float(info[1]),
                               iterations=int(info[2]), code=int(status))
     res = Result(t=t, q=q_out.T, qd=qd_out.T, qdd=qdd_out.T, mu=mu_out[:cm.nc].T, dofs=out,

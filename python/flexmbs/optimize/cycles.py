@@ -33,6 +33,7 @@ from types import SimpleNamespace
 
 from flexmbs.errors import ModelError
 from flexmbs.sections import real_number, whole_number
+from flexmbs.problem import FEASIBILITY_TOL
 
 __all__ = ["CycleControl", "check_cycle_options", "check_remedies", "move_limited_bounds",
            "damped_update", "DIAGNOSES", "DIVERGING_CYCLES"]
@@ -135,7 +136,7 @@ class CycleControl:
     Parameters: eps (eq. 25), confirm_cycles, max_cycles, stop_on_oscillation (stop on a
     diagnosis 'oscillating' or 'diverging'; else only note it and go on to the cap),
     design_tol (None: eq. 25 only), feasibility_tol (a design is feasible when its largest
-    simulated constraint value g <= feasibility_tol).
+    simulated constraint value g <= feasibility_tol, default flexmbs.problem.FEASIBILITY_TOL).
 
     Attributes: designs, changes (ESL change per cycle), design_changes (relative, per cycle),
     converged, diagnosis (one of DIAGNOSES, '' while running), reason, period (oscillation
@@ -144,7 +145,7 @@ class CycleControl:
     seen and what `observe` was given with it)."""
 
     def __init__(self, eps, confirm_cycles, max_cycles, stop_on_oscillation, design_tol=None,
-                 feasibility_tol=1e-6):
+                 feasibility_tol=FEASIBILITY_TOL):
         self.eps, self.confirm_cycles = eps, confirm_cycles
         self.max_cycles, self.stop_on_oscillation = max_cycles, stop_on_oscillation
         self.design_tol, self.feasibility_tol = design_tol, feasibility_tol

@@ -18,8 +18,8 @@ The optimizer loops are those of `flexmbs.optimize.loops` (`_run_mma`, `_run_sqp
   their gradients, since a trial is most often accepted.
 
 Stopping test (`flexmbs.optimize.loops`): the paper's, relative objective change between two iterations
-< `objective_rel_change` (1e-3) and constraint violation max(0, max g) < `constraint_violation`
-(1e-6), together with the first-order test (relative KKT residual < `kkt_tol`, 1e-3, over
+< `objective_rel_change` (1e-3) and constraint violation max(0, max g) <= `constraint_violation`
+(flexmbs.problem.FEASIBILITY_TOL, 1e-6), together with the first-order test (relative KKT residual < `kkt_tol`, 1e-3, over
 the constraints within `active_tol` of their limit and the bounds touched); a run whose design
 stops changing for 5 iterations ends as not converged.
 
@@ -47,6 +47,7 @@ from flexmbs.optimize.result import OptimizationResult, open_history
 from flexmbs.optimize.verified import check_verify, finish
 from flexmbs.progress import check_progress, describe_iteration, reporter
 from flexmbs.sections import real_number
+from flexmbs.problem import FEASIBILITY_TOL, is_feasible
 
 __all__ = ["optimize_fully", "ScaledProblem", "OPTIMIZERS", "choose_optimizer", "MANY_VARIABLES"]
 
@@ -393,7 +394,8 @@ def _nlopt_settings(options):
 
 
 def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
-                   max_simulations=1000, objective_rel_change=1e-3, constraint_violation=1e-6,
+                   max_simulations=1000, objective_rel_change=1e-3,
+                   constraint_violation=FEASIBILITY_TOL,
                    design_rel_change=None, kkt_tol=1e-3, active_tol=1e-3, scale=None,
                    mma_options=None, trust_radius=0.2, max_trust_radius=0.5,
                    model_fidelity=0.1, screen=-0.3, nlopt_options=None, history=None,
@@ -423,8 +425,8 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
     max_simulations : int, default 1000
     objective_rel_change : float, default 1e-3
         The paper's test: relative objective change between two iterations below this ...
-    constraint_violation : float, default 1e-6
-        ... and constraint violation max(0, max g) below this (g relative to the limits).
+    constraint_violation : float, default flexmbs.problem.FEASIBILITY_TOL (1e-6)
+        ... and constraint violation max(0, max g) at most this (g relative to the limits).
     design_rel_change : float, optional
         If given, the relative change of the (scaled) design must be below it too (the
         paper's four-bar: 1e-3).
@@ -616,7 +618,7 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
     if resume:
         details["replayed_simulations"] = P.replayed
     details["optimizer_share"] = max(0.0, 1.0 - P.evaluate_time_s / wall) if wall > 0 else 0.0
-    converged = mon.converged and viol < constraint_violation
+    converged = mon.converged and is_feasible(viol, constraint_violation)
     reason = mon.reason or "stopped"
     if mon.converged and not converged:
         reason += f"; but the re-simulated final design violates a constraint by {viol:.1e}"

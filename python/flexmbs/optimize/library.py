@@ -163,7 +163,7 @@ def run_nlopt(P, mon, x0, optimizer, *, screen=-0.3, max_restarts=20, xtol_rel=1
             if P.simulations >= mon.max_simulations:
                 mon.reason = f"maximum number of simulations ({mon.max_simulations}) reached"
                 raise _Finished
-            if state["phase"] == 0 and ev.violation < mon.constraint_violation:
+            if state["phase"] == 0 and ev.violation <= mon.constraint_violation:
                 state["restart_at"] = ev
                 raise _Feasible
             rows = state["rows"]
@@ -178,7 +178,7 @@ def run_nlopt(P, mon, x0, optimizer, *, screen=-0.3, max_restarts=20, xtol_rel=1
     names = ev.evaluation.constraint_names
     state["rows"] = screened_rows(ev.g, names, screen)
     z = to_z(np.asarray(x0, float))
-    if feasibility_phase and ev.violation >= mon.constraint_violation:
+    if feasibility_phase and ev.violation > mon.constraint_violation:
         state["phase"] = 0
     step = initial_step
     while True:

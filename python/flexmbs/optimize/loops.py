@@ -35,7 +35,8 @@ limit for a change of p of 0.01 mm). Hence:
 
 Stopping test (`_Monitor`, every optimizer, applied to the iterates; iteration 0 is the
 start): the paper's, i.e. the relative change of the objective between two iterations < 1e-3
-and the relative constraint violation max(0, max g) < 1e-6 (optionally also the relative
+and the relative constraint violation max(0, max g) <= FEASIBILITY_TOL (flexmbs.problem,
+1e-6; optionally also the relative
 change of the design variables < 1e-3, as the paper's four-bar); together with a first-order
 test, so that it cannot stop on a plateau: the KKT residual
 ||grad f + sum lambda_j grad g_j - mu_lo + mu_up|| / ||grad f|| (lambda, mu >= 0 by NNLS over
@@ -182,9 +183,9 @@ class _Monitor:
         """The optimizer cannot move from the last iterate ev: converged if it is feasible and
         satisfies the first-order test (the paper's objective change is then zero)."""
         kkt = self.last_kkt
-        if ev.violation < self.constraint_violation and kkt is not None and kkt < self.kkt_tol:
+        if ev.violation <= self.constraint_violation and kkt is not None and kkt < self.kkt_tol:
             self.converged = True
-            self.reason = (f"{why}: constraint violation {ev.violation:.1e} < "
+            self.reason = (f"{why}: constraint violation {ev.violation:.1e} <= "
                            f"{self.constraint_violation:g} and KKT residual {kkt:.1e} < "
                            f"{self.kkt_tol:g}")
         else:
@@ -221,7 +222,7 @@ class _Monitor:
             self.progress(self.writer.records[-1])
         if prev is not None:
             paper = (obj_change < self.objective_rel_change
-                     and ev.violation < self.constraint_violation
+                     and ev.violation <= self.constraint_violation
                      and (self.design_rel_change is None or des_change < self.design_rel_change))
             if paper and self.paper_test_iteration is None:
                 self.paper_test_iteration = k
@@ -229,7 +230,7 @@ class _Monitor:
                 self.converged = True
                 self.reason = (f"relative objective change {obj_change:.2e} < "
                                f"{self.objective_rel_change:g}, constraint violation "
-                               f"{ev.violation:.1e} < {self.constraint_violation:g}"
+                               f"{ev.violation:.1e} <= {self.constraint_violation:g}"
                                + ("" if self.design_rel_change is None else
                                   f", relative design change {des_change:.2e} < "
                                   f"{self.design_rel_change:g}")

@@ -29,7 +29,7 @@ import numpy as np
 from flexmbs.accuracy import describe_verification
 from flexmbs.batch import StoredResult
 from flexmbs.errors import ModelError, ResourceError, SimulationError
-from flexmbs.problem import load_problem
+from flexmbs.problem import FEASIBILITY_TOL, load_problem
 
 __all__ = ["multistart", "start_designs", "sample_memory", "check_sample_memory",
            "MultistartResult", "SAMPLERS", "start_job"]
@@ -255,7 +255,7 @@ class MultistartResult:
 
 def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0,
                start_range=None, candidates=None, workers=None, dask=None, store=None, progress=None,
-               best_tolerance=0.003, feasibility_tol=1e-6, resume=False, verify=True,
+               best_tolerance=0.003, feasibility_tol=FEASIBILITY_TOL, resume=False, verify=True,
                **options):
     """Run the fully coupled optimization from `starts` quasi-random starting designs.
 
@@ -291,7 +291,7 @@ def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0
         only checks that a store is given.)
     best_tolerance : float, default 0.003
         A start reached the best when it ended feasible within this relative objective.
-    feasibility_tol : float, default 1e-6
+    feasibility_tol : float, default flexmbs.problem.FEASIBILITY_TOL (1e-6)
         Largest re-checked violation max(0, max g) of a feasible design.
     verify : bool, float or 'check', default True
         Verify the best design at converged resolution (as `optimize_fully`'s verify): when

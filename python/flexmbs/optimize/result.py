@@ -46,6 +46,7 @@ import numpy as np
 from flexmbs.accuracy import describe_verification
 from flexmbs.errors import ModelError
 from flexmbs.files import check_regular_file, jsonable
+from flexmbs.problem import is_feasible
 
 __all__ = ["OptimizationResult", "HistoryWriter", "read_history", "jsonable", "open_history"]
 
@@ -306,8 +307,9 @@ class OptimizationResult:
 
     @property
     def feasible(self):
-        """All constraints of the final design hold within 1e-6 (relative)."""
-        return self.max_violation is None or self.max_violation < 1e-6
+        """All constraints of the final design hold: largest g <= FEASIBILITY_TOL
+        (flexmbs.problem, relative to the limits)."""
+        return is_feasible(self.max_violation)
 
     def to_dict(self, history=True):
         """A JSON-ready dict: the fields above, `details` merged at the top level."""

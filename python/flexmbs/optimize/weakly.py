@@ -75,7 +75,7 @@ from flexmbs.optimize.verified import check_verify, finish
 from flexmbs.optimize.cycles import (CycleControl, check_cycle_options, check_remedies,
                                      damped_update, move_limited_bounds)
 from flexmbs.progress import check_progress, describe_cycle, reporter
-from flexmbs.problem import _scalar, constraint_rows, load_problem
+from flexmbs.problem import FEASIBILITY_TOL, _scalar, constraint_rows, is_feasible, load_problem
 from flexmbs.responses.strain import raw_strain_derivatives, raw_strains, shape, gauss_points
 
 __all__ = ["optimize_weakly", "chains", "frame_by_joints", "StaticModel", "blend_loads"]
@@ -629,7 +629,7 @@ def _optimize_static(static, x0, lower, upper, *, screen, ftol, maxiter, active_
         nit += int(res.nit)
         z = np.clip(res.x, zl, zu)
         _, _, g, _, groups, names = static.evaluate(z * scale, gradient=False)
-        violated = (g > 1e-6) & ~keep
+        violated = (g > FEASIBILITY_TOL) & ~keep
         if not violated.any():
             break
         keep = select(g, groups, keep)
@@ -880,7 +880,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         record, values, g_dyn, names, dev = best.data
     mech.set_design(x)
     final_violation = float(g_dyn.max()) if g_dyn.size else None
-    feasible = final_violation is None or final_violation <= 1e-6
+    feasible = is_feasible(final_violation)
     reason = control.reason
     if use_best:
         lv = last_record["max_violation"]
