@@ -85,11 +85,15 @@ class Law(_Strict):
                      or 'linear' (on along the end tangent)
       reference      (drives only) the motion the rigid reference gives this drive when the
                      mechanism's ideal motion is prescribed by `paths`
+      piecewise      `segments`: a list of {until, law}, each law (any type but 'reference')
+                     over [the previous segment's until, its until); the last segment has no
+                     until and runs on; the laws are of the absolute time t
+      sum            `laws`: the sum of a list of laws (any type but 'reference')
     A rotation drive's law is added to the driven node's initial angle unless
     `absolute = true` (then the law is the angle itself, rad).
     """
     type: Literal["constant", "ramp_to_speed", "smooth_step", "harmonic", "cycloid",
-                  "polynomial", "samples", "reference"]
+                  "polynomial", "samples", "reference", "piecewise", "sum"]
     value: Finite | None = None
     start: Finite = 0.0
     end: Finite | None = None
@@ -109,6 +113,8 @@ class Law(_Strict):
     values: list[Finite] | None = None
     interpolation: Literal["pchip", "cubic"] = "pchip"
     extrapolate: Literal["hold", "linear"] | None = None
+    segments: Annotated[list["Segment"], Field(min_length=1)] | None = None
+    laws: Annotated[list["Law"], Field(min_length=1)] | None = None
     absolute: bool = False
 
     @model_validator(mode="after")
@@ -116,7 +122,8 @@ class Law(_Strict):
         need = {"constant": ["value"], "ramp_to_speed": ["ramp_s"],
                 "smooth_step": ["end", "t1"], "harmonic": ["amplitude", "frequency_hz"],
                 "cycloid": ["stroke", "period"], "polynomial": ["coefficients"],
-                "samples": ["times", "values"], "reference": []}[self.type]
+                "samples": ["times", "values"], "reference": [], "piecewise": ["segments"],
+                "sum": ["laws"]}[self.type]
         missing = [k for k in need if getattr(self, k) is None]
         if missing:
             raise ValueError(f"law type {self.type!r} needs {', '.join(missing)}")
@@ -126,12 +133,41 @@ class Law(_Strict):
             raise ValueError(f"smooth_step: t1 = {self.t1} must be after t0 = {self.t0}")
         if self.extrapolate is not None and self.type != "samples":
             raise ValueError(f"extrapolate applies to a 'samples' law, not to {self.type!r}")
+        for key, kind in (("segments", "piecewise"), ("laws", "sum")):
+            if getattr(self, key) is not None and self.type != kind:
+                raise ValueError(f"{key} belongs to a {kind!r} law, not to {self.type!r}")
+        inner = [g.law for g in self.segments or []] + list(self.laws or [])
+        for k, law in enumerate(inner):
+            if law.type == "reference":
+                raise ValueError(f"{self.type}: law {k + 1} is of type 'reference', which is "
+                                 "a whole drive's law, not a part of one")
+            if law.absolute:
+                raise ValueError(f"{self.type}: law {k + 1} sets absolute = true; set it on "
+                                 f"the {self.type} law itself")
+        if self.segments is not None:
+            ends = [g.until for g in self.segments]
+            if any(u is None for u in ends[:-1]) or ends[-1] is not None:
+                raise ValueError("piecewise: every segment but the last needs until (the end "
+                                 "of its interval, s); the last has none (it runs on)")
+            if any(b <= a for a, b in zip(ends[:-1], ends[1:-1])):
+                raise ValueError(f"piecewise: the segments' until = {ends[:-1]} must increase "
+                                 "strictly")
         if self.type == "samples":
             if len(self.times) != len(self.values) or len(self.times) < 2:
                 raise ValueError("samples: times and values need the same length, at least 2")
             if any(b <= a for a, b in zip(self.times, self.times[1:])):
                 raise ValueError("samples: times must increase strictly")
         return self
+
+
+class Segment(_Strict):
+    """A piece of a 'piecewise' law: `law` up to time `until` (s; from the previous segment's
+    until, or from the start); the last segment has no until."""
+    until: Finite | None = None
+    law: Law
+
+
+Law.model_rebuild()
 
 
 # ----------------------------------------------------------------------------- parts
@@ -217,8 +253,16 @@ class Beam(_Strict):
     end: Name = Field(alias="to")
     elements: Annotated[int, NoBool, Field(ge=1, le=20_000)] = 2
     order: Annotated[Literal[1, 2], NoBool] = 2
-    material: Name
+    material: Name | None = None
     section: Section
+
+    @model_validator(mode="after")
+    def _material(self):
+        if self.material is None and self.section.shape != "given":
+            raise ValueError(f"beam {self.name!r}: a {self.section.shape!r} section needs a "
+                             "material (only a 'given' section, whose EA, EI, rhoA are its "
+                             "own, goes without)")
+        return self
 
 
 class Rigid(_Strict):
@@ -621,7 +665,7 @@ class Description(_Strict):
                 point(where, b.end)
                 if b.start == b.end:
                     raise ValueError(f"{where}: from and to are the same point {b.start!r}")
-                if b.material not in self.materials:
+                if b.material is not None and b.material not in self.materials:
                     raise ValueError(f"{where}: unknown material {b.material!r} (materials: "
                                      f"{', '.join(self.materials) or 'none defined'})")
                 for dim, v in b.section.dimensions().items():

@@ -76,6 +76,14 @@ def make_law(spec, name="law", shift=0.0):
     if k == "samples":
         return TimeLaw.samples(spec.times, np.array(spec.values) + shift, name=name,
                                interpolation=spec.interpolation, extrapolate=spec.extrapolate)
+    if k == "piecewise":
+        return TimeLaw.piecewise(
+            [g.until for g in spec.segments[:-1]],
+            [make_law(g.law, f"{name} segment {i + 1}", shift)
+             for i, g in enumerate(spec.segments)], name=name)
+    if k == "sum":
+        return TimeLaw.sum([make_law(law, f"{name} term {i + 1}", shift if i == 0 else 0.0)
+                            for i, law in enumerate(spec.laws)], name=name)
     raise ModelError(f"{name}: a law of type {k!r} has no formula (it is computed from the "
                      "rigid reference)")
 
@@ -280,9 +288,10 @@ class Mechanism:
         beams = []
         for b in d.bodies:
             if isinstance(b, Beam):
-                mat = self.materials[b.material]
+                mat = self.materials.get(b.material)     # None: a 'given' section
                 body = m.add_beam(b.name, pts[b.start], pts[b.end], b.elements, material=mat,
-                                  section=Circle(1.0), order=b.order)
+                                  section=Circle(1.0) if mat is not None
+                                  else section_at(b.section, {}), order=b.order)
                 node[(b.name, b.start)] = body.first
                 node[(b.name, b.end)] = body.last
                 beams.append(b.name)
@@ -517,7 +526,7 @@ class Mechanism:
         out = np.zeros((5, len(self.model._elements), len(self.variables)))
         for name in self.beams:
             b = self._bodies[name]
-            mat = self.materials[b.material]
+            mat = self.materials.get(b.material)
             body = self.model.body(name)
             for e, vals in zip(body.elements, self._element_values(b, x_m)):
                 sec = section_at(b.section, {k: v for k, (v, _) in vals.items()})

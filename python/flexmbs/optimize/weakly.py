@@ -471,8 +471,8 @@ class StaticModel:
             u, du, b = sol[name]
             ks = b.stiffness
             body = mech.model.body(name)
+            c, dc = mech.half_depths(x, name)      # refuses a 'given' section
             E = float(mech.materials[mech._bodies[name].material].E)
-            c, dc = mech.half_depths(x, name)
             # the body's nodes in its frame: reference X and the static displacement on it
             aref = ks.ref_angle
             xr, yr, pr = ks.q_ref[0::3], ks.q_ref[1::3], ks.q_ref[2::3]
