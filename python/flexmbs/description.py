@@ -33,6 +33,7 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_valida
 
 __all__ = ["Description", "Law", "Beam", "Rigid", "PointMass", "Joint", "Drive", "Load",
            "SpringDamper", "DesignVariable", "Deviation", "Mass", "Stress", "Torque", "Reaction",
+           "Station", "Deflection", "Strain",
            "Constraint",
            "TimeSettings", "Section", "MaterialSpec", "Term", "PointRef", "GROUND",
            "design_layout"]
@@ -467,20 +468,46 @@ class DesignVariable(_Strict):
 
 
 # ----------------------------------------------------------------------------- responses
-class PointRef(_Strict):
-    """A point of a body."""
+class Station(_Strict):
+    """A station along a beam: `s`, the fraction (0 to 1) of the beam's reference length from
+    its `from` end. It lies in element k = floor(s n) of the n elements (the last one at
+    s = 1; at an element boundary the element after it) at xi = 2 (s n - k) - 1, and its
+    position, rotation and strains are the element's own interpolation there
+    (flexmbs.responses.station)."""
     body: Name
-    at: Name
+    s: Annotated[float, NoBool, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
 
 
-class Term(_Strict):
+class _Located(_Strict):
+    """A named point `at` of body `body`, or a station `at = {body, s}` (body then optional)."""
+    body: Name | None = None
+    at: Union[Name, Station]
+
+    @model_validator(mode="after")
+    def _station_body(self):
+        if isinstance(self.at, Station):
+            if self.body is not None and self.body != self.at.body:
+                raise ValueError(f"body = {self.body!r} contradicts at.body = "
+                                 f"{self.at.body!r}; give the body once, in at")
+            self.body = self.at.body
+        elif self.body is None:
+            raise ValueError(f"at = {self.at!r} names a point: give its body too (or a "
+                             "station, at = {body = ..., s = ...})")
+        return self
+
+
+class PointRef(_Located):
+    """A point of a body, or a station along a beam."""
+
+
+class Term(_Located):
     """One scalar deviation term: component `component` of (the point's flexible position
     minus its position in the rigid reference), or of the same difference for the vector from
     `relative_to` to the point; measured in the ground frame or in the rigid reference's frame
     of body `frame` (axes: x along the body's initial direction, y normal to it).
-    component 'angle': the rotation of the point's node minus its rigid rotation (rad)."""
-    body: Name
-    at: Name
+    component 'angle': the rotation of the point's node minus its rigid rotation (rad).
+    The point is a body's named point or a station along a beam (`at = {body, s}`), whose
+    position and rotation are interpolated by its element's shape functions."""
     component: Literal["x", "y", "norm", "angle"] = "norm"
     relative_to: PointRef | None = None
     frame: Name = "ground"
@@ -502,10 +529,42 @@ class Mass(_Strict):
 
 
 class Stress(_Strict):
-    """Largest normal stress (Pa) at the extreme fibres of the elements of the beams named."""
+    """Largest normal stress (Pa) at the extreme fibres of the elements of the beams named
+    (`bodies`), or at one station of a beam (`at = {body, s}`): E (|eps| + c |kappa|)."""
     name: Name
     type: Literal["stress"]
-    bodies: Annotated[list[Name], Field(min_length=1)]
+    bodies: Annotated[list[Name], Field(min_length=1)] | None = None
+    at: Station | None = None
+
+    @model_validator(mode="after")
+    def _where(self):
+        if (self.bodies is None) == (self.at is None):
+            raise ValueError(f"stress {self.name!r} needs exactly one of bodies (the largest "
+                             "over their elements) and at (a station {body, s})")
+        return self
+
+    @property
+    def beams(self):
+        """The beams it reads."""
+        return self.bodies if self.at is None else [self.at.body]
+
+
+class Deflection(_Strict):
+    """Deflection (m) of a station of a beam from the chord through the beam's end nodes,
+    signed: positive on the left of the chord (from its `from` end to its `to` end). Zero in
+    the straight initial configuration; the rigid reference plays no part."""
+    name: Name
+    type: Literal["deflection"]
+    at: Station
+
+
+class Strain(_Strict):
+    """A strain measure at a station of a beam, from the reference configuration: 'axial'
+    eps (Gamma_1), 'shear' gamma (Gamma_2), both dimensionless, or 'curvature' kappa (1/m)."""
+    name: Name
+    type: Literal["strain"]
+    at: Station
+    component: Literal["axial", "shear", "curvature"] = "axial"
 
 
 class Torque(_Strict):
@@ -530,7 +589,7 @@ class Reaction(_Strict):
     component: Literal["x", "y", "magnitude"] = "magnitude"
 
 
-Response = Annotated[Union[Deviation, Mass, Stress, Torque, Reaction],
+Response = Annotated[Union[Deviation, Mass, Stress, Torque, Reaction, Deflection, Strain],
                      Field(discriminator="type")]
 
 
@@ -649,14 +708,18 @@ class Description(_Strict):
                 raise ValueError(f"{where}: unknown point {p!r} (points: {', '.join(sorted(pts))})")
 
         def body_point(where, b, p, beam_only=False):
+            if isinstance(p, Station):
+                beam_only = True
             if b not in bodies:
                 raise ValueError(f"{where}: unknown body {b!r} (bodies: {', '.join(bodies)})")
+            if beam_only and not isinstance(bodies[b], Beam):
+                raise ValueError(f"{where}: body {b!r} is not a beam")
+            if isinstance(p, Station):
+                return
             point(where, p)
             if p not in body_points(bodies[b]):
                 raise ValueError(f"{where}: body {b!r} has no point {p!r} (its points: "
                                  f"{', '.join(body_points(bodies[b]))})")
-            if beam_only and not isinstance(bodies[b], Beam):
-                raise ValueError(f"{where}: body {b!r} is not a beam")
 
         for b in self.bodies:
             where = f"body {b.name!r}"
@@ -731,6 +794,8 @@ class Description(_Strict):
                                      f"prismatic joint {r.joint!r} between two bodies is not "
                                      f"available (its normal turns with body {j.bodies[0]!r}); "
                                      f"use component = 'magnitude' (the normal force)")
+            elif isinstance(r, (Deflection, Strain)) or getattr(r, "at", None) is not None:
+                body_point(where, r.at.body, r.at)
             else:
                 for b in (r.bodies or []):
                     if b not in bodies or not isinstance(bodies[b], Beam):

@@ -453,6 +453,46 @@ class Mechanism:
         q0, qd0 = self._initial
         return q0.copy(), qd0.copy()
 
+    def layout(self, dofs=None):
+        """What the coordinates are, for files of results (`flexmbs simulate --out`): a dict
+        of arrays.
+
+        dof_node, dof_component : (len(dofs),) the node of each coordinate of `dofs` (default
+            all) and which of its coordinates it is ('x', 'y' or 'angle'; coordinate
+            3 node + 0, 1, 2)
+        node_body : (nnode,) the body each node belongs to (a point mass sitting `on` a
+            body: that body's)
+        node_point : (nnode,) the named point at the node ('' for an inner node of a beam)
+        node_s : (nnode,) the node's fraction of its beam's length from `from` (NaN off
+            beams): a station's s
+        node_xy : (nnode, 2) the node's position in the assembled initial configuration
+        body_names, body_kinds : (nbody,) each body and its kind ('beam', 'rigid', 'mass')
+        body_nodes : (nbody,) the node ids of each body joined by ',' (a beam's from its
+            `from` end)
+        """
+        m = self.model
+        nn = m.ndof // 3
+        dofs = np.arange(m.ndof) if dofs is None else np.asarray(dofs, int)
+        body = np.full(nn, "", dtype=object)
+        point = np.full(nn, "", dtype=object)
+        frac = np.full(nn, np.nan)
+        for b in m.bodies.values():
+            for k, n in enumerate(b.nodes):
+                if body[n] == "":
+                    body[n] = b.name
+                if b.kind == "beam":
+                    frac[n] = k / (len(b.nodes) - 1)
+        for (_, p), n in self.node.items():
+            point[n] = p
+        q0, _ = self.initial_state()
+        return dict(dof_node=dofs // 3, dof_component=np.array(["x", "y", "angle"])[dofs % 3],
+                    node_body=body.astype(str), node_point=point.astype(str), node_s=frac,
+                    node_xy=q0.reshape(-1, 3)[:, :2],
+                    body_names=np.array(list(m.bodies), dtype=str),
+                    body_kinds=np.array([b.kind for b in m.bodies.values()], dtype=str),
+                    body_nodes=np.array([",".join(map(str, b.nodes)) for b in m.bodies.values()],
+                                        dtype=str))
+
     # ------------------------------------------------------------------ design
     def _summary(self):
         """The variables for messages: 'd[1..8]' for an element-wise one."""
