@@ -33,9 +33,8 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_valida
 
 __all__ = ["Description", "Law", "Beam", "Rigid", "PointMass", "Joint", "Drive", "Load",
            "SpringDamper", "DesignVariable", "Deviation", "Mass", "Stress", "Torque", "Reaction",
-           "Station", "Deflection", "Strain",
-           "Constraint",
-           "TimeSettings", "Section", "MaterialSpec", "Term", "PointRef", "GROUND",
+           "Station", "Deflection", "Strain", "Constraint", "TimeSettings", "InitialState",
+           "InitialBeam", "Section", "MaterialSpec", "Term", "PointRef", "GROUND",
            "design_layout"]
 
 
@@ -650,6 +649,62 @@ class TimeSettings(_Strict):
         return self
 
 
+class InitialBeam(_Strict):
+    """A beam's initial deflection and its rate, given at stations: `deflection` (m) and
+    `deflection_rate` (m/s) normal to the beam's axis (positive on its left, from `from` to
+    `to`), at the fractions `s` of its length (default: at its nodes, from `from`; then one
+    value per node). Between the stations a cubic spline (scipy's CubicSpline, not-a-knot;
+    a line through 2 stations) gives each node's value and slope: the node moves by the
+    deflection along the axis' normal and turns by atan(slope) (its rate by
+    rate' / (1 + slope^2))."""
+    body: Name
+    s: Annotated[list[Annotated[float, NoBool, Field(ge=0.0, le=1.0, allow_inf_nan=False)]],
+                 Field(min_length=2)] | None = None
+    deflection: Annotated[list[Finite], Field(min_length=2)] | None = None
+    deflection_rate: Annotated[list[Finite], Field(min_length=2)] | None = None
+
+    @model_validator(mode="after")
+    def _values(self):
+        given = [k for k in ("deflection", "deflection_rate") if getattr(self, k) is not None]
+        if not given:
+            raise ValueError(f"initial beam {self.body!r}: give deflection and/or "
+                             "deflection_rate")
+        if self.s is not None:
+            if any(b <= a for a, b in zip(self.s, self.s[1:])):
+                raise ValueError(f"initial beam {self.body!r}: s = {self.s} must increase "
+                                 "strictly")
+            for k in given:
+                if len(getattr(self, k)) != len(self.s):
+                    raise ValueError(f"initial beam {self.body!r}: {k} has "
+                                     f"{len(getattr(self, k))} values for {len(self.s)} "
+                                     "stations s")
+        return self
+
+
+class InitialState(_Strict):
+    """An initial elastic deformation and velocity, on top of the assembled configuration
+    and of the rigid velocity field the drives impose (the 'rest' start):
+
+    static_loads  the static equilibrium at t = 0 under these loads (and gravity), with the
+                  drives at their initial positions, instead of the case's loads: the
+                  deformation a preload leaves, released at t = 0 (its law, if any, is
+                  taken at t = 0). It depends on the design: design gradients are refused.
+    beams         given deflections and rates of beams (InitialBeam), independent of the
+                  design: design gradients stay exact.
+    The deformed state must satisfy the joints (a clamped end neither moves nor turns)."""
+    static_loads: Annotated[list[Load], Field(min_length=1)] | None = None
+    beams: list[InitialBeam] = []
+
+    @model_validator(mode="after")
+    def _something(self):
+        if self.static_loads is None and not self.beams:
+            raise ValueError("[initial] needs static_loads or beams")
+        if self.static_loads is not None and any(b.deflection is not None for b in self.beams):
+            raise ValueError("[initial]: the deflection comes either from static_loads or from "
+                             "beams' deflection, not both (beams may add deflection_rate)")
+        return self
+
+
 class CaseInfo(_Strict):
     name: Name = "mechanism"
     description: str | None = None
@@ -674,6 +729,7 @@ class Description(_Strict):
     objective: Objective | None = None
     constraints: list[Constraint] = []
     time: TimeSettings
+    initial: InitialState | None = None
 
     @field_validator("points")
     @classmethod
@@ -768,6 +824,29 @@ class Description(_Strict):
             body_point(f"path {k + 1}", p.body, p.at)
         for k, ld in enumerate(self.loads):
             body_point(f"load {k + 1}", ld.body, ld.at)
+        if self.initial is not None:
+            if self.time.start != "rest":
+                raise ValueError(f"[initial] gives the initial state: it goes with time.start "
+                                 f"= 'rest' (the default), not {self.time.start!r}")
+            for k, ld in enumerate(self.initial.static_loads or []):
+                body_point(f"initial.static_loads {k + 1}", ld.body, ld.at)
+            seen = set()
+            for b in self.initial.beams:
+                where = f"initial beam {b.body!r}"
+                if b.body not in bodies or not isinstance(bodies[b.body], Beam):
+                    beams = [n for n, x in bodies.items() if isinstance(x, Beam)]
+                    raise ValueError(f"{where}: not a beam (beams: {', '.join(beams)})")
+                if b.body in seen:
+                    raise ValueError(f"{where}: given twice")
+                seen.add(b.body)
+                nodes = bodies[b.body].elements * bodies[b.body].order + 1
+                for key in ("deflection", "deflection_rate"):
+                    v = getattr(b, key)
+                    if b.s is None and v is not None and len(v) != nodes:
+                        raise ValueError(f"{where}: {key} has {len(v)} values; without s it "
+                                         f"needs one per node ({nodes}: "
+                                         f"{bodies[b.body].elements} elements of order "
+                                         f"{bodies[b.body].order})")
         for k, s in enumerate(self.springs):
             for b, p in zip(s.bodies, s.at):
                 body_point(f"spring {k + 1}", b, p)

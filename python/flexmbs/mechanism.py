@@ -25,7 +25,7 @@ from flexmbs.errors import CaseError, ModelError, ResourceError
 from flexmbs.laws import TimeLaw
 from flexmbs.model import Model
 from flexmbs.sections import Circle, GivenSection, Material, Rectangle, Tube, has_complex
-from flexmbs.simulate import MAX_STEPS, time_steps
+from flexmbs.simulate import MAX_STEPS, simulate, time_steps
 
 __all__ = ["Mechanism", "make_law", "section_at"]
 
@@ -452,6 +452,76 @@ class Mechanism:
                 self._initial = (a.q, drive_velocities(self.model, a.q, 0.0))
         q0, qd0 = self._initial
         return q0.copy(), qd0.copy()
+
+    def start_state(self, x=None, gradient=False):
+        """(q0, qd0) of a simulation of design x: `initial_state` with the description's
+        [initial] deformation and rates on top (InitialState), or as it is without one.
+
+        static_loads: q0 is the static equilibrium at t = 0 of design x under those loads
+        (and gravity; the case's loads left out), solved by the core (simulate(start=
+        'static'), one step). It depends on the design, and the simulation's direct and
+        adjoint differentiation start from dq0/dx = 0: gradient=True (a design derivative
+        or adjoint run) is refused with a ModelError rather than computed wrong. Given beam
+        deflections and rates do not depend on the design: their derivatives are zero and
+        the gradients stay exact."""
+        q0, qd0 = self.initial_state()
+        ini = self.description.initial
+        if ini is None:
+            return q0, qd0
+        if ini.static_loads is not None:
+            if gradient:
+                raise ModelError(
+                    "[initial] static_loads: the initial deformation is a static solution that "
+                    "depends on the design, and the simulation's design derivatives (direct and "
+                    "adjoint) start from a design-independent state: gradients of this case "
+                    "would be wrong and are refused; evaluate without gradients, or give the "
+                    "initial deflection as values ([[initial.beams]] deflection), or use "
+                    "time.start = 'static' (static equilibrium under the case's own loads, "
+                    "differentiated exactly)")
+            q0 = self._static_start(x)
+        for b in ini.beams:
+            self._deflect(b, q0, qd0)
+        return q0, qd0
+
+    def _static_start(self, x):
+        """The static equilibrium of design x under [initial] static_loads (all coordinates)."""
+        with self._lazy:
+            if getattr(self, "_preload", None) is None:
+                d = self.description
+                with warnings.catch_warnings():       # the same grid: warned once already
+                    warnings.simplefilter("ignore")
+                    self._preload = Mechanism(d.model_copy(
+                        update={"loads": d.initial.static_loads, "initial": None}))
+            model = self._preload.design_model(self.start if x is None else x)
+        q0, _ = self.initial_state()
+        h = self.description.time.h
+        r = simulate(model, h, h, start="static", q0=q0, store="all", validity="off")
+        return np.array(r.q[0], float)
+
+    def _deflect(self, spec, q0, qd0):
+        """Add an InitialBeam's deflection and rate to q0, qd0 (in place)."""
+        from scipy.interpolate import CubicSpline
+        body = self.model.body(spec.body)
+        nodes = np.asarray(body.nodes)
+        length = sum(self.model._elements[e][1] for e in body.elements)
+        sn = np.linspace(0.0, 1.0, nodes.size)
+        s = sn if spec.s is None else np.asarray(spec.s, float)
+        a = q0[3 * nodes[0] + 2]                      # the beam's axis angle
+        nx, ny = -math.sin(a), math.cos(a)            # its left normal
+        for values, q, rate in ((spec.deflection, q0, False), (spec.deflection_rate, qd0, True)):
+            if values is None:
+                continue
+            spline = CubicSpline(s, np.asarray(values, float))
+            w, slope = spline(sn), spline(sn, 1) / length
+            q[3 * nodes] += w * nx
+            q[3 * nodes + 1] += w * ny
+            if rate:
+                base = spec.deflection
+                w0 = (np.zeros_like(sn) if base is None else
+                      CubicSpline(s, np.asarray(base, float))(sn, 1) / length)
+                q[3 * nodes + 2] += slope / (1.0 + w0 * w0)
+            else:
+                q[3 * nodes + 2] += np.arctan(slope)
 
     def layout(self, dofs=None):
         """What the coordinates are, for files of results (`flexmbs simulate --out`): a dict

@@ -310,7 +310,11 @@ class Problem:
         diff = names if differentiate is None else list(differentiate)
         nodes = self._nodes_needed(names)
         ts = self.description.time
-        q0, qd0 = mech.initial_state()
+        forces = self._needs_forces(diff)
+        dnodes = self._nodes_needed(diff)
+        differentiated = bool(mech.variables) and (
+            bool(tape or checkpoints) or (gradient and bool(dnodes or forces)))
+        q0, qd0 = mech.start_state(x, gradient=differentiated)    # [initial], if any
         newton = ts.newton
         if ts.reuse_jacobian is not None and newton == "auto":    # the deprecated spelling
             newton = "reuse" if ts.reuse_jacobian else "full"
@@ -326,8 +330,6 @@ class Problem:
             # are enough (the core keeps at least one coordinate)
             store = nodes if nodes else [0]
         kw["store"] = store
-        forces = self._needs_forces(diff)
-        dnodes = self._nodes_needed(diff)
         if gradient and (dnodes or forces) and mech.variables:
             # the core needs at least one sensitivity coordinate: node 0's when only the
             # multipliers' derivatives are wanted
