@@ -134,3 +134,37 @@ def test_other_sections_still_need_a_material():
     d["bodies"][0]["section"] = {"shape": "circle", "diameter": 0.01}
     with pytest.raises(ValueError, match="beam 'rod': a 'circle' section needs a material"):
         Description.model_validate(d)
+
+
+def _hub(law):
+    """A 1 m beam pinned at its root and turned there by `law`."""
+    return {"points": {"O": [0, 0], "B": [1, 0]},
+            "bodies": [{"name": "rod", "type": "beam", "from": "O", "to": "B",
+                        "section": {"shape": "given", "EA": 1e8, "EI": 100.0, "rhoA": 1.0,
+                                    "rhoI": 1e-4}}],
+            "joints": [{"type": "pin", "body": "rod", "at": "O"}],
+            "drives": [{"type": "rotation", "body": "rod", "at": "O", "law": law,
+                        "name": "hub"}],
+            "time": {"t_end": 0.01, "h": 0.001}}
+
+
+def test_a_piecewise_motion_must_not_jump():
+    """A drive's piecewise law whose value jumps at a break (0 then 1 rad at t = 0.5 s) is a
+    ModelError naming the drive, the break and both values; a rate jump (0 then 2 rad/s,
+    the value continuous) is a warning; the spin-up law (continuous in value and rate) is
+    accepted without either."""
+    import warnings
+    jump = {"type": "piecewise", "segments": [
+        {"until": 0.5, "law": {"type": "constant", "value": 0.0}},
+        {"law": {"type": "polynomial", "coefficients": [1.0]}}]}
+    with pytest.raises(ModelError, match="hub: the piecewise law jumps at until = 0.5 s "
+                                         "from 0 \\(segment 1\\) to 1 \\(segment 2\\)"):
+        Mechanism(Description.model_validate(_hub(jump)))
+    kink = {"type": "piecewise", "segments": [
+        {"until": 0.5, "law": {"type": "constant", "value": 0.0}},
+        {"law": {"type": "polynomial", "coefficients": [-1.0, 2.0]}}]}
+    with pytest.warns(UserWarning, match="rate jumps at until = 0.5 s from 0 to 2"):
+        Mechanism(Description.model_validate(_hub(kink)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Mechanism(Description.model_validate(_hub(_spin_up_case_law(4.0, 15.0))))

@@ -34,8 +34,13 @@ _PARAM = {"diameter": "d", "thickness": "t", "width": "b", "height": "h"}
 
 
 # ----------------------------------------------------------------------------- laws
-def make_law(spec, name="law", shift=0.0):
-    """A TimeLaw (analytic value, rate, acceleration) from a description Law, plus `shift`."""
+def make_law(spec, name="law", shift=0.0, joined=False):
+    """A TimeLaw (analytic value, rate, acceleration) from a description Law, plus `shift`.
+
+    joined=True (a drive's or a path's law, a motion): the segments of a 'piecewise' law
+    must meet at their breaks, to 1e-6 of the value's size: a jump of the value is a
+    ModelError naming the law, the break and both values; a jump of the rate (an impulsive
+    change of speed) is a warning."""
     k = spec.type
     z = np.zeros_like
     if k == "constant":
@@ -77,15 +82,32 @@ def make_law(spec, name="law", shift=0.0):
         return TimeLaw.samples(spec.times, np.array(spec.values) + shift, name=name,
                                interpolation=spec.interpolation, extrapolate=spec.extrapolate)
     if k == "piecewise":
-        return TimeLaw.piecewise(
-            [g.until for g in spec.segments[:-1]],
-            [make_law(g.law, f"{name} segment {i + 1}", shift)
-             for i, g in enumerate(spec.segments)], name=name)
+        parts = [make_law(g.law, f"{name} segment {i + 1}", shift, joined)
+                 for i, g in enumerate(spec.segments)]
+        breaks = [g.until for g in spec.segments[:-1]]
+        if joined:
+            _check_joins(parts, breaks, name)
+        return TimeLaw.piecewise(breaks, parts, name=name)
     if k == "sum":
         return TimeLaw.sum([make_law(law, f"{name} term {i + 1}", shift if i == 0 else 0.0)
                             for i, law in enumerate(spec.laws)], name=name)
     raise ModelError(f"{name}: a law of type {k!r} has no formula (it is computed from the "
                      "rigid reference)")
+
+
+def _check_joins(parts, breaks, name):
+    """The pieces of a piecewise motion meet at the breaks (see make_law(joined=True))."""
+    for k, b in enumerate(breaks):
+        (v0, r0, _), (v1, r1, _) = (law.evaluate(np.array([b])) for law in parts[k:k + 2])
+        if abs(v1[0] - v0[0]) > 1e-6 * max(1.0, abs(v0[0]), abs(v1[0])):
+            raise ModelError(f"{name}: the piecewise law jumps at until = {b:g} s from "
+                             f"{v0[0]:.10g} (segment {k + 1}) to {v1[0]:.10g} (segment "
+                             f"{k + 2}); a motion cannot jump: give segments whose values meet")
+        if abs(r1[0] - r0[0]) > 1e-6 * max(1.0, abs(r0[0]), abs(r1[0])):
+            warnings.warn(f"{name}: the piecewise law's rate jumps at until = {b:g} s from "
+                          f"{r0[0]:.6g} to {r1[0]:.6g} (an impulsive change of speed: an "
+                          "unbounded acceleration the time steps smear over one step)",
+                          stacklevel=3)
 
 
 def _law_start(spec):
@@ -371,9 +393,9 @@ class Mechanism:
             elif dr.type == "rotation":
                 base = 0.0 if dr.law.absolute else q0[3 * n + 2] - _law_start(dr.law) - (
                     q0[3 * other + 2] if other is not None else 0.0)
-                law = make_law(dr.law, name, shift=base)
+                law = make_law(dr.law, name, shift=base, joined=True)
             else:
-                law = make_law(dr.law, name, shift=-_law_start(dr.law))
+                law = make_law(dr.law, name, shift=-_law_start(dr.law), joined=True)
             if dr.type == "rotation":
                 m.drive_rotation(n, law, relative_to=other)
             else:
@@ -386,8 +408,10 @@ class Mechanism:
                 n = node[(p.body, p.at)]
                 # path laws are displacements from the point's initial position
                 m.prescribe_position(
-                    n, x=make_law(p.x, f"path {k + 1} x", shift=q0[3 * n] - _law_start(p.x)),
-                    y=make_law(p.y, f"path {k + 1} y", shift=q0[3 * n + 1] - _law_start(p.y)))
+                    n, x=make_law(p.x, f"path {k + 1} x", shift=q0[3 * n] - _law_start(p.x),
+                                  joined=True),
+                    y=make_law(p.y, f"path {k + 1} y", shift=q0[3 * n + 1] - _law_start(p.y),
+                               joined=True))
 
     def _reference_law(self, dr, n, other, motion, name):
         """The drive's motion in the rigid reference, as a law exact on the time grid."""
