@@ -135,3 +135,12 @@ def test_initial_needs_the_rest_start():
     """[initial] with time.start = 'static' (which would overwrite it) is refused."""
     with pytest.raises(Exception, match="goes with time.start = 'rest'"):
         _case({"static_loads": [{"body": "rod", "at": "B", "fy": -P}]}, start="static")
+
+
+def test_a_deflection_that_breaks_a_joint_is_named():
+    """A deflection 0 -> 10 mm along the clamped rod (a line: slope 0.01 at the clamped root)
+    violates the clamp's rotation row by 0.01 rad: a ModelError naming the row and the value
+    before any simulation."""
+    p = _case({"beams": [{"body": "rod", "s": [0, 1], "deflection": [0.0, 0.01]}]})
+    with pytest.raises(ModelError, match="violate constraint 'clamp node 0 phi' by 0.01"):
+        p.evaluate(gradient=False)

@@ -505,7 +505,23 @@ class Mechanism:
             q0 = self._static_start(x)
         for b in ini.beams:
             self._deflect(b, q0, qd0)
+        if any(b.deflection is not None for b in ini.beams):
+            self._check_joined(q0)
         return q0, qd0
+
+    def _check_joined(self, q0):
+        """The given deflections keep the joints (Phi(q0, 0) = 0, to the core's 1e-8 of the
+        coordinates' scale): a ModelError naming the first violated row otherwise."""
+        from flexmbs.constraints import constraint_values, law_tables
+        m = self.model
+        laws = law_tables(m, [0.0])[0] if m.laws() else None
+        phi = constraint_values(m.compile(), q0, laws)
+        if phi.size and np.max(np.abs(phi)) > 1e-8 * max(1.0, float(np.max(np.abs(q0)))):
+            r = int(np.argmax(np.abs(phi)))
+            raise ModelError(f"[initial] beams: the given deflections violate constraint "
+                             f"'{m.row_label(r)}' by {phi[r]:.3g}: a joined end keeps its "
+                             "position (and a clamped or welded one its rotation); give zero "
+                             "deflection (and slope) there")
 
     def _static_start(self, x):
         """The static equilibrium of design x under [initial] static_loads (all coordinates)."""
