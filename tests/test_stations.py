@@ -221,3 +221,63 @@ def test_a_built_mechanism_refuses_a_bad_station():
         locate(mech.model, "rod", 2)
     with pytest.raises(ModelError, match="body 'm' is not a beam"):
         locate(mech.model, "m", 0.5)
+
+
+CASE_TOML = """
+[points]
+O = [0, 0]
+B = [1, 0]
+
+[[bodies]]
+name = "rod"
+type = "beam"
+from = "O"
+to = "B"
+elements = 4
+section = { shape = "given", EA = 1e9, EI = 100.0, GA = 1e12, rhoA = 1.0, rhoI = 1e-4 }
+
+[[joints]]
+type = "clamp"
+body = "rod"
+at = "O"
+
+[[loads]]
+body = "rod"
+at = "B"
+fy = -0.3
+
+[[responses]]
+name = "mid"
+type = "deflection"
+at = { body = "rod", s = 0.5 }
+
+[time]
+t_end = 0.01
+h = 0.001
+start = "static"
+"""
+
+
+def test_out_file_names_nodes_and_gives_the_mid_span(tmp_path):
+    """`flexmbs simulate CASE --out`: with the file's own names (node_s, node_body,
+    dof_node, dof_component) the mid-span node and the rod's ends are found, and the
+    deflection from the chord computed from their columns of q equals the file's
+    'deflection' response history to 1e-15 m (the same formula on the same numbers), which
+    starts (static start) at P L^3/(16 EI) to 1e-4 (test_deflection_from_the_chord)."""
+    from flexmbs.cli import main
+    case = tmp_path / "rod.toml"
+    case.write_text(CASE_TOML)
+    assert main(["simulate", str(case), "--out", str(tmp_path / "r.npz")]) == 0
+    with np.load(tmp_path / "r.npz") as f:
+        on_rod = f["node_body"] == "rod"
+        node = {s: int(np.flatnonzero(on_rod & np.isclose(f["node_s"], s))[0])
+                for s in (0.0, 0.5, 1.0)}
+        col = {(int(n), str(c)): k for k, (n, c) in enumerate(zip(f["dof_node"],
+                                                                  f["dof_component"]))}
+        q = f["q"]
+        r = {s: q[:, [col[(n, "x")], col[(n, "y")]]] for s, n in node.items()}
+        c, p = r[1.0] - r[0.0], r[0.5] - r[0.0]
+        w = (c[:, 0] * p[:, 1] - c[:, 1] * p[:, 0]) / np.hypot(c[:, 0], c[:, 1])
+        assert np.max(np.abs(w - f["response_mid"])) < 1e-15
+        ref = P * L ** 3 / (16 * EI)
+        assert abs(f["response_mid"][0] - ref) < 1e-4 * ref
