@@ -112,7 +112,8 @@ def friendly_error(err, model=None, doc="docs/case-format.md", tags=None):
 
 
 
-_TAGS = ("beam", "rigid", "mass", "deviation", "stress", "torque", "reaction")
+_TAGS = ("beam", "rigid", "mass", "deviation", "stress", "torque", "reaction", "deflection",
+         "strain")
 
 
 @contextlib.contextmanager

@@ -244,8 +244,9 @@ def register_simulate(subparsers):
     add_case_arguments(p)
     add_design_arguments(p)
     p.add_argument("--out", type=path_text, metavar="FILE.npz",
-                   help="save time, coordinates, rigid reference and response histories "
-                        "(.npz is added to a name without it)")
+                   help="save time, coordinates, rigid reference and response histories, "
+                        "and what each coordinate is (its node, body, point, station s: "
+                        "Mechanism.layout) (.npz is added to a name without it)")
     p.add_argument("--plot", type=path_text, metavar="FILE.png",
                    help="save an overview figure: motion (deflection magnified) and the "
                         "constrained responses (format from the extension: png, pdf, svg, ...)")
@@ -425,7 +426,8 @@ def _save_npz(path, prob, ev, result):
         np.savez_compressed(
             fh, t=result.t, q=result.q, qd=result.qd, dofs=result.dofs, design=ev.x,
             variables=np.array(prob.variables), reference_q=prob.mechanism.reference.q,
-            constraints=ev.constraints, summary=json.dumps(ev.to_json()), **hist)
+            constraints=ev.constraints, summary=json.dumps(ev.to_json()),
+            **prob.mechanism.layout(result.dofs), **hist)
 
 
 # ----------------------------------------------------------------------------- main

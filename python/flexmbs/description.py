@@ -33,8 +33,8 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_valida
 
 __all__ = ["Description", "Law", "Beam", "Rigid", "PointMass", "Joint", "Drive", "Load",
            "SpringDamper", "DesignVariable", "Deviation", "Mass", "Stress", "Torque", "Reaction",
-           "Constraint",
-           "TimeSettings", "Section", "MaterialSpec", "Term", "PointRef", "GROUND",
+           "Station", "Deflection", "Strain", "Constraint", "TimeSettings", "InitialState",
+           "InitialBeam", "Section", "MaterialSpec", "Term", "PointRef", "GROUND",
            "design_layout"]
 
 
@@ -85,11 +85,15 @@ class Law(_Strict):
                      or 'linear' (on along the end tangent)
       reference      (drives only) the motion the rigid reference gives this drive when the
                      mechanism's ideal motion is prescribed by `paths`
+      piecewise      `segments`: a list of {until, law}, each law (any type but 'reference')
+                     over [the previous segment's until, its until); the last segment has no
+                     until and runs on; the laws are of the absolute time t
+      sum            `laws`: the sum of a list of laws (any type but 'reference')
     A rotation drive's law is added to the driven node's initial angle unless
     `absolute = true` (then the law is the angle itself, rad).
     """
     type: Literal["constant", "ramp_to_speed", "smooth_step", "harmonic", "cycloid",
-                  "polynomial", "samples", "reference"]
+                  "polynomial", "samples", "reference", "piecewise", "sum"]
     value: Finite | None = None
     start: Finite = 0.0
     end: Finite | None = None
@@ -109,6 +113,8 @@ class Law(_Strict):
     values: list[Finite] | None = None
     interpolation: Literal["pchip", "cubic"] = "pchip"
     extrapolate: Literal["hold", "linear"] | None = None
+    segments: Annotated[list["Segment"], Field(min_length=1)] | None = None
+    laws: Annotated[list["Law"], Field(min_length=1)] | None = None
     absolute: bool = False
 
     @model_validator(mode="after")
@@ -116,7 +122,8 @@ class Law(_Strict):
         need = {"constant": ["value"], "ramp_to_speed": ["ramp_s"],
                 "smooth_step": ["end", "t1"], "harmonic": ["amplitude", "frequency_hz"],
                 "cycloid": ["stroke", "period"], "polynomial": ["coefficients"],
-                "samples": ["times", "values"], "reference": []}[self.type]
+                "samples": ["times", "values"], "reference": [], "piecewise": ["segments"],
+                "sum": ["laws"]}[self.type]
         missing = [k for k in need if getattr(self, k) is None]
         if missing:
             raise ValueError(f"law type {self.type!r} needs {', '.join(missing)}")
@@ -126,12 +133,41 @@ class Law(_Strict):
             raise ValueError(f"smooth_step: t1 = {self.t1} must be after t0 = {self.t0}")
         if self.extrapolate is not None and self.type != "samples":
             raise ValueError(f"extrapolate applies to a 'samples' law, not to {self.type!r}")
+        for key, kind in (("segments", "piecewise"), ("laws", "sum")):
+            if getattr(self, key) is not None and self.type != kind:
+                raise ValueError(f"{key} belongs to a {kind!r} law, not to {self.type!r}")
+        inner = [g.law for g in self.segments or []] + list(self.laws or [])
+        for k, law in enumerate(inner):
+            if law.type == "reference":
+                raise ValueError(f"{self.type}: law {k + 1} is of type 'reference', which is "
+                                 "a whole drive's law, not a part of one")
+            if law.absolute:
+                raise ValueError(f"{self.type}: law {k + 1} sets absolute = true; set it on "
+                                 f"the {self.type} law itself")
+        if self.segments is not None:
+            ends = [g.until for g in self.segments]
+            if any(u is None for u in ends[:-1]) or ends[-1] is not None:
+                raise ValueError("piecewise: every segment but the last needs until (the end "
+                                 "of its interval, s); the last has none (it runs on)")
+            if any(b <= a for a, b in zip(ends[:-1], ends[1:-1])):
+                raise ValueError(f"piecewise: the segments' until = {ends[:-1]} must increase "
+                                 "strictly")
         if self.type == "samples":
             if len(self.times) != len(self.values) or len(self.times) < 2:
                 raise ValueError("samples: times and values need the same length, at least 2")
             if any(b <= a for a, b in zip(self.times, self.times[1:])):
                 raise ValueError("samples: times must increase strictly")
         return self
+
+
+class Segment(_Strict):
+    """A piece of a 'piecewise' law: `law` up to time `until` (s; from the previous segment's
+    until, or from the start); the last segment has no until."""
+    until: Finite | None = None
+    law: Law
+
+
+Law.model_rebuild()
 
 
 # ----------------------------------------------------------------------------- parts
@@ -217,8 +253,16 @@ class Beam(_Strict):
     end: Name = Field(alias="to")
     elements: Annotated[int, NoBool, Field(ge=1, le=20_000)] = 2
     order: Annotated[Literal[1, 2], NoBool] = 2
-    material: Name
+    material: Name | None = None
     section: Section
+
+    @model_validator(mode="after")
+    def _material(self):
+        if self.material is None and self.section.shape != "given":
+            raise ValueError(f"beam {self.name!r}: a {self.section.shape!r} section needs a "
+                             "material (only a 'given' section, whose EA, EI, rhoA are its "
+                             "own, goes without)")
+        return self
 
 
 class Rigid(_Strict):
@@ -423,20 +467,46 @@ class DesignVariable(_Strict):
 
 
 # ----------------------------------------------------------------------------- responses
-class PointRef(_Strict):
-    """A point of a body."""
+class Station(_Strict):
+    """A station along a beam: `s`, the fraction (0 to 1) of the beam's reference length from
+    its `from` end. It lies in element k = floor(s n) of the n elements (the last one at
+    s = 1; at an element boundary the element after it) at xi = 2 (s n - k) - 1, and its
+    position, rotation and strains are the element's own interpolation there
+    (flexmbs.responses.station)."""
     body: Name
-    at: Name
+    s: Annotated[float, NoBool, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
 
 
-class Term(_Strict):
+class _Located(_Strict):
+    """A named point `at` of body `body`, or a station `at = {body, s}` (body then optional)."""
+    body: Name | None = None
+    at: Union[Name, Station]
+
+    @model_validator(mode="after")
+    def _station_body(self):
+        if isinstance(self.at, Station):
+            if self.body is not None and self.body != self.at.body:
+                raise ValueError(f"body = {self.body!r} contradicts at.body = "
+                                 f"{self.at.body!r}; give the body once, in at")
+            self.body = self.at.body
+        elif self.body is None:
+            raise ValueError(f"at = {self.at!r} names a point: give its body too (or a "
+                             "station, at = {body = ..., s = ...})")
+        return self
+
+
+class PointRef(_Located):
+    """A point of a body, or a station along a beam."""
+
+
+class Term(_Located):
     """One scalar deviation term: component `component` of (the point's flexible position
     minus its position in the rigid reference), or of the same difference for the vector from
     `relative_to` to the point; measured in the ground frame or in the rigid reference's frame
     of body `frame` (axes: x along the body's initial direction, y normal to it).
-    component 'angle': the rotation of the point's node minus its rigid rotation (rad)."""
-    body: Name
-    at: Name
+    component 'angle': the rotation of the point's node minus its rigid rotation (rad).
+    The point is a body's named point or a station along a beam (`at = {body, s}`), whose
+    position and rotation are interpolated by its element's shape functions."""
     component: Literal["x", "y", "norm", "angle"] = "norm"
     relative_to: PointRef | None = None
     frame: Name = "ground"
@@ -458,10 +528,42 @@ class Mass(_Strict):
 
 
 class Stress(_Strict):
-    """Largest normal stress (Pa) at the extreme fibres of the elements of the beams named."""
+    """Largest normal stress (Pa) at the extreme fibres of the elements of the beams named
+    (`bodies`), or at one station of a beam (`at = {body, s}`): E (|eps| + c |kappa|)."""
     name: Name
     type: Literal["stress"]
-    bodies: Annotated[list[Name], Field(min_length=1)]
+    bodies: Annotated[list[Name], Field(min_length=1)] | None = None
+    at: Station | None = None
+
+    @model_validator(mode="after")
+    def _where(self):
+        if (self.bodies is None) == (self.at is None):
+            raise ValueError(f"stress {self.name!r} needs exactly one of bodies (the largest "
+                             "over their elements) and at (a station {body, s})")
+        return self
+
+    @property
+    def beams(self):
+        """The beams it reads."""
+        return self.bodies if self.at is None else [self.at.body]
+
+
+class Deflection(_Strict):
+    """Deflection (m) of a station of a beam from the chord through the beam's end nodes,
+    signed: positive on the left of the chord (from its `from` end to its `to` end). Zero in
+    the straight initial configuration; the rigid reference plays no part."""
+    name: Name
+    type: Literal["deflection"]
+    at: Station
+
+
+class Strain(_Strict):
+    """A strain measure at a station of a beam, from the reference configuration: 'axial'
+    eps (Gamma_1), 'shear' gamma (Gamma_2), both dimensionless, or 'curvature' kappa (1/m)."""
+    name: Name
+    type: Literal["strain"]
+    at: Station
+    component: Literal["axial", "shear", "curvature"] = "axial"
 
 
 class Torque(_Strict):
@@ -486,7 +588,7 @@ class Reaction(_Strict):
     component: Literal["x", "y", "magnitude"] = "magnitude"
 
 
-Response = Annotated[Union[Deviation, Mass, Stress, Torque, Reaction],
+Response = Annotated[Union[Deviation, Mass, Stress, Torque, Reaction, Deflection, Strain],
                      Field(discriminator="type")]
 
 
@@ -547,6 +649,62 @@ class TimeSettings(_Strict):
         return self
 
 
+class InitialBeam(_Strict):
+    """A beam's initial deflection and its rate, given at stations: `deflection` (m) and
+    `deflection_rate` (m/s) normal to the beam's axis (positive on its left, from `from` to
+    `to`), at the fractions `s` of its length (default: at its nodes, from `from`; then one
+    value per node). Between the stations a cubic spline (scipy's CubicSpline, not-a-knot;
+    a line through 2 stations) gives each node's value and slope: the node moves by the
+    deflection along the axis' normal and turns by atan(slope) (its rate by
+    rate' / (1 + slope^2))."""
+    body: Name
+    s: Annotated[list[Annotated[float, NoBool, Field(ge=0.0, le=1.0, allow_inf_nan=False)]],
+                 Field(min_length=2)] | None = None
+    deflection: Annotated[list[Finite], Field(min_length=2)] | None = None
+    deflection_rate: Annotated[list[Finite], Field(min_length=2)] | None = None
+
+    @model_validator(mode="after")
+    def _values(self):
+        given = [k for k in ("deflection", "deflection_rate") if getattr(self, k) is not None]
+        if not given:
+            raise ValueError(f"initial beam {self.body!r}: give deflection and/or "
+                             "deflection_rate")
+        if self.s is not None:
+            if any(b <= a for a, b in zip(self.s, self.s[1:])):
+                raise ValueError(f"initial beam {self.body!r}: s = {self.s} must increase "
+                                 "strictly")
+            for k in given:
+                if len(getattr(self, k)) != len(self.s):
+                    raise ValueError(f"initial beam {self.body!r}: {k} has "
+                                     f"{len(getattr(self, k))} values for {len(self.s)} "
+                                     "stations s")
+        return self
+
+
+class InitialState(_Strict):
+    """An initial elastic deformation and velocity, on top of the assembled configuration
+    and of the rigid velocity field the drives impose (the 'rest' start):
+
+    static_loads  the static equilibrium at t = 0 under these loads (and gravity), with the
+                  drives at their initial positions, instead of the case's loads: the
+                  deformation a preload leaves, released at t = 0 (its law, if any, is
+                  taken at t = 0). It depends on the design: design gradients are refused.
+    beams         given deflections and rates of beams (InitialBeam), independent of the
+                  design: design gradients stay exact.
+    The deformed state must satisfy the joints (a clamped end neither moves nor turns)."""
+    static_loads: Annotated[list[Load], Field(min_length=1)] | None = None
+    beams: list[InitialBeam] = []
+
+    @model_validator(mode="after")
+    def _something(self):
+        if self.static_loads is None and not self.beams:
+            raise ValueError("[initial] needs static_loads or beams")
+        if self.static_loads is not None and any(b.deflection is not None for b in self.beams):
+            raise ValueError("[initial]: the deflection comes either from static_loads or from "
+                             "beams' deflection, not both (beams may add deflection_rate)")
+        return self
+
+
 class CaseInfo(_Strict):
     name: Name = "mechanism"
     description: str | None = None
@@ -571,6 +729,7 @@ class Description(_Strict):
     objective: Objective | None = None
     constraints: list[Constraint] = []
     time: TimeSettings
+    initial: InitialState | None = None
 
     @field_validator("points")
     @classmethod
@@ -605,14 +764,18 @@ class Description(_Strict):
                 raise ValueError(f"{where}: unknown point {p!r} (points: {', '.join(sorted(pts))})")
 
         def body_point(where, b, p, beam_only=False):
+            if isinstance(p, Station):
+                beam_only = True
             if b not in bodies:
                 raise ValueError(f"{where}: unknown body {b!r} (bodies: {', '.join(bodies)})")
+            if beam_only and not isinstance(bodies[b], Beam):
+                raise ValueError(f"{where}: body {b!r} is not a beam")
+            if isinstance(p, Station):
+                return
             point(where, p)
             if p not in body_points(bodies[b]):
                 raise ValueError(f"{where}: body {b!r} has no point {p!r} (its points: "
                                  f"{', '.join(body_points(bodies[b]))})")
-            if beam_only and not isinstance(bodies[b], Beam):
-                raise ValueError(f"{where}: body {b!r} is not a beam")
 
         for b in self.bodies:
             where = f"body {b.name!r}"
@@ -621,7 +784,7 @@ class Description(_Strict):
                 point(where, b.end)
                 if b.start == b.end:
                     raise ValueError(f"{where}: from and to are the same point {b.start!r}")
-                if b.material not in self.materials:
+                if b.material is not None and b.material not in self.materials:
                     raise ValueError(f"{where}: unknown material {b.material!r} (materials: "
                                      f"{', '.join(self.materials) or 'none defined'})")
                 for dim, v in b.section.dimensions().items():
@@ -661,6 +824,29 @@ class Description(_Strict):
             body_point(f"path {k + 1}", p.body, p.at)
         for k, ld in enumerate(self.loads):
             body_point(f"load {k + 1}", ld.body, ld.at)
+        if self.initial is not None:
+            if self.time.start != "rest":
+                raise ValueError(f"[initial] gives the initial state: it goes with time.start "
+                                 f"= 'rest' (the default), not {self.time.start!r}")
+            for k, ld in enumerate(self.initial.static_loads or []):
+                body_point(f"initial.static_loads {k + 1}", ld.body, ld.at)
+            seen = set()
+            for b in self.initial.beams:
+                where = f"initial beam {b.body!r}"
+                if b.body not in bodies or not isinstance(bodies[b.body], Beam):
+                    beams = [n for n, x in bodies.items() if isinstance(x, Beam)]
+                    raise ValueError(f"{where}: not a beam (beams: {', '.join(beams)})")
+                if b.body in seen:
+                    raise ValueError(f"{where}: given twice")
+                seen.add(b.body)
+                nodes = bodies[b.body].elements * bodies[b.body].order + 1
+                for key in ("deflection", "deflection_rate"):
+                    v = getattr(b, key)
+                    if b.s is None and v is not None and len(v) != nodes:
+                        raise ValueError(f"{where}: {key} has {len(v)} values; without s it "
+                                         f"needs one per node ({nodes}: "
+                                         f"{bodies[b.body].elements} elements of order "
+                                         f"{bodies[b.body].order})")
         for k, s in enumerate(self.springs):
             for b, p in zip(s.bodies, s.at):
                 body_point(f"spring {k + 1}", b, p)
@@ -687,6 +873,8 @@ class Description(_Strict):
                                      f"prismatic joint {r.joint!r} between two bodies is not "
                                      f"available (its normal turns with body {j.bodies[0]!r}); "
                                      f"use component = 'magnitude' (the normal force)")
+            elif isinstance(r, (Deflection, Strain)) or getattr(r, "at", None) is not None:
+                body_point(where, r.at.body, r.at)
             else:
                 for b in (r.bodies or []):
                     if b not in bodies or not isinstance(bodies[b], Beam):

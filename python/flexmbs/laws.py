@@ -145,6 +145,49 @@ class TimeLaw:
         ends = _Ends(arrays[0], spline, extrapolate)
         return cls(ends.value, ends.rate, ends.accel, name=name)
 
+    @classmethod
+    def piecewise(cls, breaks, laws, name="piecewise"):
+        """laws[k] on [breaks[k-1], breaks[k]) (laws[0] before breaks[0], the last law from
+        breaks[-1] on), each evaluated at the absolute time t: value, rate and acceleration
+        are those of the law of t's interval (at a break, the later law's). Nothing makes the
+        pieces meet: give laws whose values (and rates, for a drive) agree at the breaks."""
+        laws = [as_law(law, f"{name} segment {k + 1}") for k, law in enumerate(laws)]
+        try:
+            b = np.asarray(breaks, dtype=float).ravel()
+        except (TypeError, ValueError):
+            b = None
+        if b is None or b.size != len(laws) - 1 or not np.all(np.isfinite(b)) \
+                or np.any(np.diff(b) <= 0) or not laws:
+            raise ModelError(f"TimeLaw.piecewise {name!r}: breaks must be {max(len(laws) - 1, 0)} "
+                             f"finite increasing times (one fewer than the {len(laws)} laws), "
+                             f"got {breaks!r}")
+
+        def part(which):
+            def f(t):
+                t = np.asarray(t, float)
+                k = np.searchsorted(b, t, side="right")
+                out = np.zeros(t.shape)
+                for i, law in enumerate(laws):
+                    m = k == i
+                    if np.any(m):
+                        out[m] = law.evaluate(t[m])[which]
+                return out
+            return f
+        return cls(part(0), part(1), part(2), name=name)
+
+    @classmethod
+    def sum(cls, laws, name="sum"):
+        """The sum of laws (values, rates and accelerations added)."""
+        laws = [as_law(law, f"{name} term {k + 1}") for k, law in enumerate(laws)]
+        if not laws:
+            raise ModelError(f"TimeLaw.sum {name!r}: needs at least one law")
+
+        def part(which):
+            def f(t):
+                return sum(law.evaluate(np.asarray(t, float))[which] for law in laws)
+            return f
+        return cls(part(0), part(1), part(2), name=name)
+
     def _eval(self, f, t, what):
         ta = np.asarray(t, float)
         try:

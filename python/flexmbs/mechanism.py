@@ -25,7 +25,7 @@ from flexmbs.errors import CaseError, ModelError, ResourceError
 from flexmbs.laws import TimeLaw
 from flexmbs.model import Model
 from flexmbs.sections import Circle, GivenSection, Material, Rectangle, Tube, has_complex
-from flexmbs.simulate import MAX_STEPS, time_steps
+from flexmbs.simulate import MAX_STEPS, simulate, time_steps
 
 __all__ = ["Mechanism", "make_law", "section_at"]
 
@@ -34,8 +34,13 @@ _PARAM = {"diameter": "d", "thickness": "t", "width": "b", "height": "h"}
 
 
 # ----------------------------------------------------------------------------- laws
-def make_law(spec, name="law", shift=0.0):
-    """A TimeLaw (analytic value, rate, acceleration) from a description Law, plus `shift`."""
+def make_law(spec, name="law", shift=0.0, joined=False):
+    """A TimeLaw (analytic value, rate, acceleration) from a description Law, plus `shift`.
+
+    joined=True (a drive's or a path's law, a motion): the segments of a 'piecewise' law
+    must meet at their breaks, to 1e-6 of the value's size: a jump of the value is a
+    ModelError naming the law, the break and both values; a jump of the rate (an impulsive
+    change of speed) is a warning."""
     k = spec.type
     z = np.zeros_like
     if k == "constant":
@@ -76,8 +81,33 @@ def make_law(spec, name="law", shift=0.0):
     if k == "samples":
         return TimeLaw.samples(spec.times, np.array(spec.values) + shift, name=name,
                                interpolation=spec.interpolation, extrapolate=spec.extrapolate)
+    if k == "piecewise":
+        parts = [make_law(g.law, f"{name} segment {i + 1}", shift, joined)
+                 for i, g in enumerate(spec.segments)]
+        breaks = [g.until for g in spec.segments[:-1]]
+        if joined:
+            _check_joins(parts, breaks, name)
+        return TimeLaw.piecewise(breaks, parts, name=name)
+    if k == "sum":
+        return TimeLaw.sum([make_law(law, f"{name} term {i + 1}", shift if i == 0 else 0.0)
+                            for i, law in enumerate(spec.laws)], name=name)
     raise ModelError(f"{name}: a law of type {k!r} has no formula (it is computed from the "
                      "rigid reference)")
+
+
+def _check_joins(parts, breaks, name):
+    """The pieces of a piecewise motion meet at the breaks (see make_law(joined=True))."""
+    for k, b in enumerate(breaks):
+        (v0, r0, _), (v1, r1, _) = (law.evaluate(np.array([b])) for law in parts[k:k + 2])
+        if abs(v1[0] - v0[0]) > 1e-6 * max(1.0, abs(v0[0]), abs(v1[0])):
+            raise ModelError(f"{name}: the piecewise law jumps at until = {b:g} s from "
+                             f"{v0[0]:.10g} (segment {k + 1}) to {v1[0]:.10g} (segment "
+                             f"{k + 2}); a motion cannot jump: give segments whose values meet")
+        if abs(r1[0] - r0[0]) > 1e-6 * max(1.0, abs(r0[0]), abs(r1[0])):
+            warnings.warn(f"{name}: the piecewise law's rate jumps at until = {b:g} s from "
+                          f"{r0[0]:.6g} to {r1[0]:.6g} (an impulsive change of speed: an "
+                          "unbounded acceleration the time steps smear over one step)",
+                          stacklevel=3)
 
 
 def _law_start(spec):
@@ -280,9 +310,10 @@ class Mechanism:
         beams = []
         for b in d.bodies:
             if isinstance(b, Beam):
-                mat = self.materials[b.material]
+                mat = self.materials.get(b.material)     # None: a 'given' section
                 body = m.add_beam(b.name, pts[b.start], pts[b.end], b.elements, material=mat,
-                                  section=Circle(1.0), order=b.order)
+                                  section=Circle(1.0) if mat is not None
+                                  else section_at(b.section, {}), order=b.order)
                 node[(b.name, b.start)] = body.first
                 node[(b.name, b.end)] = body.last
                 beams.append(b.name)
@@ -362,9 +393,9 @@ class Mechanism:
             elif dr.type == "rotation":
                 base = 0.0 if dr.law.absolute else q0[3 * n + 2] - _law_start(dr.law) - (
                     q0[3 * other + 2] if other is not None else 0.0)
-                law = make_law(dr.law, name, shift=base)
+                law = make_law(dr.law, name, shift=base, joined=True)
             else:
-                law = make_law(dr.law, name, shift=-_law_start(dr.law))
+                law = make_law(dr.law, name, shift=-_law_start(dr.law), joined=True)
             if dr.type == "rotation":
                 m.drive_rotation(n, law, relative_to=other)
             else:
@@ -377,8 +408,10 @@ class Mechanism:
                 n = node[(p.body, p.at)]
                 # path laws are displacements from the point's initial position
                 m.prescribe_position(
-                    n, x=make_law(p.x, f"path {k + 1} x", shift=q0[3 * n] - _law_start(p.x)),
-                    y=make_law(p.y, f"path {k + 1} y", shift=q0[3 * n + 1] - _law_start(p.y)))
+                    n, x=make_law(p.x, f"path {k + 1} x", shift=q0[3 * n] - _law_start(p.x),
+                                  joined=True),
+                    y=make_law(p.y, f"path {k + 1} y", shift=q0[3 * n + 1] - _law_start(p.y),
+                               joined=True))
 
     def _reference_law(self, dr, n, other, motion, name):
         """The drive's motion in the rigid reference, as a law exact on the time grid."""
@@ -443,6 +476,132 @@ class Mechanism:
                 self._initial = (a.q, drive_velocities(self.model, a.q, 0.0))
         q0, qd0 = self._initial
         return q0.copy(), qd0.copy()
+
+    def start_state(self, x=None, gradient=False):
+        """(q0, qd0) of a simulation of design x: `initial_state` with the description's
+        [initial] deformation and rates on top (InitialState), or as it is without one.
+
+        static_loads: q0 is the static equilibrium at t = 0 of design x under those loads
+        (and gravity; the case's loads left out), solved by the core (simulate(start=
+        'static'), one step). It depends on the design, and the simulation's direct and
+        adjoint differentiation start from dq0/dx = 0: gradient=True (a design derivative
+        or adjoint run) is refused with a ModelError rather than computed wrong. Given beam
+        deflections and rates do not depend on the design: their derivatives are zero and
+        the gradients stay exact."""
+        q0, qd0 = self.initial_state()
+        ini = self.description.initial
+        if ini is None:
+            return q0, qd0
+        if ini.static_loads is not None:
+            if gradient:
+                raise ModelError(
+                    "[initial] static_loads: the initial deformation is a static solution that "
+                    "depends on the design, and the simulation's design derivatives (direct and "
+                    "adjoint) start from a design-independent state: gradients of this case "
+                    "would be wrong and are refused; evaluate without gradients, or give the "
+                    "initial deflection as values ([[initial.beams]] deflection), or use "
+                    "time.start = 'static' (static equilibrium under the case's own loads, "
+                    "differentiated exactly)")
+            q0 = self._static_start(x)
+        for b in ini.beams:
+            self._deflect(b, q0, qd0)
+        if any(b.deflection is not None for b in ini.beams):
+            self._check_joined(q0)
+        return q0, qd0
+
+    def _check_joined(self, q0):
+        """The given deflections keep the joints (Phi(q0, 0) = 0, to the core's 1e-8 of the
+        coordinates' scale): a ModelError naming the first violated row otherwise."""
+        from flexmbs.constraints import constraint_values, law_tables
+        m = self.model
+        laws = law_tables(m, [0.0])[0] if m.laws() else None
+        phi = constraint_values(m.compile(), q0, laws)
+        if phi.size and np.max(np.abs(phi)) > 1e-8 * max(1.0, float(np.max(np.abs(q0)))):
+            r = int(np.argmax(np.abs(phi)))
+            raise ModelError(f"[initial] beams: the given deflections violate constraint "
+                             f"'{m.row_label(r)}' by {phi[r]:.3g}: a joined end keeps its "
+                             "position (and a clamped or welded one its rotation); give zero "
+                             "deflection (and slope) there")
+
+    def _static_start(self, x):
+        """The static equilibrium of design x under [initial] static_loads (all coordinates)."""
+        with self._lazy:
+            if getattr(self, "_preload", None) is None:
+                d = self.description
+                with warnings.catch_warnings():       # the same grid: warned once already
+                    warnings.simplefilter("ignore")
+                    self._preload = Mechanism(d.model_copy(
+                        update={"loads": d.initial.static_loads, "initial": None}))
+            model = self._preload.design_model(self.start if x is None else x)
+        q0, _ = self.initial_state()
+        h = self.description.time.h
+        r = simulate(model, h, h, start="static", q0=q0, store="all", validity="off")
+        return np.array(r.q[0], float)
+
+    def _deflect(self, spec, q0, qd0):
+        """Add an InitialBeam's deflection and rate to q0, qd0 (in place)."""
+        from scipy.interpolate import CubicSpline
+        body = self.model.body(spec.body)
+        nodes = np.asarray(body.nodes)
+        length = sum(self.model._elements[e][1] for e in body.elements)
+        sn = np.linspace(0.0, 1.0, nodes.size)
+        s = sn if spec.s is None else np.asarray(spec.s, float)
+        a = q0[3 * nodes[0] + 2]                      # the beam's axis angle
+        nx, ny = -math.sin(a), math.cos(a)            # its left normal
+        for values, q, rate in ((spec.deflection, q0, False), (spec.deflection_rate, qd0, True)):
+            if values is None:
+                continue
+            spline = CubicSpline(s, np.asarray(values, float))
+            w, slope = spline(sn), spline(sn, 1) / length
+            q[3 * nodes] += w * nx
+            q[3 * nodes + 1] += w * ny
+            if rate:
+                base = spec.deflection
+                w0 = (np.zeros_like(sn) if base is None else
+                      CubicSpline(s, np.asarray(base, float))(sn, 1) / length)
+                q[3 * nodes + 2] += slope / (1.0 + w0 * w0)
+            else:
+                q[3 * nodes + 2] += np.arctan(slope)
+
+    def layout(self, dofs=None):
+        """What the coordinates are, for files of results (`flexmbs simulate --out`): a dict
+        of arrays.
+
+        dof_node, dof_component : (len(dofs),) the node of each coordinate of `dofs` (default
+            all) and which of its coordinates it is ('x', 'y' or 'angle'; coordinate
+            3 node + 0, 1, 2)
+        node_body : (nnode,) the body each node belongs to (a point mass sitting `on` a
+            body: that body's)
+        node_point : (nnode,) the named point at the node ('' for an inner node of a beam)
+        node_s : (nnode,) the node's fraction of its beam's length from `from` (NaN off
+            beams): a station's s
+        node_xy : (nnode, 2) the node's position in the assembled initial configuration
+        body_names, body_kinds : (nbody,) each body and its kind ('beam', 'rigid', 'mass')
+        body_nodes : (nbody,) the node ids of each body joined by ',' (a beam's from its
+            `from` end)
+        """
+        m = self.model
+        nn = m.ndof // 3
+        dofs = np.arange(m.ndof) if dofs is None else np.asarray(dofs, int)
+        body = np.full(nn, "", dtype=object)
+        point = np.full(nn, "", dtype=object)
+        frac = np.full(nn, np.nan)
+        for b in m.bodies.values():
+            for k, n in enumerate(b.nodes):
+                if body[n] == "":
+                    body[n] = b.name
+                if b.kind == "beam":
+                    frac[n] = k / (len(b.nodes) - 1)
+        for (_, p), n in self.node.items():
+            point[n] = p
+        q0, _ = self.initial_state()
+        return dict(dof_node=dofs // 3, dof_component=np.array(["x", "y", "angle"])[dofs % 3],
+                    node_body=body.astype(str), node_point=point.astype(str), node_s=frac,
+                    node_xy=q0.reshape(-1, 3)[:, :2],
+                    body_names=np.array(list(m.bodies), dtype=str),
+                    body_kinds=np.array([b.kind for b in m.bodies.values()], dtype=str),
+                    body_nodes=np.array([",".join(map(str, b.nodes)) for b in m.bodies.values()],
+                                        dtype=str))
 
     # ------------------------------------------------------------------ design
     def _summary(self):
@@ -517,7 +676,7 @@ class Mechanism:
         out = np.zeros((5, len(self.model._elements), len(self.variables)))
         for name in self.beams:
             b = self._bodies[name]
-            mat = self.materials[b.material]
+            mat = self.materials.get(b.material)
             body = self.model.body(name)
             for e, vals in zip(body.elements, self._element_values(b, x_m)):
                 sec = section_at(b.section, {k: v for k, (v, _) in vals.items()})

@@ -158,12 +158,13 @@ def _max_deflection(problem, result):
 
 
 def _followed_points(problem):
-    """(body, point) of every deviation term, in order, without repeats."""
+    """(body, point) of every deviation term at a named point (not a station), in order,
+    without repeats."""
     out = []
     for r in problem.description.responses:
         if isinstance(r, Deviation):
             for term in r.terms:
-                if (term.body, term.at) not in out:
+                if isinstance(term.at, str) and (term.body, term.at) not in out:
                     out.append((term.body, term.at))
     return out
 

@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from flexmbs.casefile import description_from_dict, read_description
-from flexmbs.description import (GROUND, Beam, Deviation, Description, Mass, Reaction, Stress,
-                                 Torque)
+from flexmbs.description import (GROUND, Beam, Deflection, Deviation, Description, Mass,
+                                 Reaction, Station, Strain, Stress, Torque)
 from flexmbs.errors import CaseError, ModelError, ResourceError
 from flexmbs.mechanism import Mechanism
 from flexmbs.output import max_gradient_warning, resolution, run_statistics
@@ -35,6 +35,7 @@ from flexmbs.output import units as unit_table
 from flexmbs.responses.aggregate import aggregate, aggregate_weights
 from flexmbs.responses.deviation import deviation, deviation_terms
 from flexmbs.responses.forces import constraint_force, joint_reaction
+from flexmbs.responses.station import chord_deflection, locate, station_strain
 from flexmbs.responses.stress import beam_stress
 from flexmbs.resources import format_bytes, limit_source, memory_limit
 from flexmbs.simulate import CHECKPOINT_PART, TAPE_PART, memory_estimate, simulate
@@ -307,6 +308,17 @@ class Problem:
         return self.mechanism.start.copy()
 
     # ------------------------------------------------------------------ simulation
+    def _point(self, body, at):
+        """A body's named point as its node id, or a station {body, s} as a
+        flexmbs.responses.station.StationPoint."""
+        if isinstance(at, Station):
+            return locate(self.mechanism.model, at.body, at.s)
+        return self.mechanism.node[(body, at)]
+
+    @staticmethod
+    def _point_nodes(p):
+        return list(p.nodes) if hasattr(p, "nodes") else [p]
+
     def _nodes_needed(self, names):
         mech = self.mechanism
         nodes = set()
@@ -314,12 +326,18 @@ class Problem:
             r = self._resp[n]
             if isinstance(r, Deviation):
                 for t in r.terms:
-                    nodes.add(mech.node[(t.body, t.at)])
+                    nodes.update(self._point_nodes(self._point(t.body, t.at)))
                     if t.relative_to is not None:
-                        nodes.add(mech.node[(t.relative_to.body, t.relative_to.at)])
+                        nodes.update(self._point_nodes(
+                            self._point(t.relative_to.body, t.relative_to.at)))
             elif isinstance(r, Stress):
-                for b in r.bodies:
+                for b in r.beams:
                     nodes.update(mech.model.body(b).nodes)
+            elif isinstance(r, (Deflection, Strain)):
+                p = self._point(r.at.body, r.at)
+                nodes.update(self._point_nodes(p))
+                if isinstance(r, Deflection):
+                    nodes.update((p.first, p.last))
         return sorted(nodes)
 
     def _needs_forces(self, names):
@@ -336,7 +354,11 @@ class Problem:
         diff = names if differentiate is None else list(differentiate)
         nodes = self._nodes_needed(names)
         ts = self.description.time
-        q0, qd0 = mech.initial_state()
+        forces = self._needs_forces(diff)
+        dnodes = self._nodes_needed(diff)
+        differentiated = bool(mech.variables) and (
+            bool(tape or checkpoints) or (gradient and bool(dnodes or forces)))
+        q0, qd0 = mech.start_state(x, gradient=differentiated)    # [initial], if any
         newton = ts.newton
         if ts.reuse_jacobian is not None and newton == "auto":    # the deprecated spelling
             newton = "reuse" if ts.reuse_jacobian else "full"
@@ -352,8 +374,6 @@ class Problem:
             # are enough (the core keeps at least one coordinate)
             store = nodes if nodes else [0]
         kw["store"] = store
-        forces = self._needs_forces(diff)
-        dnodes = self._nodes_needed(diff)
         if gradient and (dnodes or forces) and mech.variables:
             # the core needs at least one sensitivity coordinate: node 0's when only the
             # multipliers' derivatives are wanted
@@ -437,8 +457,8 @@ class Problem:
             ref = mech.reference          # the reference coordinates of these nodes only
             parts = []
             for t in r.terms:
-                node = mech.node[(t.body, t.at)]
-                rel = mech.node[(t.relative_to.body, t.relative_to.at)] \
+                node = self._point(t.body, t.at)
+                rel = self._point(t.relative_to.body, t.relative_to.at) \
                     if t.relative_to is not None else None
                 frame = mech.model.body(t.frame).first if t.frame != "ground" else None
                 parts.append(deviation_terms(node, ref, result, t, frame, rel, gradient))
@@ -449,17 +469,23 @@ class Problem:
                 return self._stress_partials(r, x, result, virtual, model)
             # the largest normal stress over the beams' elements and stations, step by step
             vals, grads = [], []
-            for b in r.bodies:
+            for b, stations, k in self._stress_places(r):
                 c, dc = mech.half_depths(x, b)
-                bs = beam_stress(model, result, b, dc=dc if gradient else None)
+                bs = beam_stress(model, result, b, stations=stations,
+                                 dc=dc if gradient else None)
                 nt = bs.normal.shape[0]
-                vals.append(bs.normal.reshape(nt, -1))
+                vals.append(bs.normal[:, k].reshape(nt, -1))
                 if gradient:
-                    grads.append(bs.d_normal.reshape(nt, vals[-1].shape[1], -1))
+                    grads.append(bs.d_normal[:, k].reshape(nt, vals[-1].shape[1], -1))
             v = np.concatenate(vals, axis=1)
             j = np.argmax(v, axis=1)
             rows = np.arange(v.shape[0])
             return v[rows, j], (np.concatenate(grads, axis=1)[rows, j] if gradient else None)
+        if isinstance(r, Deflection):
+            return chord_deflection(result, self._point(r.at.body, r.at), gradient)
+        if isinstance(r, Strain):
+            return station_strain(model or mech.model, result, self._point(r.at.body, r.at),
+                                  r.component, gradient)
         if isinstance(r, Torque):
             # the force of the drive's row: the torque on its body (the module's convention)
             k = [dr.name for dr in self.description.drives].index(r.drive)
@@ -471,6 +497,14 @@ class Problem:
             return self._reaction(self.description.joints[k], mech.joint_rows[k], r.component,
                                   result, gradient)
         raise ModelError(f"response {r.name!r}: type {r.type!r} cannot be evaluated")
+
+    def _stress_places(self, r):
+        """(beam, stations of beam_stress, element slice) of a Stress response: every element
+        at its Gauss points, or the element of its station at the station's xi."""
+        if r.at is None:
+            return [(b, "gauss", slice(None)) for b in r.bodies]
+        p = self._point(r.at.body, r.at)
+        return [(p.body, [p.xi], slice(p.index, p.index + 1))]
 
     def _stress_partials(self, r, x, result, virtual, model):
         """A Stress response and its partials on the adjoint's virtual columns (`virtual` =
@@ -505,15 +539,16 @@ class Problem:
         those coordinates, dc/dp of its element) at each step of a Stress response."""
         mech = self.mechanism
         vals, dloc, ddc, dofs, dcs = [], [], [], [], []
-        for b in r.bodies:
+        for b, stations, k in self._stress_places(r):
             c, dc = mech.half_depths(x, b)
-            bs = beam_stress(model, result, b, local=True)
-            nt, nel, nst = bs.normal.shape
-            vals.append(bs.normal.reshape(nt, -1))
-            dloc.append(bs.d_normal_local.reshape(nt, nel * nst, -1))
-            ddc.append(bs.d_normal_dc.reshape(nt, -1))
-            dofs.append(np.repeat(bs.dofs, nst, axis=0))             # (nel nst, 3 nen)
-            dcs.append(np.repeat(dc, nst, axis=0))                   # (nel nst, nv)
+            bs = beam_stress(model, result, b, stations=stations, local=True)
+            normal = bs.normal[:, k]
+            nt, nel, nst = normal.shape
+            vals.append(normal.reshape(nt, -1))
+            dloc.append(bs.d_normal_local[:, k].reshape(nt, nel * nst, -1))
+            ddc.append(bs.d_normal_dc[:, k].reshape(nt, -1))
+            dofs.append(np.repeat(bs.dofs[k], nst, axis=0))          # (nel nst, 3 nen)
+            dcs.append(np.repeat(dc[k], nst, axis=0))                # (nel nst, nv)
         v = np.concatenate(vals, axis=1)
         j = np.argmax(v, axis=1)
         rows = np.arange(v.shape[0])

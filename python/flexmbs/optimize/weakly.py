@@ -65,7 +65,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from flexmbs.description import Beam, Deviation, Mass, PointMass, Stress, body_points
+from flexmbs.description import (Beam, Deviation, Mass, PointMass, Station, Stress,
+                                 body_points)
 from flexmbs.errors import CaseError, ModelError
 from flexmbs.esl import (BodyStiffness, ChordFrame, EquivalentStaticLoads, TangentFrame,
                          equivalent_static_loads, esl_change, solve_static)
@@ -305,6 +306,13 @@ class StaticModel:
         #: constrained responses with no static form: left to the check by simulation
         self.unmodelled = [n for n in resp if n in used and n not in
                            {r.name for r in self.responses}]
+        for r in self.responses:
+            at = [getattr(r, "at", None)] + [p for t in getattr(r, "terms", []) for p in
+                                             (t.at, getattr(t.relative_to, "at", None))]
+            if any(isinstance(a, Station) for a in at):
+                raise CaseError(f"weakly coupled method: response {r.name!r} reads a station "
+                                "along a beam (at = {body, s}), which has no static form here "
+                                "(named points only); use the fully coupled method")
         # chains of every deviation term, then the frame entry of every beam on them
         raw = {}
         for r in self.responses:
@@ -471,8 +479,8 @@ class StaticModel:
             u, du, b = sol[name]
             ks = b.stiffness
             body = mech.model.body(name)
+            c, dc = mech.half_depths(x, name)      # refuses a 'given' section
             E = float(mech.materials[mech._bodies[name].material].E)
-            c, dc = mech.half_depths(x, name)
             # the body's nodes in its frame: reference X and the static displacement on it
             aref = ks.ref_angle
             xr, yr, pr = ks.q_ref[0::3], ks.q_ref[1::3], ks.q_ref[2::3]

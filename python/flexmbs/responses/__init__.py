@@ -9,6 +9,8 @@
     strain                           the beam elements' strain kinematics (strain.py), shared
                                      with flexmbs.validity
     deviation, deviation_terms       deviation from the rigid reference (deviation.py)
+    locate, chord_deflection,        a station anywhere along a beam: its deflection from the
+    station_strain                   chord, its strains (station.py)
 
 Each works on a flexmbs.Model and the Result of simulate(); gradients come from Result.dq
 (coordinates) and, for constraint forces, from the derivatives of Result.mu passed as dmu.
@@ -17,8 +19,9 @@ from flexmbs.responses.aggregate import AGGREGATES, aggregate, ks, pnorm
 from flexmbs.responses.deviation import deviation, deviation_terms
 from flexmbs.responses.forces import (Reaction, constraint_force, find_rows, joint_reaction,
                                       motor_torque)
+from flexmbs.responses.station import chord_deflection, locate, station_strain
 from flexmbs.responses.stress import BeamStress, beam_stress
 
 __all__ = ["beam_stress", "BeamStress", "motor_torque", "joint_reaction", "constraint_force",
            "find_rows", "Reaction", "aggregate", "ks", "pnorm", "AGGREGATES", "deviation",
-           "deviation_terms"]
+           "deviation_terms", "locate", "chord_deflection", "station_strain"]

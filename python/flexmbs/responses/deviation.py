@@ -49,21 +49,41 @@ def _reference(reference, dofs):
     return np.asarray(reference)[:, dofs]
 
 
+def _weights(point):
+    """(node ids, weights) of a point: a node id, or a station along a beam
+    (flexmbs.responses.station.StationPoint: its element's nodes and shape values)."""
+    if hasattr(point, "nodes"):
+        return [int(n) for n in point.nodes], [float(w) for w in point.n]
+    return [int(point)], [1.0]
+
+
+def _relative(point, reference_q, result, comps, derivatives):
+    """(flexible - rigid reference) of coordinates `comps` (0: x, 1: y, 2: angle) of a point,
+    (nt, len(comps)), and its design derivatives (nt, len(comps), nv) or None."""
+    d = dq = 0.0
+    for n, w in zip(*_weights(point)):
+        sl = [3 * n + c for c in comps]
+        q, dqn = _history(result, sl, derivatives)
+        d = d + w * (q - _reference(reference_q, sl))
+        if derivatives:
+            dq = dq + w * dqn
+    return d, (dq if derivatives else None)
+
+
 def deviation_terms(node, reference_q, result, term, frame_node=None, relative_node=None,
                     derivatives=False):
     """Scalar terms (ncomp, nt) of one Term and their gradients (ncomp, nt, nv) or None.
 
     node, relative_node, frame_node: node ids of the point, of the point it is measured from
-    (or None) and of the frame body's first node (None: ground); reference_q: the rigid
-    reference, a flexmbs.kinematics.RigidMotion or its (nt, ndof) coordinates."""
-    sl = [3 * node + 2] if term.component == "angle" else [3 * node, 3 * node + 1]
-    q, dq = _history(result, sl, derivatives)
-    d = q - _reference(reference_q, sl)
+    (or None) and of the frame body's first node (None: ground); the point and the one it is
+    measured from may also be stations along beams (flexmbs.responses.station.locate: their
+    element's nodes interpolated by its shape functions); reference_q: the rigid reference, a
+    flexmbs.kinematics.RigidMotion or its (nt, ndof) coordinates."""
+    comps = [2] if term.component == "angle" else [0, 1]
+    d, dq = _relative(node, reference_q, result, comps, derivatives)
     if relative_node is not None:
-        rl = [3 * relative_node + 2] if term.component == "angle" else \
-            [3 * relative_node, 3 * relative_node + 1]
-        qr, dqr = _history(result, rl, derivatives)
-        d = d - (qr - _reference(reference_q, rl))
+        dr, dqr = _relative(relative_node, reference_q, result, comps, derivatives)
+        d = d - dr
         if derivatives:
             dq = dq - dqr
     if term.component == "angle":
