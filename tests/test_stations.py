@@ -281,3 +281,17 @@ def test_out_file_names_nodes_and_gives_the_mid_span(tmp_path):
         assert np.max(np.abs(w - f["response_mid"])) < 1e-15
         ref = P * L ** 3 / (16 * EI)
         assert abs(f["response_mid"][0] - ref) < 1e-4 * ref
+
+
+def test_station_responses_carry_their_units():
+    """The JSON's units (flexmbs.output.units, docs/json-output.md) name the station
+    responses' units: a deflection in m, an axial strain dimensionless ('1'), a curvature in
+    1/m, a stress in Pa."""
+    from flexmbs.output import units
+    at = {"body": "rod", "s": 0.5}
+    p = _cantilever([{"name": "w", "type": "deflection", "at": at},
+                     {"name": "eps", "type": "strain", "at": at},
+                     {"name": "k", "type": "strain", "at": at, "component": "curvature"},
+                     {"name": "sig", "type": "stress", "at": at}],
+                    section={"shape": "circle", "diameter": 0.02})
+    assert units(p)["responses"] == {"w": "m", "eps": "1", "k": "1/m", "sig": "Pa"}

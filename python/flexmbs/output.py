@@ -42,7 +42,8 @@ def response_unit(response, description):
     """The unit of a response's values (SI), or None when its type has no known one.
 
     deviation: 'm' ('rad' when every term is a rotation, 'm, rad' when both mix); mass 'kg';
-    stress 'Pa'; torque 'N m' of a rotation drive, 'N' of a translation drive; reaction 'N'.
+    stress 'Pa'; torque 'N m' of a rotation drive, 'N' of a translation drive; reaction 'N';
+    deflection 'm'; strain '1' (axial, shear) or '1/m' (curvature).
     A response type that declares a `unit` attribute gives it."""
     kind = getattr(response, "type", None)
     if kind == "deviation":
@@ -54,7 +55,9 @@ def response_unit(response, description):
             if d.name == response.drive:
                 return "N m" if d.type == "rotation" else "N"
         return None
-    fixed = {"mass": "kg", "stress": "Pa", "reaction": "N"}
+    if kind == "strain":
+        return "1/m" if response.component == "curvature" else "1"
+    fixed = {"mass": "kg", "stress": "Pa", "reaction": "N", "deflection": "m"}
     return fixed.get(kind, getattr(response, "unit", None))
 
 
