@@ -4,6 +4,8 @@ Usage::
 
     flexmbs simulate CASE [--design P1,P2,...] [--t-end T] [--h H] [--rho-inf R]
                           [--set KEY=VALUE ...] [--out result.npz] [--plot FILE.png] [--json]
+    flexmbs animate CASE [--design P1,P2,...] [--set KEY=VALUE ...] --out motion.gif|.mp4|.pvd
+                         [--frames N] [--fps F] [--magnify S] [--color-by deviation|stress|none]
     flexmbs demo [--out DIR] [--workers N]
     flexmbs reproduce [--study FILE] [--table N ...|--all] [--out DIR] [--workers N | --dask ADDRESS] [--quick]
 
@@ -51,6 +53,7 @@ COMMANDS = [
     "flexmbs.cli_reproduce:register_demo",
     "flexmbs.cli_evaluate:register",
     "flexmbs.cli_check:register",
+    "flexmbs.cli_animate:register",
     "flexmbs.optimize.cli:register",
     "flexmbs.cli_reproduce:register",
 ]

@@ -37,7 +37,7 @@ _RIGID_COLOR = "0.55"
 
 def _save(fig, file):
     if file is not None:
-        from flexmbs.batch import save_figure
+        from flexmbs.files import save_figure
         save_figure(fig, file, dpi=150, bbox_inches="tight")
     return fig
 
