@@ -1,6 +1,7 @@
 """The motion as a film and as a ParaView time series (flexmbs.animation, flexmbs.export,
 ``flexmbs animate``), on every shipped case: the files exist, hold the frames asked for, and
 what ParaView would read back (meshio) is the case's geometry on the case's time grid."""
+import re
 import xml.etree.ElementTree as ET
 
 import meshio
@@ -190,3 +191,56 @@ def test_rigid_bodies_are_cells():
     length = np.linalg.norm(np.subtract(d.points["A"], d.points["O"]))
     seg = sc.position[:, idx[0]] - sc.position[:, idx[-1]]
     assert np.allclose(np.hypot(seg[:, 0], seg[:, 1]), length, rtol=0, atol=1e-9)
+
+
+# ----------------------------------------------------------------------------- overview figure
+def _overview(case_or_problem):
+    from flexmbs.plots import plot_overview
+    prob = case_or_problem if isinstance(case_or_problem, Problem) else _run(case_or_problem)[0]
+    ev = prob.evaluate(gradient=False, store="all")
+    return prob, plot_overview(prob, ev.result, ev)
+
+
+def test_overview_time_labels_do_not_overlap():
+    """The press's overview: the boxes of its time labels (and of the point names) overlap
+    none another, all inside the motion panel; every posture has its label, or its time in
+    the legend."""
+    from flexmbs.plots import _renderer
+    _, fig = _overview("slider_crank_press")
+    ax = fig.axes[0]
+    r = _renderer(fig)
+    fig.draw_without_rendering()
+    boxes = [t.get_window_extent(r) for t in ax.texts]
+    times = [t.get_text() for t in ax.texts if re.fullmatch(r"\d+\.\d\d s( \(max\))?",
+                                                            t.get_text())]
+    for i, a in enumerate(boxes):
+        assert all(not a.overlaps(b) for b in boxes[i + 1:]), ax.texts[i].get_text()
+    inside = ax.get_window_extent(r)
+    assert all(inside.contains(b.x0, b.y0) and inside.contains(b.x1, b.y1) for b in boxes)
+    also = [t.get_text() for t in ax.get_legend().get_texts()
+            if t.get_text().startswith("postures also at ")]
+    unplaced = also[0][len("postures also at "):].split(", ") if also else []
+    assert len(times) + len(unplaced) >= 5 and len(times) >= 3
+
+
+def test_overview_draws_rigid_bodies():
+    """The press's crank is drawn: a line from O to A of the case file at t = 0 (a rest start:
+    nothing deflected yet; 1e-9 m)."""
+    prob, fig = _overview("slider_crank_press")
+    o, a = (np.array(prob.description.points[p]) for p in ("O", "A"))
+    ends = [np.array(line.get_xydata())[[0, -1]] for line in fig.axes[0].lines
+            if len(line.get_xydata()) >= 2]
+    assert any(np.allclose(e, [a, o], atol=1e-9) or np.allclose(e, [o, a], atol=1e-9)
+               for e in ends)
+
+
+def test_overview_without_constraints_has_no_empty_panel():
+    """A case without constraints: the overview is the motion panel alone (one axes with
+    lines), where it had an empty second panel."""
+    import tomllib
+    from flexmbs.casefile import case_path
+    with open(case_path("robot_2dof"), "rb") as fh:
+        data = tomllib.load(fh)
+    data.pop("constraints")
+    _, fig = _overview(Problem(data))
+    assert len(fig.axes) == 1 and fig.axes[0].lines
