@@ -69,7 +69,7 @@ class Animation:
     def describe(self):
         """One line for people."""
         every = int(round(np.median(np.diff(self.steps)))) if self.steps.size > 1 else 1
-        return (f"{self.frames} frames (every {every}. time step) at {self.fps:g} fps "
+        return (f"{self.frames} frames (one every {every} time steps) at {self.fps:g} fps "
                 f"({self.frames / self.fps:.1f} s), deflection x {self.magnification:g}"
                 + (f", coloured by {self.color_by} (max {self.color_max:.4g} {self.unit})"
                    if self.color_by != "none" else "") + f", {self.wall_time:.1f} s")

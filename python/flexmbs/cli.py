@@ -44,7 +44,7 @@ from flexmbs.errors import CaseError, FlexmbsError, ModelError
 
 __all__ = ["main", "build_parser", "COMMANDS", "add_case_arguments", "problem_from_args",
            "design_from_text", "parse_values", "parse_set", "register_simulate", "positive_int",
-           "nonnegative_int", "path_text",
+           "nonnegative_int", "at_least_two", "path_text",
            "output_file", "figure_file", "print_evaluation", "add_design_arguments"]
 
 #: Subcommand registration functions, "module:function", in the order of the help text.
@@ -178,6 +178,8 @@ def _int_at_least(minimum):
 positive_int = _int_at_least(1)
 #: argparse type: an integer >= 0 (e.g. --seed).
 nonnegative_int = _int_at_least(0)
+#: argparse type: an integer >= 2 (e.g. --frames: a first and a last).
+at_least_two = _int_at_least(2)
 
 
 def path_text(text):

@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import os
 
-from flexmbs.cli import (add_case_arguments, design_from_text, output_file, path_text,
-                         print_json, problem_from_args)
+from flexmbs.cli import (add_case_arguments, at_least_two, design_from_text, output_file,
+                         path_text, print_json, problem_from_args)
 from flexmbs.errors import ModelError
 
 __all__ = ["register", "run", "OUTPUTS"]
@@ -23,16 +23,6 @@ def _positive(text):
         v = float("nan")
     if not v > 0 or v == float("inf"):
         raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
-    return v
-
-
-def _frames(text):
-    try:
-        v = int(text)
-    except ValueError:
-        v = 0
-    if v < 2:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 2, got {text!r}")
     return v
 
 
@@ -55,7 +45,7 @@ def register(subparsers):
     p.add_argument("--out", type=path_text, required=True, metavar="FILE",
                    help="the file to write; its suffix chooses what: "
                         + "; ".join(f"{k} {v}" for k, v in OUTPUTS.items()))
-    p.add_argument("--frames", type=_frames, default=None, metavar="N",
+    p.add_argument("--frames", type=at_least_two, default=None, metavar="N",
                    help=f"time steps shown, spread evenly over the run (first and last "
                         f"included); default {DEFAULT_FRAMES} for a film, every step for .pvd")
     p.add_argument("--fps", type=_positive, default=DEFAULT_FPS, metavar="F",
@@ -97,7 +87,7 @@ def run(args):
         _, files, steps = to_vtk(prob, ev.result, out, frames=args.frames)
         every = int(round((steps[-1] - steps[0]) / max(steps.size - 1, 1)))
         summary.update(frames=len(files), folder=os.path.dirname(files[0]), every=every)
-        line = f"{len(files)} frames (every {every}. time step) in {summary['folder']}"
+        line = f"{len(files)} frames (one every {every} time steps) in {summary['folder']}"
     else:
         a = animate(prob, ev.result, out, evaluation=ev,
                     frames=args.frames if args.frames is not None else DEFAULT_FRAMES,

@@ -59,9 +59,8 @@ class Scene:
     position, rigid : (k, n, 2) flexible and rigid-reference positions.
     rotation, rigid_rotation : (k, n) rotations (rad).
     cells : list of (body name, kind, indices into the points): kind 'beam' (one element,
-        root node first, then for 3-node elements the end node and the middle one as the
-        model orders them: `element_nodes`), 'rigid' (a polyline of the outline), 'mass'.
-    element_nodes : list of the beam cells' node indices in the model's order (n0, mid, n1).
+        its nodes in the model's order: root, [middle,] end), 'rigid' (the polyline of the
+        outline), 'mass' (one point).
     cell_fields : name -> (k, ncells) values (NaN on cells that are not beam elements).
     bodies : body name -> kind ('beam', 'rigid', 'mass').
     joints : list of (joint type, index into the points, grounded?).
