@@ -36,7 +36,8 @@ def test_film_and_time_series_of_every_shipped_case(case, tmp_path):
     model and one cell per beam element of the case file (plus one per rigid outline segment
     and point mass); at t = 0 the rigid reference (points minus the deflection field) puts
     every beam's end nodes on the case file's points (1e-9 m; the points are the case's
-    data, not computed); where the case has a stress response, the written stress field's
+    data, not computed) and the third node of every quadratic edge halfway between its first
+    two (VTK's node order of a 'line3': ends, then middle; the beams are straight); where the case has a stress response, the written stress field's
     largest value over the response's beams equals the response at that step (relative 1e-9)."""
     prob, ev = _run(case)
     d = prob.description
@@ -60,6 +61,10 @@ def test_film_and_time_series_of_every_shipped_case(case, tmp_path):
         assert sum(len(c.data) for c in mesh0.cells if c.type == "line3") == elements
     # rigid reference at t = 0: the case's points at the beams' ends
     rigid0 = mesh0.points[:, :2] - mesh0.point_data["deflection"][:, :2]
+    for c in mesh0.cells:       # VTK's quadratic edge: both ends, then the middle node
+        if c.type == "line3":
+            ends = 0.5 * (rigid0[c.data[:, 0]] + rigid0[c.data[:, 1]])
+            assert np.allclose(rigid0[c.data[:, 2]], ends, rtol=0, atol=1e-9)
     index = {n: i for i, n in enumerate(sorted(nodes))}
     mech = prob.mechanism
     for b in d.bodies:
