@@ -11,8 +11,8 @@
   stay joined), printed on the frame, beside the rigid reference drawn as a grey ghost;
 - the rigid paths of the points that deviation responses follow (dotted), a time label;
 - underneath, the constrained histories of an Evaluation (each response over its upper limit,
-  so that several of them share the axis and the limit is the line at 1), with a moving
-  marker at the frame's time. No panel when the case has no constrained history.
+  so that several of them share the axis and the limit is the line at 1; a lower limit is the
+  line at lower / upper), with a moving marker at the frame's time. No panel when the case has no constrained history.
 
 The frames are `frames` time steps spread evenly over the run (first and last included; a
 1301-step run at the default 100 frames shows every 13th step), played at `fps` frames per
@@ -130,13 +130,20 @@ def _segment_values(sc, color_by, pairs, owner):
 
 
 def _history_rows(problem, evaluation):
-    """[(label, history / upper limit)] of the constrained histories with an upper limit."""
+    """[(label, history / upper limit, lower limit / upper limit or None)] of the constrained
+    histories with a positive upper limit."""
     if evaluation is None:
         return []
+    lower = {}
+    for c in problem.description.constraints:
+        if c.lower is not None:
+            lower[c.response] = max(lower.get(c.response, c.lower), c.lower)
     rows = []
     for name, v, limit in constrained_histories(problem, evaluation.values):
         if limit is not None and limit > 0:
-            rows.append((f"{name} / {limit:g}", np.asarray(v, float) / limit))
+            low = lower.get(name)
+            rows.append((f"{name} / {limit:g}", np.asarray(v, float) / limit,
+                         None if low is None else low / limit))
     return rows
 
 
@@ -322,19 +329,23 @@ def _figure(problem, result, sc, magnification, color_by, pairs, values, rows, e
     if rows:
         t = np.asarray(evaluation.t)
         lines = []
-        for k, (label, v) in enumerate(rows):
+        for k, (label, v, _) in enumerate(rows):
             lines.append(axh.plot(t, v, lw=1.2, ls=("-", "--", ":", "-.")[k % 4], label=label)[0])
-        axh.axhline(1.0, color=_LIMIT_COLOR, ls="--", lw=1.0, label="limit")
+        axh.axhline(1.0, color=_LIMIT_COLOR, ls="--", lw=1.0, label="limits")
+        lows = sorted({low for _, _, low in rows if low is not None})
+        for low in lows:
+            axh.axhline(low, color=_LIMIT_COLOR, ls="--", lw=1.0)
         axh.set_xlim(0, float(t[-1]))
-        top = max(1.0, max(float(np.nanmax(v)) for _, v in rows))
-        axh.set_ylim(min(0.0, min(float(np.nanmin(v)) for _, v in rows)), 1.15 * top)
+        top = max(1.0, max(float(np.nanmax(v)) for _, v, _ in rows))
+        bottom = min([0.0] + lows + [float(np.nanmin(v)) for _, v, _ in rows])
+        axh.set_ylim(bottom - 0.15 * (top - bottom) * (bottom < 0), 1.15 * top)
         axh.set_xlabel("time (s)")
         axh.set_ylabel("response / limit")
         axh.grid(alpha=0.3)
-        axh.legend(fontsize=7, loc="upper left", framealpha=0.85, ncol=min(len(rows) + 1, 3))
+        axh.legend(fontsize=7, loc="best", framealpha=0.85, ncol=min(len(rows) + 1, 3))
         marker = axh.axvline(0.0, color="k", lw=1.0)
         dots, = axh.plot([], [], "o", color="k", ms=4, zorder=4)
-        hist = np.array([v for _, v in rows])
+        hist = np.array([v for _, v, _ in rows])
     fig.subplots_adjust(left=0.1, right=0.97 if values is None else 0.89, top=1 - 0.35 / fig.get_figheight(),
                         bottom=0.5 / fig.get_figheight(), hspace=0.9 / (high + hist_high) * 2)
 
