@@ -179,7 +179,10 @@ def scene(problem, result, steps=None, model=None):
     steps = np.arange(nt) if steps is None else np.asarray(steps, int)
     if steps.size == 0 or steps.min() < 0 or steps.max() >= nt:
         raise ModelError(f"steps must be 0-based time steps in [0, {nt - 1}], got {steps!r}")
-    model = model if model is not None else getattr(result, "design_model", None) or m
+    if model is None:
+        model = getattr(result, "design_model", None)
+    if model is None:
+        model = m
     bodies = {name: b.kind for name, b in m.bodies.items()}
     bodies.update({b.name: "mass" for b in problem.description.bodies if isinstance(b, PointMass)})
     nodes = sorted({n for b in m.bodies.values() for n in b.nodes})
