@@ -57,7 +57,9 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict
 
 from flexmbs.errors import ModelError, ResourceError, SimulationError
-from flexmbs.files import check_regular_file, file_kind
+# the safe-file helpers are files.py's; imported here by the name they have always had
+from flexmbs.files import (atomic_open, check_regular_file, file_kind, save_figure,  # noqa: F401
+                           write_atomic)
 
 __all__ = ["run_batch", "sweep_jobs", "max_deviation_job", "local_cluster", "Progress",
            "atomic_open", "save_figure", "write_atomic", "read_stored", "check_writable",
@@ -110,58 +112,6 @@ class Progress:
         if self._bar is not None:
             self._bar.close()
             self._bar = None
-
-
-# ----------------------------------------------------------------------------- safe files
-@contextlib.contextmanager
-def atomic_open(path, mode="w", encoding="utf-8"):
-    """Open a temporary file beside `path` for writing; on success, flush it to disk (fsync)
-    and rename it to `path` (os.replace, atomic on POSIX); on any error, delete it and leave
-    whatever was at `path` untouched. So a reader never sees a half-written file under `path`.
-
-    mode is 'w' (text) or 'wb' (binary).
-    """
-    if mode not in ("w", "wb"):
-        raise ModelError(f"atomic_open mode must be 'w' or 'wb', got {mode!r}")
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, mode, **({} if "b" in mode else {"encoding": encoding})) as fh:
-            yield fh
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, _file_mode(path))     # mkstemp makes 0600 files
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-
-
-def _file_mode(path):
-    """The permissions of the file at `path`, else those a new file gets (0666 - umask)."""
-    try:
-        return path.stat().st_mode & 0o7777
-    except OSError:
-        mask = os.umask(0o022)
-        os.umask(mask)
-        return 0o666 & ~mask
-
-
-def write_atomic(path, data):
-    """Write text or bytes to `path` through `atomic_open`."""
-    with atomic_open(path, "wb" if isinstance(data, (bytes, bytearray)) else "w") as fh:
-        fh.write(data)
-    return path
-
-
-def save_figure(fig, path, **savefig_kw):
-    """Save a matplotlib figure through a temporary file (`atomic_open`): a figure is either
-    whole or absent. The format comes from the extension (png without one)."""
-    fmt = os.path.splitext(os.fspath(path))[1][1:].lower() or "png"
-    with atomic_open(path, "wb") as fh:
-        fig.savefig(fh, format=fmt, **savefig_kw)
-    return path
 
 
 #: descriptions' digests by (case file, its modification time and size, overrides)

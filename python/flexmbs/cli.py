@@ -4,6 +4,8 @@ Usage::
 
     flexmbs simulate CASE [--design P1,P2,...] [--t-end T] [--h H] [--rho-inf R]
                           [--set KEY=VALUE ...] [--out result.npz] [--plot FILE.png] [--json]
+    flexmbs animate CASE [--design P1,P2,...] [--set KEY=VALUE ...] --out motion.gif|.mp4|.pvd
+                         [--frames N] [--fps F] [--magnify S] [--color-by deviation|stress|none]
     flexmbs demo [--out DIR] [--workers N]
     flexmbs reproduce [--study FILE] [--table N ...|--all] [--out DIR] [--workers N | --dask ADDRESS] [--quick]
 
@@ -42,7 +44,7 @@ from flexmbs.errors import CaseError, FlexmbsError, ModelError
 
 __all__ = ["main", "build_parser", "COMMANDS", "add_case_arguments", "problem_from_args",
            "design_from_text", "parse_values", "parse_set", "register_simulate", "positive_int",
-           "nonnegative_int", "path_text",
+           "nonnegative_int", "at_least_two", "path_text",
            "output_file", "figure_file", "print_evaluation", "add_design_arguments",
            "evaluate_case", "evaluation_json", "needs_motion"]
 
@@ -52,6 +54,7 @@ COMMANDS = [
     "flexmbs.cli_reproduce:register_demo",
     "flexmbs.cli_evaluate:register",
     "flexmbs.cli_check:register",
+    "flexmbs.cli_animate:register",
     "flexmbs.optimize.cli:register",
     "flexmbs.cli_reproduce:register",
 ]
@@ -176,6 +179,8 @@ def _int_at_least(minimum):
 positive_int = _int_at_least(1)
 #: argparse type: an integer >= 0 (e.g. --seed).
 nonnegative_int = _int_at_least(0)
+#: argparse type: an integer >= 2 (e.g. --frames: a first and a last).
+at_least_two = _int_at_least(2)
 
 
 def path_text(text):

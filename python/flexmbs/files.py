@@ -1,17 +1,22 @@
 """Plain files: what may be read (a regular file, never a FIFO, device or folder) and what
-JSON can hold. The lowest layer of the package's file handling: case files, studies,
-histories and stored results all go through it."""
+JSON can hold, and how a file is written whole or not at all (`atomic_open`, `atomic_path`).
+The lowest layer of the package's file handling: case files, studies, histories, stored results,
+figures and films all go through it."""
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import stat
+import tempfile
+from pathlib import Path
 
 import numpy as np
 
 from flexmbs.errors import ModelError
 
-__all__ = ["check_regular_file", "file_kind", "jsonable"]
+__all__ = ["check_regular_file", "file_kind", "jsonable", "atomic_path", "atomic_open",
+           "write_atomic", "save_figure"]
 
 
 def file_kind(mode):
@@ -60,3 +65,66 @@ def jsonable(obj):
         v = float(obj)
         return v if math.isfinite(v) else None
     return obj
+
+
+# ----------------------------------------------------------------------------- safe files
+@contextlib.contextmanager
+def atomic_path(path, suffix=".tmp"):
+    """A temporary file name beside `path` (ending with `suffix`, for writers that choose the
+    format by it) to write to; on success it is renamed to `path` (os.replace, atomic on
+    POSIX) with the permissions `path` had (or a new file's); on any error it is deleted and
+    whatever was at `path` is left untouched."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
+    os.close(fd)
+    try:
+        yield tmp
+        os.chmod(tmp, _file_mode(path))     # mkstemp makes 0600 files
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+@contextlib.contextmanager
+def atomic_open(path, mode="w", encoding="utf-8"):
+    """Open a temporary file beside `path` for writing; on success, flush it to disk (fsync)
+    and rename it to `path` (`atomic_path`); on any error, delete it and leave whatever was at
+    `path` untouched. So a reader never sees a half-written file under `path`.
+
+    mode is 'w' (text) or 'wb' (binary).
+    """
+    if mode not in ("w", "wb"):
+        raise ModelError(f"atomic_open mode must be 'w' or 'wb', got {mode!r}")
+    with atomic_path(path) as tmp:
+        with open(tmp, mode, **({} if "b" in mode else {"encoding": encoding})) as fh:
+            yield fh
+            fh.flush()
+            os.fsync(fh.fileno())
+
+
+def _file_mode(path):
+    """The permissions of the file at `path`, else those a new file gets (0666 - umask)."""
+    try:
+        return path.stat().st_mode & 0o7777
+    except OSError:
+        mask = os.umask(0o022)
+        os.umask(mask)
+        return 0o666 & ~mask
+
+
+def write_atomic(path, data):
+    """Write text or bytes to `path` through `atomic_open`."""
+    with atomic_open(path, "wb" if isinstance(data, (bytes, bytearray)) else "w") as fh:
+        fh.write(data)
+    return path
+
+
+def save_figure(fig, path, **savefig_kw):
+    """Save a matplotlib figure through a temporary file (`atomic_open`): a figure is either
+    whole or absent. The format comes from the extension (png without one)."""
+    fmt = os.path.splitext(os.fspath(path))[1][1:].lower() or "png"
+    with atomic_open(path, "wb") as fh:
+        fig.savefig(fh, format=fmt, **savefig_kw)
+    return path

@@ -29,7 +29,7 @@ from matplotlib.figure import Figure
 from flexmbs.description import Deviation
 
 __all__ = ["plot_histories", "plot_motion", "plot_overview", "magnified_postures",
-           "nice_magnification", "constrained_histories"]
+           "nice_magnification", "constrained_histories", "place_labels"]
 
 _LIMIT_COLOR = "#c0392b"
 _RIGID_COLOR = "0.55"
@@ -37,7 +37,7 @@ _RIGID_COLOR = "0.55"
 
 def _save(fig, file):
     if file is not None:
-        from flexmbs.batch import save_figure
+        from flexmbs.files import save_figure
         save_figure(fig, file, dpi=150, bbox_inches="tight")
     return fig
 
@@ -228,6 +228,8 @@ def plot_motion(problem, result, file=None, *, ax=None, postures=6, magnificatio
                 label="rigid paths of " + ", ".join(p for _, p in followed) if k == 0 else None)
     cmap = _colormap()
     label_node = mech.node[followed[0]] if followed else None
+    outlines = _rigid_outlines(problem, result, steps, magnification)
+    labels = []
     for j, k in enumerate(steps):
         is_hi = k == highlight
         color = _LIMIT_COLOR if is_hi else cmap(j / max(len(steps) - 1, 1))
@@ -235,14 +237,17 @@ def plot_motion(problem, result, file=None, *, ax=None, postures=6, magnificatio
             ax.plot(rigid[j, :, 0], rigid[j, :, 1], "--", color=_RIGID_COLOR, lw=1.0, zorder=2)
             ax.plot(flex[j, :, 0], flex[j, :, 1], "-", color=color, lw=2.2 if is_hi else 1.6,
                     zorder=3, solid_capstyle="round")
+        for flex, rigid in outlines:
+            ax.plot(rigid[j, :, 0], rigid[j, :, 1], "--", color=_RIGID_COLOR, lw=1.0, zorder=2)
+            ax.plot(flex[j, :, 0], flex[j, :, 1], "-", color=color, lw=4.0, alpha=0.55,
+                    zorder=3, solid_capstyle="round")
         if label_node is not None:
-            at = result.position(label_node)[k]
-            ax.annotate(f"{result.t[k]:.2f} s" + (" (max)" if is_hi else ""), at,
-                        textcoords="offset points", xytext=(5, 4), fontsize=7, color=color,
-                        zorder=5)
+            labels.append((f"{result.t[k]:.2f} s" + (" (max)" if is_hi else ""),
+                           result.position(label_node)[k], color, is_hi))
     # named points at t = 0; ground pivots as triangles
     grounded = {j.at for j in problem.description.joints if j.type in ("pin", "clamp")}
     drawn = set()
+    names = []
     for (body, name), node in mech.node.items():
         if name in drawn:
             continue
@@ -251,15 +256,20 @@ def plot_motion(problem, result, file=None, *, ax=None, postures=6, magnificatio
         ground = name in grounded
         ax.plot([x], [y], "^" if ground else "o", color="k" if ground else "w", mec="k",
                 ms=8 if ground else 5, zorder=6)
-        ax.annotate(name, (x, y), textcoords="offset points",
-                    xytext=(-12, -12) if ground else (-12, 6), fontsize=9, weight="bold",
-                    zorder=6)
+        names.append(ax.annotate(name, (x, y), textcoords="offset points",
+                                 xytext=(-12, -12) if ground else (-12, 6), fontsize=9,
+                                 weight="bold", zorder=6))
     ax.plot([], [], "--", color=_RIGID_COLOR, label="rigid reference")
     ax.plot([], [], "-", color=cmap(0.5), label=f"flexible, deflection x {magnification:g}")
+    if outlines:
+        ax.plot([], [], "-", color=cmap(0.5), lw=4.0, alpha=0.55, label="rigid bodies")
     if highlight is not None:
         ax.plot([], [], "-", color=_LIMIT_COLOR, lw=2.2, label="at the largest deviation")
     ax.margins(0.07)
     ax.set_aspect("equal", adjustable="datalim")
+    unplaced = place_labels(ax, sorted(labels, key=lambda e: not e[3]), names)
+    if unplaced:
+        ax.plot([], [], " ", label="postures also at " + ", ".join(unplaced))
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.grid(alpha=0.25)
@@ -269,6 +279,62 @@ def plot_motion(problem, result, file=None, *, ax=None, postures=6, magnificatio
                  f"{magnification:g} times")
     ax.set_title(title, fontsize=10)
     return _save(fig, file)
+
+
+def _rigid_outlines(problem, result, steps, magnification):
+    """[(flexible (k, m, 2) magnified, rigid (k, m, 2))] outline of every rigid body at the
+    steps (flexmbs.scene)."""
+    from flexmbs.scene import scene
+    if not any(b.kind == "rigid" for b in problem.mechanism.model.bodies.values()):
+        return []
+    sc = scene(problem, result, steps)
+    shown = sc.magnified(magnification)
+    return [(shown[:, idx], sc.rigid[:, idx]) for _, kind, idx in sc.cells if kind == "rigid"]
+
+
+#: where `place_labels` tries a label: offsets (points) from its anchor and the side of the
+#: anchor the text stands on, nearest first
+_LABEL_OFFSETS = [(5, 4, "left"), (5, -11, "left"), (-5, 4, "right"), (-5, -11, "right")] + [
+    (dx, dy, ha) for k in range(1, 6) for dy in (4 + 12 * k, -11 - 12 * k)
+    for dx, ha in ((5, "left"), (-5, "right"))]
+
+
+def place_labels(ax, labels, obstacles=()):
+    """Annotate each (text, anchor (x, y), colour, emphasised) of `labels` in order at the
+    first offset of _LABEL_OFFSETS where its box overlaps no label placed before it nor the
+    `obstacles` (Text artists) and stays inside the axes; a label placed away from its anchor
+    gets a thin leader line. Returns the texts that found no place (not drawn). The axes'
+    position and limits must be final (the figure laid out) for the boxes to hold."""
+    fig = ax.figure
+    renderer = _renderer(fig)
+    fig.draw_without_rendering()    # the limits as they will be drawn (aspect, autoscaling)
+    inside = ax.get_window_extent(renderer).padded(-6)     # text metrics vary with the dpi
+    taken = [o.get_window_extent(renderer) for o in obstacles]
+    unplaced = []
+    for text, xy, color, strong in labels:
+        for dx, dy, ha in _LABEL_OFFSETS:
+            far = abs(dy) > 12
+            a = ax.annotate(text, xy, textcoords="offset points", xytext=(dx, dy), fontsize=7,
+                            ha=ha, color=color, zorder=5, weight="bold" if strong else None,
+                            arrowprops=dict(arrowstyle="-", lw=0.5, color=color,
+                                            shrinkA=0, shrinkB=2) if far else None)
+            box = a.get_window_extent(renderer).expanded(1.05, 1.1)
+            if inside.contains(box.x0, box.y0) and inside.contains(box.x1, box.y1) and \
+                    not any(box.overlaps(t) for t in taken):
+                taken.append(box)
+                break
+            a.remove()
+        else:
+            unplaced.append(text)
+    return unplaced
+
+
+def _renderer(fig):
+    """The figure's renderer (an Agg canvas is attached to a bare Figure)."""
+    if not hasattr(fig.canvas, "get_renderer"):
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        FigureCanvasAgg(fig)
+    return fig.canvas.get_renderer()
 
 
 def _colormap():
@@ -282,9 +348,15 @@ def plot_overview(problem, result, evaluation, file=None, *, magnification=None)
 
     result: `Problem.simulate(x, store='all')`; evaluation: `Problem.evaluate(x)` of the
     same design."""
-    fig = Figure(figsize=(12.5, 5.2))
-    ax1, ax2 = fig.subplots(1, 2, gridspec_kw=dict(width_ratios=[1.05, 1]))
     hist = constrained_histories(problem, evaluation.values)
+    if hist:
+        fig = Figure(figsize=(12.5, 5.2))
+        ax1, ax2 = fig.subplots(1, 2, gridspec_kw=dict(width_ratios=[1.05, 1]))
+        fig.subplots_adjust(left=0.06, right=0.98, bottom=0.1, top=0.86, wspace=0.2)
+    else:       # no constrained history: the motion alone
+        fig = Figure(figsize=(6.8, 5.6))
+        ax1, ax2 = fig.add_subplot(), None
+        fig.subplots_adjust(left=0.12, right=0.96, bottom=0.1, top=0.86)
     devs = [h for h in hist if isinstance(
         {r.name: r for r in problem.description.responses}[h[0]], Deviation)]
     highlight = int(np.argmax(devs[0][1])) if devs else None
@@ -308,5 +380,4 @@ def plot_overview(problem, result, evaluation, file=None, *, magnification=None)
     state = ("" if not evaluation.constraints.size else
              ", feasible" if evaluation.feasible else ", INFEASIBLE")
     fig.suptitle(f"{d.case.name}: {design}{obj}{state}", fontsize=11)
-    fig.tight_layout()
     return _save(fig, file)

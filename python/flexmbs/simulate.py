@@ -173,6 +173,22 @@ class Result:
             raise ModelError(f"coordinates: expected a list of coordinate indices (int), got {dofs!r}")
         return self.q[:, [self._col(int(k)) for k in d]]
 
+    def animate(self, path, problem, *, evaluation=None, **options):
+        """Write this motion as a film, .gif or .mp4 (flexmbs.animation.animate: every body,
+        the deflection magnified over the rigid reference, coloured by a response, the
+        constrained histories of `evaluation` underneath). The result must come from
+        `problem` with store='all'. Returns flexmbs.animation.Animation."""
+        from flexmbs.animation import animate
+        return animate(problem, self, path, evaluation=evaluation, **options)
+
+    def to_vtk(self, path, problem, *, frames=None):
+        """Write this motion as a ParaView time series, a .pvd file and a folder of .vtu
+        frames (flexmbs.export.to_vtk: every body's nodes and elements with displacement,
+        rotation, strains, stress and deviation). The result must come from `problem` with
+        store='all'. Returns (pvd path, vtu paths, steps)."""
+        from flexmbs.export import to_vtk
+        return to_vtk(problem, self, path, frames=frames)
+
     @property
     def mean_newton_iterations(self):
         """Newton iterations per time step."""
