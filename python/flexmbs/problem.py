@@ -19,6 +19,7 @@ simulations in all whatever the number of variables (measured from 4 to 2048);
 """
 from __future__ import annotations
 
+import threading
 import time as _time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -211,6 +212,61 @@ class Problem:
         _check_checkpoints(checkpoints)
         self.adjoint_checkpoints = checkpoints
         self._refined = {}
+        # the frozen step grid of an adaptive case (time.h = "auto"): chosen once
+        self._steps = None
+        self._steps_lock = threading.Lock()
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        del state["_steps_lock"]           # a lock is not copied: the copy makes its own
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._steps_lock = threading.Lock()
+
+    # ------------------------------------------------------------------ adaptive steps
+    def steps(self, x=None):
+        """The non-uniform step grid (times) of an adaptive case (time.h = "auto"), None for a
+        fixed step. Chosen by flexmbs.adaptive.choose_steps at the first design simulated
+        (x; default the start) and then frozen: every later design runs on the same grid,
+        so that the responses are smooth in the design and their derivatives exact (re-chosen
+        by `adapt`)."""
+        if not self.description.time.adaptive:
+            return None
+        if self._steps is None:
+            with self._steps_lock:
+                if self._steps is None:
+                    self._steps = self._choose(x)
+        return self._steps
+
+    def adapt(self, x=None, info=None):
+        """Choose the step grid of an adaptive case afresh at design x (between restarts of
+        an optimization, or to verify a result) and freeze it; returns it. `info`: as
+        flexmbs.adaptive.choose_steps's."""
+        if not self.description.time.adaptive:
+            raise ModelError('adapt: the case has a fixed step (time.h is a number, not "auto")')
+        with self._steps_lock:
+            self._steps = self._choose(x, info)
+            self._refined = {}
+        return self._steps
+
+    def _choose(self, x, info=None):
+        from flexmbs.adaptive import choose_steps
+        return choose_steps(self, x, info=info)
+
+    def values_on(self, x, steps):
+        """The response histories (name -> value) of design x simulated on the step grid
+        `steps` (times; outputs on the response grid), without gradients: the pilot runs of
+        flexmbs.adaptive."""
+        mech = self.mechanism
+        x = mech.start if x is None else mech.design_values(x)
+        timed = [n for n, r in self._resp.items() if not isinstance(r, Mass)]
+        if not timed:
+            return {}
+        model, t_end, h, kw = self._run(x, False, timed, None, steps=steps)
+        result = simulate(model, t_end, h, **kw)
+        return {n: self._response(self._resp[n], x, result, False, model=model)[0] for n in timed}
 
     def refined(self, factor):
         """The same problem with the time step h / factor (factor a power of two; built once
@@ -223,10 +279,19 @@ class Problem:
         if factor == 1:
             return self
         if factor not in self._refined:
-            self._refined[factor] = Problem(
-                self.description, overrides={"time.h": self.description.time.h / factor},
-                gradient_method=self.default_gradient_method,
-                checkpoints=self.adjoint_checkpoints)
+            ts = self.description.time
+            if ts.adaptive:
+                # the frozen step grid with every step divided, outputs on a grid as fine
+                from flexmbs.adaptive import subdivide
+                fine = Problem(self.description, overrides={"time.output": ts.grid_h / factor},
+                               gradient_method=self.default_gradient_method,
+                               checkpoints=self.adjoint_checkpoints)
+                fine._steps = subdivide(self.steps(), factor)
+            else:
+                fine = Problem(self.description, overrides={"time.h": ts.h / factor},
+                               gradient_method=self.default_gradient_method,
+                               checkpoints=self.adjoint_checkpoints)
+            self._refined[factor] = fine
         return self._refined[factor]
 
     def refined_mesh(self):
@@ -282,9 +347,9 @@ class Problem:
         return any(isinstance(self._resp[n], (Torque, Reaction)) for n in names)
 
     def _run(self, x, gradient, responses, store, differentiate=None, tape=False,
-             checkpoints=None):
+             checkpoints=None, steps=None):
         """(model, t_end, h, keywords of `simulate`) of a simulation of design x (see
-        `simulate`)."""
+        `simulate`); steps: a step grid instead of the problem's (`steps`)."""
         mech = self.mechanism
         x = mech.start if x is None else mech.design_values(x)
         model = mech.design_model(x)      # this call's sections: the shared model untouched
@@ -308,6 +373,10 @@ class Problem:
             # are enough (the core keeps at least one coordinate)
             store = nodes if nodes else [0]
         kw["store"] = store
+        if steps is None:
+            steps = self.steps(x)
+        if steps is not None:
+            kw["steps"] = steps
         forces = self._needs_forces(diff)
         dnodes = self._nodes_needed(diff)
         if gradient and (dnodes or forces) and mech.variables:
@@ -316,7 +385,7 @@ class Problem:
             dofs = np.array([3 * n + k for n in (dnodes or [0]) for k in range(3)])
             kw.update(design_derivatives=mech.element_property_derivatives(x),
                       sensitivity_dofs=dofs, constraint_force_derivatives=forces)
-        return model, mech.t_end, ts.h, kw
+        return model, mech.t_end, mech.h, kw
 
     def simulate(self, x=None, *, gradient=False, responses=None, store=None,
                  differentiate=None, tape=False, checkpoints=None):
@@ -646,7 +715,7 @@ class Problem:
             return ev            # nothing simulated: nothing has a time-discretisation error
         evs = [ev] + [self.refined(2 ** k).evaluate(ev.x, gradient=False)
                       for k in range(1, levels)]
-        h = self.description.time.h
+        h = self.description.time.grid_h
         ev.errors, ev.objective_error, ev.constraint_errors = estimate_errors(
             evs, [h / 2 ** k for k in range(levels)])
         ev.wall_time = _time.perf_counter() - t0
