@@ -20,7 +20,7 @@ The choice (`choose_steps`), at one design:
    order scheme, accumulated: a phase error grows linearly in time), calibrated on the
    coarse pilot: c = e_H / (H^2 int w dt);
 4. the steps minimising their number for e = 1 (the tolerance): h(t) = K w(t)^(-1/3),
-   K^2 int w^(1/3) dt = 1 / c; bounded by h_max and H / 64, by a growth ratio of
+   K^2 int w^(1/3) dt = 1 / c; bounded by h_max and H / 1024, by a growth ratio of
    `GROWTH` between neighbours, and rounded down to the ladder H 2^(k/4), so that runs of
    equal steps keep modified Newton's held factorizations (generalized_alpha.f90 refactors
    when the step changes).
@@ -118,7 +118,7 @@ def choose_steps(problem, x=None, *, tol=None, rtol=None, h_max=None, info=None)
         hs = k * w ** (-1.0 / 3.0)
     else:
         hs = np.full(tp.size, h_max)
-    hs = np.clip(hs, hc / 64, h_max)
+    hs = np.clip(hs, hc / 1024, h_max)
     for i in range(1, hs.size):                  # growth ratio between neighbours
         hs[i] = min(hs[i], GROWTH * hs[i - 1])
     for i in range(hs.size - 2, -1, -1):

@@ -42,7 +42,7 @@ from flexmbs.model import Model
 from flexmbs.resources import STACK_BYTES_PER_UNKNOWN, call_with_stack, format_bytes, limit_source
 from flexmbs.resources import memory_limit as _memory_limit
 from flexmbs.simulate import (NEWTON_MODES, Result, _tape_bytes, checkpoint_bytes,
-                              checkpoint_rows, simulate)
+                              checkpoint_rows, law_times, simulate)
 
 __all__ = ["adjoint_gradient", "simulate_for_adjoint", "adjoint_memory", "check_adjoint_memory",
            "checkpoint_memory", "checkpoint_interval"]
@@ -238,7 +238,8 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
         gmu_f = np.asfortranarray(np.stack([(wt @ gmu_f[:, f, :].T).T for f in range(nf)], 1))
     solver = st["solver"]
     pat = model.pattern(solver)
-    margs = core_model_args(model, solver, result.t, model.element_properties())
+    law_t, _ = law_times(float(st["h"]), result.t.size - 1, st.get("steps"))
+    margs = core_model_args(model, solver, law_t, model.element_properties())
     nel = cm.el_dofs.shape[1]
     # the core accumulates dG/d[EA, kGA, EI, rhoA, rhoI] of every element (gprop); their
     # product with the design derivatives is taken here, not in the core: a copy of the

@@ -86,6 +86,20 @@ def step_grid(steps, t_end):
     return tg
 
 
+def law_times(h, nsteps, steps=None):
+    """(times, k) of the grid the time laws are tabulated on (the core interpolates them
+    between its points by cubic Hermite, exact at the points): the output grid j h (k = 1),
+    or with a non-uniform step grid `steps` the grid of spacing h / k, k the least power of
+    two with h / k no longer than its shortest step (its points every k-th a time of the
+    output grid)."""
+    if steps is None:
+        return h * np.arange(nsteps + 1), 1
+    k = 1
+    while h / k > float(np.diff(steps).min()) * (1 + 1e-9) and k < 2**20:
+        k *= 2
+    return (h / k) * np.arange(nsteps * k + 1), k
+
+
 def interpolation_matrix(tg, t):
     """(t.size, tg.size) sparse matrix W of the cubic Lagrange interpolation through the 4
     step-grid points around each time of t (fewer when the grid has fewer; one-sided at the
@@ -643,7 +657,8 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     cm = model.compile()
     pat = model.pattern(solver)
     props = model.element_properties()
-    margs = core_model_args(model, solver, t, props)
+    law_t, law_k = law_times(h, nsteps, tg)
+    margs = core_model_args(model, solver, law_t, props)
 
     q_init = cm.qref.copy() if q0 is None else _numeric_array("q0", q0).copy()
     qd_init = np.zeros(cm.ndof) if qd0 is None else _numeric_array("qd0", qd0).copy()
@@ -715,7 +730,8 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         raise _no_memory_error(cm, solver, info)
     if status != 0:
         try:
-            diagnosis = diagnose_failure(model, int(status), q=q_init, law_val=margs["law_val"],
+            diagnosis = diagnose_failure(model, int(status), q=q_init,
+                                         law_val=margs["law_val"][:, ::law_k],
                                          props=props)
         except Exception as exc:     # the diagnosis must never hide the failure itself
             diagnosis = f"(no diagnosis: {type(exc).__name__}: {exc})"
@@ -748,7 +764,8 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
                         mu=tmu[:cm.nc, :nused], h=th[:nused], grid=np.asarray(tgrid))
     if checkpoints:
         res.checkpoints = dict(every=checkpoints, states=ckpt_out)
-    res.validity = check_result(model, res, limits, law_val=margs["law_val"], tol=float(tol),
+    res.validity = check_result(model, res, limits, law_val=margs["law_val"][:, ::law_k],
+                                tol=float(tol),
                                 props=props)
     apply_validity(res.validity, res)
     return res
