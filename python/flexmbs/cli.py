@@ -297,7 +297,10 @@ def print_evaluation(prob, ev, source=None):
               f"({ev.constraints.size} rows, g <= 0, relative to the limits)")
     s = ev.stats or {}
     if s:
-        print(f"  simulation      {ev.t.size} steps of {prob.description.time.grid_h:g} s, "
+        ts = prob.description.time
+        steps = (f"{s.get('steps', '?')} error-controlled steps (outputs every {ts.grid_h:g} s)"
+                 if ts.adaptive else f"{ev.t.size} steps of {ts.grid_h:g} s")
+        print(f"  simulation      {steps}, "
               f"{s.get('newton_iterations', '?')} Newton iterations, {ev.wall_time:.3f} s")
     else:
         print(f"  wall time       {ev.wall_time:.3f} s")

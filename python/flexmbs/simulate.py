@@ -33,6 +33,9 @@ _SOLVERS = {"dense": 1, "klu": 2}
 NEWTON_MODES = {"full": 0, "reuse": 1, "auto": 2}
 
 
+#: Largest refinement of the laws' table under a non-uniform step grid (law_times).
+LAW_REFINE = 16
+
 #: Most time steps the core counts (32-bit integers).
 MAX_STEPS = 2**31 - 2
 
@@ -90,12 +93,13 @@ def law_times(h, nsteps, steps=None):
     """(times, k) of the grid the time laws are tabulated on (the core interpolates them
     between its points by cubic Hermite, exact at the points): the output grid j h (k = 1),
     or with a non-uniform step grid `steps` the grid of spacing h / k, k the least power of
-    two with h / k no longer than its shortest step (its points every k-th a time of the
-    output grid)."""
+    two with h / k no longer than its shortest step, at most LAW_REFINE (its points every
+    k-th a time of the output grid): a law with a kink (samples, a ramp's end) is then
+    followed as closely as by a fixed step h / k."""
     if steps is None:
         return h * np.arange(nsteps + 1), 1
     k = 1
-    while h / k > float(np.diff(steps).min()) * (1 + 1e-9) and k < 2**20:
+    while h / k > float(np.diff(steps).min()) * (1 + 1e-9) and k < LAW_REFINE:
         k *= 2
     return (h / k) * np.arange(nsteps * k + 1), k
 
