@@ -12,7 +12,9 @@ Cases: the robot (cases/robot_2dof.toml, 0.65 s: a cycloid move of 0.5 s, then i
 vibration, undamped), the four-bar (cases/fourbar.toml), the press and the damped press
 (cases/slider_crank_press*.toml), and a motion with a quiet phase: the robot's
 point-to-point move of 0.25 s, then a dwell to 0.8 s in which its damped vibration decays
-(cases/robot_2dof_dwell.toml).
+(cases/robot_2dof_dwell.toml), also with 8 elements per arm (robot_dwell_fine: more work per
+step, so that the CPU time follows the steps rather than the per-run overhead of these small
+models, a few milliseconds).
 """
 from __future__ import annotations
 
@@ -32,6 +34,8 @@ CASES = {
     "press": ("slider_crank_press", {}),
     "press_damped": ("slider_crank_press_damped", {}),
     "robot_dwell": ("robot_2dof_dwell", {}),
+    "robot_dwell_fine": ("robot_2dof_dwell", {"bodies.arm1.elements": 8,
+                                              "bodies.arm2.elements": 8}),
 }
 
 
@@ -43,7 +47,7 @@ def _error(hist, ref):
     return max(float(np.abs(hist[n] - ref[n]).max() / np.abs(ref[n]).max()) for n in ref)
 
 
-def _timed(problem, x=None, repeat=2):
+def _timed(problem, x=None, repeat=3):
     """The evaluation and its CPU seconds, the least of `repeat` (the first call also builds
     what a problem makes once: the rigid reference on its grid, the KLU analysis)."""
     best = np.inf

@@ -19,7 +19,6 @@ simulations in all whatever the number of variables (measured from 4 to 2048);
 """
 from __future__ import annotations
 
-import threading
 import time as _time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -212,18 +211,9 @@ class Problem:
         _check_checkpoints(checkpoints)
         self.adjoint_checkpoints = checkpoints
         self._refined = {}
-        # the frozen step grid of an adaptive case (time.h = "auto"): chosen once
+        # the frozen step grid of an adaptive case (time.h = "auto"): chosen once, under the
+        # mechanism's lock of its lazily built parts (re-entrant: the pilots build them too)
         self._steps = None
-        self._steps_lock = threading.Lock()
-
-    def __getstate__(self):
-        state = dict(self.__dict__)
-        del state["_steps_lock"]           # a lock is not copied: the copy makes its own
-        return state
-
-    def __setstate__(self, state):
-        self.__dict__.update(state)
-        self._steps_lock = threading.Lock()
 
     # ------------------------------------------------------------------ adaptive steps
     def steps(self, x=None):
@@ -235,7 +225,7 @@ class Problem:
         if not self.description.time.adaptive:
             return None
         if self._steps is None:
-            with self._steps_lock:
+            with self.mechanism._lazy:
                 if self._steps is None:
                     self._steps = self._choose(x)
         return self._steps
@@ -246,7 +236,7 @@ class Problem:
         flexmbs.adaptive.choose_steps's."""
         if not self.description.time.adaptive:
             raise ModelError('adapt: the case has a fixed step (time.h is a number, not "auto")')
-        with self._steps_lock:
+        with self.mechanism._lazy:
             self._steps = self._choose(x, info)
             self._refined = {}
         return self._steps
