@@ -153,3 +153,12 @@ def test_case_keys():
         Problem("robot_2dof", {"time.rtol": 1e-3})
     p = Problem("robot_2dof", {"time.h": "auto", "time.tol": 1e-6, "time.t_end": 0.01})
     assert p.description.time.output == 5e-4 and p.mechanism.h == 5e-4
+
+
+def test_a_copy_runs_on_the_same_grid():
+    """A pickled copy of an adaptive Problem (what a batch sends to a worker process) has the
+    grid of the original, chosen before the copy, not one chosen at its own first design."""
+    import pickle
+    p = _adaptive_robot()
+    q = pickle.loads(pickle.dumps(p))
+    assert p._steps is not None and np.array_equal(q.steps(0.8 * q.start), p.steps())

@@ -215,6 +215,12 @@ class Problem:
         # mechanism's lock of its lazily built parts (re-entrant: the pilots build them too)
         self._steps = None
 
+    def __getstate__(self):
+        # a copy (a worker process of a batch) runs on this problem's grid, not one of its own
+        if self.description.time.adaptive:
+            self.steps()
+        return self.__dict__
+
     # ------------------------------------------------------------------ adaptive steps
     def steps(self, x=None):
         """The non-uniform step grid (times) of an adaptive case (time.h = "auto"), None for a
