@@ -155,10 +155,13 @@ def test_case_keys():
     assert p.description.time.output == 5e-4 and p.mechanism.h == 5e-4
 
 
-def test_a_copy_runs_on_the_same_grid():
-    """A pickled copy of an adaptive Problem (what a batch sends to a worker process) has the
-    grid of the original, chosen before the copy, not one chosen at its own first design."""
-    import pickle
-    p = _adaptive_robot()
-    q = pickle.loads(pickle.dumps(p))
-    assert p._steps is not None and np.array_equal(q.steps(0.8 * q.start), p.steps())
+
+def test_the_grid_is_chosen_at_the_start_design():
+    """An adaptive Problem first evaluated at another design runs on the grid chosen at its
+    start design (a batch's workers, each with a Problem of its own, share it whatever
+    design they simulate first); `adapt(x)` chooses it at x."""
+    p, q = _adaptive_robot(), _adaptive_robot()
+    p.evaluate(0.8 * p.start, gradient=False)
+    assert np.array_equal(p.steps(), q.steps())
+    g = q.adapt(0.5 * q.start)
+    assert q.steps() is g and not np.array_equal(g, p.steps())

@@ -25,8 +25,8 @@ The choice (`choose_steps`), at one design:
    equal steps keep modified Newton's held factorizations (generalized_alpha.f90 refactors
    when the step changes).
 
-Within an optimization run the grid is chosen once (at the first design a Problem
-simulates, or by Problem.adapt) and then frozen: the responses are then smooth functions of
+Within an optimization run the grid is chosen once (at the problem's start design, or at
+another by Problem.adapt) and then frozen: the responses are then smooth functions of
 the design, and their direct and adjoint derivatives are exact on that grid.
 """
 from __future__ import annotations

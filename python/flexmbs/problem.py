@@ -215,25 +215,20 @@ class Problem:
         # mechanism's lock of its lazily built parts (re-entrant: the pilots build them too)
         self._steps = None
 
-    def __getstate__(self):
-        # a copy (a worker process of a batch) runs on this problem's grid, not one of its own
-        if self.description.time.adaptive:
-            self.steps()
-        return self.__dict__
-
     # ------------------------------------------------------------------ adaptive steps
-    def steps(self, x=None):
+    def steps(self):
         """The non-uniform step grid (times) of an adaptive case (time.h = "auto"), None for a
-        fixed step. Chosen by flexmbs.adaptive.choose_steps at the first design simulated
-        (x; default the start) and then frozen: every later design runs on the same grid,
-        so that the responses are smooth in the design and their derivatives exact (re-chosen
-        by `adapt`)."""
+        fixed step. Chosen by flexmbs.adaptive.choose_steps at the start design when first
+        needed and then frozen: every design runs on the same grid, so that the responses are
+        smooth in the design and their derivatives exact, and a problem built anew (a batch's
+        worker) has the same grid whichever design it simulates first. `adapt(x)` chooses it
+        at another design."""
         if not self.description.time.adaptive:
             return None
         if self._steps is None:
             with self.mechanism._lazy:
                 if self._steps is None:
-                    self._steps = self._choose(x)
+                    self._steps = self._choose(None)
         return self._steps
 
     def adapt(self, x=None, info=None):
@@ -370,7 +365,7 @@ class Problem:
             store = nodes if nodes else [0]
         kw["store"] = store
         if steps is None:
-            steps = self.steps(x)
+            steps = self.steps()
         if steps is not None:
             kw["steps"] = steps
         forces = self._needs_forces(diff)
