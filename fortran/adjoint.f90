@@ -25,7 +25,7 @@ module adjoint
     use linear_solver, only: linear_system, ls_init_dense, ls_init_sparse, ls_factor, &
                              ls_solve, ls_free, SOLVER_KLU, LS_OK, LS_NO_MEMORY
     use generalized_alpha, only: ga_settings, ga_stats, ga_state, ga_coefficients, &
-                                 static_equilibrium, mass_scale, diagonal_scale, GA_OK, &
+                                 static_equilibrium, mass_scale, diagonal_scale, grid_time, GA_OK, &
                                  GA_SINGULAR, GA_NONFINITE, GA_BAD_INPUT, GA_LINEAR_SOLVER, &
                                  GA_NO_MEMORY, GA_STATIC_FAILED, GA_INITIAL_SINGULAR
     implicit none
@@ -176,13 +176,13 @@ contains
             qddb = 0
             ab = 0
         end if
-        t = (j0 + s%nsteps) * s%h
+        t = grid_time(s, j0 + s%nsteps)
         do j = ncol, 2, -1
             ! step from column j - 1 (state n) to column j (state n + 1), eqs. (A3)-(A7)
             h = th(j)
             betap = (1 - alpha_m) / (beta * h**2 * (1 - alpha_f))
             gammap = gamma / (beta * h)
-            if (gidx(j) > 0) t = (j0 + gidx(j) - 1) * s%h
+            if (gidx(j) > 0) t = grid_time(s, j0 + gidx(j) - 1)
             ! a_{n+1} = ap + cf qdd_{n+1}
             apb = ab
             qddb = qddb + cf * ab

@@ -167,7 +167,7 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
                     nv, nva, nsens, dprop, sens_dofs, dq_out, &
                     nsd, nsda, sd_dofs, sd_prop, map_sd, want_dmu, ndmu, dmu_out, polish, &
                     ntape, tape_q, tape_qd, tape_qdd, tape_mu, tape_h, tape_grid, ntape_used, &
-                    nckr, nck, ckpt_every, ckpt, restart, x_start, j_start, klu_analysis)
+                    nckr, nck, ckpt_every, ckpt, restart, x_start, j_start, klu_analysis, ntg, tg)
     use iso_c_binding, only: c_double, c_int
     use model_data, only: mbs_model, model_from_arrays
     use generalized_alpha, only: ga_settings, ga_stats, ga_simulate, GA_NO_MEMORY, MEM_MODEL, &
@@ -230,6 +230,10 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     !> KLU's symbolic analysis of (ap, ai) from klu_analyze (made once per model), or 0:
     !! the run analyses the pattern itself (stats(8) = 1)
     integer(8), intent(in) :: klu_analysis
+    !> a non-uniform grid (ga_settings%tgrid): the times of the whole run's grid points,
+    !! t_0 = 0 < t_1 < ... (at least j_start + nsteps + 1); ntg = 1: the uniform grid j h
+    integer(c_int), intent(in) :: ntg
+    real(c_double), intent(in) :: tg(ntg)
     integer :: tgrid(nsteps + 1), tused
     type(mbs_model) :: m
     type(ga_settings) :: s
@@ -257,6 +261,7 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
                     static_start=static_start /= 0, kscale=kscale, penalty=penalty, &
                     polish=polish /= 0)
     s%klu_analysis = transfer(klu_analysis, s%klu_analysis)
+    if (ntg > 1) s%tgrid = tg
     if (nv > 0 .and. want_dmu /= 0 .and. ndmu >= nc) then
         call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
                          mu_out, st, stat, info, dprop(:, :, 1:nv), int(sens_dofs), dq_out(:, 1:nv, :), &
@@ -307,7 +312,8 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
                    h, rho_inf, tol, max_iter, max_cuts, solver, static_start, kscale, penalty, &
                    nsd, nsda, sd_dofs, sd_prop, map_sd, &
                    ncol, qt, qdt, qddt, mut, th, grid, nf, gq, gmu, nv, dprop, grad, gprop, &
-                   status, info, ntot, j_start, have_in, adj_in, adj_out, gprop_in, klu_analysis)
+                   status, info, ntot, j_start, have_in, adj_in, adj_out, gprop_in, klu_analysis, &
+                   ntg, tg)
     use iso_c_binding, only: c_double, c_int
     use model_data, only: mbs_model, model_from_arrays
     use generalized_alpha, only: ga_settings, GA_NO_MEMORY, MEM_MODEL
@@ -356,6 +362,8 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
     real(c_double), intent(out) :: adj_out(ndof, nf, 4)
     real(c_double), intent(in) :: gprop_in(5, nela, nf)
     integer(8), intent(in) :: klu_analysis     !! as `simulate`'s
+    integer(c_int), intent(in) :: ntg          !! as `simulate`'s: the grid's times, or 1
+    real(c_double), intent(in) :: tg(ntg)
     type(mbs_model) :: m
     type(ga_settings) :: s
     integer :: stat
@@ -376,6 +384,7 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
                     max_cuts=int(max_cuts), solver=int(solver), static_start=static_start /= 0, &
                     kscale=kscale, penalty=penalty)
     s%klu_analysis = transfer(klu_analysis, s%klu_analysis)
+    if (ntg > 1) s%tgrid = tg
     if (have_in /= 0) then
         call ga_adjoint(m, s, int(ap), int(ai), q0, qd0, qt, qdt, qddt, mut, th, int(grid), gq, gmu, &
                         dprop(:, 1:max(nel, 0), :), grad, gprop(:, 1:max(nel, 0), :), stat, info, &

@@ -27,7 +27,7 @@ module generalized_alpha
     private
     public :: ga_settings, ga_stats, ga_simulate, ga_coefficients
     ! for the adjoint (adjoint.f90): the static start and the scalings, recomputed exactly
-    public :: ga_state, static_equilibrium, mass_scale, diagonal_scale
+    public :: ga_state, static_equilibrium, mass_scale, diagonal_scale, grid_time
     ! checkpoints of a run (the adjoint's segments, flexmbs/adjoint.py)
     public :: ckpt_rows
     public :: NEWTON_FULL, NEWTON_REUSE, NEWTON_AUTO
@@ -127,6 +127,11 @@ module generalized_alpha
         !! fx_klu_analyze, owned by Python: flexmbs.core.KluAnalysis); null: each run
         !! analyses the pattern itself
         type(c_ptr) :: klu_analysis = c_null_ptr
+        !> a non-uniform grid: the times t_0 = 0 < t_1 < ... of the grid points (tgrid(j + 1)
+        !! = t_j, j counted from the whole run's start, at least j_start + nsteps + 1 of
+        !! them); unallocated: the uniform grid t_j = j h (h then only sets the scaling k of
+        !! eq. (1) through the automatic kscale)
+        real(wp), allocatable :: tgrid(:)
     end type ga_settings
 
     !> Work counters returned with the result.
@@ -153,6 +158,19 @@ module generalized_alpha
     end type ga_state
 
 contains
+
+    !> Time of grid point j (counted from the run's start): s%tgrid(j + 1) on a non-uniform
+    !! grid, else j h.
+    pure function grid_time(s, j) result(t)
+        type(ga_settings), intent(in) :: s
+        integer, intent(in) :: j
+        real(wp) :: t
+        if (allocated(s%tgrid)) then
+            t = s%tgrid(j + 1)
+        else
+            t = j * s%h
+        end if
+    end function grid_time
 
     !> Numbers of one checkpoint of ga_simulate (ckpt, x_start): q, qd, qdd, a, qdd_prev
     !! (ndof each), mu (nc), then h_prev and the run's scalings k and p of eq. (1).
@@ -285,7 +303,7 @@ contains
         real(wp), allocatable :: fgrav(:), vals(:)
         ! work arrays of the direct differentiation, (ndof or n, nv), allocated once
         real(wp), allocatable :: ap_(:, :), qhat(:, :), vhat(:, :), rhs(:, :)
-        real(wp) :: alpha_m, alpha_f, gamma, beta, kdyn, pdyn, t, hs, fact_h, ks, ps
+        real(wp) :: alpha_m, alpha_f, gamma, beta, kdyn, pdyn, t, hs, fact_h, ks, ps, hgrid
         integer :: j, nsub, icut, isub, st, nv, ierr
         !> fact_valid: a factorization of the step's iteration matrix is held (for step fact_h);
         !! fact_exact: it was taken in the last Newton iteration of the step just converged,
@@ -318,6 +336,19 @@ contains
             if (size(x_start) < ckpt_rows(m%ndof, m%nc) .or. j0 < 0 .or. present(dprop)) then
                 status = GA_BAD_INPUT
                 return
+            end if
+        end if
+        if (allocated(s%tgrid)) then
+            ! a non-uniform grid: every grid point of the run, strictly increasing
+            if (size(s%tgrid) < j0 + s%nsteps + 1) then
+                status = GA_BAD_INPUT
+                return
+            end if
+            if (s%nsteps > 0) then
+                if (.not. all(s%tgrid(j0 + 2:j0 + s%nsteps + 1) > s%tgrid(j0 + 1:j0 + s%nsteps))) then
+                    status = GA_BAD_INPUT
+                    return
+                end if
             end if
         end if
         if (kck > 0) then
@@ -436,13 +467,20 @@ contains
         fact_h = 0
         call copy_state(x, xsave)
         do j = 1, s%nsteps
-            t = (j0 + j - 1) * s%h
+            ! the step of grid interval j: s%h, or t_j - t_{j-1} on a non-uniform grid
+            if (allocated(s%tgrid)) then
+                t = s%tgrid(j0 + j)
+                hgrid = s%tgrid(j0 + j + 1) - t
+            else
+                t = (j0 + j - 1) * s%h
+                hgrid = s%h
+            end if
             nsub = 1
             icut = 0
             full_step = .not. modified
             ptr0 = ptr
             do
-                hs = s%h / nsub
+                hs = hgrid / nsub
                 do isub = 1, nsub
                     call ga_step(t + (isub - 1) * hs, hs, st)
                     if (st /= GA_OK) exit

@@ -368,7 +368,7 @@ def verify(problem, x, rtol=VERIFY_RTOL, max_level=MAX_LEVEL, coarse=None):
         raise ModelError(f"verify: rtol must be a number in (0, 1), e.g. 1e-3, got {rtol!r}")
     if isinstance(max_level, bool) or not isinstance(max_level, int) or not 2 <= max_level <= 8:
         raise ModelError(f"verify: max_level must be an integer in [2, 8], got {max_level!r}")
-    h = float(problem.description.time.h)
+    h = float(problem.description.time.grid_h)
     evs = [coarse if coarse is not None else problem.evaluate(x, gradient=False)]
     level = 0
     est = None
@@ -477,5 +477,5 @@ def convergence_check(problem, x=None, rtol=1e-2):
         rows.append(dict(name=name, value=value, time=e, mesh_change=dmesh,
                          verdict="; ".join(bad) or "converged"))
     return ConvergenceCheck(case=problem.description.case.name,
-                            h=float(problem.description.time.h), rtol=float(rtol), rows=rows,
+                            h=float(problem.description.time.grid_h), rtol=float(rtol), rows=rows,
                             mesh_note=note)

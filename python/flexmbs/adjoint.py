@@ -42,7 +42,7 @@ from flexmbs.model import Model
 from flexmbs.resources import STACK_BYTES_PER_UNKNOWN, call_with_stack, format_bytes, limit_source
 from flexmbs.resources import memory_limit as _memory_limit
 from flexmbs.simulate import (NEWTON_MODES, Result, _tape_bytes, checkpoint_bytes,
-                              checkpoint_rows, simulate)
+                              checkpoint_rows, law_times, simulate)
 
 __all__ = ["adjoint_gradient", "simulate_for_adjoint", "adjoint_memory", "check_adjoint_memory",
            "checkpoint_memory", "checkpoint_interval"]
@@ -213,6 +213,7 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
                          "without polish=True: its states are modified Newton's, not converged "
                          "enough for the adjoint (use simulate_for_adjoint, or polish=True)")
     nt = result.t.size
+    stp = result.steps
     dprop = np.asarray(design_derivatives, float)
     if dprop.ndim != 3 or dprop.shape[:2] != (5, cm.nel) or not np.all(np.isfinite(dprop)):
         raise ModelError(f"design_derivatives must be a finite array of shape (5, {cm.nel}, nv), "
@@ -228,9 +229,17 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
     if dG_dmu is not None:
         gmu = _seed("dG_dmu", dG_dmu, nt, cm.nc, nf)
         gmu_f[:cm.nc] = np.transpose(gmu, (1, 2, 0))
+    if stp is not None:
+        # outputs interpolated from a non-uniform step grid (Result.steps): the seeds of
+        # its points are the interpolation's transpose applied to those of the outputs
+        wt = stp["matrix"].T.tocsr()
+        nt = wt.shape[0]
+        gq_f = np.asfortranarray(np.stack([(wt @ gq_f[:, f, :].T).T for f in range(nf)], 1))
+        gmu_f = np.asfortranarray(np.stack([(wt @ gmu_f[:, f, :].T).T for f in range(nf)], 1))
     solver = st["solver"]
     pat = model.pattern(solver)
-    margs = core_model_args(model, solver, result.t, model.element_properties())
+    law_t, _ = law_times(float(st["h"]), result.t.size - 1, st.get("steps"))
+    margs = core_model_args(model, solver, law_t, model.element_properties())
     nel = cm.el_dofs.shape[1]
     # the core accumulates dG/d[EA, kGA, EI, rhoA, rhoI] of every element (gprop); their
     # product with the design derivatives is taken here, not in the core: a copy of the
@@ -291,9 +300,10 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
 def _integrator_args(st):
     """The core's integrator settings of a run from its Result.settings: what the backward
     pass and a segment's re-run must share with the forward run."""
+    tg = st.get("steps")
     return dict(h=float(st["h"]), rho_inf=float(st["rho_inf"]), tol=float(st["tol"]),
                 max_iter=int(st["max_iter"]), max_cuts=int(st["max_cuts"]),
-                solver=_SOLVERS[st["solver"]])
+                solver=_SOLVERS[st["solver"]], tg=np.zeros(1) if tg is None else tg)
 
 
 def _core_failure(status, info, where, failure):

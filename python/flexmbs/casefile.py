@@ -219,6 +219,9 @@ def apply_overrides(data, overrides, source="<dict>"):
         node, leaf = _override_target(out, key.split("."), key, source)
         if hasattr(value, "tolist"):                     # numpy scalars and arrays
             value = value.tolist()
+        if key == "time.h" and value == "auto" and isinstance(node.get("h"), (int, float)) \
+                and "output" not in node and "time.output" not in overrides:
+            node["output"] = node["h"]      # error-controlled steps, outputs on the case's grid
         node[leaf] = value
     return out
 

@@ -372,8 +372,11 @@ def print_evaluation(prob, ev, source=None, motion=None):
     s = ev.stats or {}
     r = ev.resolution or {}
     if s:
+        ts = d.time
         steps = s.get("steps", r.get("steps", ev.t.size - 1))
-        print(f"  simulation      {steps} steps of h = {d.time.h:g} s to t = "
+        steps = (f"{steps} error-controlled steps (outputs every {ts.grid_h:g} s)"
+                 if ts.adaptive else f"{steps} steps of h = {ts.grid_h:g} s")
+        print(f"  simulation      {steps} to t = "
               f"{r.get('t_end', ev.t[-1]):.10g} s: {s.get('newton_iterations', '?')} Newton "
               f"iterations, {s.get('factorizations', '?')} factorizations, "
               f"{s.get('step_cuts', '?')} step cuts")

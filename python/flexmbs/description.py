@@ -627,16 +627,50 @@ class Objective(_Strict):
 
 
 class TimeSettings(_Strict):
-    """Generalized-alpha settings: step h (s), horizon t_end (s; rounded to a whole number of
-    steps, the change reported), spectral radius rho_inf, start 'rest' (the rigid velocity
+    """Generalized-alpha settings: step h (s, or "auto": steps chosen by the error tolerance
+    tol / rtol, outputs on the grid of spacing `output`), horizon t_end (s; rounded to a
+    whole number of steps, the change reported), spectral radius rho_inf, start 'rest' (the rigid velocity
     field the drives impose) or 'static' (static equilibrium at t = 0, at rest), Newton
     strategy newton ('auto', 'full', 'reuse': see flexmbs.simulate)."""
     t_end: Positive
-    h: Positive = 5e-4
+    h: Positive | Literal["auto"] = 5e-4
     rho_inf: Annotated[float, NoBool, Field(ge=0.0, le=1.0)] = 0.5
     start: Literal["rest", "static"] = "rest"
     newton: Literal["auto", "full", "reuse"] = "auto"
     reuse_jacobian: bool | None = None      # deprecated: true is newton = "reuse", false "full"
+    #: with h = "auto" (error-controlled steps, flexmbs.adaptive): the spacing (s) of the
+    #: response grid the outputs are interpolated onto (default 5e-4; `--set time.h=auto`
+    #: keeps the case's h here), the tolerance of the responses' error, absolute `tol` (the
+    #: responses' units) and/or relative `rtol` (to each response's largest magnitude), and
+    #: the longest step h_max (s; default t_end / 20)
+    output: Positive | None = None
+    tol: Positive | None = None
+    rtol: Positive | None = None
+    h_max: Positive | None = None
+
+    @model_validator(mode="after")
+    def _adaptive_keys(self):
+        keys = [k for k in ("output", "tol", "rtol", "h_max") if getattr(self, k) is not None]
+        if not self.adaptive and keys:
+            raise ValueError(f"{', '.join(keys)} only with h = \"auto\" (error-controlled "
+                             f"steps), got h = {self.h}")
+        if self.adaptive and self.tol is None and self.rtol is None:
+            raise ValueError('h = "auto" needs a tolerance of the responses\' error: tol '
+                             '(absolute, in the responses\' units) and/or rtol (relative)')
+        return self
+
+    @property
+    def adaptive(self):
+        """True with h = "auto": error-controlled steps (flexmbs.adaptive)."""
+        return isinstance(self.h, str)
+
+    @property
+    def grid_h(self):
+        """The spacing (s) of the response grid t_j = j grid_h: h, or `output` (default 5e-4)
+        with h = "auto"."""
+        if self.adaptive:
+            return self.output if self.output is not None else 5e-4
+        return self.h
 
     @model_validator(mode="after")
     def _newton_alias(self):

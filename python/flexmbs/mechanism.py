@@ -196,20 +196,21 @@ class Mechanism:
                              f"{type(description).__name__}")
         self.description = d = description
         ts = d.time
-        ratio = ts.t_end / ts.h
+        h = ts.grid_h       # the response grid's spacing (h, or time.output with h = "auto")
+        ratio = ts.t_end / h
         if not math.isfinite(ratio) or ratio > MAX_STEPS:
-            raise CaseError(f"time.t_end = {ts.t_end:g} s with time.h = {ts.h:g} s is "
+            raise CaseError(f"time.t_end = {ts.t_end:g} s with time.h = {h:g} s is "
                             f"{ratio:.3g} time steps, more than the core's {MAX_STEPS}: give a "
                             "shorter t_end or a coarser h")
         nsteps = max(1, int(round(ratio)))
         self.t_end_requested = ts.t_end
-        self.h = ts.h
-        self.nsteps = time_steps(nsteps * ts.h, ts.h)
-        self.t = ts.h * np.arange(self.nsteps + 1)
+        self.h = h
+        self.nsteps = time_steps(nsteps * h, h)
+        self.t = h * np.arange(self.nsteps + 1)
         self.t_end = float(self.t[-1])
         if abs(self.t_end - ts.t_end) > 1e-9 * max(1.0, ts.t_end):
             warnings.warn(f"time.t_end = {ts.t_end} s is not a whole number of steps "
-                          f"h = {ts.h} s: simulating to {self.t_end:.10g} s ({self.nsteps} steps)",
+                          f"h = {h} s: simulating to {self.t_end:.10g} s ({self.nsteps} steps)",
                           stacklevel=2)
         self._expand_design(d)
         self.materials = {k: Material(m.E, m.nu, m.rho, damping_time=m.damping_time or 0.0,
@@ -446,7 +447,7 @@ class Mechanism:
         if need > avail:
             raise ResourceError(
                 f"case {d.case.name!r}: the rigid reference over {self.t.size} time points "
-                f"(time.t_end = {d.time.t_end:g} s, time.h = {d.time.h:g} s) needs about "
+                f"(time.t_end = {d.time.t_end:g} s, time.h = {d.time.grid_h:g} s) needs about "
                 f"{format_bytes(need)}, more than {limit_source()} ({format_bytes(avail)}), "
                 "before any simulation: use a coarser time.h or a shorter time.t_end "
                 "(FLEXMBS_MEMORY_LIMIT sets the limit)", required=need, available=avail)
@@ -534,7 +535,7 @@ class Mechanism:
                         update={"loads": d.initial.static_loads, "initial": None}))
             model = self._preload.design_model(self.start if x is None else x)
         q0, _ = self.initial_state()
-        h = self.description.time.h
+        h = self.description.time.grid_h
         r = simulate(model, h, h, start="static", q0=q0, store="all", validity="off")
         return np.array(r.q[0], float)
 

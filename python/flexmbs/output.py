@@ -92,11 +92,13 @@ def units(problem):
 
 
 def resolution(problem):
-    """The discretisation a Problem's runs use: step h, end time, steps, rho_inf, start and
-    the elements of every beam."""
+    """The discretisation a Problem's runs use: step h (with error-controlled steps,
+    `adaptive`, the spacing of the response grid), end time, steps of the response grid,
+    rho_inf, start and the elements of every beam."""
     d = problem.description
     mech = problem.mechanism
-    return {"h": float(d.time.h), "t_end": float(mech.t_end), "steps": int(mech.t.size - 1),
+    return {"h": float(d.time.grid_h), "adaptive": bool(d.time.adaptive),
+            "t_end": float(mech.t_end), "steps": int(mech.t.size - 1),
             "time_points": int(mech.t.size), "rho_inf": float(d.time.rho_inf),
             "start": d.time.start,
             "elements": {b.name: int(b.elements) for b in d.bodies

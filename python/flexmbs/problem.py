@@ -256,6 +256,53 @@ class Problem:
         _check_checkpoints(checkpoints)
         self.adjoint_checkpoints = checkpoints
         self._refined = {}
+        # the frozen step grid of an adaptive case (time.h = "auto"): chosen once, under the
+        # mechanism's lock of its lazily built parts (re-entrant: the pilots build them too)
+        self._steps = None
+
+    # ------------------------------------------------------------------ adaptive steps
+    def steps(self):
+        """The non-uniform step grid (times) of an adaptive case (time.h = "auto"), None for a
+        fixed step. Chosen by flexmbs.adaptive.choose_steps at the start design when first
+        needed and then frozen: every design runs on the same grid, so that the responses are
+        smooth in the design and their derivatives exact, and a problem built anew (a batch's
+        worker) has the same grid whichever design it simulates first. `adapt(x)` chooses it
+        at another design."""
+        if not self.description.time.adaptive:
+            return None
+        if self._steps is None:
+            with self.mechanism._lazy:
+                if self._steps is None:
+                    self._steps = self._choose(None)
+        return self._steps
+
+    def adapt(self, x=None, info=None):
+        """Choose the step grid of an adaptive case afresh at design x (between restarts of
+        an optimization, or to verify a result) and freeze it; returns it. `info`: as
+        flexmbs.adaptive.choose_steps's."""
+        if not self.description.time.adaptive:
+            raise ModelError('adapt: the case has a fixed step (time.h is a number, not "auto")')
+        with self.mechanism._lazy:
+            self._steps = self._choose(x, info)
+            self._refined = {}
+        return self._steps
+
+    def _choose(self, x, info=None):
+        from flexmbs.adaptive import choose_steps
+        return choose_steps(self, x, info=info)
+
+    def values_on(self, x, steps):
+        """The response histories (name -> value) of design x simulated on the step grid
+        `steps` (times; outputs on the response grid), without gradients: the pilot runs of
+        flexmbs.adaptive."""
+        mech = self.mechanism
+        x = mech.start if x is None else mech.design_values(x)
+        timed = [n for n, r in self._resp.items() if not isinstance(r, Mass)]
+        if not timed:
+            return {}
+        model, t_end, h, kw = self._run(x, False, timed, None, steps=steps)
+        result = simulate(model, t_end, h, **kw)
+        return {n: self._response(self._resp[n], x, result, False, model=model)[0] for n in timed}
 
     def refined(self, factor):
         """The same problem with the time step h / factor (factor a power of two; built once
@@ -268,10 +315,19 @@ class Problem:
         if factor == 1:
             return self
         if factor not in self._refined:
-            self._refined[factor] = Problem(
-                self.description, overrides={"time.h": self.description.time.h / factor},
-                gradient_method=self.default_gradient_method,
-                checkpoints=self.adjoint_checkpoints)
+            ts = self.description.time
+            if ts.adaptive:
+                # the frozen step grid with every step divided, outputs on a grid as fine
+                from flexmbs.adaptive import subdivide
+                fine = Problem(self.description, overrides={"time.output": ts.grid_h / factor},
+                               gradient_method=self.default_gradient_method,
+                               checkpoints=self.adjoint_checkpoints)
+                fine._steps = subdivide(self.steps(), factor)
+            else:
+                fine = Problem(self.description, overrides={"time.h": ts.h / factor},
+                               gradient_method=self.default_gradient_method,
+                               checkpoints=self.adjoint_checkpoints)
+            self._refined[factor] = fine
         return self._refined[factor]
 
     def refined_mesh(self):
@@ -344,9 +400,9 @@ class Problem:
         return any(isinstance(self._resp[n], (Torque, Reaction)) for n in names)
 
     def _run(self, x, gradient, responses, store, differentiate=None, tape=False,
-             checkpoints=None):
+             checkpoints=None, steps=None):
         """(model, t_end, h, keywords of `simulate`) of a simulation of design x (see
-        `simulate`)."""
+        `simulate`); steps: a step grid instead of the problem's (`steps`)."""
         mech = self.mechanism
         x = mech.start if x is None else mech.design_values(x)
         model = mech.design_model(x)      # this call's sections: the shared model untouched
@@ -374,13 +430,17 @@ class Problem:
             # are enough (the core keeps at least one coordinate)
             store = nodes if nodes else [0]
         kw["store"] = store
+        if steps is None:
+            steps = self.steps()
+        if steps is not None:
+            kw["steps"] = steps
         if gradient and (dnodes or forces) and mech.variables:
             # the core needs at least one sensitivity coordinate: node 0's when only the
             # multipliers' derivatives are wanted
             dofs = np.array([3 * n + k for n in (dnodes or [0]) for k in range(3)])
             kw.update(design_derivatives=mech.element_property_derivatives(x),
                       sensitivity_dofs=dofs, constraint_force_derivatives=forces)
-        return model, mech.t_end, ts.h, kw
+        return model, mech.t_end, mech.h, kw
 
     def simulate(self, x=None, *, gradient=False, responses=None, store=None,
                  differentiate=None, tape=False, checkpoints=None):
@@ -737,7 +797,7 @@ class Problem:
             return ev            # nothing simulated: nothing has a time-discretisation error
         evs = [ev] + [self.refined(2 ** k).evaluate(ev.x, gradient=False)
                       for k in range(1, levels)]
-        h = self.description.time.h
+        h = self.description.time.grid_h
         ev.errors, ev.objective_error, ev.constraint_errors = estimate_errors(
             evs, [h / 2 ** k for k in range(levels)])
         ev.wall_time = _time.perf_counter() - t0

@@ -160,7 +160,7 @@ def optimization_job(case, method, start, overrides=None, options=None):
     r = run(prob, np.asarray(start, float), **options)
     d = r.to_dict()
     d["deviation_m"] = None if r.deviation is None else [float(v) for v in r.deviation]
-    d["h_s"] = float(prob.description.time.h)
+    d["h_s"] = float(prob.description.time.grid_h)
     d["case_overrides"] = dict(overrides or {})
     d["case_name"] = case
     return d
@@ -274,7 +274,7 @@ def _collect_map(spec, n, results, region):
     mx = np.array([results[k]["max_deviation_m"] for k in keys]).reshape(n, n)
     i, j = spec.indices(names)
     units = tuple(v.unit or "" for v in c.description.design)
-    return (a, b, at, mx), (names[i], names[j]), (i, j), float(c.description.time.h), \
+    return (a, b, at, mx), (names[i], names[j]), (i, j), float(c.description.time.grid_h), \
         (units[i], units[j])
 
 

@@ -19,7 +19,8 @@ from flexmbs.resources import memory_limit as _memory_limit
 from flexmbs.validity import ValidityLimits, apply_validity, check_result, diagnose_failure
 
 __all__ = ["simulate", "Result", "DENSE_MAX_UNKNOWNS", "NEWTON_MODES", "time_grid", "time_steps",
-           "system_matrices", "core_model_args", "newton_mode", "stored_dofs", "memory_estimate"]
+           "system_matrices", "core_model_args", "newton_mode", "stored_dofs", "memory_estimate",
+           "interpolation_matrix", "step_grid"]
 
 #: Largest system solved with dense LU when solver="auto" (KLU above). benchmarks/scaling.py
 #: measured KLU faster than LAPACK's dense LU at every size from 18 unknowns up (1.5x at 18,
@@ -31,6 +32,9 @@ _SOLVERS = {"dense": 1, "klu": 2}
 #: Newton strategies of `simulate` (codes of the core, generalized_alpha.f90 NEWTON_*).
 NEWTON_MODES = {"full": 0, "reuse": 1, "auto": 2}
 
+
+#: Largest refinement of the laws' table under a non-uniform step grid (law_times).
+LAW_REFINE = 16
 
 #: Most time steps the core counts (32-bit integers).
 MAX_STEPS = 2**31 - 2
@@ -66,6 +70,68 @@ def time_steps(t_end, h, memory_limit=None):
                             "step h or "
                             "a shorter t_end", required=need, available=avail)
     return nsteps
+
+
+def step_grid(steps, t_end):
+    """The times (n + 1,) of a non-uniform step grid `steps` (simulate's keyword): finite,
+    strictly increasing from 0 to t_end (its last time set to t_end exactly), or a
+    ModelError naming what is wrong."""
+    tg = np.asarray(steps, float) if not isinstance(steps, (str, bytes)) else None
+    if tg is None or tg.ndim != 1 or tg.size < 2 or not np.all(np.isfinite(tg)):
+        raise ModelError(f"steps must be a finite 1-D array of at least 2 times (s), got "
+                         f"{steps!r:.80}")
+    if tg[0] != 0.0 or abs(tg[-1] - t_end) > 1e-9 * max(1.0, t_end) or np.any(np.diff(tg) <= 0):
+        raise ModelError(f"steps must increase strictly from 0 to t_end = {t_end:g} s, got "
+                         f"times from {tg[0]:g} to {tg[-1]:g} s (smallest step "
+                         f"{np.diff(tg).min():g} s)")
+    tg = tg.copy()
+    tg[-1] = t_end
+    return tg
+
+
+def law_times(h, nsteps, steps=None):
+    """(times, k) of the grid the time laws are tabulated on (the core interpolates them
+    between its points by cubic Hermite, exact at the points): the output grid j h (k = 1),
+    or with a non-uniform step grid `steps` the grid of spacing h / k, k the least power of
+    two with h / k no longer than its shortest step, at most LAW_REFINE (its points every
+    k-th a time of the output grid): a law with a kink (samples, a ramp's end) is then
+    followed as closely as by a fixed step h / k."""
+    if steps is None:
+        return h * np.arange(nsteps + 1), 1
+    k = 1
+    while h / k > float(np.diff(steps).min()) * (1 + 1e-9) and k < LAW_REFINE:
+        k *= 2
+    return (h / k) * np.arange(nsteps * k + 1), k
+
+
+def interpolation_matrix(tg, t):
+    """(t.size, tg.size) sparse matrix W of the cubic Lagrange interpolation through the 4
+    step-grid points around each time of t (fewer when the grid has fewer; one-sided at the
+    ends): values on the grid tg (rows) to values at t, W @ y. A time of t that is a grid
+    time takes the grid value exactly. Linear in the grid values alone, with weights
+    independent of the design: the design derivatives on the grid and the adjoint's seeds
+    (W^T) map by the same matrix. Its error, O(H^4) for smooth values on steps H, is below
+    generalized-alpha's O(H^2)."""
+    from scipy.sparse import csr_matrix
+
+    tg = np.asarray(tg, float)
+    t = np.asarray(t, float)
+    n = tg.size
+    k = min(4, n)
+    i = np.clip(np.searchsorted(tg, t, side="right") - 1, 0, n - 2)
+    start = np.clip(i - (k // 2 - 1), 0, n - k)
+    nodes = start[:, None] + np.arange(k)[None, :]
+    x = tg[nodes]
+    w = np.ones((t.size, k))
+    for a in range(k):
+        for b in range(k):
+            if a != b:
+                w[:, a] *= (t - x[:, b]) / (x[:, a] - x[:, b])
+    hit = np.abs(t[:, None] - x) <= 1e-12 * max(1.0, float(tg[-1]))
+    exact = hit.any(axis=1)
+    w[exact] = hit[exact].astype(float)
+    return csr_matrix((w.ravel(), (np.repeat(np.arange(t.size), k), nodes.ravel())),
+                      shape=(t.size, n))
 
 
 def time_grid(t_end, h, memory_limit=None):
@@ -107,6 +173,10 @@ class Result:
         qdd, a, the predictor's previous qdd (ndof each), mu (nc), the previous step and the
         scalings k, p of eq. (1) (what a segment of the run is restarted from:
         flexmbs.adjoint).
+    steps : with simulate(steps=...): a dict of t (the step grid's times) and matrix (the
+        interpolation_matrix from them to `t`); the tape, the checkpoints and
+        stats['steps'] are the step grid's, every other array is on `t`. None on the
+        uniform grid.
     """
     t: np.ndarray
     q: np.ndarray
@@ -126,6 +196,7 @@ class Result:
     #: with flexmbs.accuracy.simulate_with_error: the ErrorEstimate of the stored coordinates
     #: q (point-wise (nt, nout) errors, judged by their largest change), else None
     error: object = None
+    steps: dict | None = None
 
     def position_derivative(self, node):
         """(nt, 2, nv) design derivatives of a node's position (needs design_derivatives)."""
@@ -418,7 +489,8 @@ def _estimate(model, nsteps, out, solver, design_derivatives, sensitivity_dofs, 
 
 def memory_estimate(model: Model, t_end, h=5e-4, *, store="all", solver="auto",
                     design_derivatives=None, sensitivity_dofs=None,
-                    constraint_force_derivatives=False, tape=False, checkpoints=None, **settings):
+                    constraint_force_derivatives=False, tape=False, checkpoints=None, steps=None,
+                    **settings):
     """The memory `simulate(model, t_end, h, ...)` with these arguments would need, without
     running it (flexmbs.resources.MemoryEstimate: `total` bytes and its `parts`; with
     tape=True the part TAPE_PART, as first allocated: a run cutting more steps than a quarter
@@ -428,6 +500,8 @@ def memory_estimate(model: Model, t_end, h=5e-4, *, store="all", solver="auto",
     if not isinstance(model, Model):
         raise ModelError(f"memory_estimate expects a flexmbs Model, got {type(model).__name__}")
     nsteps = time_steps(t_end, h, math.inf)
+    if steps is not None:     # a non-uniform step grid: its steps (outputs on the j h grid)
+        nsteps = max(nsteps, step_grid(steps, nsteps * h).size - 1)
     n_unknowns = model.ndof + len(model._rows)
     if isinstance(solver, str) and solver == "auto":
         solver = "dense" if n_unknowns <= DENSE_MAX_UNKNOWNS else "klu"
@@ -447,7 +521,7 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
              solver="auto", newton="auto", reuse_jacobian=None, tol=1e-10, max_iter=20, max_cuts=6,
              kscale=None, penalty=None, q0=None, qd0=None, design_derivatives=None,
              sensitivity_dofs=None, constraint_force_derivatives=False, memory_limit=None,
-             validity="warn", polish=False, tape=False, checkpoints=None):
+             validity="warn", polish=False, tape=False, checkpoints=None, steps=None):
     """Simulate a model with generalized-alpha (eqs. 3-6) and Newton-Raphson (eq. 7).
 
     Parameters
@@ -568,6 +642,8 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     newton = newton_mode(newton, reuse_jacobian)
     _check_flag("polish", polish)
     _check_flag("tape", tape)
+    tg = None if steps is None else step_grid(steps, nsteps * h)
+    ncore = nsteps if tg is None else tg.size - 1
     if checkpoints is not None:
         if isinstance(checkpoints, (bool, np.bool_)) or not isinstance(checkpoints, (int, np.integer)) \
                 or checkpoints < 1:
@@ -599,8 +675,9 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     if constraint_force_derivatives and design_derivatives is None:
         raise ModelError("constraint_force_derivatives=True needs design_derivatives=...")
     want_dmu = bool(constraint_force_derivatives)
-    est = _estimate(model, nsteps, out, solver, design_derivatives, sensitivity_dofs, want_dmu)
-    ntape = tape_columns(nsteps) if tape else 1
+    est = _estimate(model, max(nsteps, ncore), out, solver, design_derivatives, sensitivity_dofs,
+                    want_dmu)
+    ntape = tape_columns(ncore) if tape else 1
 
     def tape_bytes(ncol):
         return _tape_bytes(model, ncol)
@@ -608,9 +685,9 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     if tape:
         est.parts[TAPE_PART] = tape_bytes(ntape)
     nckr = checkpoint_rows(model.ndof, len(model._rows))
-    nck = checkpoint_count(nsteps, checkpoints) if checkpoints else 1
+    nck = checkpoint_count(ncore, checkpoints) if checkpoints else 1
     if checkpoints:
-        est.parts[CHECKPOINT_PART] = checkpoint_bytes(model, nsteps, checkpoints)
+        est.parts[CHECKPOINT_PART] = checkpoint_bytes(model, ncore, checkpoints)
     check_memory(est, memory_limit, what=f"simulate (solver={solver!r}, {n_unknowns} unknowns, "
                                          f"{nsteps} steps, {out.size} stored coordinates)")
 
@@ -618,7 +695,8 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     cm = model.compile()
     pat = model.pattern(solver)
     props = model.element_properties()
-    margs = core_model_args(model, solver, t, props)
+    law_t, law_k = law_times(h, nsteps, tg)
+    margs = core_model_args(model, solver, law_t, props)
 
     q_init = cm.qref.copy() if q0 is None else _numeric_array("q0", q0).copy()
     qd_init = np.zeros(cm.ndof) if qd0 is None else _numeric_array("qd0", qd0).copy()
@@ -652,7 +730,7 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         dprop_f = np.zeros((5, nel, 1), order="F")
     def run(ncol):
         return call_with_stack(
-            _core.simulate, est.stack, **margs, nsteps=nsteps, q0=q_init, qd0=qd_init,
+            _core.simulate, est.stack, **margs, nsteps=ncore, q0=q_init, qd0=qd_init,
             ap=pat["ap"], ai=pat["ai"], h=float(h),
             rho_inf=float(rho_inf), tol=float(tol), max_iter=int(max_iter),
             max_cuts=int(max_cuts), solver=_SOLVERS[solver], newton=NEWTON_MODES[newton],
@@ -660,15 +738,16 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
             penalty=float(penalty or 0.0), out_dofs=(out + 1).astype(np.int32),
             nv=nv, dprop=dprop_f, sens_dofs=(sdofs + 1).astype(np.int32),
             want_dmu=int(want_dmu), ndmu=max(cm.nc, 1) if want_dmu else 1, polish=int(polish),
-            ntape=ncol, nckr=nckr, nck=nck, ckpt_every=_core_every(checkpoints, nsteps), restart=0,
-            x_start=np.zeros(nckr), j_start=0, klu_analysis=klu_analysis(model, solver))
+            ntape=ncol, nckr=nckr, nck=nck, ckpt_every=_core_every(checkpoints, ncore), restart=0,
+            x_start=np.zeros(nckr), j_start=0, klu_analysis=klu_analysis(model, solver),
+            tg=np.zeros(1) if tg is None else tg)
 
     try:
         (q_out, qd_out, qdd_out, mu_out, stats, status, info, dq_out, dmu_out, *tape_out,
          ckpt_out) = run(ntape)
         if status == _TAPE_FULL:
             # more sub-steps than room: once more with room for every step cut max_cuts times
-            ntape = nsteps * 2 ** int(max_cuts) + 1
+            ntape = ncore * 2 ** int(max_cuts) + 1
             est.parts[TAPE_PART] = tape_bytes(ntape)
             check_memory(est, memory_limit, what=f"simulate with a tape of {ntape} sub-steps")
             (q_out, qd_out, qdd_out, mu_out, stats, status, info, dq_out, dmu_out,
@@ -692,7 +771,8 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         raise _no_memory_error(cm, solver, info)
     if status != 0:
         try:
-            diagnosis = diagnose_failure(model, int(status), q=q_init, law_val=margs["law_val"],
+            diagnosis = diagnose_failure(model, int(status), q=q_init,
+                                         law_val=margs["law_val"][:, ::law_k],
                                          props=props)
         except Exception as exc:     # the diagnosis must never hide the failure itself
             diagnosis = f"(no diagnosis: {type(exc).__name__}: {exc})"
@@ -702,16 +782,25 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         raise SimulationError(message,
                               time=float(info[0]), residual=float(info[1]),
                               iterations=int(info[2]), code=int(status))
-    res = Result(t=t, q=q_out.T, qd=qd_out.T, qdd=qdd_out.T, mu=mu_out[:cm.nc].T, dofs=out,
+    dq_t = np.transpose(dq_out[:, :nv, :], (2, 0, 1)) if nv else None
+    dmu_t = np.transpose(dmu_out[:cm.nc, :nv, :], (2, 0, 1)) if want_dmu else None
+    q_out, qd_out, qdd_out, mu_out = q_out.T, qd_out.T, qdd_out.T, mu_out[:cm.nc].T
+    if tg is not None:       # from the step grid to the output grid
+        w = interpolation_matrix(tg, t)
+        q_out, qd_out, qdd_out, mu_out = (w @ a for a in (q_out, qd_out, qdd_out, mu_out))
+        if nv:
+            dq_t = (w @ dq_t.reshape(tg.size, -1)).reshape(t.size, *dq_t.shape[1:])
+        if want_dmu:
+            dmu_t = (w @ dmu_t.reshape(tg.size, -1)).reshape(t.size, *dmu_t.shape[1:])
+    res = Result(t=t, q=q_out, qd=qd_out, qdd=qdd_out, mu=mu_out, dofs=out,
                   stats=st, wall_time=time.perf_counter() - t_start,
                   settings=dict(h=h, t_end=t_end, rho_inf=rho_inf, start=start, solver=solver,
                                 newton=newton, tol=float(tol), max_iter=int(max_iter),
                                 max_cuts=int(max_cuts), kscale=float(kscale or 0.0),
                                 penalty=float(penalty or 0.0), q0=q_init, qd0=qd_init,
-                                polish=bool(polish)),
-                  sens_dofs=sdofs if nv else None,
-                  dq=np.transpose(dq_out[:, :nv, :], (2, 0, 1)) if nv else None,
-                  dmu=np.transpose(dmu_out[:cm.nc, :nv, :], (2, 0, 1)) if want_dmu else None)
+                                polish=bool(polish), steps=tg),
+                  sens_dofs=sdofs if nv else None, dq=dq_t, dmu=dmu_t,
+                  steps=None if tg is None else dict(t=tg, matrix=w))
     if tape:
         tq, tqd, tqdd, tmu, th, tgrid, nused = tape_out
         nused = int(nused)
@@ -719,7 +808,8 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
                         mu=tmu[:cm.nc, :nused], h=th[:nused], grid=np.asarray(tgrid))
     if checkpoints:
         res.checkpoints = dict(every=checkpoints, states=ckpt_out)
-    res.validity = check_result(model, res, limits, law_val=margs["law_val"], tol=float(tol),
+    res.validity = check_result(model, res, limits, law_val=margs["law_val"][:, ::law_k],
+                                tol=float(tol),
                                 props=props)
     apply_validity(res.validity, res)
     return res

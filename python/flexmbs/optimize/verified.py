@@ -81,7 +81,7 @@ def finish(problem, result, rerun, verify, coarse=None):
         cont.history = list(result.history) + [dict(r, refined_h=v.h) for r in cont.history]
         if result is first:
             cont.details["continued_from"] = dict(
-                h=float(problem.description.time.h), design=np.asarray(first.design).tolist(),
+                h=float(problem.description.time.grid_h), design=np.asarray(first.design).tolist(),
                 objective=float(first.objective), iterations=int(first.iterations),
                 simulations=int(first.simulations), verification=v.to_json(),
                 reason=first.reason)
