@@ -572,7 +572,7 @@ contains
             integer, intent(out) :: stat
             real(wp) :: betap, gammap, r(m%n), z(m%n, 1), err, err_prev, rate, phimax, tnew
             real(wp) :: a_new(m%ndof), a_part(m%ndof), qdd_pred(m%ndof)
-            integer :: it, lst
+            integer :: it, lst, i
             logical :: refresh, fresh, assemble, mod_step, auto_step, reuse_step
             !> held_start: the step began with a held matrix; renewed: and refreshed it later
             logical :: held_start, renewed, polished, est_ok
@@ -664,11 +664,16 @@ contains
                     info = [tnew, maxval(abs(r)), real(it, wp), real(lst, wp)]
                     return
                 end if
-                x%q = x%q + z(1:m%ndof, 1)
-                x%qd = x%qd + gammap * z(1:m%ndof, 1)
-                x%qdd = x%qdd + betap * z(1:m%ndof, 1)
+                ! the update and its size in one pass (z is finite: ls_solve checked it)
+                err = 0
+                do i = 1, m%ndof
+                    x%q(i) = x%q(i) + z(i, 1)
+                    x%qd(i) = x%qd(i) + gammap * z(i, 1)
+                    x%qdd(i) = x%qdd(i) + betap * z(i, 1)
+                    err = max(err, abs(z(i, 1)))
+                end do
                 if (m%nc > 0) x%mu = x%mu + kdyn * z(m%ndof + 1:, 1)
-                err = maxval(abs(z(1:m%ndof, 1))) / m%qscale
+                err = err / m%qscale
                 info = [tnew, err, real(it, wp), phimax]
                 ! observed contraction rate of the iteration (0 on the first one)
                 rate = err / err_prev
