@@ -571,8 +571,9 @@ contains
             real(wp), intent(in) :: tn, hh
             integer, intent(out) :: stat
             real(wp) :: betap, gammap, r(m%n), z(m%n, 1), err, err_prev, rate, phimax, tnew
-            real(wp) :: a_new(m%ndof), a_part(m%ndof), qdd_pred(m%ndof)
+            real(wp) :: a_new, a_part, qdd_pred, hratio
             integer :: it, lst, i
+            logical :: extrapolate
             logical :: refresh, fresh, assemble, mod_step, auto_step, reuse_step
             !> held_start: the step began with a held matrix; renewed: and refreshed it later
             logical :: held_start, renewed, polished, est_ok
@@ -592,17 +593,24 @@ contains
             ! qdd_{n+1} extrapolated linearly from the last two steps instead: a
             ! closer start for the slower (linear) convergence of a reused Jacobian
             ! (-25 % iterations on the robot; full Newton gains nothing from it)
-            a_part = (alpha_f * x%qdd - alpha_m * x%a) / (1 - alpha_m)
-            qdd_pred = x%qdd
-            if (mod_step .and. x%h_prev > 0) qdd_pred = x%qdd + (hh / x%h_prev) * (x%qdd - x%qdd_prev)
-            a_new = a_part + (1 - alpha_f) / (1 - alpha_m) * qdd_pred
-            x%qdd_prev = x%qdd
+            ! (one pass over the coordinates; per coordinate the operations of the
+            ! array expressions: a_part, qdd_pred, a_new = a_part + (1 - alpha_f) /
+            ! (1 - alpha_m) qdd_pred, then q, qd and, kept for eq. (3), a = a_part)
+            extrapolate = mod_step .and. x%h_prev > 0
+            hratio = 0
+            if (extrapolate) hratio = hh / x%h_prev
+            do i = 1, m%ndof
+                a_part = (alpha_f * x%qdd(i) - alpha_m * x%a(i)) / (1 - alpha_m)
+                qdd_pred = x%qdd(i)
+                if (extrapolate) qdd_pred = x%qdd(i) + hratio * (x%qdd(i) - x%qdd_prev(i))
+                a_new = a_part + (1 - alpha_f) / (1 - alpha_m) * qdd_pred
+                x%qdd_prev(i) = x%qdd(i)
+                x%q(i) = x%q(i) + hh * x%qd(i) + hh**2 * ((0.5_wp - beta) * x%a(i) + beta * a_new)
+                x%qd(i) = x%qd(i) + hh * ((1 - gamma) * x%a(i) + gamma * a_new)
+                x%qdd(i) = qdd_pred
+                x%a(i) = a_part
+            end do
             x%h_prev = hh
-            x%q = x%q + hh * x%qd + hh**2 * ((0.5_wp - beta) * x%a + beta * a_new)
-            x%qd = x%qd + hh * ((1 - gamma) * x%a + gamma * a_new)
-            x%qdd = qdd_pred
-            ! keep the part of a_{n+1} that does not depend on qdd_{n+1} (eq. 3)
-            x%a = a_part
             refresh = .not. mod_step .or. stale
             stale = .false.
             fact_exact = .false.
