@@ -302,10 +302,12 @@ contains
             call spring_forces(m, q, qd, fint, vals, ck, cc)
         end if
         if (cm /= 0) then
+            ! the consistent mass couples only like coordinates (mass_times): the zero
+            ! entries, which would add nothing, are skipped
             do e = 1, m%nel
                 ne = 3 * m%el_nen(e)
                 do b = 1, ne
-                    do a = 1, ne
+                    do a = mod(b - 1, 3) + 1, ne, 3
                         vals(m%map_el(a, b, e)) = vals(m%map_el(a, b, e)) + cm * m%el_mass(a, b, e)
                     end do
                 end do
