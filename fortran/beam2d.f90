@@ -223,11 +223,17 @@ contains
                 end do
             end if
             if (present(ke)) then
-                ! material part B^T D B
+                ! material part B^T D B; the curvature row of B is zero in the x and y
+                ! columns, so its term is added to the (phi, phi) entries alone (after the
+                ! other two, as in the full sum: the other entries would add exact zeros)
                 do ib = 1, 3 * nen
                     do ia = 1, 3 * nen
-                        ke(ia, ib) = ke(ia, ib) + b(1, ia) * db(1, ib) + b(2, ia) * db(2, ib) &
-                                     + b(3, ia) * db(3, ib)
+                        ke(ia, ib) = ke(ia, ib) + b(1, ia) * db(1, ib) + b(2, ia) * db(2, ib)
+                    end do
+                end do
+                do ib = 3, 3 * nen, 3
+                    do ia = 3, 3 * nen, 3
+                        ke(ia, ib) = ke(ia, ib) + b(3, ia) * db(3, ib)
                     end do
                 end do
                 ! geometric part N d2Gamma_1 + Q d2Gamma_2
