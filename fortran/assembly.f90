@@ -245,22 +245,27 @@ contains
         real(wp), intent(out) :: phimax
         real(wp), intent(out), optional :: vals(:)   !! iteration matrix values
         real(wp), intent(in), optional :: cmat, cc   !! coefficients of M and C_t in the matrix
-        real(wp) :: fint(m%ndof), fext(m%ndof), mq(m%ndof)
+        real(wp) :: fext(m%ndof), mq(m%ndof)
         real(wp) :: phi, grad(MAX_CDOF), hess(MAX_CDOF, MAX_CDOF)
         integer :: i, a
         logical :: inertia
         inertia = cm /= 0
+        ! f_int (with cm M qdd when no matrix is assembled) straight into r, then - f_ext
         if (present(vals)) then
-            call iteration_matrix(m, q, qd, mu, t, cmat, 1.0_wp, cc, kscale, pen, vals, fint)
+            call iteration_matrix(m, q, qd, mu, t, cmat, 1.0_wp, cc, kscale, pen, vals, r(1:m%ndof))
         else if (inertia) then
-            call element_forces(m, q, qd, qdd, cm, fint)     ! f_int + cm M qdd in one pass
+            call element_forces(m, q, qd, qdd, cm, r(1:m%ndof))     ! f_int + cm M qdd in one pass
             inertia = .false.
         else
-            call internal_forces(m, q, qd, fint)
+            call internal_forces(m, q, qd, r(1:m%ndof))
         end if
-        call external_forces(m, fgrav, t, fext)
-        if (present(lf)) fext = lf * fext
-        r(1:m%ndof) = fint - fext
+        if (m%nload == 0 .and. .not. present(lf)) then
+            r(1:m%ndof) = r(1:m%ndof) - fgrav              ! f_ext = M g_acc alone
+        else
+            call external_forces(m, fgrav, t, fext)
+            if (present(lf)) fext = lf * fext
+            r(1:m%ndof) = r(1:m%ndof) - fext
+        end if
         if (m%nsd > 0) call spring_forces(m, q, qd, r(1:m%ndof))
         if (inertia) then
             call mass_times(m, qdd, mq)

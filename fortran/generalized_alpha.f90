@@ -573,7 +573,7 @@ contains
             real(wp) :: betap, gammap, r(m%n), z(m%n, 1), err, err_prev, rate, phimax, tnew
             real(wp) :: a_new, a_part, qdd_pred, hratio
             integer :: it, lst, i
-            logical :: extrapolate
+            logical :: extrapolate, finite
             logical :: refresh, fresh, assemble, mod_step, auto_step, reuse_step
             !> held_start: the step began with a held matrix; renewed: and refreshed it later
             logical :: held_start, renewed, polished, est_ok
@@ -642,7 +642,13 @@ contains
                     call residual(m, x%q, x%qd, x%qdd, x%mu, tnew, fgrav, 1.0_wp, kdyn, pdyn, r, phimax)
                 end if
                 stats%residual_evaluations = stats%residual_evaluations + 1
-                if (.not. all(abs(r) <= huge(1.0_wp))) then
+                ! the right-hand side -r and the finiteness of r in one pass
+                finite = .true.
+                do i = 1, m%n
+                    z(i, 1) = -r(i)
+                    finite = finite .and. abs(r(i)) <= huge(1.0_wp)
+                end do
+                if (.not. finite) then
                     stat = GA_NONFINITE
                     info = [tnew, huge(1.0_wp), real(it, wp), 0.0_wp]
                     return
@@ -664,7 +670,6 @@ contains
                     fact_h = hh
                 end if
                 refresh = .not. mod_step
-                z(:, 1) = -r
                 call ls_solve(ls, z, lst)
                 stats%newton_iterations = stats%newton_iterations + 1
                 if (lst /= LS_OK) then
