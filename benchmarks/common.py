@@ -342,8 +342,10 @@ class ExudynRobot:
         self.stats = {}
 
     def settings(self, h, t_end, rho_inf=0.5, modified_newton=False, sparse=False, rtol=1e-8,
-                 static_rtol=1e-6):
-        """Exudyn SimulationSettings of a fixed-step generalized-alpha run."""
+                 static_rtol=1e-6, adaptive=False):
+        """Exudyn SimulationSettings of a generalized-alpha run with steps h: fixed, or with
+        adaptive=True under Exudyn's own step control (its default adaptiveStep: a step whose
+        Newton iteration fails is cut by adaptiveStepDecrease and regrown later)."""
         exu = self.exu
         ss = exu.SimulationSettings()
         ss.solutionSettings.writeSolutionToFile = False
@@ -356,7 +358,8 @@ class ExudynRobot:
         ss.timeIntegration.generalizedAlpha.spectralRadius = rho_inf
         ss.timeIntegration.newton.useModifiedNewton = bool(modified_newton)
         ss.timeIntegration.newton.relativeTolerance = rtol
-        ss.timeIntegration.adaptiveStep = False          # fixed steps: a failure is reported
+        # fixed steps (a failure is reported), or Exudyn's own step control
+        ss.timeIntegration.adaptiveStep = bool(adaptive)
         ss.timeIntegration.numberOfSteps = int(round(t_end / h))
         ss.timeIntegration.endTime = ss.timeIntegration.numberOfSteps * h
         # Exudyn's default static tolerance (1e-8 of the initial residual) sits below the

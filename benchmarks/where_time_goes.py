@@ -248,7 +248,7 @@ import flexmbs as fx
 from common import robot_flexmbs
 m, a1, a2 = robot_flexmbs(cfg["nel"])
 run = lambda: fx.simulate(m, cfg["t_end"], cfg["h"], start="static", store=[a2.last],
-                          solver=cfg["solver"], newton="reuse" if cfg["reuse"] else "full")
+                          solver=cfg["solver"], newton=cfg["newton"])
 run()
 ctl = open(cfg["ctl"], "w"); ack = open(cfg["ack"], "r")
 ctl.write("enable\n"); ctl.flush(); ack.readline()
@@ -271,8 +271,10 @@ def perf_available():
         return False
 
 
-def perf_profile(nel, solver, reuse, seconds=3.0, h=H, t_end=T_END):
-    """Share of the CPU samples of the timed simulate loop in each category (percent)."""
+def perf_profile(nel, solver, reuse, seconds=3.0, h=H, t_end=T_END, newton=None, python=None):
+    """Share of the CPU samples of the timed simulate loop in each category (percent).
+    newton: simulate's `newton` (default 'reuse' or 'full' after `reuse`); python: the
+    interpreter to run (another checkout's venv: its flexmbs, these benchmark helpers)."""
     bench_dir = os.path.dirname(os.path.abspath(__file__))
     with tempfile.TemporaryDirectory() as tmp:
         ctl, ack = os.path.join(tmp, "ctl"), os.path.join(tmp, "ack")
@@ -283,10 +285,10 @@ def perf_profile(nel, solver, reuse, seconds=3.0, h=H, t_end=T_END):
         with open(script, "w") as f:
             f.write(_CHILD)
         env = dict(os.environ, FX_PERF_CFG=json.dumps(dict(
-            bench_dir=bench_dir, nel=nel, solver=solver, reuse=reuse, seconds=seconds, h=h,
-            t_end=t_end, ctl=ctl, ack=ack)))
+            bench_dir=bench_dir, nel=nel, solver=solver, seconds=seconds, h=h, t_end=t_end,
+            newton=newton or ("reuse" if reuse else "full"), ctl=ctl, ack=ack)))
         cmd = ["perf", "record", "-q", "-F", "4000", "-D", "-1", f"--control=fifo:{ctl},{ack}",
-               "-o", data, sys.executable, script]
+               "-o", data, python or sys.executable, script]
         proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
         if proc.returncode != 0 or not os.path.exists(data):
             return None

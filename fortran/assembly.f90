@@ -60,19 +60,32 @@ contains
                                               qr(1:ne), qe(1:ne), fe(1:ne), ke(1:ne, 1:ne), &
                                               parts=parts(1:ne, :, e), eref=m%el_eref(:, :, e), &
                                               eta=eta, qde=ve(1:ne), ce=ce(1:ne, 1:ne))
-                else
+                else if (eta /= 0) then
                     call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), &
                                               qr(1:ne), qe(1:ne), fe(1:ne), ke(1:ne, 1:ne), &
                                               eref=m%el_eref(:, :, e), eta=eta, qde=ve(1:ne), &
                                               ce=ce(1:ne, 1:ne))
+                else
+                    ! an undamped element: no C_t (nothing to form or add)
+                    call beam_internal_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), &
+                                              qr(1:ne), qe(1:ne), fe(1:ne), ke(1:ne, 1:ne), &
+                                              eref=m%el_eref(:, :, e))
                 end if
-                ! (ce = 0 for an undamped element)
-                do b = 1, ne
-                    do a = 1, ne
-                        vals(m%map_el(a, b, e)) = vals(m%map_el(a, b, e)) + ck * ke(a, b) &
-                                                  + ccv * ce(a, b)
+                if (eta /= 0 .or. present(parts)) then
+                    ! (ce = 0 for an undamped element)
+                    do b = 1, ne
+                        do a = 1, ne
+                            vals(m%map_el(a, b, e)) = vals(m%map_el(a, b, e)) + ck * ke(a, b) &
+                                                      + ccv * ce(a, b)
+                        end do
                     end do
-                end do
+                else
+                    do b = 1, ne
+                        do a = 1, ne
+                            vals(m%map_el(a, b, e)) = vals(m%map_el(a, b, e)) + ck * ke(a, b)
+                        end do
+                    end do
+                end if
             else
                 call beam_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), m%el_eref(:, :, e), &
                                  qe(1:ne), fe(1:ne), eta, ve(1:ne))
@@ -149,26 +162,35 @@ contains
         real(wp), intent(in) :: q(m%ndof), qd(m%ndof), qdd(m%ndof), cm
         real(wp), intent(out) :: f(m%ndof)
         real(wp) :: fe(MAX_EDOF), qe(MAX_EDOF), ae(MAX_EDOF), ve(MAX_EDOF), s
-        integer :: e, ne, a, b, d
+        integer :: e, nen, ne, a, d, i, j, k
         f = cm * m%lumped * qdd
         ve = 0
         do e = 1, m%nel
-            ne = 3 * m%el_nen(e)
+            nen = m%el_nen(e)
+            ne = 3 * nen
             do a = 1, ne
                 d = m%el_dofs(a, e)
                 qe(a) = q(d)
                 ae(a) = qdd(d)
-                if (m%el_eta(e) /= 0) ve(a) = qd(d)
             end do
-            call beam_forces(m%el_nen(e), m%el_len(e), m%el_prop(1:3, e), m%el_eref(:, :, e), &
-                             qe(1:ne), fe(1:ne), m%el_eta(e), ve(1:ne))
-            do a = 1, ne
-                s = 0
-                do b = mod(a - 1, 3) + 1, ne, 3
-                    s = s + m%el_mass(a, b, e) * ae(b)
+            if (m%el_eta(e) /= 0) then
+                do a = 1, ne
+                    ve(a) = qd(m%el_dofs(a, e))
                 end do
-                d = m%el_dofs(a, e)
-                f(d) = f(d) + (fe(a) + cm * s)
+            end if
+            call beam_forces(nen, m%el_len(e), m%el_prop(1:3, e), m%el_eref(:, :, e), &
+                             qe(1:ne), fe(1:ne), m%el_eta(e), ve(1:ne))
+            ! row a = coordinate k of node i couples with coordinate k of every node j
+            do i = 1, nen
+                do k = 1, 3
+                    a = 3 * (i - 1) + k
+                    s = 0
+                    do j = 1, nen
+                        s = s + m%el_mass(a, 3 * (j - 1) + k, e) * ae(3 * (j - 1) + k)
+                    end do
+                    d = m%el_dofs(a, e)
+                    f(d) = f(d) + (fe(a) + cm * s)
+                end do
             end do
         end do
     end subroutine element_forces
@@ -223,22 +245,27 @@ contains
         real(wp), intent(out) :: phimax
         real(wp), intent(out), optional :: vals(:)   !! iteration matrix values
         real(wp), intent(in), optional :: cmat, cc   !! coefficients of M and C_t in the matrix
-        real(wp) :: fint(m%ndof), fext(m%ndof), mq(m%ndof)
+        real(wp) :: fext(m%ndof), mq(m%ndof)
         real(wp) :: phi, grad(MAX_CDOF), hess(MAX_CDOF, MAX_CDOF)
         integer :: i, a
         logical :: inertia
         inertia = cm /= 0
+        ! f_int (with cm M qdd when no matrix is assembled) straight into r, then - f_ext
         if (present(vals)) then
-            call iteration_matrix(m, q, qd, mu, t, cmat, 1.0_wp, cc, kscale, pen, vals, fint)
+            call iteration_matrix(m, q, qd, mu, t, cmat, 1.0_wp, cc, kscale, pen, vals, r(1:m%ndof))
         else if (inertia) then
-            call element_forces(m, q, qd, qdd, cm, fint)     ! f_int + cm M qdd in one pass
+            call element_forces(m, q, qd, qdd, cm, r(1:m%ndof))     ! f_int + cm M qdd in one pass
             inertia = .false.
         else
-            call internal_forces(m, q, qd, fint)
+            call internal_forces(m, q, qd, r(1:m%ndof))
         end if
-        call external_forces(m, fgrav, t, fext)
-        if (present(lf)) fext = lf * fext
-        r(1:m%ndof) = fint - fext
+        if (m%nload == 0 .and. .not. present(lf)) then
+            r(1:m%ndof) = r(1:m%ndof) - fgrav              ! f_ext = M g_acc alone
+        else
+            call external_forces(m, fgrav, t, fext)
+            if (present(lf)) fext = lf * fext
+            r(1:m%ndof) = r(1:m%ndof) - fext
+        end if
         if (m%nsd > 0) call spring_forces(m, q, qd, r(1:m%ndof))
         if (inertia) then
             call mass_times(m, qdd, mq)
@@ -280,10 +307,12 @@ contains
             call spring_forces(m, q, qd, fint, vals, ck, cc)
         end if
         if (cm /= 0) then
+            ! the consistent mass couples only like coordinates (mass_times): the zero
+            ! entries, which would add nothing, are skipped
             do e = 1, m%nel
                 ne = 3 * m%el_nen(e)
                 do b = 1, ne
-                    do a = 1, ne
+                    do a = mod(b - 1, 3) + 1, ne, 3
                         vals(m%map_el(a, b, e)) = vals(m%map_el(a, b, e)) + cm * m%el_mass(a, b, e)
                     end do
                 end do

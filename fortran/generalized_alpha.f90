@@ -609,8 +609,9 @@ contains
             real(wp), intent(in) :: tn, hh
             integer, intent(out) :: stat
             real(wp) :: betap, gammap, r(m%n), z(m%n, 1), err, err_prev, rate, phimax, tnew
-            real(wp) :: a_new(m%ndof), a_part(m%ndof), qdd_pred(m%ndof)
-            integer :: it, lst
+            real(wp) :: a_new, a_part, qdd_pred, hratio
+            integer :: it, lst, i
+            logical :: extrapolate, finite
             logical :: refresh, fresh, assemble, mod_step, auto_step, reuse_step
             !> held_start: the step began with a held matrix; renewed: and refreshed it later
             logical :: held_start, renewed, polished, est_ok
@@ -630,17 +631,24 @@ contains
             ! qdd_{n+1} extrapolated linearly from the last two steps instead: a
             ! closer start for the slower (linear) convergence of a reused Jacobian
             ! (-25 % iterations on the robot; full Newton gains nothing from it)
-            a_part = (alpha_f * x%qdd - alpha_m * x%a) / (1 - alpha_m)
-            qdd_pred = x%qdd
-            if (mod_step .and. x%h_prev > 0) qdd_pred = x%qdd + (hh / x%h_prev) * (x%qdd - x%qdd_prev)
-            a_new = a_part + (1 - alpha_f) / (1 - alpha_m) * qdd_pred
-            x%qdd_prev = x%qdd
+            ! (one pass over the coordinates; per coordinate the operations of the
+            ! array expressions: a_part, qdd_pred, a_new = a_part + (1 - alpha_f) /
+            ! (1 - alpha_m) qdd_pred, then q, qd and, kept for eq. (3), a = a_part)
+            extrapolate = mod_step .and. x%h_prev > 0
+            hratio = 0
+            if (extrapolate) hratio = hh / x%h_prev
+            do i = 1, m%ndof
+                a_part = (alpha_f * x%qdd(i) - alpha_m * x%a(i)) / (1 - alpha_m)
+                qdd_pred = x%qdd(i)
+                if (extrapolate) qdd_pred = x%qdd(i) + hratio * (x%qdd(i) - x%qdd_prev(i))
+                a_new = a_part + (1 - alpha_f) / (1 - alpha_m) * qdd_pred
+                x%qdd_prev(i) = x%qdd(i)
+                x%q(i) = x%q(i) + hh * x%qd(i) + hh**2 * ((0.5_wp - beta) * x%a(i) + beta * a_new)
+                x%qd(i) = x%qd(i) + hh * ((1 - gamma) * x%a(i) + gamma * a_new)
+                x%qdd(i) = qdd_pred
+                x%a(i) = a_part
+            end do
             x%h_prev = hh
-            x%q = x%q + hh * x%qd + hh**2 * ((0.5_wp - beta) * x%a + beta * a_new)
-            x%qd = x%qd + hh * ((1 - gamma) * x%a + gamma * a_new)
-            x%qdd = qdd_pred
-            ! keep the part of a_{n+1} that does not depend on qdd_{n+1} (eq. 3)
-            x%a = a_part
             refresh = .not. mod_step .or. stale
             stale = .false.
             fact_exact = .false.
@@ -672,7 +680,13 @@ contains
                     call residual(m, x%q, x%qd, x%qdd, x%mu, tnew, fgrav, 1.0_wp, kdyn, pdyn, r, phimax)
                 end if
                 stats%residual_evaluations = stats%residual_evaluations + 1
-                if (.not. all(abs(r) <= huge(1.0_wp))) then
+                ! the right-hand side -r and the finiteness of r in one pass
+                finite = .true.
+                do i = 1, m%n
+                    z(i, 1) = -r(i)
+                    finite = finite .and. abs(r(i)) <= huge(1.0_wp)
+                end do
+                if (.not. finite) then
                     stat = GA_NONFINITE
                     info = [tnew, huge(1.0_wp), real(it, wp), 0.0_wp]
                     return
@@ -694,7 +708,6 @@ contains
                     fact_h = hh
                 end if
                 refresh = .not. mod_step
-                z(:, 1) = -r
                 call ls_solve(ls, z, lst)
                 stats%newton_iterations = stats%newton_iterations + 1
                 if (lst /= LS_OK) then
@@ -702,11 +715,16 @@ contains
                     info = [tnew, maxval(abs(r)), real(it, wp), real(lst, wp)]
                     return
                 end if
-                x%q = x%q + z(1:m%ndof, 1)
-                x%qd = x%qd + gammap * z(1:m%ndof, 1)
-                x%qdd = x%qdd + betap * z(1:m%ndof, 1)
+                ! the update and its size in one pass (z is finite: ls_solve checked it)
+                err = 0
+                do i = 1, m%ndof
+                    x%q(i) = x%q(i) + z(i, 1)
+                    x%qd(i) = x%qd(i) + gammap * z(i, 1)
+                    x%qdd(i) = x%qdd(i) + betap * z(i, 1)
+                    err = max(err, abs(z(i, 1)))
+                end do
                 if (m%nc > 0) x%mu = x%mu + kdyn * z(m%ndof + 1:, 1)
-                err = maxval(abs(z(1:m%ndof, 1))) / m%qscale
+                err = err / m%qscale
                 info = [tnew, err, real(it, wp), phimax]
                 ! observed contraction rate of the iteration (0 on the first one)
                 rate = err / err_prev
