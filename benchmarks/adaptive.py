@@ -1,4 +1,4 @@
-"""Error-controlled steps (time.h = "auto", flexmbs.adaptive) against the best fixed step.
+"""Error-controlled steps (time.h = "auto", flexmbs.analysis.adaptive) against the best fixed step.
 
 For each case, the relative error of its response histories (max over time and responses of
 |r - r_ref|, over max |r_ref|) against a reference: fixed steps h/32 and h/64 combined by
@@ -6,7 +6,7 @@ Richardson extrapolation (second order), compared on the case's response grid. F
 sweep h = 4 h0 .. h0 / 32 (h0 the case's step); adaptive runs sweep rtol. The steps and the
 CPU seconds that reach 1e-2, 1e-3 and 1e-4 are interpolated log-log between neighbouring runs
 of each sweep; the adaptive run's seconds are given without and with its one-time grid choice
-(the pilot runs at 2 h0 and h0, made once per optimization run and frozen: flexmbs.adaptive;
+(the pilot runs at 2 h0 and h0, made once per optimization run and frozen: flexmbs.analysis.adaptive;
 timed warm, like the runs: the problem's rigid reference and KLU analysis already built).
 
 Cases: the robot (cases/robot_2dof.toml, 0.65 s: a cycloid move of 0.5 s, then its residual

@@ -15,9 +15,9 @@ import time
 
 import numpy as np
 
-from flexmbs.adjoint import adjoint_gradient, simulate_for_adjoint
+from flexmbs.analysis.adjoint import adjoint_gradient, simulate_for_adjoint
+from flexmbs.analysis.simulate import simulate
 from flexmbs.problem import Problem
-from flexmbs.simulate import simulate
 
 
 def best(f, repeat=3):

@@ -1,7 +1,7 @@
 """Many designs: one batch of designs serially, on 2 local worker processes and on Dask.
 
 The batch: 64 designs of the robot (cases/robot_2dof.toml, 1300 steps) with 128 elements per
-arm (about 0.45 s each on one core), each `flexmbs.batch.max_deviation_job` (one simulation
+arm (about 0.45 s each on one core), each `flexmbs.sweep.max_deviation_job` (one simulation
 without gradients: the mass and the largest constrained deviation), run through
 `flexmbs.batch.run_batch` exactly as a user runs it, side by side in one process:
 

@@ -5,7 +5,7 @@ first bending frequency, 316 Hz).
 For h = 5e-4 / 2^k (k = 0 .. 4; --quick: 0 .. 3), rho_inf = 0.5, 0.3 s, both cases: the largest
 rod stress and ram error (Problem.evaluate at the start design, gradient=False), their
 differences between successive h and the observed order log2(d_k / d_{k+1}); and the CPU time of
-one flexmbs.simulate of each case (min of repeats; Newton iterations and factorizations), with
+one flexmbs.analysis.simulate of each case (min of repeats; Newton iterations and factorizations), with
 and without the damping, and of a gradient evaluation (direct and adjoint, 0.3 s, the case's
 per-step constraints).
 

@@ -1,7 +1,7 @@
 """flexmbs with its default settings against Exudyn, side by side in one process.
 
 A reduced form of work_precision.py: the robot of docs/paper-cases.md (p = 50 mm, static start, 0.65 s) in
-both codes (common.py), at each mesh and step asked; flexmbs runs `flexmbs.simulate` with its
+both codes (common.py), at each mesh and step asked; flexmbs runs `flexmbs.analysis.simulate` with its
 defaults (solver 'auto', newton 'auto', as `flexmbs simulate` does) and, beside it, full Newton
 and 'reuse' (KLU); Exudyn runs its sparse (EigenSparse) solver with full and modified Newton
 (dense too up to 32 elements per arm) at the tightest working tolerance (work_precision.py),

@@ -1,4 +1,4 @@
-"""Error estimates against measured errors (flexmbs.accuracy).
+"""Error estimates against measured errors (flexmbs.analysis.accuracy).
 
 For each case and several steps h, every response's estimated time-discretisation error
 (Richardson on h, h/2, h/4: `Problem.evaluate(x, error=True)`) beside its true error, the
@@ -11,7 +11,7 @@ worse than 1/2 for a response in its asymptotic range, and a 'not asymptotic' ve
 Cases: the robot (its start design), the four-bar at a light design near its limit, the press
 (without and with 2 % material damping of the rod),
 the three-arm robot, a stiff robot (E x 100: its vibrations are far above what h resolves), and
-the spin-up beam of Simo & Vu-Quoc (tip deflection in the hub frame; flexmbs.simulate with the
+the spin-up beam of Simo & Vu-Quoc (tip deflection in the hub frame; flexmbs.analysis.simulate with the
 library's `richardson` on the histories).
 """
 from __future__ import annotations
@@ -24,7 +24,7 @@ import time
 import numpy as np
 
 from flexmbs import GivenSection, Model, Problem, TimeLaw, simulate
-from flexmbs.accuracy import estimate_errors, peak_sampling, richardson
+from flexmbs.analysis.accuracy import estimate_errors, peak_sampling, richardson
 
 CASES = [
     ("robot_2dof", None, {}),

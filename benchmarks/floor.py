@@ -1,7 +1,7 @@
 """flexmbs's default run against its own linear-algebra floor, optionally beside another checkout.
 
 The robot of docs/paper-cases.md (p = 50 mm, h = 5e-4 s, 1300 steps, static start, the tip
-stored) with 2, 8, 32, 128 quadratic elements per arm, run by `flexmbs.simulate` with its
+stored) with 2, 8, 32, 128 quadratic elements per arm, run by `flexmbs.analysis.simulate` with its
 defaults (solver 'auto' = KLU, newton 'auto'). Per size:
 
 - the CPU time of the call (minimum over the repeats) and its Python set-up (total minus
@@ -147,7 +147,7 @@ def main(argv=None):
                                            - np.asarray(best["other"][nel]["tip"])))))
         rows.append(row)
     print(format_table(headers, rows, title=(
-        f"flexmbs.simulate defaults against the KLU floor (robot, h = {H:g} s, {STEPS} steps; CPU "
+        f"flexmbs.analysis.simulate defaults against the KLU floor (robot, h = {H:g} s, {STEPS} steps; CPU "
         f"time, min of {args.repeat} repeats" + (f" x {args.rounds} alternations" if args.compare
                                                   else "") + "; floor: min over the runs)")))
     if args.perf:

@@ -38,9 +38,9 @@ import numpy as np
 
 from flexmbs.problem import Problem
 
-# the modules (flexmbs.simulate is also the name of a function in the package's namespace)
-simulate_module = importlib.import_module("flexmbs.simulate")
-adjoint_module = importlib.import_module("flexmbs.adjoint")
+# the modules (flexmbs.analysis.simulate is also the name of a function in the package's namespace)
+simulate_module = importlib.import_module("flexmbs.analysis.simulate")
+adjoint_module = importlib.import_module("flexmbs.analysis.adjoint")
 
 
 RESPONSES = [

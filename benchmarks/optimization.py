@@ -4,10 +4,10 @@ Usage: python benchmarks/optimization.py
 """
 import time
 
-import flexmbs.problem
+from flexmbs.analysis.simulate import simulate
 from flexmbs.optimize import optimize_fully, optimize_weakly
+import flexmbs.problem
 from flexmbs.problem import Problem
-from flexmbs.simulate import simulate
 
 _count = {"factorizations": 0}
 

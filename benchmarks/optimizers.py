@@ -11,7 +11,7 @@ docs/optimizers.md reports: the robot's Tables 1, 2, 5, 6 and 7 (the four starts
 three mechanisms beyond the paper (slider_crank_press, three_arm_robot, fourbar_tubes).
 
 For each case (cases/NAME.toml, from the case's start) and optimizer
-(flexmbs.optimize.fully.OPTIMIZERS): wall time, simulations, final objective (mass),
+(flexmbs.methods.fully.OPTIMIZERS): wall time, simulations, final objective (mass),
 constraint violation of the final design re-simulated, and the optimizer's share of the wall
 time (the time outside Problem.evaluate: the optimizer's own subproblems, the stopping test,
 the history). With --starts N, a multi-start row per case and optimizer (N Sobol starts,
@@ -67,7 +67,7 @@ COMPARISON = {
 
 def parse_run(spec):
     """(case, overrides, start or None) of a run spec ``case[:k=v;k=v][@s1,s2,...]``."""
-    from flexmbs.casefile import parse_override
+    from flexmbs.model.casefile import parse_override
 
     spec, _, start = spec.partition("@")
     case, _, over = spec.partition(":")
@@ -79,7 +79,7 @@ def parse_run(spec):
 def run_one(spec, optimizer, max_simulations):
     import numpy as np
 
-    from flexmbs.optimize.fully import optimize_fully
+    from flexmbs.methods.fully import optimize_fully
     from flexmbs.problem import Problem
 
     case, overrides, x0 = parse_run(spec)
@@ -100,7 +100,7 @@ def run_one(spec, optimizer, max_simulations):
 
 
 def run_multi(spec, optimizer, starts, workers, max_simulations):
-    from flexmbs.optimize.multistart import multistart
+    from flexmbs.methods.multistart import multistart
     from flexmbs.problem import Problem
 
     case, overrides, _ = parse_run(spec)
@@ -123,7 +123,7 @@ def _fmt(v, f):
 
 
 def main(argv=None):
-    from flexmbs.optimize.fully import OPTIMIZERS
+    from flexmbs.methods.fully import OPTIMIZERS
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", default="robot_2dof,fourbar",

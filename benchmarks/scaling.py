@@ -18,7 +18,7 @@ takes ~1 s on one core, and memory grows as n^2).
 The KLU sweep (`klu_sweep`) goes on to ~10^5 unknowns (16 000 elements,
 96 006 unknowns) with the default settings (KLU, newton='auto'): time per step, time per step
 and unknown, and memory beside it: the process's peak resident memory (getrusage ru_maxrss),
-its growth during the simulations and flexmbs's own estimate (flexmbs.simulate.memory_estimate).
+its growth during the simulations and flexmbs's own estimate (flexmbs.analysis.simulate.memory_estimate).
 `python benchmarks/scaling.py --klu [--max-elements N]` runs it alone (each size once).
 """
 from __future__ import annotations
@@ -87,7 +87,7 @@ def _child(cfg):
 
     import flexmbs as fx
     import resource
-    from flexmbs.simulate import memory_estimate
+    from flexmbs.analysis.simulate import memory_estimate
     m, arm = arm_model(cfg["elements"])
     n = m.compile().n
     m.pattern(cfg["solver"])
@@ -146,7 +146,7 @@ def loglog_slope(x, y):
 
 def run(quick=False, outdir="benchmarks/results", log=print):
     """Sweep sizes for dense and KLU, full Newton and reuse_jacobian; print, plot, save JSON."""
-    from flexmbs.simulate import DENSE_MAX_UNKNOWNS
+    from flexmbs.analysis.simulate import DENSE_MAX_UNKNOWNS
     elements = ELEMENTS_QUICK if quick else ELEMENTS_FULL
     budget, repeats = (0.25, 2) if quick else (1.0, 3)
     results = []

@@ -55,7 +55,7 @@ def run_one(case, kind, move_limit=None):
     """One weakly coupled run: a dict of the measured numbers."""
     from flexmbs.optimize import optimize_weakly
     from flexmbs.problem import Problem
-    from flexmbs.optimize.weakly import StaticModel
+    from flexmbs.methods.weakly import StaticModel
     prob = Problem(case)
     kinds = StaticModel(prob, frame_kind=FRAME_KIND[kind]).kinds
     h = float(prob.description.time.h)
@@ -107,7 +107,7 @@ def main(argv=None):
     results = json.loads(out.read_text()) if out.is_file() else {}
     if not a.print:
         from flexmbs.problem import Problem
-        from flexmbs.optimize.weakly import StaticModel
+        from flexmbs.methods.weakly import StaticModel
         for case in cases:
             same = (StaticModel(Problem(case), frame_kind="auto").kinds
                     == StaticModel(Problem(case), frame_kind="tangent").kinds)

@@ -4,7 +4,7 @@ For the robot of docs/paper-cases.md (p = 50 mm, h = 5e-4 s, 0.65 s = 1300 steps
 2, 8, 32, 128 quadratic elements per arm, in four configurations (dense LAPACK LU or KLU, full
 Newton or reuse_jacobian=True):
 
-1. **Python against Fortran.** flexmbs.simulate is timed as a whole and its call of
+1. **Python against Fortran.** flexmbs.analysis.simulate is timed as a whole and its call of
    `_core.simulate` separately (the module's `_core` is wrapped by a timer for the duration of
    the benchmark; nothing in flexmbs is changed). Python set-up = total - core: argument
    checks, compiled arrays, tabulating the drive laws on the grid, building the Result.
@@ -12,7 +12,7 @@ Newton or reuse_jacobian=True):
    residual evaluations, per step.
 3. **Lower bound: the linear algebra alone**, with the very libraries flexmbs links (found in
    the process's memory map and called through ctypes), on the model's real iteration matrix
-   (flexmbs.simulate.system_matrices at the initial configuration, with the generalized-alpha
+   (flexmbs.analysis.simulate.system_matrices at the initial configuration, with the generalized-alpha
    mass coefficient of h): dense `factorizations x dgetrf + iterations x dgetrs`; KLU
    `factorizations x klu_refactor + iterations x klu_solve` (the symbolic analysis is done once
    and not counted). No implementation of the same Newton iteration can go below it; the
@@ -50,7 +50,7 @@ CONFIGS = [("dense", False), ("dense", True), ("klu", False), ("klu", True)]
 
 # ----------------------------------------------------------------------------- core timer
 class _CoreTimer:
-    """Stands in for flexmbs.simulate's `_core` module: times each simulate call."""
+    """Stands in for flexmbs.analysis.simulate's `_core` module: times each simulate call."""
 
     def __init__(self, core):
         self._core = core
@@ -69,8 +69,8 @@ class _CoreTimer:
 
 @contextlib.contextmanager
 def core_timer():
-    """Wrap flexmbs.simulate's reference to the compiled core for the duration of a block."""
-    mod = sys.modules["flexmbs.simulate"]
+    """Wrap flexmbs.analysis.simulate's reference to the compiled core for the duration of a block."""
+    mod = sys.modules["flexmbs.analysis.simulate"]
     timer = _CoreTimer(mod._core)
     mod._core = timer
     try:
@@ -119,7 +119,7 @@ def _loaded_library(fragment):
 
 def iteration_matrix(model, h=H, rho_inf=0.5):
     """Dense iteration matrix of eq. (7) at the reference configuration, as flexmbs scales it."""
-    from flexmbs.simulate import system_matrices
+    from flexmbs.analysis.simulate import system_matrices
     am = (2 * rho_inf - 1) / (rho_inf + 1)
     af = rho_inf / (rho_inf + 1)
     gamma = 0.5 - am + af

@@ -43,7 +43,7 @@ H_QUICK = [2e-3, 1e-3, 5e-4, 2.5e-4]
 NEL_QUICK = [2, 8]
 EXUDYN_RTOLS = [1e-8, 1e-7, 1e-6, 1e-5, 1e-4]
 EXUDYN_STATIC_RTOLS = [1e-8, 1e-7, 1e-6, 1e-5, 1e-4]
-# (solver, newton); None, None: flexmbs.simulate's defaults (solver 'auto', newton 'auto'), as
+# (solver, newton); None, None: flexmbs.analysis.simulate's defaults (solver 'auto', newton 'auto'), as
 # `flexmbs simulate` runs; its ratio to Exudyn is also reported alone ("fx default")
 FLEXMBS_CONFIGS = [("dense", "full"), ("dense", "reuse"), ("klu", "full"), ("klu", "reuse"),
                    (None, None)]

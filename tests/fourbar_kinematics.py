@@ -1,6 +1,6 @@
 """The four-bar's rigid kinematics in closed form (loop closure by circle intersection): an
 analytic reference FOR TESTS ONLY (the library computes every rigid reference by position
-analysis, flexmbs.kinematics; this is the independent check of it)."""
+analysis, flexmbs.model.kinematics; this is the independent check of it)."""
 import numpy as np
 
 

@@ -1,12 +1,12 @@
 """Analytic kinematics of the paper's 2-dof robot (a planar 2R arm whose tip follows the
 straight line of eq. (26)), an independent reference for the tests: the library computes the
-rigid reference by position analysis of the described mechanism (flexmbs.kinematics) and knows
+rigid reference by position analysis of the described mechanism (flexmbs.model.kinematics) and knows
 no mechanism by name; the tests compare it with these closed forms.
 """
 import numpy as np
 
 from flexmbs.errors import ModelError
-from flexmbs.laws import TimeLaw
+from flexmbs.model.laws import TimeLaw
 
 
 def planar_2r_inverse(x, y, xd, yd, xdd, ydd, l1, l2, elbow=-1.0):

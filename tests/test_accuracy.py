@@ -1,5 +1,5 @@
 """Time-discretisation error estimates, convergence checks and verified optima
-(flexmbs.accuracy, flexmbs.optimize.verified).
+(flexmbs.analysis.accuracy, flexmbs.methods.verified).
 
 The estimates are Richardson's on the ladder h, h/2, h/4; the true error of a response is its
 difference from the same design simulated at h/16 (benchmarks/error_estimates.py prints the
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from flexmbs import Problem
-from flexmbs.accuracy import convergence_check, richardson, verify
+from flexmbs.analysis.accuracy import convergence_check, richardson, verify
 from flexmbs.errors import ModelError
 
 
@@ -77,7 +77,7 @@ def test_peak_sampling_of_a_parabola():
     """Samples of f(t) = 3 - 2 (t - 0.537)^2 on a grid of step 0.1: the peak lies above the
     largest sample (t = 0.5) by 2 x 0.037^2, exactly what the parabola through the three
     samples around it gives; zero when the peak is the last sample."""
-    from flexmbs.accuracy import peak_sampling
+    from flexmbs.analysis.accuracy import peak_sampling
 
     t = np.linspace(0, 1, 11)
     f = 3 - 2 * (t - 0.537) ** 2

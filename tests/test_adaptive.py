@@ -1,5 +1,5 @@
-"""Non-uniform step grids (flexmbs.simulate's `steps`, ga_settings%tgrid in the core) and
-error-controlled steps (time.h = "auto", flexmbs.adaptive), docs/accuracy.md.
+"""Non-uniform step grids (flexmbs.analysis.simulate's `steps`, ga_settings%tgrid in the core) and
+error-controlled steps (time.h = "auto", flexmbs.analysis.adaptive), docs/accuracy.md.
 
 Generalized-alpha is second order on a smoothly varying grid too (the step of every interval
 in the predictor, eqs. 3-5, and in the iteration matrix, eq. 7); on a grid frozen for an
@@ -9,10 +9,10 @@ exact derivatives of them (Taylor tests)."""
 import numpy as np
 import pytest
 
-from flexmbs.adaptive import subdivide
+from flexmbs.analysis.adaptive import subdivide
+from flexmbs.analysis.simulate import interpolation_matrix, simulate
 from flexmbs.errors import CaseError
 from flexmbs.problem import Problem
-from flexmbs.simulate import interpolation_matrix, simulate
 
 
 def _runs(case, over):
@@ -136,7 +136,7 @@ def test_achieved_error_is_near_the_tolerance():
 
 def test_refined_problem_halves_the_frozen_steps():
     """Problem.refined(2) of an adaptive case runs on the frozen grid with every step halved
-    (the Richardson ladder of flexmbs.accuracy), its outputs on a grid twice as fine."""
+    (the Richardson ladder of flexmbs.analysis.accuracy), its outputs on a grid twice as fine."""
     p = _adaptive_robot()
     g = p.steps()
     fine = p.refined(2)
@@ -176,7 +176,7 @@ def test_solvers_newton_modes_and_step_cuts_on_a_varying_grid(start):
     steps, so the states differ by the discretisation error), and the adjoint of a weighted
     sum over its history equals direct differentiation of the same cut run to 1e-8 relative
     (as on the uniform grid, tests/test_adjoint.py). Measured: 5e-14 m; 192 cuts; 3.6e-10."""
-    from flexmbs.adjoint import adjoint_gradient, simulate_for_adjoint
+    from flexmbs.analysis.adjoint import adjoint_gradient, simulate_for_adjoint
     p = Problem("slider_crank_press", {"time.t_end": 0.05, "time.start": start})
     mech = p.mechanism
     model = mech.set_design(mech.start)

@@ -1,4 +1,4 @@
-"""The discrete adjoint of the generalized-alpha scheme (fortran/adjoint.f90, flexmbs.adjoint,
+"""The discrete adjoint of the generalized-alpha scheme (fortran/adjoint.f90, flexmbs.analysis.adjoint,
 Problem.evaluate(method='adjoint')), docs/adjoint.md.
 
 The adjoint is the transpose of the direct differentiation of the same discrete equations, so
@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from flexmbs import problem as problem_module
-from flexmbs.adjoint import adjoint_gradient, simulate_for_adjoint
+from flexmbs.analysis.adjoint import adjoint_gradient, simulate_for_adjoint
+from flexmbs.analysis.simulate import simulate
 from flexmbs.errors import ModelError, ResourceError
 from flexmbs.problem import Problem
-from flexmbs.simulate import simulate
 
 REL = 1e-8
 
@@ -288,7 +288,7 @@ def test_optimization_with_the_adjoint():
     gets adjoint gradients; 8 MMA iterations on the robot (0.1 s, KS deviation <= 0.2 mm)
     follow the same iterates as with direct differentiation (designs within 1e-6 relative;
     measured 1e-10), and a bad gradient_method is refused naming the argument."""
-    from flexmbs.optimize.fully import optimize_fully
+    from flexmbs.methods.fully import optimize_fully
 
     ov = {"time.t_end": 0.1, "constraints.0.over": "ks", "constraints.0.upper": 2e-4}
     runs = {}

@@ -1,18 +1,18 @@
 """Checkpointing of the discrete adjoint's forward run (docs/adjoint.md section 3b): the full
 state at every K-th time point instead of the tape of every state; the backward pass re-runs
 each segment from its checkpoint with the tape and carries the adjoint state from one segment
-to the previous one (flexmbs.adjoint, fortran/adjoint.f90 ga_adjoint with j_start / adj_in /
+to the previous one (flexmbs.analysis.adjoint, fortran/adjoint.f90 ga_adjoint with j_start / adj_in /
 adj_out, fortran/generalized_alpha.f90 ga_simulate with ckpt / x_start)."""
 import json
 
 import numpy as np
 import pytest
 
-from flexmbs.adjoint import (adjoint_gradient, checkpoint_interval, checkpoint_memory,
+from flexmbs.analysis.adjoint import (adjoint_gradient, checkpoint_interval, checkpoint_memory,
                              simulate_for_adjoint)
+from flexmbs.analysis.simulate import CHECKPOINT_PART, TAPE_PART, simulate
 from flexmbs.errors import ModelError, ResourceError
 from flexmbs.problem import ADJOINT_PART, SEGMENT_PART, Problem
-from flexmbs.simulate import CHECKPOINT_PART, TAPE_PART, simulate
 
 
 def _rel(a, b):
@@ -212,7 +212,7 @@ def test_cli_checkpoints_give_the_gradient_of_the_full_tape(capsys):
     rows' gradients (the JSON's jacobian) equal those of the full tape (no --checkpoints) to
     1e-9 relative (the segments are re-run from exact states); a bad --checkpoints value is a
     usage error naming the option and the value."""
-    from flexmbs.cli import main
+    from flexmbs.cli.main import main
     args = ["evaluate", "robot_2dof_tapered_tubes", "--set", "time.t_end=0.02",
             "--gradient", "--gradient-method", "adjoint", "--json"]
     assert main(args) == 0

@@ -10,8 +10,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from flexmbs import problem as problem_module
+from flexmbs.analysis.simulate import TAPE_PART, simulate
 from flexmbs.problem import ADJOINT_PART, Problem
-from flexmbs.simulate import TAPE_PART, simulate
 
 
 def _counts(p):

@@ -1,4 +1,4 @@
-"""The motion as a film and as a ParaView time series (flexmbs.animation, flexmbs.export,
+"""The motion as a film and as a ParaView time series (flexmbs.visual.animation, flexmbs.visual.export,
 ``flexmbs animate``), on every shipped case: the files exist, hold the frames asked for, and
 what ParaView would read back (meshio) is the case's geometry on the case's time grid."""
 import re
@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from flexmbs.casefile import available_cases
-from flexmbs.cli import main
-from flexmbs.description import Beam, Rigid, Stress
-from flexmbs.export import read_pvd
+from flexmbs.cli.main import main
+from flexmbs.model.casefile import available_cases
+from flexmbs.model.description import Beam, Rigid, Stress
 from flexmbs.problem import Problem
-from flexmbs.scene import frame_steps
+from flexmbs.visual.export import read_pvd
+from flexmbs.visual.scene import frame_steps
 
 CASES = sorted(available_cases())
 FRAMES = 3
@@ -106,8 +106,8 @@ def test_default_magnification_makes_the_deflection_visible():
     """The default factor is a round number (1, 2 or 5 x 10^k) making the largest magnified
     deflection at most 8 % of the mechanism's size and more than 0.4 x that (the rounding down
     loses at most 2.5x); the hinges' two nodes stay together when magnified (1e-9 m)."""
-    from flexmbs.animation import MAGNIFIED_FRACTION, default_magnification
-    from flexmbs.scene import scene
+    from flexmbs.visual.animation import MAGNIFIED_FRACTION, default_magnification
+    from flexmbs.visual.scene import scene
     prob, ev = _run("robot_2dof")
     sc = scene(prob, ev.result, frame_steps(ev.t.size, 50))
     f = default_magnification(sc)
@@ -185,7 +185,7 @@ def test_rigid_bodies_are_cells():
     """The press's crank (a rigid body with its centre at O and the point A) is one outline
     cell O-A: its written length is the crank radius |OA| of the case file (1e-9 m) at every
     frame."""
-    from flexmbs.scene import scene
+    from flexmbs.visual.scene import scene
     prob, ev = _run("slider_crank_press")
     d = prob.description
     sc = scene(prob, ev.result, frame_steps(ev.t.size, 5))
@@ -200,7 +200,7 @@ def test_rigid_bodies_are_cells():
 
 # ----------------------------------------------------------------------------- overview figure
 def _overview(case_or_problem):
-    from flexmbs.plots import plot_overview
+    from flexmbs.visual.plots import plot_overview
     prob = case_or_problem if isinstance(case_or_problem, Problem) else _run(case_or_problem)[0]
     ev = prob.evaluate(gradient=False, store="all")
     return prob, plot_overview(prob, ev.result, ev)
@@ -210,7 +210,7 @@ def test_overview_time_labels_do_not_overlap():
     """The press's overview: the boxes of its time labels (and of the point names) overlap
     none another, all inside the motion panel; every posture has its label, or its time in
     the legend."""
-    from flexmbs.plots import _renderer
+    from flexmbs.visual.plots import _renderer
     _, fig = _overview("slider_crank_press")
     ax = fig.axes[0]
     r = _renderer(fig)
@@ -243,7 +243,7 @@ def test_overview_without_constraints_has_no_empty_panel():
     """A case without constraints: the overview is the motion panel alone (one axes with
     lines), where it had an empty second panel."""
     import tomllib
-    from flexmbs.casefile import case_path
+    from flexmbs.model.casefile import case_path
     with open(case_path("robot_2dof"), "rb") as fh:
         data = tomllib.load(fh)
     data.pop("constraints")

@@ -15,8 +15,10 @@ import time
 import numpy as np
 import pytest
 
-from flexmbs.batch import max_deviation_job, run_batch, sweep_jobs, write_atomic
+from flexmbs.batch import run_batch
 from flexmbs.errors import ModelError, SimulationError
+from flexmbs.files import write_atomic
+from flexmbs.sweep import max_deviation_job, sweep_jobs
 
 #: Three robot designs: the paper's Table 1 fully coupled optimum, a design between it and the
 #: start, and the start (50 mm). Each is one ~50 ms simulation.

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flexmbs.casefile import description_from_dict
 from flexmbs.errors import CaseError, ModelError
-from flexmbs.laws import TimeLaw
+from flexmbs.model.casefile import description_from_dict
+from flexmbs.model.laws import TimeLaw
 from flexmbs.problem import Problem
 
 CASES = Path(__file__).resolve().parents[1] / "cases"
@@ -109,7 +109,7 @@ def test_a_boolean_is_not_a_number(path, key):
 
 def test_a_boolean_is_not_a_number_in_a_study(tmp_path):
     """A study's multi-start `starts = true` is a CaseError naming the key and the boolean."""
-    from flexmbs.study import load_study
+    from flexmbs.paper.study import load_study
     f = tmp_path / "s.toml"
     f.write_text('[study]\nname = "s"\npublished = "p.json"\n[tables.1]\ntitle = "t"\n'
                  'case = "robot_2dof"\npublished = ["a", "b"]\n'
@@ -155,7 +155,7 @@ def test_overflowing_t_end_is_a_case_error(args, capsys):
     """t_end = 1e308 s (1e308 / 5e-4: an infinite number of steps) from --t-end, --set or a
     case: exit 2 and a CaseError naming time.t_end, time.h and the core's step limit (it was
     an OverflowError)."""
-    from flexmbs.cli import main
+    from flexmbs.cli.main import main
     assert main(args) == 2
     err = capsys.readouterr().err
     assert "CaseError: time.t_end = 1e+308 s with time.h = 0.0005 s" in err
@@ -182,7 +182,7 @@ def test_empty_polynomial_is_a_case_error():
 def test_reproduce_with_a_missing_study_or_a_folder(tmp_path, capsys, study, text):
     """`reproduce --study` of a missing file or of a folder: exit 2 and a CaseError naming it
     (the missing one lists the shipped studies; it was an AttributeError), nothing written."""
-    from flexmbs.cli import main
+    from flexmbs.cli.main import main
     out = tmp_path / "out"
     assert main(["reproduce", "--study", study.format(tmp=tmp_path), "--out", str(out)]) == 2
     assert text.format(tmp=tmp_path) in capsys.readouterr().err

@@ -4,7 +4,7 @@ For every shipped case file (cases/*.toml) hypothesis draws a few mutations -- a
 whole table or an item of an array of tables ([[bodies]], [[design]], ...) deleted, a value's
 type changed (number -> string, list, bool, table), a value replaced by a negative, zero, NaN,
 infinite or huge number, an unknown key added -- writes the result to a temporary TOML file and
-reads it with `flexmbs.casefile.read_description(path)`. When reading succeeds the Problem
+reads it with `flexmbs.model.casefile.read_description(path)`. When reading succeeds the Problem
 (mechanism, rigid reference) is built and, if small (up to CHEAP_DOFS coordinates), evaluated
 at its start design (gradient=False). The unmutated file's horizon is cut to three time steps
 first (time.t_end = 3 h), so that an evaluation is three steps unless a mutation changes it.
@@ -29,8 +29,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from flexmbs.casefile import read_description
 from flexmbs.errors import CaseError, FlexmbsError
+from flexmbs.model.casefile import read_description
 from flexmbs.problem import Problem
 
 CASES_DIR = Path(__file__).resolve().parents[1] / "cases"

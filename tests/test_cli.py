@@ -1,4 +1,4 @@
-"""The command line (flexmbs.cli): every bad argument or unwritable output path is one line on
+"""The command line (flexmbs.cli.main): every bad argument or unwritable output path is one line on
 stderr with exit status 2 and no traceback, found before the run; the names reported are the
 files written; Ctrl-C during `optimize` and `reproduce` prints one line naming where the results
 are and how to resume, exits with 130, and loses nothing already written."""
@@ -12,8 +12,8 @@ import time
 import numpy as np
 import pytest
 
-from flexmbs.cli import main
-from flexmbs.optimize.result import HistoryWriter, read_history
+from flexmbs.cli.main import main
+from flexmbs.methods.result import HistoryWriter, read_history
 
 
 def _no_simulation(monkeypatch):
@@ -194,8 +194,8 @@ def _ctrl_c(proc):
 
 _IMPORTS_DURING_RUN = """
 import sys
-import flexmbs.optimize.weakly as W
-from flexmbs.cli import main
+import flexmbs.methods.weakly as W
+from flexmbs.cli.main import main
 orig, new = W.optimize_weakly, []
 def wrapped(*a, **k):
     before = set(sys.modules)
@@ -211,7 +211,7 @@ print("NEW", new)
 
 def test_optimize_imports_nothing_during_the_run(tmp_path):
     """`flexmbs optimize` imports what its optimizers load on first use before the run
-    (flexmbs.optimize.library.preload), so that a Ctrl-C cannot land in an import: a
+    (flexmbs.optimizers.library.preload), so that a Ctrl-C cannot land in an import: a
     KeyboardInterrupt escaping an import's exec of a string is marked unhandled by CPython,
     and the process then ended by SIGINT after printing its resume line (exit status -2
     instead of 130 for one early Ctrl-C in four). Without preload the run imported some 60

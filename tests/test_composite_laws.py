@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 from flexmbs import simulate
-from flexmbs.description import Description, Law
 from flexmbs.errors import ModelError
-from flexmbs.laws import TimeLaw
-from flexmbs.mechanism import Mechanism, make_law
+from flexmbs.model.description import Description, Law
+from flexmbs.model.laws import TimeLaw
+from flexmbs.model.mechanism import Mechanism, make_law
 
 
 def _spin_up_case_law(w, T):

@@ -1,4 +1,4 @@
-"""The cycle control of the weakly coupled method (flexmbs.optimize.cycles) on synthetic
+"""The cycle control of the weakly coupled method (flexmbs.methods.cycles) on synthetic
 sequences of designs, ESL changes and constraint values: the diagnoses (converged,
 oscillating over up to six cycles as OptiStruct's ESLM, diverging, cap), the best feasible
 design kept, the damped update, the move limits and the ESL of the last two cycles. No
@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from flexmbs.errors import ModelError
-from flexmbs.esl import BodyLoads, EquivalentStaticLoads
-from flexmbs.optimize.cycles import (CycleControl, check_remedies, damped_update,
+from flexmbs.methods.cycles import (CycleControl, check_remedies, damped_update,
                                      move_limited_bounds)
-from flexmbs.optimize.weakly import blend_loads
+from flexmbs.methods.esl import BodyLoads, EquivalentStaticLoads
+from flexmbs.methods.weakly import blend_loads
 
 
 def _run(designs, changes, violations=None, objectives=None, *, eps=1e-2, confirm=1,
@@ -182,7 +182,7 @@ def test_damping_moves_part_of_the_way():
 def test_cli_remedy_option_checked(capsys):
     """``flexmbs optimize robot_2dof --method weakly --damping 1.5``: exit status 2 and one
     line naming the option, the value and the allowed range (before any simulation)."""
-    from flexmbs.cli import main
+    from flexmbs.cli.main import main
     assert main(["optimize", "robot_2dof", "--method", "weakly", "--damping", "1.5"]) == 2
     err = capsys.readouterr().err
     assert "damping must lie in (0, 1]" in err and "got 1.5" in err

@@ -12,10 +12,10 @@ import scipy.linalg as sl
 from scipy.optimize import curve_fit
 
 from flexmbs import Circle, Material, Model, simulate
-from flexmbs.casefile import read_description
-from flexmbs.checks import check_iteration_matrix, check_tangent
+from flexmbs.analysis.checks import check_iteration_matrix, check_tangent
 from flexmbs.core import system_matrices
 from flexmbs.errors import CaseError, ModelError
+from flexmbs.model.casefile import read_description
 from flexmbs.problem import Problem
 
 E, NU, RHO, L, D = 210e9, 0.3, 7850.0, 1.0, 0.02

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 import flexmbs as fx
+from flexmbs.analysis.validity import free_directions, redundant_constraints
 from flexmbs.errors import SimulationError
-from flexmbs.validity import free_directions, redundant_constraints
 
 ALU = fx.Material(E=72e9, nu=0.3, rho=2700)
 

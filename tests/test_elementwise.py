@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flexmbs.casefile import description_from_dict
 from flexmbs.errors import CaseError
-from flexmbs.esl import equivalent_static_loads
-from flexmbs.optimize.weakly import StaticModel
+from flexmbs.methods.esl import equivalent_static_loads
+from flexmbs.methods.weakly import StaticModel
+from flexmbs.model.casefile import description_from_dict
 from flexmbs.problem import Problem
 
 CASES = Path(__file__).resolve().parents[1] / "cases"
@@ -211,7 +211,7 @@ def test_weakly_static_model_gradients_with_elementwise_variables():
     a random direction, steps 2^-2 .. 2^-7 mm; a 1e-2 relative error in the stress rows'
     jacobian gives order < 1.3; measured: 2.002, 2.002 and 0.86; the static solve is direct,
     no Newton noise); the smoothness rows are among its constraints."""
-    from flexmbs.checks import taylor_test
+    from flexmbs.analysis.checks import taylor_test
     raw = _raw("robot_2dof_tapered")
     raw["responses"].append({"name": "stress", "type": "stress", "bodies": ["arm1", "arm2"]})
     raw["constraints"].append({"response": "stress", "upper": 20e6})
@@ -324,7 +324,7 @@ def test_a_design_of_the_wrong_length_names_the_components():
 def test_progress_line_summarizes_many_variables():
     """A progress line of `flexmbs optimize` lists a design of up to 8 variables and gives the
     count and range of a larger one (a line with 64 numbers per iteration is unreadable)."""
-    from flexmbs.optimize.cli import _iteration_line
+    from flexmbs.cli.optimize import _iteration_line
     rec = dict(iteration=3, objective=0.5, max_violation=0.0, kkt_residual=1e-2, simulations=4)
     few = _iteration_line(dict(rec, design=[39.29, 28.33]))
     assert "x = [39.29, 28.33]" in few
@@ -339,7 +339,7 @@ def test_result_plot_draws_small_profiles_on_a_second_axis(tmp_path, monkeypatch
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from flexmbs.optimize.result import OptimizationResult
+    from flexmbs.methods.result import OptimizationResult
     names = [f"D[{k}]" for k in range(1, 5)] + [f"t[{k}]" for k in range(1, 5)]
     design = np.array([60.0, 55.0, 40.0, 22.0, 0.5, 0.5, 0.6, 0.5])
     res = OptimizationResult(

@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 
 import flexmbs as fx
-from flexmbs.esl import (BodyStiffness, ChordFrame, TangentFrame, equivalent_static_loads,
+from flexmbs.analysis.checks import taylor_test
+from flexmbs.analysis.simulate import system_matrices
+from flexmbs.errors import ModelError
+from flexmbs.methods.esl import (BodyStiffness, ChordFrame, TangentFrame, equivalent_static_loads,
                          esl_change, local_displacements, solve_static,
                          static_response)
-from flexmbs.checks import taylor_test
-from flexmbs.errors import ModelError
-from flexmbs.optimize.weakly import StaticModel
+from flexmbs.methods.weakly import StaticModel
 from flexmbs.problem import Problem
-from flexmbs.simulate import system_matrices
 
 TABLE1_WEAKLY = [39.29, 28.33, 34.94, 25.19]   # paper Table 1, weakly coupled optimum (mm)
 #: the paper's ESL frames of the robot (section 6.3): arm 1 at O, arm 2 at A
@@ -171,7 +171,7 @@ def _perturbed(J, i):
 
 
 def test_static_displacement_gradient_passes_the_taylor_test(robot):
-    """du/dp = -K^-1 (dK/dp) u of the static problem (23), Taylor test (flexmbs.checks) along
+    """du/dp = -K^-1 (dK/dp) u of the static problem (23), Taylor test (flexmbs.analysis.checks) along
     p1, p2 and a random direction: the remainder |u(p + s d) - u(p) - s du.d| is second order
     (> 1.8) for steps 2^-9 .. 2^-14 mm, and order < 1.3 with a 1e-3 error in one component.
     Measured: order 2.00; remainders 1e-10 .. 5e-14 m, 50x above the rounding floor
@@ -213,7 +213,7 @@ def test_static_displacement_gradient_passes_the_taylor_test(robot):
     ("fourbar", "deviation_A", 0.1, 2.0 ** -4)])
 def test_static_deviation_gradients_pass_the_taylor_test(name, response, t_end, step):
     """Gradients of the static component deviations (29), (31), (34)-(35) of problem (23)
-    (flexmbs.optimize.weakly.StaticModel, ESL of one simulation at 0.85 x the start), Taylor
+    (flexmbs.methods.weakly.StaticModel, ESL of one simulation at 0.85 x the start), Taylor
     test along each design variable and a random direction: the remainder (max over chain
     variants and time steps) is second order (> 1.8) over 5 halvings from `step` mm, and
     order < 1.3 with a 1e-3 error in one component. At the design of the loads the static

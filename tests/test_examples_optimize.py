@@ -3,14 +3,14 @@
 (The press, cases/slider_crank_press.toml: tests/test_problem_optimize.py and
 tests/test_problem_weakly.py.)
 
-Fully coupled (flexmbs.optimize.fully): converged, the final design re-simulated by a
+Fully coupled (flexmbs.methods.fully): converged, the final design re-simulated by a
 fresh Problem is feasible, and the first-order (KKT) condition holds at it, checked
 independently of the optimizer's own test: a nonnegative least-squares fit of multipliers of
 the active rows (g >= -1e-3) and the touched bounds to -grad f, in variables scaled by the
 design (x_i d/dx_i), leaves a residual < 1e-2 |grad f| (the optimizer stops at its own KKT
 residual < 1e-3: 10x margin; measured 9.4e-5 robot, 0 four-bar).
 
-Weakly coupled (flexmbs.optimize.weakly): converged or stopped with a stated reason;
+Weakly coupled (flexmbs.methods.weakly): converged or stopped with a stated reason;
 its design compared with the fully coupled optimum. Measured (2 cores, other jobs running):
 robot, fully 2.2769 kg (4 iterations, 13 simulations, 2-7 s), weakly 2.2807 kg (+0.17 %,
 6 cycles, feasible); four-bar, fully 0.9918 kg from the case's start (17 iterations, 139
@@ -25,9 +25,9 @@ import numpy as np
 import pytest
 from scipy.optimize import nnls
 
-from flexmbs.esl import equivalent_static_loads
+from flexmbs.methods.esl import equivalent_static_loads
+from flexmbs.methods.weakly import StaticModel
 from flexmbs.optimize import optimize_fully, optimize_weakly
-from flexmbs.optimize.weakly import StaticModel
 from flexmbs.problem import Problem
 
 

@@ -7,9 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from flexmbs.cli import main, printable
+from flexmbs.cli.common import printable
+from flexmbs.cli.main import main
 from flexmbs.errors import CaseError
-from flexmbs.study import load_study
+from flexmbs.paper.study import load_study
 
 CASES = Path(__file__).resolve().parents[1] / "cases"
 

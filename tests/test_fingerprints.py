@@ -1,4 +1,4 @@
-"""Stored results are reused only for the question they answer (flexmbs.fingerprint).
+"""Stored results are reused only for the question they answer (flexmbs.model.fingerprint).
 
 A history resumed by `optimize --resume`, a multi-start's stored start, a batch job's stored
 result and a study's stored optimization carry the fingerprint of what they answer (the case
@@ -14,11 +14,11 @@ from pathlib import Path
 import pytest
 
 from flexmbs.batch import run_batch
-from flexmbs.cli import main
-from flexmbs.batch import job_fingerprint
-from flexmbs.fingerprint import differences, fingerprint
-from flexmbs.optimize.result import read_history
+from flexmbs.cli.main import main
+from flexmbs.methods.result import read_history
+from flexmbs.model.fingerprint import differences, fingerprint
 from flexmbs.problem import Problem
+from flexmbs.sweep import job_fingerprint
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -59,7 +59,7 @@ def test_multistart_store_of_another_t_end_is_computed_again(tmp_path):
     start runs again (warning naming each start's file and the case's 'time'), and the store
     then holds the new fingerprints; a third run with the same settings reuses them (no
     warning)."""
-    from flexmbs.optimize.multistart import multistart
+    from flexmbs.methods.multistart import multistart
     store = tmp_path / "store"
     kw = dict(starts=2, workers=1, store=store, max_iterations=1)
     multistart(Problem("robot_2dof", overrides={"time.t_end": 0.1}), **kw)
@@ -85,25 +85,25 @@ def _job(case, overrides=None, k=0):
 
 
 def test_batch_job_reruns_when_its_case_file_or_options_change(tmp_path):
-    """run_batch(fingerprints=True): a stored job is reused while its case file and options
+    """run_batch(fingerprints=job_fingerprint): a stored job is reused while its case file and options
     are the same; editing the case file (another t_end) or changing an option (k) runs it
     again, with a warning naming the stored file (and the option: not given before, 1 now)."""
     case = tmp_path / "c.toml"
     shutil.copy(ROOT / "cases" / "robot_2dof.toml", case)
     store = tmp_path / "s"
     CALLS.clear()
-    run_batch(_job, {"a": dict(case=str(case))}, workers=1, store=store, fingerprints=True)
-    run_batch(_job, {"a": dict(case=str(case))}, workers=1, store=store, fingerprints=True)
+    run_batch(_job, {"a": dict(case=str(case))}, workers=1, store=store, fingerprints=job_fingerprint)
+    run_batch(_job, {"a": dict(case=str(case))}, workers=1, store=store, fingerprints=job_fingerprint)
     assert CALLS == [0]
     text = case.read_text()
     assert "t_end = 0.65" in text
     case.write_text(text.replace("t_end = 0.65", "t_end = 0.3"))
     with pytest.warns(UserWarning, match=r"a\.json \(the case description's time\)"):
         run_batch(_job, {"a": dict(case=str(case))}, workers=1, store=store,
-                  fingerprints=True)
+                  fingerprints=job_fingerprint)
     with pytest.warns(UserWarning, match=r"a\.json \(option k: null -> 1\)"):
         out = run_batch(_job, {"a": dict(case=str(case), k=1)}, workers=1, store=store,
-                        fingerprints=True)
+                        fingerprints=job_fingerprint)
     assert CALLS == [0, 0, 1] and out["a"]["k"] == 1
 
 
@@ -124,8 +124,8 @@ def test_shipped_reproduction_answers_the_shipped_study():
     """Every stored optimization of docs/reproduction/jobs answers the run of the shipped
     study it is stored for (its fingerprint is the job's): `reproduce` re-renders the report
     from them without running any."""
-    from flexmbs.reproduce import optimization_job
-    from flexmbs.study import load_study
+    from flexmbs.paper.reproduce import optimization_job
+    from flexmbs.paper.study import load_study
     study = load_study()
     store = ROOT / "docs" / "reproduction" / "jobs" / "optimizations"
     for t in study.tables.values():

@@ -13,8 +13,8 @@ from pydantic import BaseModel
 
 import pytest
 
-import flexmbs.description as description
-import flexmbs.study as study
+import flexmbs.model.description as description
+import flexmbs.paper.study as study
 
 DOCS = pathlib.Path(__file__).resolve().parents[1] / "docs"
 FORMATS = [pytest.param("case-format.md", description.Description, id="case"),

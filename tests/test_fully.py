@@ -1,4 +1,4 @@
-"""Tests of the fully coupled method (flexmbs.optimize.fully, .loops, .mma) on the paper's robot
+"""Tests of the fully coupled method (flexmbs.methods.fully, .loops, .mma) on the paper's robot
 (cases/robot_2dof.toml) and on the slider-crank press (cases/slider_crank_press.toml).
 
 Published values: Tromme, Bruls, Duysinx, "Weakly and fully coupled methods for structural
@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flexmbs.cli import main
+from flexmbs.cli.main import main
 from flexmbs.errors import ModelError
 from flexmbs.optimize import optimize_fully, read_history
-from flexmbs.optimize.loops import kkt_residual, solve_qp
-from flexmbs.optimize.mma import MMA
+from flexmbs.optimizers.loops import kkt_residual, solve_qp
+from flexmbs.optimizers.mma import MMA
 from flexmbs.problem import Problem
 from flexmbs.responses.aggregate import aggregate_constraints
 
@@ -92,12 +92,12 @@ def test_kkt_residual_zero_at_optimum_positive_elsewhere():
 @pytest.mark.parametrize("kind,parameter", [("ks", 100.0), ("pnorm", 50.0)])
 def test_aggregation_bounds_and_gradient(kind, parameter):
     """KS: max g <= G <= max g + ln(N)/rho; p-norm: max r <= G + 1 <= N^(1/P) max r (analytic
-    bounds), per window; the analytic gradient passes the Taylor test (flexmbs.checks) for
+    bounds), per window; the analytic gradient passes the Taylor test (flexmbs.analysis.checks) for
     r(v) = r0 + dr v: remainder order > 1.8 over steps 2^-19 .. 2^-24, and < 1.3 with a 1e-3
     error in one component. Measured: order 2.00 down to s = 7e-9 (remainder 2e-14); the
     smallest remainder used (1e-12) is 10-30x above the floor 1e3 eps |G|; the 1e-3 error
     dominates below s ~ 1e-6 (rho = 100 makes the curvature large)."""
-    from flexmbs.checks import taylor_test
+    from flexmbs.analysis.checks import taylor_test
     rng = np.random.default_rng(0)
     nt, nv = 1301, 4
     r = rng.random(nt) * 1.2
@@ -380,7 +380,7 @@ def test_sqp_first_matrix_is_positive_definite_for_tube_sections():
     failed (LinAlgError) on cases/fourbar_tubes.toml before the eigenvalues were replaced by
     their absolute values. Checked: symmetric, every eigenvalue positive, and the eigenvalue
     magnitudes of the exact mass Hessian kept (the two largest differ by less than 1 %)."""
-    from flexmbs.optimize.fully import ScaledProblem
+    from flexmbs.methods.fully import ScaledProblem
 
     P = ScaledProblem(Problem("fourbar_tubes", overrides={"time.t_end": 0.01}))
     H = P.objective_hessian
@@ -399,7 +399,7 @@ def test_automatic_optimizer_by_the_number_of_variables():
     variables, the hand-written MMA from 32 (docs/optimizers.md, many variables: the SQP was
     0.65 kg and infeasible at 100 iterations on 64 element-wise variables, MMA 0.269 kg); a
     named optimizer is taken as given."""
-    from flexmbs.optimize.fully import MANY_VARIABLES, choose_optimizer
+    from flexmbs.methods.fully import MANY_VARIABLES, choose_optimizer
     assert MANY_VARIABLES == 32
     assert choose_optimizer("auto", 4)[0] == "sqp"
     assert choose_optimizer("auto", 31)[0] == "sqp"

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flexmbs.cli import main
+from flexmbs.cli.main import main
 from flexmbs.errors import ModelError, ResourceError
 
 
@@ -81,7 +81,7 @@ def test_bad_dask_address_in_python():
 def test_negative_seed(capsys):
     """--seed=-1: numpy refused it from deep inside the sampler (ValueError); it is an argument
     error naming --seed, and start_designs(seed=-1) a ModelError naming seed."""
-    from flexmbs.optimize.multistart import start_designs
+    from flexmbs.methods.multistart import start_designs
 
     with pytest.raises(ModelError, match=r"seed must be an integer >= 0.*-1"):
         start_designs([1.0], [2.0], 2, seed=-1)
@@ -101,7 +101,7 @@ def test_candidates_beyond_memory_are_refused(monkeypatch, capsys):
                  "--candidates", "1000000000"]) == 2
     line = _one_error_line(capsys)
     assert "ResourceError" in line and "--candidates" in line and "1000000000" in line
-    from flexmbs.optimize.multistart import multistart
+    from flexmbs.methods.multistart import multistart
     with pytest.raises(ResourceError, match="candidates = 1000000000"):
         multistart("robot_2dof", 2, candidates=10 ** 9)
 
@@ -126,7 +126,7 @@ def test_case_nested_too_deeply(tmp_path, capsys, value):
     """A case value nested 10 000 levels (arrays, inline tables): a CaseError naming the file
     and 'nested too deeply' (a RecursionError with thousands of lines before), and one line on
     the command line."""
-    from flexmbs.casefile import read_description
+    from flexmbs.model.casefile import read_description
     from flexmbs.errors import CaseError
 
     f = tmp_path / "deep.toml"
@@ -141,7 +141,7 @@ def test_study_nested_too_deeply(tmp_path):
     """A study file with a value nested 10 000 levels, and a study whose published JSON nests
     100 000 levels: CaseError naming the file and 'nested too deeply'."""
     from flexmbs.errors import CaseError
-    from flexmbs.study import load_study
+    from flexmbs.paper.study import load_study
 
     f = _study(tmp_path, extra="x = " + "[" * DEEP + "1" + "]" * DEEP + "\n")
     with pytest.raises(CaseError, match=r"study\.toml: nested too deeply"):
@@ -196,7 +196,7 @@ def test_design_beyond_double_precision_on_the_command_line(capsys, design):
 def test_samples_beyond_double_precision(interpolation, t, values):
     """TimeLaw.samples through +-1e308 (scipy's ValueError before) or over times 1e-300
     apart (infinite slopes): ModelError naming the law, at construction."""
-    from flexmbs.laws import TimeLaw
+    from flexmbs.model.laws import TimeLaw
 
     with pytest.raises(ModelError, match=r"TimeLaw\.samples 'push'"):
         TimeLaw.samples(t, values, name="push", interpolation=interpolation)
@@ -240,7 +240,7 @@ def _run_with_timeout(func, seconds=20):
 def test_binary_history_to_resume(tmp_path, capsys):
     """A binary file given to --resume: ModelError naming the file and 'not UTF-8' (a
     UnicodeDecodeError before), one line on the command line."""
-    from flexmbs.optimize.result import read_history
+    from flexmbs.methods.result import read_history
 
     f = tmp_path / "h.jsonl"
     f.write_bytes(bytes(range(128, 256)) * 4)
@@ -254,7 +254,7 @@ def test_fifo_history_is_refused(tmp_path, capsys):
     """A FIFO given as --history (opening it for writing blocked until a reader came): refused
     at once, naming the file and 'FIFO'; with --resume too (the read blocked)."""
     import os
-    from flexmbs.optimize.result import HistoryWriter, read_history
+    from flexmbs.methods.result import HistoryWriter, read_history
 
     f = tmp_path / "pipe"
     os.mkfifo(f)
@@ -276,9 +276,9 @@ def test_dev_zero_is_refused(capsys, what):
     if not os.path.exists("/dev/zero"):
         pytest.skip("no /dev/zero")
     from flexmbs.batch import run_batch
-    from flexmbs.casefile import read_description
-    from flexmbs.optimize.result import HistoryWriter, read_history
-    from flexmbs.study import load_study
+    from flexmbs.model.casefile import read_description
+    from flexmbs.methods.result import HistoryWriter, read_history
+    from flexmbs.paper.study import load_study
 
     call = {"history": lambda: read_history("/dev/zero"),
             "study": lambda: load_study("/dev/zero"),
@@ -347,7 +347,7 @@ def test_stored_multistart_start_of_the_wrong_content(tmp_path):
     multi-start ends at the same optimum as the run that wrote the file (the same start,
     optimizer and iterations: equal to rounding)."""
     import json
-    from flexmbs.optimize.multistart import multistart
+    from flexmbs.methods.multistart import multistart
     from flexmbs.problem import Problem
 
     prob = Problem("robot_2dof", overrides={"time.t_end": 0.05})
@@ -368,8 +368,8 @@ def test_stored_reproduce_results_are_checked(tmp_path):
     but without the keys the report reads is None (computed again), with a warning naming the
     file; a real result of max_deviation_job passes."""
     import json
-    from flexmbs.batch import MaxDeviationResult, max_deviation_job
-    from flexmbs.reproduce import _stored
+    from flexmbs.sweep import max_deviation_job, MaxDeviationResult
+    from flexmbs.paper.reproduce import _stored
 
     fp = {"flexmbs": "x", "method": "m", "options": {}, "description": {}}
     good = dict(max_deviation_job("robot_2dof", [50.0] * 4, {"time.t_end": 0.05}),
@@ -390,7 +390,7 @@ def test_rigid_reference_memory_is_refused_before_computing_it(monkeypatch, caps
     points, whose rigid reference (at least 3 poses x 3 values x 2 groups x 8 bytes = 144 bytes
     a point: 432 MB, and its laws) reached 5.85 GB before the simulation's estimate refused:
     a ResourceError naming time.h and t_end before the reference is computed."""
-    import flexmbs.kinematics as kin
+    import flexmbs.model.kinematics as kin
     from flexmbs.problem import Problem
 
     def forbidden(*a, **k):
@@ -405,13 +405,13 @@ def test_rigid_reference_memory_is_refused_before_computing_it(monkeypatch, caps
 
 @pytest.mark.parametrize("case", ["robot_2dof", "fourbar"])
 def test_rigid_reference_memory_estimate_bounds_the_traced_peak(case):
-    """flexmbs.kinematics.reference_memory is an upper bound of the memory the rigid reference
+    """flexmbs.model.kinematics.reference_memory is an upper bound of the memory the rigid reference
     allocates (its peak traced by tracemalloc over 20 001 time points, numpy arrays included)
     and within a factor 2 of it (the resources' estimates' promise, flexmbs.resources)."""
     import tracemalloc
-    from flexmbs.casefile import read_description
-    from flexmbs.kinematics import reference_memory
-    from flexmbs.mechanism import Mechanism
+    from flexmbs.model.casefile import read_description
+    from flexmbs.model.kinematics import reference_memory
+    from flexmbs.model.mechanism import Mechanism
 
     d0 = read_description(case)
     Mechanism(d0).reference                      # imports and caches outside the trace
@@ -528,8 +528,8 @@ def test_case_and_study_files_with_a_bom(tmp_path):
     """A UTF-8 byte-order mark at the start of a case file ("Invalid statement" before) or a
     study file is dropped: the case reads as the same file without it (equal descriptions)."""
     from pathlib import Path
-    from flexmbs.casefile import case_path, read_description
-    from flexmbs.study import load_study
+    from flexmbs.model.casefile import case_path, read_description
+    from flexmbs.paper.study import load_study
 
     text = Path(case_path("robot_2dof")).read_text(encoding="utf-8")
     f = tmp_path / "bom.toml"
@@ -547,9 +547,9 @@ def test_job_names_of_a_case_file_with_a_space(tmp_path):
     unchanged."""
     import shutil
     from flexmbs.batch import _NAME, job_name
-    from flexmbs.casefile import case_path
-    from flexmbs.reproduce import table_runs
-    from flexmbs.study import load_study
+    from flexmbs.model.casefile import case_path
+    from flexmbs.paper.reproduce import table_runs
+    from flexmbs.paper.study import load_study
 
     shutil.copy(case_path("robot_2dof"), tmp_path / "my case.toml")
     f = _study(tmp_path)
@@ -576,7 +576,7 @@ def test_study_option_of_a_wrong_kind_is_one_sentence(tmp_path, table_options, v
     mma_options) gave one pydantic error per member of the union (4 to 8 lines naming 'bool',
     'int', 'float', 'str'): one sentence naming the key, what it may be and the value."""
     from flexmbs.errors import CaseError
-    from flexmbs.study import load_study
+    from flexmbs.paper.study import load_study
 
     f = _study(tmp_path)
     f.write_text(f.read_text() + f'''options = {table_options}
@@ -636,12 +636,12 @@ def test_history_is_locked_against_a_second_run(tmp_path):
     the file and 'locked'), and the first run's records are untouched (they read back)."""
     import subprocess
     import sys
-    from flexmbs.optimize.result import HistoryWriter, read_history
+    from flexmbs.methods.result import HistoryWriter, read_history
 
     h = tmp_path / "h.jsonl"
     w = HistoryWriter(h)
     w.write({"iteration": 1, "design": [1.0]})
-    code = ("import sys\nfrom flexmbs.optimize.result import HistoryWriter\n"
+    code = ("import sys\nfrom flexmbs.methods.result import HistoryWriter\n"
             "from flexmbs.errors import ModelError\n"
             "try:\n    HistoryWriter(sys.argv[1])\nexcept ModelError as e:\n"
             "    print(e); sys.exit(3)\n")
@@ -664,7 +664,7 @@ def test_resumed_history_keeps_whole_records(tmp_path):
     """Resuming a history whose last line is cut short (an interrupted write) drops that line
     and appends after the whole records; a whole last record without its newline gets one."""
     import warnings
-    from flexmbs.optimize.result import HistoryWriter, read_history
+    from flexmbs.methods.result import HistoryWriter, read_history
 
     h = tmp_path / "h.jsonl"
     h.write_text('{"iteration": 1, "design": [1.0]}\n{"iteration": 2, "des')

@@ -11,7 +11,7 @@ started straight it vibrates between 0 and about twice the static deflection.
 import numpy as np
 import pytest
 
-from flexmbs.checks import taylor_test
+from flexmbs.analysis.checks import taylor_test
 from flexmbs.errors import ModelError
 from flexmbs.problem import Problem
 

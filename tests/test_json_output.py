@@ -12,7 +12,7 @@ import warnings
 import numpy as np
 import pytest
 
-from flexmbs.cli import main
+from flexmbs.cli.main import main
 from flexmbs.errors import SettingWarning, SimulationError
 from flexmbs.problem import FEASIBILITY_TOL, Evaluation, Problem
 
@@ -122,11 +122,11 @@ def test_summary_digits_and_one_feasibility_tolerance(capsys):
     do: Evaluation, OptimizationResult, the cycles' control, optimize_fully and multistart all
     take FEASIBILITY_TOL = 1e-6 (Evaluation took 1e-9, the optimizers 1e-6); at g = 1.1e-6
     every verdict is 'infeasible'."""
-    from flexmbs.cli import print_evaluation
-    from flexmbs.optimize.cycles import CycleControl
-    from flexmbs.optimize.fully import optimize_fully
-    from flexmbs.optimize.multistart import multistart
-    from flexmbs.optimize.result import OptimizationResult
+    from flexmbs.cli.common import print_evaluation
+    from flexmbs.methods.cycles import CycleControl
+    from flexmbs.methods.fully import optimize_fully
+    from flexmbs.methods.multistart import multistart
+    from flexmbs.methods.result import OptimizationResult
 
     t = np.linspace(0.0, 0.5, 1001)
     v = 1.0000009644e-3 * np.sin(np.pi * t / 0.5)
@@ -152,7 +152,7 @@ def test_gradient_of_a_maximum_with_two_tied_peaks_warns(capsys):
     that differ there (dv/dp = t), the maximum is not differentiable and the summary and the
     JSON say so, naming both times and KS; with a = 0.1 (5 %), with equal gradients at both
     peaks, or with one peak (sin^2(pi t)), no warning."""
-    from flexmbs.cli import print_evaluation
+    from flexmbs.cli.common import print_evaluation
     from flexmbs.output import max_gradient_warning
 
     t = np.linspace(0.0, 1.0, 1001)
@@ -184,7 +184,7 @@ def test_static_start_with_a_moving_drive_says_what_to_do():
     there (1000 rad/s without step cuts: Newton diverges, measured at t = 0.0015 s) says the
     same in its SimulationError; the same failure from start = 'rest' does not, and a static
     start whose drives start at rest (cases/robot_2dof.toml: its cycloid path) warns nothing."""
-    from flexmbs.simulate import simulate
+    from flexmbs.analysis.simulate import simulate
 
     with pytest.warns(SettingWarning, match=r"drive motor.*start = 'rest'.*ramp_to_speed"):
         _fourbar_at(10.0, "static").simulate()

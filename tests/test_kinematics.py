@@ -1,4 +1,4 @@
-"""Assembly and rigid reference by position analysis (flexmbs.kinematics, flexmbs.constraints).
+"""Assembly and rigid reference by position analysis (flexmbs.model.kinematics, flexmbs.model.constraints).
 
 Every reference value is independent of the Newton iteration under test: the four-bar's closed
 form (tests/fourbar_kinematics.py, loop closure solved by circle intersection), the robot's
@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from flexmbs import Circle, Material, Model, ModelError, TimeLaw
-from flexmbs.constraints import (acceleration_rhs, constraint_jacobian, constraint_rate,
+from flexmbs.model.constraints import (acceleration_rhs, constraint_jacobian, constraint_rate,
                                  constraint_values, law_tables)
-from flexmbs.kinematics import (assemble, drive_velocities, free_degrees_of_freedom,
+from flexmbs.model.kinematics import (assemble, drive_velocities, free_degrees_of_freedom,
                                 rigid_groups, rigid_reference)
 from flexmbs.problem import Problem
 from fourbar_kinematics import fourbar_positions
@@ -334,11 +334,11 @@ def test_out_of_reach_names_time():
 
 # --------------------------------------------------------------------------- constraint rows
 def test_constraint_jacobian_and_gamma_taylor():
-    """flexmbs.constraints on every row kind (linear, rigid link x and y of a rigid body, a
+    """flexmbs.model.constraints on every row kind (linear, rigid link x and y of a rigid body, a
     driven row): Phi_q passes a Taylor test (remainder order 2); and gamma is the second
     derivative of Phi along a path q(s) = q0 + s v + s^2 a / 2: the Taylor test of
     s -> Phi_q(q(s)) q'(s) with derivative Phi_q a - gamma(q0, v) (Phi_t = 0 at fixed laws)."""
-    from flexmbs.checks import taylor_test
+    from flexmbs.analysis.checks import taylor_test
     m = Model()
     beam = m.add_beam("b", (0.0, 0.0), (0.5, 0.2), 1, material=MAT, section=SEC)
     n = m.add_node(0.9, 0.4)
@@ -374,7 +374,7 @@ def test_reference_law_interpolant_is_exact_for_cubics():
     (extrapolation by the end pieces) to 1e-12, and it equals scipy's CubicHermiteSpline on a
     non-polynomial (sin) to 1e-14 (same formula)."""
     from scipy.interpolate import CubicHermiteSpline
-    from flexmbs.mechanism import _CubicHermite
+    from flexmbs.model.mechanism import _CubicHermite
     t = np.array([0.0, 0.1, 0.25, 0.3, 0.7, 1.0])
     p = np.polynomial.Polynomial([1.0, -2.0, 3.0, -4.0])
     law = _CubicHermite(t, p(t), p.deriv()(t))

@@ -1,5 +1,5 @@
-"""Library optimizers (NLopt MMA / CCSAQ / SLSQP, flexmbs.optimize.library) and multi-start
-(flexmbs.optimize.multistart) of the fully coupled method, on analytic problems with a known
+"""Library optimizers (NLopt MMA / CCSAQ / SLSQP, flexmbs.optimizers.library) and multi-start
+(flexmbs.methods.multistart) of the fully coupled method, on analytic problems with a known
 optimum (Problem-like objects: flexmbs.problem.PROBLEM_INTERFACE), so that each test takes
 well under a second per run.
 
@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from flexmbs.cli import main
+from flexmbs.cli.main import main
 from flexmbs.errors import ModelError
-from flexmbs.optimize.library import NLOPT_ALGORITHMS, screened_rows
-from flexmbs.optimize.multistart import multistart, start_designs
-from flexmbs.optimize.fully import OPTIMIZERS, optimize_fully
+from flexmbs.methods.fully import OPTIMIZERS, optimize_fully
+from flexmbs.methods.multistart import multistart, start_designs
+from flexmbs.optimizers.library import NLOPT_ALGORITHMS, screened_rows
 
 
 class Analytic:
@@ -198,7 +198,7 @@ def test_ccsaq_reaches_table1_on_the_robot():
     the paper's Table 1 fully coupled mass 0.962 kg within 1 % (the hand-written GCMMA reaches
     0.9584 kg, tests/test_fully.py), converged, the final design re-simulated
     feasible on all 1301 steps, and fewer than a third of the rows given to the optimizer."""
-    from flexmbs.casefile import case_path
+    from flexmbs.model.casefile import case_path
     from flexmbs.problem import Problem
 
     path = case_path("robot_2dof")
@@ -218,7 +218,7 @@ def test_cli_multistart_finds_the_press_optimum(capsys):
     0.1 %, re-simulated feasible; the JSON names the starts and their local optima."""
     import json
 
-    from flexmbs.casefile import case_path
+    from flexmbs.model.casefile import case_path
     from flexmbs.problem import Problem
 
     assert main(["optimize", "slider_crank_press", "--method", "fully", "--starts", "3",

@@ -201,8 +201,8 @@ def robot_like_iteration_matrix():
     m.drive_rotation(a1.first, 0.3)
     m.hinge(a1.last, a2.first)
     m.add_point_mass(a2.last, 1.0)
-    from flexmbs.checks import generalized_alpha_beta_prime
-    from flexmbs.simulate import system_matrices
+    from flexmbs.analysis.checks import generalized_alpha_beta_prime
+    from flexmbs.analysis.simulate import system_matrices
     q = m.reference_coordinates()
     _, s = system_matrices(m, q, cm=generalized_alpha_beta_prime(5e-4, 0.5), kscale=1e8,
                            penalty=1e8)
@@ -258,7 +258,7 @@ def test_klu_singular_and_nonfinite_status_codes():
     assert _core.sparse_solve(ap, ai, nan, ax, b, b)[2] == 24
 
 
-# ------------------------------------------------------------------ through flexmbs.simulate
+# ------------------------------------------------------------------ through flexmbs.analysis.simulate
 STEEL = fx.Material(E=210e9, nu=0.3, rho=7800)
 
 
@@ -380,7 +380,7 @@ def test_klu_analysis_is_made_once_per_model_and_borrowed_by_every_run(monkeypat
     2e-15 m)."""
     from flexmbs.core import KluAnalysis
 
-    simulate_module = importlib.import_module("flexmbs.simulate")
+    simulate_module = importlib.import_module("flexmbs.analysis.simulate")
 
     m = swinging_beam(0.03, 6)
     runs = []
@@ -405,8 +405,8 @@ def test_klu_analysis_of_another_pattern_is_refused(monkeypatch):
     linear solver's set-up error instead of factoring with a wrong ordering."""
     from flexmbs.core import klu_analysis
 
-    adjoint_module = importlib.import_module("flexmbs.adjoint")
-    simulate_module = importlib.import_module("flexmbs.simulate")
+    adjoint_module = importlib.import_module("flexmbs.analysis.adjoint")
+    simulate_module = importlib.import_module("flexmbs.analysis.simulate")
 
     m, other = swinging_beam(0.03, 4), swinging_beam(0.03, 6)
     good = fx.simulate(m, 0.05, 1e-3, solver="klu", start="static", tape=True, polish=True)

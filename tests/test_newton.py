@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 import flexmbs as fx
+from flexmbs.analysis.simulate import NEWTON_MODES
 from flexmbs.errors import ModelError
 from flexmbs.problem import Problem
-from flexmbs.simulate import NEWTON_MODES
 
 CASES = Path(__file__).resolve().parents[1] / "cases"
 TOL = 1e-10                       # simulate's default Newton tolerance

@@ -3,7 +3,7 @@ methods for structural optimization of flexible mechanisms*, Tables 1-8.
 
 The published numbers are read from tests/data/paper_tables.json (a transcription of the
 paper's tables). Every optimization runs once per session (`optimized`, cached) and serially,
-exactly as `flexmbs reproduce` runs it (`flexmbs.reproduce.optimization_job` with the same
+exactly as `flexmbs reproduce` runs it (`flexmbs.paper.reproduce.optimization_job` with the same
 options), so the report and these tests check the same numbers.
 
 Tolerances: masses within 1 % of the paper, every design variable within 3 % (Table 5:
@@ -20,8 +20,8 @@ import json
 import numpy as np
 import pytest
 
-from flexmbs.cli import main
-from flexmbs.reproduce import (TABLES, design_spread, optimization_job, paper_row,
+from flexmbs.cli.main import main
+from flexmbs.paper.reproduce import (TABLES, design_spread, optimization_job, paper_row,
                                paper_tables)
 
 _PAPER = paper_tables()
@@ -306,7 +306,7 @@ def test_reproduce_report_from_stored_runs(optimized, tmp_path, capsys):
     run leaves it: each with its job's fingerprint) runs no optimization, prints every row
     beside the paper's and writes README.md, comparison.json and Fig. 5. The stored results
     are this session's, so the printed numbers are the ones test_table1 checked."""
-    from flexmbs.batch import job_fingerprint
+    from flexmbs.sweep import job_fingerprint
     store = tmp_path / "jobs" / "optimizations"
     store.mkdir(parents=True)
     runs = TABLES[1].runs()

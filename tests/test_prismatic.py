@@ -1,16 +1,16 @@
 """Prismatic joint between two bodies (Model.prismatic; case format: joint type "prismatic"):
 a node slides along an axis fixed in the frame of another body's node (nonlinear row kind 4 of
-fortran/constraints.f90 and flexmbs.constraints) and keeps its relative rotation."""
+fortran/constraints.f90 and flexmbs.model.constraints) and keeps its relative rotation."""
 import math
 
 import numpy as np
 import pytest
 
 import flexmbs as fx
-from flexmbs.checks import check_iteration_matrix, taylor_test
-from flexmbs.constraints import (acceleration_rhs, constraint_jacobian, constraint_values,
-                                 law_tables)
+from flexmbs.analysis.checks import check_iteration_matrix, taylor_test
 from flexmbs.errors import CaseError, ModelError
+from flexmbs.model.constraints import (acceleration_rhs, constraint_jacobian, constraint_values,
+                                 law_tables)
 from flexmbs.problem import Problem
 
 STEEL = fx.Material(E=210e9, nu=0.3, rho=7800)
@@ -72,12 +72,12 @@ def test_rigid_reference_of_a_slotted_link():
     """Slotted link (inverted slider-crank): an arm pinned at O turned by theta = w t
     (w = 1 rad/s), a block sliding on it (prismatic, axis fixed in the arm), hinged to a second
     block on the ground's vertical line x = c = 0.5 m (slider). The rigid reference
-    (flexmbs.kinematics.rigid_reference: position analysis, J zd = -Phi_t, J zdd = gamma -
+    (flexmbs.model.kinematics.rigid_reference: position analysis, J zd = -Phi_t, J zdd = gamma -
     Phi_q q_zz[zd, zd]) puts the block at y = c tan(theta), with ydot = c w / cos^2(theta),
     yddot = 2 c w^2 tan(theta) / cos^2(theta) (differentiate twice); over theta in [0, 1] rad,
     within 1e-9 m, m/s, m/s^2 (Newton tolerance 1e-12; measured <= 4e-14). Assembling from the
-    block put 1 cm off the arm's line (flexmbs.kinematics.assemble) restores |Phi| < 1e-12."""
-    from flexmbs.kinematics import assemble, rigid_reference
+    block put 1 cm off the arm's line (flexmbs.model.kinematics.assemble) restores |Phi| < 1e-12."""
+    from flexmbs.model.kinematics import assemble, rigid_reference
     c, w = 0.5, 1.0
     m = fx.Model()
     arm = m.add_beam("arm", (0.0, 0.0), (1.0, 0.0), 2, material=STEEL, section=fx.Circle(0.02))
@@ -116,12 +116,12 @@ def _two_bodies():
 
 def test_prismatic_rows_derivatives_match_central_differences():
     """At 5 random states (coordinates perturbed by 0.3 from the reference): the constraint
-    Jacobian (flexmbs.constraints) against central differences of the row values (step 1e-6:
+    Jacobian (flexmbs.model.constraints) against central differences of the row values (step 1e-6:
     truncation ~1e-12, rounding ~1e-10), within 1e-7; the acceleration term gamma = -qd^T
     Phi_qq qd against a central second difference of Phi(q + s qd) (step 1e-4: rounding
     ~4 eps |Phi| / s^2 = 1e-7, truncation ~1e-9), within 1e-6 absolute (gamma ~ 1e-3..1); and the core's iteration matrix of eq. (7), with the rows' Hessian
     weighted by random multipliers, against central differences of the core's residual
-    (flexmbs.checks.check_iteration_matrix), within 1e-6 row-wise (measured 5e-11). The
+    (flexmbs.analysis.checks.check_iteration_matrix), within 1e-6 row-wise (measured 5e-11). The
     reference state satisfies the rows (|Phi| < 1e-15)."""
     m, arm, blk = _two_bodies()
     cm = m.compile()
@@ -196,7 +196,7 @@ def test_sensitivities_through_a_prismatic_joint_pass_the_taylor_test():
     so the joint's Hessian enters the tangent and the direct differentiation. d/dp of the
     block's position, the motor torque, the arm's stress and the joint's normal force at every
     step (100 steps), Taylor test along p (mm) from 2^-3 mm, 6 steps: remainder of order > 1.8
-    (flexmbs.checks; noise floors as tests/test_problem_responses.py: 3e-8 N m, 3e-3 Pa,
+    (flexmbs.analysis.checks; noise floors as tests/test_problem_responses.py: 3e-8 N m, 3e-3 Pa,
     3e-7 N, and 1e-10 m for the position, the Newton tolerance; smallest remainders 3e-8 m,
     5e-4 N m, 6e2 Pa, 5e-4 N). Measured orders 2.00. With the row's Hessian zeroed in
     fortran/constraints.f90 (tried once) the position's order drops to 1.0: this check sees

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flexmbs.casefile import description_from_dict, read_description
-from flexmbs.checks import taylor_test
+from flexmbs.analysis.checks import taylor_test
 from flexmbs.errors import CaseError
+from flexmbs.model.casefile import description_from_dict, read_description
 from flexmbs.problem import Problem
 
 CASES = Path(__file__).resolve().parents[1] / "cases"

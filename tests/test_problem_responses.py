@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flexmbs.checks import taylor_test
+from flexmbs.analysis.checks import taylor_test
 from flexmbs.errors import CaseError
 from flexmbs.problem import Problem
 

@@ -1,4 +1,4 @@
-"""The weakly coupled method on general-format problems (flexmbs.optimize.weakly):
+"""The weakly coupled method on general-format problems (flexmbs.methods.weakly):
 the chains of joints that open the paper's mechanisms, the static model's gradients and the
 slider-crank press (the paper's Table 1 weakly coupled result: tests/test_weakly.py)."""
 import tomllib
@@ -7,11 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flexmbs.checks import taylor_test
+from flexmbs.analysis.checks import taylor_test
 from flexmbs.errors import CaseError
-from flexmbs.esl import equivalent_static_loads
+from flexmbs.methods.esl import equivalent_static_loads
+from flexmbs.methods.weakly import StaticModel, chains
 from flexmbs.optimize import optimize_weakly
-from flexmbs.optimize.weakly import StaticModel, chains
 from flexmbs.problem import Problem
 
 GENERAL = Path(__file__).resolve().parents[1] / "cases"
@@ -178,7 +178,7 @@ def test_frame_kind_per_beam():
     definition B lies on its x axis, so the follower's static displacement at B has no
     transverse component: (35)'s follower term is its axial stretch only (|u_y(B)| = 0, against
     an axial |u_x(B)| > 0)."""
-    from flexmbs.esl import ChordFrame, TangentFrame
+    from flexmbs.methods.esl import ChordFrame, TangentFrame
     pb = Problem(GENERAL / "fourbar.toml")
     x = pb.mechanism.design_values([70.0, 88.0, 40.0])
     st = StaticModel(pb, frame_kind={"crank": "tangent", "coupler": "tangent",

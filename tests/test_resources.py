@@ -19,14 +19,14 @@ import tracemalloc
 import pytest
 
 import flexmbs as fx
-from flexmbs.casefile import case_path
-from flexmbs.cli import main as cli_main
+from flexmbs.cli.main import main as cli_main
 from flexmbs.errors import ResourceError
+from flexmbs.model.casefile import case_path
 from flexmbs.problem import Problem
 from flexmbs.resources import estimate_memory
 
 ALU = fx.Material(E=72e9, nu=0.3, rho=2700)
-SIM = sys.modules["flexmbs.simulate"]
+SIM = sys.modules["flexmbs.analysis.simulate"]
 
 
 def clamped_beam(elements, order=2):
@@ -171,7 +171,7 @@ def test_large_model_beyond_the_stack_runs():
     for it: measured agreement 3e-8)."""
     script = textwrap.dedent("""
         import flexmbs as fx
-        from flexmbs.sections import section_properties
+        from flexmbs.model.sections import section_properties
         alu = fx.Material(E=72e9, nu=0.3, rho=2700)
         sec = fx.Tube.with_wall_ratio(0.05, 0.1)
         m = fx.Model()

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import flexmbs as fx
-from flexmbs.checks import taylor_test
+from flexmbs.analysis.checks import taylor_test
 from flexmbs.errors import ModelError
 from flexmbs.responses import aggregate, beam_stress, joint_reaction, ks, motor_torque, pnorm
 
@@ -277,7 +277,7 @@ def test_windows_select_their_samples():
 
 @pytest.mark.parametrize("how", ["max", "ks", "pnorm", "every_step"])
 def test_aggregate_gradients_pass_the_taylor_test(how):
-    """Taylor test (flexmbs.checks.taylor_test) of every aggregate of the analytic history
+    """Taylor test (flexmbs.analysis.checks.taylor_test) of every aggregate of the analytic history
     r(v) = base + sin(modes v) (nt = 401, nv = 3, window [0.3, 1.7] s), whose derivative is
     cos(modes v) modes: order > 1.8 for the gradient returned, < 1.3 with a 1e-3 relative
     error in one component. 'max' is smooth where its argmax does not change: one sample

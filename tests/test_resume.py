@@ -15,7 +15,7 @@ import io
 import numpy as np
 import pytest
 
-from flexmbs.cli import main
+from flexmbs.cli.main import main
 from flexmbs.errors import ModelError
 from flexmbs.optimize import optimize_fully, optimize_weakly, read_history
 from flexmbs.problem import Problem
@@ -232,14 +232,14 @@ def test_ctrl_c_message_names_resume(tmp_path, monkeypatch, capsys):
     """A KeyboardInterrupt in `flexmbs optimize --history FILE` after two records: exit status
     130 and one line on stderr naming FILE and '--resume' (the way to continue); the file holds
     both records."""
-    import flexmbs.optimize.weakly as weakly
+    import flexmbs.cli.optimize as command
 
     def interrupted(problem, x0=None, *, history=None, **kw):
         for k in (1, 2):
             history.write(dict(iteration=k, design=[50.0, 50.0, 50.0, 50.0]))
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(weakly, "optimize_weakly", interrupted)
+    monkeypatch.setattr(command, "optimize_weakly", interrupted)
     h = tmp_path / "h.jsonl"
     assert main(["optimize", "robot_2dof", "--history", str(h)]) == 130
     err = capsys.readouterr().err.strip().splitlines()
@@ -274,8 +274,8 @@ def test_logged_analysis_round_trips_exactly():
     zeros (linear rows of smoothness limits) is logged by its nonzeros, a dense one as is."""
     import json
 
-    from flexmbs.optimize.fully import _evaluation_from_log, _log_entry
-    from flexmbs.optimize.result import jsonable
+    from flexmbs.methods.fully import _evaluation_from_log, _log_entry
+    from flexmbs.methods.result import jsonable
     p = Problem("robot_2dof", {"time.t_end": 0.02})
     ev = p.evaluate(p.start)
     rng = np.random.default_rng(3)

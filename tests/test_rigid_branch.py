@@ -1,5 +1,5 @@
 """The rigid reference stays on its assembly branch and stops only at a singular posture
-(flexmbs.kinematics.rigid_reference: continuation with a Taylor predictor, subdivided steps).
+(flexmbs.model.kinematics.rigid_reference: continuation with a Taylor predictor, subdivided steps).
 
 Every reference value is a closed form independent of the iteration under test:
 - the slider-crank's slider position x = r cos(theta) + sqrt(l^2 - (r sin(theta) - e)^2),
@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from flexmbs import Circle, Material, Model, ModelError, TimeLaw
-from flexmbs.kinematics import rigid_reference
+from flexmbs.model.kinematics import rigid_reference
 from flexmbs.problem import Problem
 
 MAT = Material(E=7e10, nu=0.3, rho=2700)

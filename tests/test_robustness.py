@@ -1,4 +1,4 @@
-"""Numerical stability stress tests of flexmbs.simulate.
+"""Numerical stability stress tests of flexmbs.analysis.simulate.
 
 Every test asserts: no crash, no NaN, the constraints held on the stored coordinates (pin,
 hinge and the two drive rows of the robot of docs/paper-cases.md), energy bounded for a free
@@ -19,8 +19,8 @@ import pytest
 from hypothesis import example, given, settings, strategies as st
 
 import flexmbs as fx
-from flexmbs.simulate import system_matrices
-from flexmbs.validity import ValidityLimits
+from flexmbs.analysis.simulate import system_matrices
+from flexmbs.analysis.validity import ValidityLimits
 from robot_kinematics import planar_2r_inverse, robot_joint_laws, robot_tip_path
 
 CONSTRAINT_TOL = 1e-9

@@ -3,7 +3,7 @@ Taylor tests of the direct derivatives and central finite differences written he
 
 A finite-difference comparison at one step and one tolerance measures the truncation and
 rounding of the finite differences, not the derivative (it failed at 1.17e-5 against 1e-5 on
-another machine). The main tests here use the Taylor test instead (flexmbs.checks.taylor_test):
+another machine). The main tests here use the Taylor test instead (flexmbs.analysis.checks.taylor_test):
 along a direction d, the remainder e(s) = max_n |r_n(p + s d) - r_n(p) - s (J d)_n| of a
 response history r with claimed derivative J falls 4x per halving of s when J is right and 2x
 when it is wrong. Each test asserts an observed order > 1.8 for the library's derivative AND
@@ -34,13 +34,13 @@ import sys
 import numpy as np
 import pytest
 
-import flexmbs.problem
-from flexmbs.casefile import read_description
-from flexmbs.checks import taylor_test
+from flexmbs.analysis.checks import taylor_test
+from flexmbs.analysis.simulate import simulate
 from flexmbs.errors import ModelError
-from flexmbs.optimize.fully import ScaledProblem
+from flexmbs.methods.fully import ScaledProblem
+from flexmbs.model.casefile import read_description
+import flexmbs.problem
 from flexmbs.problem import Problem
-from flexmbs.simulate import simulate
 
 # (case, design in mm): published optima of Tables 1, 2 and 3, where the deviation is active
 DESIGNS = {
@@ -210,7 +210,7 @@ def test_fully_coupled_constraints_pass_the_taylor_test(over):
 
 
 def test_taylor_test_on_an_analytic_function():
-    """flexmbs.checks.taylor_test on r(x) = (sin x0 exp x1, x0^2 x1^3): the exact Jacobian
+    """flexmbs.analysis.checks.taylor_test on r(x) = (sin x0 exp x1, x0^2 x1^3): the exact Jacobian
     gives order 2 (analytic; remainders 1e-3 .. 1e-7, far above rounding), a 1e-3 error in
     one entry gives order ~1 and fails; a linear response (remainder = rounding) is refused;
     bad arguments raise ModelError naming the argument."""
@@ -307,7 +307,7 @@ def _robot_with_torques(nsteps=200):
     """The robot (28) over nsteps with the two motor torques as responses (docs/case-format.md:
     type "torque", drive = NAME)."""
     import tomllib
-    from flexmbs.casefile import case_path
+    from flexmbs.model.casefile import case_path
     with open(case_path("robot_2dof"), "rb") as f:
         data = tomllib.load(f)
     data["responses"] += [{"name": "torque_shoulder", "type": "torque", "drive": "shoulder"},

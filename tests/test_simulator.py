@@ -14,10 +14,10 @@ from scipy.linalg import eigh
 from scipy.optimize import brentq
 
 import flexmbs as fx
-from flexmbs.checks import check_iteration_matrix, check_tangent, generalized_alpha_beta_prime
+from flexmbs.analysis.checks import check_iteration_matrix, check_tangent, generalized_alpha_beta_prime
+from flexmbs.analysis.simulate import system_matrices
+from flexmbs.analysis.validity import ValidityLimits
 from flexmbs.errors import ModelError, SimulationError
-from flexmbs.simulate import system_matrices
-from flexmbs.validity import ValidityLimits
 from robot_kinematics import planar_2r_inverse, robot_joint_laws, robot_tip_path
 
 STEEL = fx.Material(E=210e9, nu=0.3, rho=7800)
@@ -524,8 +524,8 @@ def test_tangent_checker_detects_a_wrong_tangent(monkeypatch, wrong, eta):
     ~1e-3 of its material part at these strains, so a tangent with one entry off by 1e-4 of
     its row must be reported above 1e-6; likewise the damping matrix d fe/d qd of a damped
     element (Kelvin-Voigt time eta = 1e-3 s, checked when eta > 0)."""
-    import flexmbs.checks as checks
-    real = checks._core
+    import flexmbs.core as core
+    real = core._core
 
     class Perturbed:
         @staticmethod
@@ -534,7 +534,7 @@ def test_tangent_checker_detects_a_wrong_tangent(monkeypatch, wrong, eta):
             out[wrong][2, 5] += 1e-4 * np.abs(out[wrong][2]).max()
             return tuple(out)
 
-    monkeypatch.setattr(checks, "_core", Perturbed)
+    monkeypatch.setattr(core, "_core", Perturbed)
     assert check_tangent(3, states=2, damping_time=eta).max_relative_error > 1e-5
 
 
@@ -579,8 +579,8 @@ def test_iteration_matrix_with_rigid_links_and_loads():
 def test_iteration_matrix_checker_detects_a_missing_penalty_term(monkeypatch):
     """The checker must fail when the matrix lacks the penalty terms p Phi_q^T Phi_q and
     p Phi Phi_qq (the residual keeps them)."""
-    simulate_module = sys.modules["flexmbs.simulate"]   # flexmbs.simulate is the function
-    real = simulate_module.system_matrices
+    checks_module = sys.modules["flexmbs.analysis.checks"]
+    real = checks_module.system_matrices
 
     def without_penalty_in_matrix(model, q, qdd=None, mu=None, t=0.0, *, cm=0.0, ck=1.0,
                                   kscale=0.0, penalty=0.0, props=None, qd=None, cc=0.0):
@@ -591,7 +591,7 @@ def test_iteration_matrix_checker_detects_a_missing_penalty_term(monkeypatch):
 
     m, _, _ = robot((50, 50, 50, 50))
     q = m.reference_coordinates()
-    monkeypatch.setattr(simulate_module, "system_matrices", without_penalty_in_matrix)
+    monkeypatch.setattr(checks_module, "system_matrices", without_penalty_in_matrix)
     result = check_iteration_matrix(m, q, t=0.1, beta_prime=0.0, penalty=1e9)
     assert result.max_relative_error > 1e-3
 

@@ -11,10 +11,11 @@ import tomllib
 import numpy as np
 import pytest
 
-import flexmbs.kinematics as kinematics
-from flexmbs.casefile import case_path
 from flexmbs.errors import ResourceError
-from flexmbs.mechanism import Mechanism
+from flexmbs.model.casefile import case_path
+import flexmbs.model.kinematics as kinematics
+import flexmbs.model.mechanism as mechanism
+from flexmbs.model.mechanism import Mechanism
 from flexmbs.problem import Problem
 from flexmbs.resources import check_memory
 
@@ -91,8 +92,8 @@ def test_evaluation_runs_under_a_limit_that_refuses_storing_everything(monkeypat
 
 def test_forces_alone_store_one_node_and_no_rigid_reference(monkeypatch):
     """A four-bar whose responses are a stress, a motor torque and the mass: its evaluation
-    (with gradients) never computes the rigid reference (kinematics.rigid_reference replaced
-    by a function that fails), stores the coupler's nodes only; with the torque alone, one
+    (with gradients) never computes the rigid reference (the rigid_reference the mechanism calls
+    replaced by a function that fails), stores the coupler's nodes only; with the torque alone, one
     node's 3 coordinates (the torque comes from the multipliers, kept at every step). The
     same replacement does fail the deviation case, so it is the function the reference uses."""
     calls = []
@@ -101,7 +102,7 @@ def test_forces_alone_store_one_node_and_no_rigid_reference(monkeypatch):
         calls.append(1)
         raise AssertionError("rigid reference computed")
 
-    monkeypatch.setattr(kinematics, "rigid_reference", fail)
+    monkeypatch.setattr(mechanism, "rigid_reference", fail)
     prob = Problem(_fourbar_without_deviation())
     ev = prob.evaluate(FOURBAR_DESIGN, gradient=True)
     assert not calls
@@ -237,7 +238,7 @@ def test_cli_simulate_stores_everything_only_for_out(monkeypatch, tmp_path, caps
     --out its one simulation stores all of them (the .npz holds every coordinate) and the
     responses are those of the lean run (the deviation history to 1e-12 m)."""
     import flexmbs.problem as problem_module
-    from flexmbs.cli import main
+    from flexmbs.cli.main import main
     stored = []
     original = problem_module.simulate
 

@@ -1,7 +1,7 @@
 """Responses at stations along a beam (docs/case-format.md, "Responses"): `at = {body, s}`
 for deviation terms, the deflection from the chord ('deflection'), strains ('strain') and
 stress; their design gradients by direct differentiation and by the discrete adjoint (Taylor
-tests, flexmbs.checks.taylor_test); the layout of the coordinates (Mechanism.layout, the
+tests, flexmbs.analysis.checks.taylor_test); the layout of the coordinates (Mechanism.layout, the
 names `flexmbs simulate --out` writes).
 
 Analytic references: the cantilever of length L under an end load P (Euler-Bernoulli; e.g.
@@ -14,9 +14,9 @@ import math
 import numpy as np
 import pytest
 
-from flexmbs.checks import taylor_test
-from flexmbs.description import Description
-from flexmbs.mechanism import Mechanism
+from flexmbs.analysis.checks import taylor_test
+from flexmbs.model.description import Description
+from flexmbs.model.mechanism import Mechanism
 from flexmbs.problem import Problem
 from flexmbs.responses.station import locate
 
@@ -264,7 +264,7 @@ def test_out_file_names_nodes_and_gives_the_mid_span(tmp_path):
     deflection from the chord computed from their columns of q equals the file's
     'deflection' response history to 1e-15 m (the same formula on the same numbers), which
     starts (static start) at P L^3/(16 EI) to 1e-4 (test_deflection_from_the_chord)."""
-    from flexmbs.cli import main
+    from flexmbs.cli.main import main
     case = tmp_path / "rod.toml"
     case.write_text(CASE_TOML)
     assert main(["simulate", str(case), "--out", str(tmp_path / "r.npz")]) == 0

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 
-from flexmbs.cli import main
+from flexmbs.cli.main import main
 from flexmbs.errors import CaseError
-from flexmbs.study import load_study
+from flexmbs.paper.study import load_study
 
 ROOT = Path(__file__).resolve().parents[1]
 STORE = ROOT / "docs" / "reproduction" / "jobs" / "optimizations"
@@ -33,7 +33,7 @@ def test_shipped_study_runs_are_the_stored_reproduction():
     assert names == stored
 
 
-#: the paper study's options: its stored runs answer these (flexmbs.fingerprint)
+#: the paper study's options: its stored runs answer these (flexmbs.model.fingerprint)
 PAPER_OPTIONS = '[options]\nweakly = { max_cycles = 30 }\nfully = { optimizer = "mma" }\n'
 
 
@@ -202,7 +202,7 @@ def test_bad_variant_names_file_and_key(tmp_path, extra, text):
 
 
 def _variant_rows(tmp_path, result):
-    from flexmbs.reproduce import VariantRow, variant_checks, variant_paper
+    from flexmbs.paper.reproduce import VariantRow, variant_checks, variant_paper
     study = load_study(_user_study(tmp_path, 0.962, _MULTI.format(more="")))
     v = study.tables[1].variants[0]
     row = VariantRow(v, variant_paper(v, study=study), result)
@@ -260,8 +260,8 @@ def test_user_study_variant_rows_and_findings(tmp_path):
     variant's job (with the variant job's fingerprint), so nothing is optimized; against the
     paper's 0.962 kg it is within 0.3 % or lighter (-0.35 %), and feasible; against a
     published 0.95 kg it is not (+0.9 %)."""
-    from flexmbs.batch import job_fingerprint
-    from flexmbs.reproduce import optimization_job
+    from flexmbs.sweep import job_fingerprint
+    from flexmbs.paper.reproduce import optimization_job
     for mass, verdict in ((0.962, "yes"), (0.95, "**no**")):
         out = tmp_path / f"out{mass}"
         (out / "jobs" / "variants").mkdir(parents=True)

@@ -1,6 +1,6 @@
 """Fuzzing of the study files and of the stored results of a batch: only documented errors.
 
-Study files (flexmbs.study.load_study): hypothesis mutates the shipped study
+Study files (flexmbs.paper.study.load_study): hypothesis mutates the shipped study
 cases/studies/paper.toml -- a key, a table or an item of an array of tables deleted, a value
 replaced by one of another type (test_casefile_fuzz.ODD_VALUES) or by a deeply nested array, an
 unknown key added -- writes it to a temporary folder (its published numbers are then the ones shipped with flexmbs)
@@ -23,9 +23,10 @@ from pathlib import Path
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from flexmbs.batch import StoredResult, invalid_result, read_stored, run_batch
+from flexmbs.batch import invalid_result, run_batch, StoredResult
 from flexmbs.errors import CaseError
-from flexmbs.study import Study, load_study
+from flexmbs.files import read_stored
+from flexmbs.paper.study import Study, load_study
 from test_casefile_fuzz import ODD_VALUES, mutate
 from test_casefile_fuzz import _value as scalar_value
 
@@ -72,7 +73,7 @@ STUDY_MUTATION = st.tuples(
 
 def test_damaged_study_gives_a_study_or_a_case_error(tmp_path_factory):
     """Mutated study files: load_study returns a Study or raises CaseError whose message names
-    the file (flexmbs.study's contract), nothing else."""
+    the file (flexmbs.paper.study's contract), nothing else."""
     original = tomllib.loads(STUDY.read_text(encoding="utf-8"))
     folder = tmp_path_factory.mktemp("study")
     counter = {"n": 0}

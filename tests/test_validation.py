@@ -1,6 +1,6 @@
 """Validation of the simulator against published flexible-multibody benchmarks.
 
-Each test builds its mechanism through the Model API (flexmbs.model.Model) and compares
+Each test builds its mechanism through the Model API (flexmbs.model.arrays.Model) and compares
 flexmbs with a reference that does not use flexmbs: a closed-form result, or an independent
 linearized modal model of the same structure that the test integrates itself with
 scipy.integrate.solve_ivp (DOP853, rtol 1e-10). Where the benchmark is published only as
@@ -40,7 +40,7 @@ from scipy.optimize import brentq
 from scipy.special import ellipk
 
 from flexmbs import Circle, Material, Model, TimeLaw, simulate
-from flexmbs.sections import GivenSection, section_properties
+from flexmbs.model.sections import GivenSection, section_properties
 
 # ----------------------------------------------------------------------------- helpers
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import flexmbs as fx
+from flexmbs.analysis.validity import ValidityLimits, check_result
 from flexmbs.errors import InvalidResultError, ModelError, ValidityWarning
-from flexmbs.validity import ValidityLimits, check_result
 
 ALU = fx.Material(E=72e9, nu=0.3, rho=2700)
 TUBE = fx.Tube.with_wall_ratio(0.05, 0.1)

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from flexmbs.cli import main
+from flexmbs.cli.main import main
 from flexmbs.errors import ModelError
 from flexmbs.optimize import optimize_weakly, read_history
 from flexmbs.problem import Problem

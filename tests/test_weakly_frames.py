@@ -1,5 +1,5 @@
 """The weakly coupled method's corotational frames: the kind each beam gets from its joints
-(frame_kind 'auto', `flexmbs.optimize.weakly.frame_by_joints`), what a chord and a tangent
+(frame_kind 'auto', `flexmbs.methods.weakly.frame_by_joints`), what a chord and a tangent
 frame measure on a simply supported beam (Euler-Bernoulli / Timoshenko closed forms), and the
 static-to-simulated ratio of the deviation constraints."""
 import math
@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 import flexmbs as fx
-from flexmbs.errors import CaseError, ModelError
-from flexmbs.esl import BodyStiffness, ChordFrame, TangentFrame, local_displacements, solve_static
-from flexmbs.optimize.weakly import StaticModel, frame_by_joints, optimize_weakly
-from flexmbs.problem import Problem
 import flexmbs  # noqa: F401  (the core is built before the tests)
+from flexmbs.errors import CaseError, ModelError
+from flexmbs.methods.esl import BodyStiffness, ChordFrame, TangentFrame, local_displacements, solve_static
+from flexmbs.methods.weakly import StaticModel, frame_by_joints, optimize_weakly
+from flexmbs.problem import Problem
 
 T, C = "tangent", "chord"
 
@@ -182,7 +182,7 @@ def test_static_to_simulated_is_one_for_the_robot():
     (K^-1 g_eq = u, eq. 19); with the robot's arms in tangent frames at their driven joints the
     frame angles are the motors' prescribed angles, so the sum is the simulated deviation (28)
     itself (tests/test_problem_weakly.py): the ratio is 1 to 1e-6."""
-    from flexmbs.esl import equivalent_static_loads
+    from flexmbs.methods.esl import equivalent_static_loads
     prob = Problem("robot_2dof")
     x = prob.mechanism.design_values([40.0, 30.0, 35.0, 25.0])
     st = StaticModel(prob)

@@ -16,18 +16,20 @@ Public API (explicit):
     InvalidResultError, ValidityWarning, SettingWarning   exceptions and warnings (errors.py)
     FEASIBILITY_TOL              the one feasibility tolerance (problem.py)
 """
-from flexmbs.accuracy import convergence_check, simulate_with_error, verify
-from flexmbs.checks import check_iteration_matrix, check_tangent, taylor_test
+from flexmbs.analysis.accuracy import convergence_check, simulate_with_error, verify
+from flexmbs.analysis.checks import check_iteration_matrix, check_tangent, taylor_test
+from flexmbs.analysis.simulate import Result, simulate
 from flexmbs.errors import (CaseError, FlexmbsError, InvalidResultError, ModelError,
                             ResourceError, SettingWarning, SimulationError, ValidityWarning)
-from flexmbs.laws import TimeLaw
-from flexmbs.model import Body, Model
+from flexmbs.model.arrays import Body, Model
+from flexmbs.model.laws import TimeLaw
+from flexmbs.model.sections import Circle, GivenSection, Material, Rectangle, Tube
 from flexmbs.optimize import OptimizationResult, optimize_fully, optimize_weakly
 from flexmbs.problem import FEASIBILITY_TOL, Problem, load_problem
-from flexmbs.sections import Circle, GivenSection, Material, Rectangle, Tube
-from flexmbs.simulate import Result, simulate
+from flexmbs.version import __version__
 
 __all__ = [
+    "__version__",
     "Problem", "load_problem", "optimize_weakly", "optimize_fully", "OptimizationResult",
     "Model", "Body", "Material", "Circle", "Tube", "Rectangle", "GivenSection", "TimeLaw",
     "simulate", "Result", "simulate_with_error", "verify", "convergence_check",
@@ -35,4 +37,3 @@ __all__ = [
     "FlexmbsError", "ModelError", "SimulationError", "CaseError", "ResourceError",
     "InvalidResultError", "ValidityWarning", "SettingWarning", "FEASIBILITY_TOL",
 ]
-__version__ = "0.1.0"

@@ -1,4 +1,4 @@
-"""``python -m flexmbs``: the command line of flexmbs.cli."""
-from flexmbs.cli import main
+"""``python -m flexmbs``: the command line of flexmbs.cli.main."""
+from flexmbs.cli.main import main
 
 raise SystemExit(main())

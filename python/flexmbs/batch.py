@@ -28,9 +28,10 @@ Local workers start fresh interpreters ('spawn', default) or fork from one that 
 flexmbs once (``start_method="forkserver"``); the calling process is never forked. Each worker
 (local or Dask) builds the Problem of a case once and reuses it for every design it runs.
 
-Example: the deviation over a grid of designs (each point one simulation)
+Example: `flexmbs.sweep` runs one simulation per design of a case:
 
->>> from flexmbs.batch import run_batch, sweep_jobs, max_deviation_job
+>>> from flexmbs.batch import run_batch
+>>> from flexmbs.sweep import max_deviation_job, sweep_jobs
 >>> jobs = sweep_jobs("robot_2dof", [[50, 50, 50, 50], [40, 30, 35, 25]])
 >>> results = run_batch(max_deviation_job, jobs, workers=2)       # doctest: +SKIP
 """
@@ -40,11 +41,8 @@ import contextlib
 import json
 import os
 import re
-import shutil
 import signal
-import stat
 import sys
-import tempfile
 import threading
 import time
 import warnings
@@ -56,16 +54,13 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
-from flexmbs.errors import ModelError, ResourceError, SimulationError
-# the safe-file helpers are files.py's; imported here by the name they have always had
-from flexmbs.files import (atomic_open, check_regular_file, file_kind, save_figure,  # noqa: F401
-                           write_atomic)
+from flexmbs.errors import ModelError, SimulationError
+from flexmbs.files import check_store, read_stored, write_atomic
+from flexmbs.model.fingerprint import differences
+from flexmbs.progress import Bar
 
-__all__ = ["run_batch", "sweep_jobs", "max_deviation_job", "local_cluster", "Progress",
-           "atomic_open", "save_figure", "write_atomic", "read_stored", "check_writable",
-           "check_disk_space", "check_dask", "check_regular_file", "check_store", "invalid_result",
-           "job_fingerprint",
-           "result_schema", "StoredResult", "MaxDeviationResult", "job_name", "START_METHODS"]
+__all__ = ["run_batch", "local_cluster", "Progress", "check_dask", "invalid_result",
+           "result_schema", "stale_result", "StoredResult", "job_name", "START_METHODS"]
 
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
@@ -95,7 +90,6 @@ class Progress:
         self.enabled = self.stream.isatty() if enabled is None else bool(enabled)
         self._bar = None
         if self.enabled:
-            from flexmbs.progress import Bar
             self._bar = Bar(total, label, self.stream)
 
     def update(self, n=1, postfix=None):
@@ -112,108 +106,6 @@ class Progress:
         if self._bar is not None:
             self._bar.close()
             self._bar = None
-
-
-#: descriptions' digests by (case file, its modification time and size, overrides)
-_DESCRIPTIONS = {}
-
-
-def job_fingerprint(func, kwargs):
-    """The fingerprint (flexmbs.fingerprint) of a batch job `func(**kwargs)` whose `case` (a
-    case name or path, or a Description or dict) and `overrides` give its description (read
-    and resolved here, once per case and overrides: the case file's content counts, not its
-    name); the other arguments are its options."""
-    from flexmbs.fingerprint import canonical, description_digest, fingerprint
-    from flexmbs.problem import _description
-    kwargs = dict(kwargs)
-    case, overrides = kwargs.pop("case", None), kwargs.pop("overrides", None)
-    if isinstance(case, (str, bytes)) or hasattr(case, "__fspath__"):
-        from flexmbs.casefile import case_path
-        path = case_path(case)
-        stamp = Path(path).stat()
-        key = (str(path), stamp.st_mtime_ns, stamp.st_size,
-               json.dumps(canonical(overrides or {}), sort_keys=True))
-        if key not in _DESCRIPTIONS:
-            _DESCRIPTIONS[key] = description_digest(_description(case, overrides or None))
-        digest = _DESCRIPTIONS[key]
-    else:
-        digest = description_digest(_description(case, overrides or None)
-                                    if case is not None else None)
-    fp = fingerprint(None, getattr(func, "__name__", str(func)), kwargs)
-    fp["description"] = digest
-    return fp
-
-
-def read_stored(path):
-    """The JSON content of a stored result file, or None when it is missing or unreadable
-    (truncated, not JSON, nested too deeply for Python's json, not a regular file): such a
-    file does not count as a result."""
-    try:
-        if not check_regular_file(path, "stored result"):
-            return None
-    except ModelError:
-        return None
-    try:
-        return json.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        return None
-    except (ValueError, UnicodeDecodeError, RecursionError):    # JSONDecodeError: a ValueError
-        return None
-
-
-def check_writable(folder, what, create=False):
-    """Check, before a run, that files can be created in `folder` (creating it when `create`):
-    by creating and deleting a temporary file there, which also catches read-only file systems
-    (permission bits say nothing when running as root).
-
-    Raises ModelError naming `what` (e.g. "--out result.npz"), the folder and the reason.
-    """
-    folder = Path(folder) if str(folder) else Path(".")
-    try:
-        if create:
-            folder.mkdir(parents=True, exist_ok=True)
-        elif folder.exists() and not folder.is_dir():
-            raise ModelError(f"{what}: {str(folder)!r} is a file, not a folder")
-        elif not folder.is_dir():
-            raise ModelError(f"{what}: folder {str(folder)!r} does not exist "
-                             "(create it first)")
-        fd, tmp = tempfile.mkstemp(dir=folder, prefix=".flexmbs-write-test.")
-        os.close(fd)
-        os.unlink(tmp)
-    except OSError as exc:
-        raise ModelError(f"{what}: cannot write in folder {str(folder)!r}: "
-                         f"{exc.strerror or exc}") from None
-    return folder
-
-
-def check_store(store, what="store"):
-    """Create the folder `store` of run_batch's results (with its parents) or check the one
-    there; ModelError naming `what` and the path when it is a file (or cannot be created)."""
-    path = Path(store)
-    if path.exists() and not path.is_dir():
-        mode = path.stat().st_mode
-        kind = "a file" if stat.S_ISREG(mode) else file_kind(mode)
-        raise ModelError(f"{what} {os.fspath(store)!r} is {kind}, not a folder: give a folder "
-                         "for the results (one file per job)")
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ModelError(f"{what} {os.fspath(store)!r}: cannot create the folder: "
-                         f"{exc.strerror or exc}") from None
-    return path
-
-
-def check_disk_space(folder, required, what):
-    """Raise ResourceError when the file system of `folder` has less than `required` bytes
-    free (a rough estimate of what a run will write)."""
-    try:
-        free = shutil.disk_usage(folder).free
-    except OSError:
-        return
-    if free < required:
-        raise ResourceError(f"{what}: about {required / 1e6:.1f} MB will be written in "
-                            f"{str(folder)!r} but only {free / 1e6:.1f} MB are free",
-                            required=required, available=free)
 
 
 def check_dask(dask, what="dask"):
@@ -268,9 +160,8 @@ def result_schema(func):
 
 
 def stale_result(value, fp):
-    """What differs (flexmbs.fingerprint.differences) between a stored result's fingerprint
+    """What differs (flexmbs.model.fingerprint.differences) between a stored result's fingerprint
     and `fp`; [] when it answers `fp`."""
-    from flexmbs.fingerprint import differences
     return differences(value.get("fingerprint") if isinstance(value, dict) else None, fp)
 
 
@@ -366,7 +257,7 @@ def _init_worker(caller):
 START_METHODS = ("spawn", "forkserver")
 #: The modules a forkserver imports once, before it forks the workers (with the main module
 #: and the job function's module).
-FORKSERVER_PRELOAD = ("flexmbs.batch", "flexmbs.problem", "flexmbs.kinematics")
+FORKSERVER_PRELOAD = ("flexmbs.batch", "flexmbs.problem", "flexmbs.model.kinematics")
 
 
 def _context(start_method, func):
@@ -460,12 +351,13 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
         run again (their stored result is returned).
     schema : pydantic model, None or callable, default `result_schema`
         The content a stored result must have to be reused (`invalid_result`; default: the
-        job function's attribute ``result_schema``, e.g. `max_deviation_job`'s): a stored
+        job function's attribute ``result_schema``, e.g. `flexmbs.sweep.max_deviation_job`'s): a stored
         file that is JSON but not such a result (``[]``, ``{"foo": 1}``, strings for numbers)
         is not reused: its job runs again, with a warning naming the file and the key.
-    fingerprints : dict {name: fingerprint} or True, optional
-        What each job answers (flexmbs.fingerprint; True: `job_fingerprint(func, kwargs)`
-        of each job, its case read and resolved): saved in its result (a dict) under
+    fingerprints : dict {name: fingerprint} or callable, optional
+        What each job answers (flexmbs.model.fingerprint; a callable is called as
+        ``fingerprints(func, kwargs)`` for each job, e.g. `flexmbs.sweep.job_fingerprint`,
+        which reads and resolves its case): saved in its result (a dict) under
         'fingerprint'; a stored result whose fingerprint differs, or that has none, is not
         reused: its job runs again, with a warning naming the file and what differs.
     progress : bool, text stream or callable, optional
@@ -489,8 +381,7 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
         worker and per batch, which counts with many workers or many short batches (the
         first batch pays it as 'spawn' does). The fork server is multiprocessing's, one per
         process: one already started (by an earlier batch or other code) is reused with what
-        it preloaded. Neither forks the calling process. Each worker builds its Problem once
-        (`max_deviation_job`).
+        it preloaded. Neither forks the calling process.
 
     Raises
     ------
@@ -515,8 +406,8 @@ def run_batch(func, jobs, *, workers=None, dask=None, store=None, progress=None,
     todo = dict(jobs)
     if schema is result_schema:
         schema = result_schema(func)
-    if fingerprints is True:
-        fingerprints = {name: job_fingerprint(func, kw) for name, kw in jobs.items()}
+    if callable(fingerprints):
+        fingerprints = {name: fingerprints(func, kw) for name, kw in jobs.items()}
     if store is not None:
         check_store(store)
         unreadable, stale, invalid = [], [], []
@@ -651,70 +542,8 @@ def local_cluster(workers):
                             dashboard_address=None)
 
 
-def sweep_jobs(case, designs, overrides=None):
-    """Jobs {name: kwargs} for `max_deviation_job`, one per design (names d0000, d0001, ...)."""
-    designs = np.atleast_2d(np.asarray(designs, float))
-    return {f"d{k:04d}": dict(case=case, design=d.tolist(), overrides=overrides)
-            for k, d in enumerate(designs)}
-
-
-_local = threading.local()
-
-
-def _problem(case, overrides):
-    """The Problem of (case, overrides), built once per worker thread: a batch of many designs
-    of one case (a design-domain map) pays the model and its rigid reference once, not per job.
-    Thread-local, so that jobs running in threads of one process never share a Problem."""
-    from flexmbs.problem import Problem
-    key = (str(case), json.dumps(overrides or {}, sort_keys=True))
-    cache = getattr(_local, "problems", None)
-    if cache is None:
-        cache = _local.problems = {}
-    if key not in cache:
-        if len(cache) >= 4:
-            cache.pop(next(iter(cache)))
-        cache[key] = Problem(case, overrides=overrides or None)
-    return cache[key]
-
-
 class StoredResult(BaseModel):
     """Base of the schemas of stored results: strict types (a string is no number), other
     keys allowed."""
     model_config = ConfigDict(extra="allow", strict=True)
 
-
-class MaxDeviationResult(StoredResult):
-    """A stored result of `max_deviation_job`."""
-    design: list[float]
-    mass_kg: float
-    max_deviation_m: float
-    t_at_max_s: float
-    step_at_max: int
-    max_violation: float
-    limit_m: float | None = None
-    deviation_m: list[float] | None = None
-    deviation_at_steps_m: list[float] | None = None
-
-
-def max_deviation_job(case, design, overrides=None, steps=None):
-    """Simulate one design of a case (a shipped case's name or a path; `overrides` as
-    `flexmbs.problem.Problem`): its mass, the largest constrained deviation (the step-by-step
-    maximum of the deviation responses under a constraint), its maximum and its limit, and that
-    history at the given 0-based steps (every step if `steps` is 'all')."""
-    prob = _problem(case, overrides)
-    ev = prob.evaluate(np.asarray(design, float), gradient=False)
-    dev = prob.constrained_deviation(ev.values)
-    if dev is None:
-        raise ModelError(f"case {case!r} constrains no deviation response")
-    j = int(np.argmax(dev))
-    out = dict(design=list(map(float, design)), mass_kg=prob.design_mass(ev.x, ev.values),
-               max_deviation_m=float(dev[j]), t_at_max_s=float(ev.t[j]), step_at_max=j + 1,
-               max_violation=ev.max_violation, limit_m=prob.deviation_limit())
-    if steps == "all":
-        out["deviation_m"] = dev.tolist()
-    elif steps is not None:
-        out["deviation_at_steps_m"] = [float(dev[s]) for s in steps]
-    return out
-
-
-max_deviation_job.result_schema = MaxDeviationResult

@@ -8,13 +8,14 @@ import weakref
 
 import numpy as np
 
-from flexmbs import _core
+import flexmbs._core as _core
 from flexmbs.errors import ModelError, ResourceError
-from flexmbs.model import Model
+from flexmbs.model.arrays import Model
 from flexmbs.resources import format_bytes, limit_source
 from flexmbs.resources import memory_limit as _memory_limit
 
-__all__ = ["KluAnalysis", "core_model_args", "klu_analysis", "system_matrices"]
+__all__ = ["KluAnalysis", "core_model_args", "klu_analysis", "system_matrices",
+           "simulate_arrays", "simulate_adjoint_arrays", "beam_element"]
 
 # The core's BLAS works on small systems thousands of times per run: one thread
 # (no pool latency); parallelism belongs to batch runs over designs.
@@ -155,3 +156,23 @@ def system_matrices(model: Model, q, qdd=None, mu=None, t=0.0, *, cm=0.0, ck=1.0
         raise ResourceError(f"out of memory in the core: could not allocate the model arrays "
                             f"({c.nel} elements, {c.n} unknowns)")
     return r, vals.reshape(c.n, c.n, order="F")
+
+
+# ----------------------------------------------------------------------------- compiled runs
+def simulate_arrays(**kwargs):
+    """The compiled generalized-alpha run (fortran/flexmbs_api.f90 `simulate`) on a model's
+    arrays (`core_model_args`) and the run's settings; its outputs in the order of the
+    Fortran interface (flexmbs.analysis.simulate unpacks them)."""
+    return _core.simulate(**kwargs)
+
+
+def simulate_adjoint_arrays(**kwargs):
+    """The compiled forward run with the discrete adjoint's backward pass
+    (fortran/flexmbs_api.f90 `simulate_adjoint`; flexmbs.analysis.adjoint unpacks it)."""
+    return _core.simulate_adjoint(**kwargs)
+
+
+def beam_element(length, stiffness, qref, q, eta, qd):
+    """One geometrically exact beam element (fortran/beam2d.f90): (internal forces, tangent
+    stiffness, damping matrix) at coordinates q and rates qd; for derivative checks."""
+    return _core.beam_element(length, stiffness, qref, q, eta, qd)

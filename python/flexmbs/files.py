@@ -6,17 +6,20 @@ from __future__ import annotations
 
 import contextlib
 import math
+import json
 import os
+import shutil
 import stat
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from flexmbs.errors import ModelError
+from flexmbs.errors import ModelError, ResourceError
 
 __all__ = ["check_regular_file", "file_kind", "jsonable", "atomic_path", "atomic_open",
-           "write_atomic", "save_figure"]
+           "write_atomic", "save_figure", "read_stored", "check_writable", "check_store",
+           "check_disk_space"]
 
 
 def file_kind(mode):
@@ -128,3 +131,75 @@ def save_figure(fig, path, **savefig_kw):
     with atomic_open(path, "wb") as fh:
         fig.savefig(fh, format=fmt, **savefig_kw)
     return path
+
+
+def read_stored(path):
+    """The JSON content of a stored result file, or None when it is missing or unreadable
+    (truncated, not JSON, nested too deeply for Python's json, not a regular file): such a
+    file does not count as a result."""
+    try:
+        if not check_regular_file(path, "stored result"):
+            return None
+    except ModelError:
+        return None
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return None
+    except (ValueError, UnicodeDecodeError, RecursionError):    # JSONDecodeError: a ValueError
+        return None
+
+
+def check_writable(folder, what, create=False):
+    """Check, before a run, that files can be created in `folder` (creating it when `create`):
+    by creating and deleting a temporary file there, which also catches read-only file systems
+    (permission bits say nothing when running as root).
+
+    Raises ModelError naming `what` (e.g. "--out result.npz"), the folder and the reason.
+    """
+    folder = Path(folder) if str(folder) else Path(".")
+    try:
+        if create:
+            folder.mkdir(parents=True, exist_ok=True)
+        elif folder.exists() and not folder.is_dir():
+            raise ModelError(f"{what}: {str(folder)!r} is a file, not a folder")
+        elif not folder.is_dir():
+            raise ModelError(f"{what}: folder {str(folder)!r} does not exist "
+                             "(create it first)")
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=".flexmbs-write-test.")
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as exc:
+        raise ModelError(f"{what}: cannot write in folder {str(folder)!r}: "
+                         f"{exc.strerror or exc}") from None
+    return folder
+
+
+def check_store(store, what="store"):
+    """Create the folder `store` of run_batch's results (with its parents) or check the one
+    there; ModelError naming `what` and the path when it is a file (or cannot be created)."""
+    path = Path(store)
+    if path.exists() and not path.is_dir():
+        mode = path.stat().st_mode
+        kind = "a file" if stat.S_ISREG(mode) else file_kind(mode)
+        raise ModelError(f"{what} {os.fspath(store)!r} is {kind}, not a folder: give a folder "
+                         "for the results (one file per job)")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ModelError(f"{what} {os.fspath(store)!r}: cannot create the folder: "
+                         f"{exc.strerror or exc}") from None
+    return path
+
+
+def check_disk_space(folder, required, what):
+    """Raise ResourceError when the file system of `folder` has less than `required` bytes
+    free (a rough estimate of what a run will write)."""
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return
+    if free < required:
+        raise ResourceError(f"{what}: about {required / 1e6:.1f} MB will be written in "
+                            f"{str(folder)!r} but only {free / 1e6:.1f} MB are free",
+                            required=required, available=free)

@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import numpy as np
+from flexmbs.responses.forces import constraint_force
 
 __all__ = ["units", "response_unit", "resolution", "run_statistics", "competing_peak",
            "max_gradient_warning", "motion_summary", "PEAK_TIE_REL", "NO_RESPONSES"]
@@ -32,7 +33,7 @@ NO_RESPONSES = ("the case has no responses: only the motion was simulated; add a
 #: The units of the statistics of `run_statistics` that have one.
 _RUN_UNITS = {"wall_time": "s", "cpu_time": "s", "simulation_wall_time": "s",
               "memory_estimate": "B"}
-#: The counters of flexmbs.simulate.Result.stats copied by `run_statistics`.
+#: The counters of flexmbs.analysis.simulate.Result.stats copied by `run_statistics`.
 _RUN_KEYS = ("steps", "newton_iterations", "factorizations", "step_cuts",
              "residual_evaluations", "static_iterations", "sensitivity_factorizations",
              "symbolic_analyses", "solver", "unknowns", "newton", "adjoint_checkpoints")
@@ -106,7 +107,7 @@ def resolution(problem):
 
 
 def run_statistics(stats, wall_time=None, cpu_time=None):
-    """The run's statistics as JSON: the counters of a simulation (flexmbs.simulate.Result
+    """The run's statistics as JSON: the counters of a simulation (flexmbs.analysis.simulate.Result
     .stats: steps are the time steps, the time points one more), its memory estimate (bytes)
     and wall time, and the evaluation's wall and CPU time (s; all its simulations and the
     responses). Empty when nothing was simulated, but for the times."""
@@ -182,7 +183,6 @@ def motion_summary(problem, result):
     'unit'}}} of a simulation storing every coordinate (store='all'): the largest distance
     of a beam's nodes from their rigid-reference positions, and the largest absolute force
     (N) or torque (N m) of every drive, over time."""
-    from flexmbs.responses.forces import constraint_force
 
     mech = problem.mechanism
     ref = mech.reference.q

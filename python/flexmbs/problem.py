@@ -21,24 +21,29 @@ from __future__ import annotations
 
 import time as _time
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
-from flexmbs.casefile import description_from_dict, read_description
-from flexmbs.description import (GROUND, Beam, Deflection, Deviation, Description, Mass,
-                                 Reaction, Station, Strain, Stress, Torque)
+from flexmbs.analysis.accuracy import estimate_errors
+from flexmbs.analysis.adaptive import choose_steps, subdivide
+from flexmbs.analysis.adjoint import (adjoint_gradient, adjoint_memory, checkpoint_interval,
+                                      checkpoint_memory)
+from flexmbs.analysis.simulate import CHECKPOINT_PART, TAPE_PART, memory_estimate, simulate
 from flexmbs.errors import CaseError, ModelError, ResourceError
-from flexmbs.mechanism import Mechanism
+from flexmbs.model.casefile import description_from_dict, read_description
+from flexmbs.model.description import (GROUND, Beam, Deflection, Deviation, Description, Mass,
+                                 Reaction, Station, Strain, Stress, Torque)
+from flexmbs.model.mechanism import Mechanism
 from flexmbs.output import max_gradient_warning, resolution, run_statistics
 from flexmbs.output import units as unit_table
+from flexmbs.resources import format_bytes, limit_source, memory_limit
 from flexmbs.responses.aggregate import aggregate, aggregate_weights
 from flexmbs.responses.deviation import deviation, deviation_terms
 from flexmbs.responses.forces import constraint_force, joint_reaction
 from flexmbs.responses.station import chord_deflection, locate, station_strain
 from flexmbs.responses.stress import beam_stress
-from flexmbs.resources import format_bytes, limit_source, memory_limit
-from flexmbs.simulate import CHECKPOINT_PART, TAPE_PART, memory_estimate, simulate
 
 __all__ = ["Problem", "Evaluation", "load_problem", "constraint_rows", "GRADIENT_METHODS",
            "FEASIBILITY_TOL", "is_feasible"]
@@ -72,10 +77,10 @@ ADJOINT_CHUNK_BYTES = 32e6
 #: design variables too; a new response type of that kind must be listed here
 EXPLICIT_DESIGN_RESPONSES = (Stress,)
 #: The part of an adjoint's MemoryEstimate (Problem.memory_estimate) holding the per-step
-#: partials of the backward pass (flexmbs.adjoint.adjoint_memory).
+#: partials of the backward pass (flexmbs.analysis.adjoint.adjoint_memory).
 ADJOINT_PART = "adjoint's per-step partials"
 #: The part of a checkpointed adjoint's MemoryEstimate holding one segment's tape (the
-#: checkpoints are flexmbs.simulate.CHECKPOINT_PART; flexmbs.adjoint.checkpoint_memory).
+#: checkpoints are flexmbs.analysis.simulate.CHECKPOINT_PART; flexmbs.analysis.adjoint.checkpoint_memory).
 SEGMENT_PART = "adjoint's segment tape"
 _DEFAULT = object()      # memory_estimate(checkpoints=...): the problem's
 
@@ -136,10 +141,10 @@ class Evaluation:
     #: gradient), 'adjoint' (the aggregated rows only: gradients of histories are None) or
     #: None without gradients
     gradient_method: str | None = None
-    #: the simulation itself (flexmbs.simulate.Result) when evaluate was asked to store
+    #: the simulation itself (flexmbs.analysis.simulate.Result) when evaluate was asked to store
     #: coordinates (store='all' or nodes), else None
     result: object = field(default=None, repr=False)
-    #: with evaluate(..., error=True): {response: flexmbs.accuracy.ErrorEstimate} of each
+    #: with evaluate(..., error=True): {response: flexmbs.analysis.accuracy.ErrorEstimate} of each
     #: value (a history: of its maximum, with point-wise errors), else None
     errors: dict | None = None
     #: with error=True: the objective's ErrorEstimate, and {response: ErrorEstimate} of each
@@ -226,17 +231,17 @@ class Problem:
     ----------
     case : path, str, dict or Description
         A case file, the name of a shipped case (``"fourbar"``, see
-        `flexmbs.casefile.available_cases`), a parsed case dict or a Description.
+        `flexmbs.model.casefile.available_cases`), a parsed case dict or a Description.
     overrides : dict, optional
         Case keys to replace before validation, by dotted path, e.g.
-        ``{"time.t_end": 0.66, "bodies.arm1.elements": 8}`` (`flexmbs.casefile.apply_overrides`).
+        ``{"time.t_end": 0.66, "bodies.arm1.elements": 8}`` (`flexmbs.model.casefile.apply_overrides`).
     gradient_method : {'direct', 'adjoint', 'auto'}, default 'direct'
         How `evaluate` computes gradients unless told otherwise (its `method`): what an
         optimizer calling evaluate(x, gradient=True) gets.
     checkpoints : None, 'auto' or int, default None
         The adjoint's forward run (docs/adjoint.md 3b): None keeps the tape of every state
         when it fits in the memory limit and checkpoints otherwise (every K time points, K
-        the largest that fits: `flexmbs.adjoint.checkpoint_interval`); 'auto' always
+        the largest that fits: `flexmbs.analysis.adjoint.checkpoint_interval`); 'auto' always
         checkpoints, every ceil(sqrt(N)) of N steps (about the least memory); K (>= 1) every
         K time points (a K beyond the N steps: the initial state only, as K = N).
         Checkpointing costs about one more forward run.
@@ -263,7 +268,7 @@ class Problem:
     # ------------------------------------------------------------------ adaptive steps
     def steps(self):
         """The non-uniform step grid (times) of an adaptive case (time.h = "auto"), None for a
-        fixed step. Chosen by flexmbs.adaptive.choose_steps at the start design when first
+        fixed step. Chosen by flexmbs.analysis.adaptive.choose_steps at the start design when first
         needed and then frozen: every design runs on the same grid, so that the responses are
         smooth in the design and their derivatives exact, and a problem built anew (a batch's
         worker) has the same grid whichever design it simulates first. `adapt(x)` chooses it
@@ -279,7 +284,7 @@ class Problem:
     def adapt(self, x=None, info=None):
         """Choose the step grid of an adaptive case afresh at design x (between restarts of
         an optimization, or to verify a result) and freeze it; returns it. `info`: as
-        flexmbs.adaptive.choose_steps's."""
+        flexmbs.analysis.adaptive.choose_steps's."""
         if not self.description.time.adaptive:
             raise ModelError('adapt: the case has a fixed step (time.h is a number, not "auto")')
         with self.mechanism._lazy:
@@ -288,13 +293,12 @@ class Problem:
         return self._steps
 
     def _choose(self, x, info=None):
-        from flexmbs.adaptive import choose_steps
         return choose_steps(self, x, info=info)
 
     def values_on(self, x, steps):
         """The response histories (name -> value) of design x simulated on the step grid
         `steps` (times; outputs on the response grid), without gradients: the pilot runs of
-        flexmbs.adaptive."""
+        flexmbs.analysis.adaptive."""
         mech = self.mechanism
         x = mech.start if x is None else mech.design_values(x)
         timed = [n for n, r in self._resp.items() if not isinstance(r, Mass)]
@@ -307,7 +311,7 @@ class Problem:
     def refined(self, factor):
         """The same problem with the time step h / factor (factor a power of two; built once
         per factor and kept): the finer levels of error estimates and verifications
-        (flexmbs.accuracy)."""
+        (flexmbs.analysis.accuracy)."""
         if (isinstance(factor, bool) or not isinstance(factor, (int, np.integer))
                 or factor < 1 or factor & (factor - 1)):
             raise ModelError(f"refined: factor must be a power of two (1, 2, 4, ...), "
@@ -318,7 +322,6 @@ class Problem:
             ts = self.description.time
             if ts.adaptive:
                 # the frozen step grid with every step divided, outputs on a grid as fine
-                from flexmbs.adaptive import subdivide
                 fine = Problem(self.description, overrides={"time.output": ts.grid_h / factor},
                                gradient_method=self.default_gradient_method,
                                checkpoints=self.adjoint_checkpoints)
@@ -332,7 +335,7 @@ class Problem:
 
     def refined_mesh(self):
         """(the same problem with twice the elements of every beam, None), or (None, why
-        not): element-wise design variables are tied to the elements (flexmbs.accuracy's
+        not): element-wise design variables are tied to the elements (flexmbs.analysis.accuracy's
         convergence check)."""
         d = self.description
         elementwise = [v.name for v in d.design if v.elementwise]
@@ -414,7 +417,8 @@ class Problem:
         dnodes = self._nodes_needed(diff)
         differentiated = bool(mech.variables) and (
             bool(tape or checkpoints) or (gradient and bool(dnodes or forces)))
-        q0, qd0 = mech.start_state(x, gradient=differentiated)    # [initial], if any
+        q0, qd0 = mech.start_state(x, gradient=differentiated,
+                                     static=partial(_static_state, h=ts.grid_h))    # [initial], if any
         newton = ts.newton
         if ts.reuse_jacobian is not None and newton == "auto":    # the deprecated spelling
             newton = "reuse" if ts.reuse_jacobian else "full"
@@ -452,10 +456,10 @@ class Problem:
         store: None (default) keeps only the coordinates the responses read (the points of
         deviation responses, the nodes of stressed beams; one node when only motor torques or
         joint reactions are asked, which come from the multipliers); 'all' or a list of nodes
-        as in `flexmbs.simulate`. tape=True: the discrete adjoint's forward run (every
-        (sub-)step's converged state kept, Newton converged fully: flexmbs.adjoint);
+        as in `flexmbs.analysis.simulate`. tape=True: the discrete adjoint's forward run (every
+        (sub-)step's converged state kept, Newton converged fully: flexmbs.analysis.adjoint);
         checkpoints=K instead: the full state at every K-th time point only (its segments
-        are re-run by flexmbs.adjoint.adjoint_gradient).
+        are re-run by flexmbs.analysis.adjoint.adjoint_gradient).
 
         The result's `design_model` is the model of design x that was simulated
         (Mechanism.design_model: the problem's shared model is not changed, so that several
@@ -473,12 +477,12 @@ class Problem:
         `simulate(x, ...)` with `responses` or `store`),
         without running it; None when no response needs a simulation. What is stored over
         the time grid is the responses' coordinates only (see `simulate`). With gradients by
-        the adjoint: its forward run's (the tape of every step, flexmbs.simulate.TAPE_PART)
-        and the backward pass's per-step partials (ADJOINT_PART, flexmbs.adjoint.adjoint_memory);
+        the adjoint: its forward run's (the tape of every step, flexmbs.analysis.simulate.TAPE_PART)
+        and the backward pass's per-step partials (ADJOINT_PART, flexmbs.analysis.adjoint.adjoint_memory);
         checkpointed (when the tape does not fit, or as `checkpoints` asks: as Problem's
-        checkpoints, default the problem's), the checkpoints (flexmbs.simulate.CHECKPOINT_PART)
+        checkpoints, default the problem's), the checkpoints (flexmbs.analysis.simulate.CHECKPOINT_PART)
         and one segment's tape (SEGMENT_PART) instead of the tape
-        (flexmbs.adjoint.checkpoint_memory); est.checkpoints tells the interval (None: the
+        (flexmbs.analysis.adjoint.checkpoint_memory); est.checkpoints tells the interval (None: the
         tape of every state)."""
         if responses is None:
             responses = [n for n, r in self._resp.items() if not isinstance(r, Mass)]
@@ -718,7 +722,7 @@ class Problem:
             'direct' unless given)
             How gradients are computed (`gradient_method`): direct differentiation (the
             gradient of every history, Evaluation.gradients), or the discrete adjoint
-            (flexmbs.adjoint: the objective's and constraints' rows only, for 2.2-3
+            (flexmbs.analysis.adjoint: the objective's and constraints' rows only, for 2.2-3
             simulations in all whatever the number of variables; the histories'
             gradients are None). Evaluation.gradient_method tells which was used.
         store : None (default: only the coordinates the responses read) or as `simulate`'s
@@ -727,7 +731,7 @@ class Problem:
             a file of the motion). Given when no response needs a simulation (a case without
             responses, or with mass responses only), the motion is simulated all the same.
         error : False (default), True or 2
-            True: also estimate every value's time-discretisation error (flexmbs.accuracy:
+            True: also estimate every value's time-discretisation error (flexmbs.analysis.accuracy:
             the design simulated again at h/2 and h/4, without gradients; about 6 more
             simulations' time) into Evaluation.errors, objective_error and
             constraint_errors, with a verdict on whether each value is in its asymptotic
@@ -782,7 +786,6 @@ class Problem:
                           result=None if store is None else result)
 
     def _evaluate_with_error(self, x, gradient, method, store, error):
-        from flexmbs.accuracy import estimate_errors
 
         if error is True:
             levels = 3
@@ -810,7 +813,6 @@ class Problem:
         given). When nothing fits, K is ceil(sqrt(N)), about the least memory. run: the
         forward run's `_run(x, False, responses, store, tape=True)` when already made (the
         design is then set once per evaluation)."""
-        from flexmbs.adjoint import adjoint_memory, checkpoint_interval, checkpoint_memory
         if checkpoints is _DEFAULT:
             checkpoints = self.adjoint_checkpoints
         _check_checkpoints(checkpoints)
@@ -872,10 +874,9 @@ class Problem:
         the per-step partials (the design columns only for responses that depend on the
         design explicitly: a stress). The aggregation weights of each row over time come from
         constraint_weights; weights times partials are the adjoint's right-hand sides
-        (flexmbs.adjoint.adjoint_gradient)."""
+        (flexmbs.analysis.adjoint.adjoint_gradient)."""
         from dataclasses import replace
 
-        from flexmbs.adjoint import adjoint_gradient
 
         mech = self.mechanism
         run = self._run(x, False, timed, store, tape=True)     # the design set once
@@ -1098,3 +1099,10 @@ def _scalar(v, dv, how, parameter, t):
     if how == "final":
         return float(v[-1]), (None if dv is None else dv[-1])
     return aggregate(v, dv, how, parameter=parameter, t=t)
+
+
+def _static_state(model, q0, h):
+    """Every coordinate of the static equilibrium at t = 0 of a built model from q0 (the core's
+    static start, one step h): the [initial] static_loads deformation (Mechanism.start_state)."""
+    r = simulate(model, h, h, start="static", q0=q0, store="all", validity="off")
+    return np.array(r.q[0], float)

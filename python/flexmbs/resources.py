@@ -22,16 +22,18 @@ import resource
 import threading
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from flexmbs.errors import ModelError, ResourceError
 
-#: Values of one temporary array of the validity checks (flexmbs.validity): they run over the
+#: Values of one temporary array of the validity checks (flexmbs.analysis.validity): they run over the
 #: stored history in chunks of time points so that their work memory stays bounded whatever the
 #: run's length.
 CHUNK_VALUES = 250_000
 #: Bytes of work memory of the checks at most (a few temporaries of CHUNK_VALUES doubles).
 CHECK_WORK_BYTES = 6 * 8 * CHUNK_VALUES
 
-__all__ = ["MemoryEstimate", "estimate_memory", "available_memory", "memory_limit",
+__all__ = ["MAX_STEPS", "time_steps", "MemoryEstimate", "estimate_memory", "available_memory", "memory_limit",
            "check_memory", "limit_source", "format_bytes", "format_seconds", "call_with_stack", "stack_limit",
            "DENSE_MAX_ORDER", "STACK_BYTES_PER_UNKNOWN"]
 
@@ -176,7 +178,7 @@ def estimate_memory(*, n, ndof, nc, nel, nt, nout, solver, nlaw=0, nv=0, nsens=0
         # pattern build in Python (int64 row/col/key arrays and sorts, transient), CSC pattern,
         # values, and the KLU factors (fill of a banded beam matrix: a few times nnz)
         p["sparse matrix, pattern and KLU factors"] = nnz * (6 * 8 + 4 + f8) + 4 * nnz * (f8 + 4)
-    # the validity checks of the result (flexmbs.validity), chunked over the time points
+    # the validity checks of the result (flexmbs.analysis.validity), chunked over the time points
     p["validity checks"] = min(float(CHECK_WORK_BYTES), 6 * f8 * nt * max(ndof, nout, nca))
     # state vectors (two states, work vectors) and sensitivity work arrays
     p["state and work vectors"] = f8 * n * (20 + 10 * nv) + STACK_BYTES_PER_UNKNOWN * n
@@ -277,3 +279,39 @@ def check_memory(est: MemoryEstimate, limit=None, what="this run"):
         + ". simulate(..., memory_limit=bytes) or FLEXMBS_MEMORY_LIMIT sets the limit "
           "(math.inf / 'none': no check)",
         required=total, available=avail)
+
+
+#: Most time steps the core counts (32-bit integers).
+MAX_STEPS = 2**31 - 2
+
+
+def time_steps(t_end, h, memory_limit=None):
+    """Number of steps of the grid t_j = j h up to t_end, checked without building the grid.
+
+    Raises ModelError if t_end is not a whole number of steps, ResourceError if the grid is too
+    long for the core (MAX_STEPS) or cannot fit: a run on it holds at least 40 bytes per point
+    (the grid, its transient, and q, qd, qdd of one stored coordinate); `memory_limit` as in
+    `simulate`.
+    """
+    for name, v in (("h", h), ("t_end", t_end)):
+        if not (isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, bool)
+                and math.isfinite(v) and v > 0):
+            raise ModelError(f"{name} must be a positive finite number, got {v!r}")
+    ratio = t_end / h
+    if not math.isfinite(ratio) or ratio > MAX_STEPS:
+        raise ResourceError(f"t_end = {t_end} s with h = {h} s is {ratio:.3g} time steps, more than "
+                            f"the core's {MAX_STEPS}: use a coarser step h or a shorter t_end",
+                            required=40.0 * ratio, available=None)
+    nsteps = int(round(ratio))
+    if nsteps < 1 or abs(nsteps * h - t_end) > 1e-9 * max(1.0, t_end):
+        raise ModelError(f"t_end = {t_end} s is not a whole number of steps h = {h} s "
+                         f"(nearest: {nsteps * h:.10g} s)")
+    need = 40.0 * (nsteps + 1)
+    avail = memory_limit(memory_limit)
+    if need > avail:
+        raise ResourceError(f"t_end = {t_end} s with h = {h} s is {nsteps + 1} time points: the grid "
+                            f"and one stored coordinate alone need {format_bytes(need)}, more than "
+                            f"{limit_source(memory_limit)} ({format_bytes(avail)}): use a coarser "
+                            "step h or "
+                            "a shorter t_end", required=need, available=avail)
+    return nsteps

@@ -7,7 +7,7 @@
     aggregate, ks, pnorm             every step, max, KS, p-norm over time windows
                                      (aggregate.py)
     strain                           the beam elements' strain kinematics (strain.py), shared
-                                     with flexmbs.validity
+                                     with flexmbs.analysis.validity
     deviation, deviation_terms       deviation from the rigid reference (deviation.py)
     locate, chord_deflection,        a station anywhere along a beam: its deflection from the
     station_strain                   chord, its strains (station.py)

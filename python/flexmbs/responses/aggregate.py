@@ -250,7 +250,7 @@ def aggregate_weights(r, how="max", *, parameter=None, t=None, window=None):
 def aggregate_constraints(ratio, d_ratio, kind, parameter, windows):
     """Aggregate relative responses r_n >= 0 (constraint r_n - 1 <= 0) over index windows.
 
-    Used by the fully coupled method (flexmbs.optimize.fully).
+    Used by the fully coupled method (flexmbs.methods.fully).
 
     Parameters
     ----------

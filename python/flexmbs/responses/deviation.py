@@ -1,6 +1,6 @@
 """Deviation of a flexible mechanism from its rigid reference, with design gradients.
 
-A deviation response (`flexmbs.description.Deviation`) is sqrt(sum c_k^2) over scalar terms
+A deviation response (`flexmbs.model.description.Deviation`) is sqrt(sum c_k^2) over scalar terms
 c_k. A term is a component of the difference between a point's flexible position and its
 position in the rigid reference (or of that difference for the vector from another point to
 it), expressed in the ground frame or in the rigid reference's frame of a body, whose x axis
@@ -78,7 +78,7 @@ def deviation_terms(node, reference_q, result, term, frame_node=None, relative_n
     (or None) and of the frame body's first node (None: ground); the point and the one it is
     measured from may also be stations along beams (flexmbs.responses.station.locate: their
     element's nodes interpolated by its shape functions); reference_q: the rigid reference, a
-    flexmbs.kinematics.RigidMotion or its (nt, ndof) coordinates."""
+    flexmbs.model.kinematics.RigidMotion or its (nt, ndof) coordinates."""
     comps = [2] if term.component == "angle" else [0, 1]
     d, dq = _relative(node, reference_q, result, comps, derivatives)
     if relative_node is not None:

@@ -7,7 +7,7 @@ constraint rows exert on the coordinates is -Phi_q^T mu.
 
 Sign convention of this module: the force of a row is F_r = -mu_r, the generalized force the
 joint exerts on the row's first coordinate, the one with coefficient +1. For the rows of
-flexmbs.model:
+flexmbs.model.arrays:
 
 - pin / clamp (x_n - x0 = 0, ...): the force of the ground on node n (x, y) or its moment;
 - hinge a-b (x_a - x_b = 0): the force on node a (node b receives -F);

@@ -10,7 +10,7 @@ from their values in the reference configuration: Gamma_1 = e1 - e1_ref (axial),
 Gamma_2 = e2 - e2_ref (shear), kappa - kappa_ref (curvature). The stress resultants
 N = EA Gamma_1, Q = kGA Gamma_2, M = EI kappa are evaluated at the reduced-integration Gauss
 points (1 for 2 nodes, 2 for 3 nodes): those are the element's own stations.
-This module is the one Python copy of these formulas (flexmbs.validity imports it).
+This module is the one Python copy of these formulas (flexmbs.analysis.validity imports it).
 """
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from flexmbs.sections import Circle, Rectangle, Tube
+from flexmbs.model.sections import Circle, Rectangle, Tube
 
 __all__ = ["shape", "raw_strains", "raw_strains_t", "raw_curvature_t", "raw_strain_derivatives",
            "gauss_points", "element_groups", "columns", "half_depth"]

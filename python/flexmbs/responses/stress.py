@@ -12,7 +12,7 @@ value of the two, per sample (time step, element, station):
     sigma = max(|E (eps - c kappa)|, |E (eps + c kappa)|) = E (|eps| + c |kappa|).
 
 Optionally the mean shear stress over the shear area A_s = k A of the section (k: Cowper's
-shear factor, flexmbs.sections), tau = Q / A_s = kGA gamma / (k A) = G |gamma|, and the von
+shear factor, flexmbs.model.sections), tau = Q / A_s = kGA gamma / (k A) = G |gamma|, and the von
 Mises combination sqrt(sigma^2 + 3 tau^2). The latter adds the mean shear of the section to
 the normal stress of its extreme fibre, where the shear stress of these sections vanishes: it
 is conservative, an upper bound of the von Mises stress of the section under Navier's and

@@ -1,0 +1,451 @@
+"""Multi-start fully coupled optimization of a general-format problem.
+
+`multistart(case, starts=N)` draws N starting designs with a quasi-random sampler
+(scipy.stats.qmc: scrambled Sobol or Latin hypercube), runs `optimize_fully` from each one
+through the batch layer (`flexmbs.batch.run_batch`: serially, on local worker processes or on
+a Dask cluster), re-checks every local optimum's feasibility by a fresh simulation in this
+process, and returns the best feasible design, every local optimum (objective, violation) and
+how many starts reached the best (objective within `best_tolerance`, 0.3 %, of it).
+
+Starting designs: variable i is drawn in [lower_i, upper_i] (the design bounds, or the narrower
+`start_range`), uniformly, or log-uniformly where upper_i / lower_i > 10 (bounds spanning a
+decade or more, such as 15-500 mm diameters: a uniform draw would put 97 % of the starts above
+30 mm).
+
+>>> from flexmbs.methods.multistart import multistart
+>>> res = multistart("fourbar", starts=8, workers=2)                        # doctest: +SKIP
+>>> res.best["objective"], res.reached_best                              # doctest: +SKIP
+"""
+from __future__ import annotations
+
+import json
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from flexmbs.analysis.accuracy import describe_verification
+from flexmbs.batch import check_dask, run_batch, StoredResult
+from flexmbs.errors import ModelError, ResourceError, SimulationError
+from flexmbs.files import jsonable, save_figure
+from flexmbs.methods.fully import optimize_fully, OPTIMIZERS
+from flexmbs.methods.result import OptimizationResult
+from flexmbs.methods.verified import check_verify, finish
+from flexmbs.model.fingerprint import fingerprint
+from flexmbs.problem import FEASIBILITY_TOL, load_problem
+from flexmbs.progress import check_progress, describe_start
+from flexmbs.resources import format_bytes, limit_source, memory_limit
+
+__all__ = ["multistart", "start_designs", "sample_memory", "check_sample_memory",
+           "MultistartResult", "SAMPLERS", "start_job"]
+
+#: quasi-random samplers of the starting designs
+SAMPLERS = ("sobol", "lhs")
+
+
+#: Bytes per drawn design beside its values (the screening's sort key and index, Python
+#: objects) and arrays of its values (the sampler's points, the scaled designs, temporaries).
+SAMPLE_OVERHEAD_BYTES = 250
+SAMPLE_ARRAYS = 4
+
+
+def sample_memory(count, nv):
+    """Bytes (rough upper bound) of `count` drawn designs of `nv` variables and their
+    screening (start_designs and multistart's candidates)."""
+    return float(count) * (SAMPLE_ARRAYS * 8.0 * nv + SAMPLE_OVERHEAD_BYTES)
+
+
+def check_sample_memory(count, nv, name="starts"):
+    """ResourceError naming `name` when `count` designs of `nv` variables (`sample_memory`) do
+    not fit in the memory limit (flexmbs.resources.memory_limit)."""
+    need, avail = sample_memory(count, nv), memory_limit()
+    if need > avail:
+        option = {"starts": "--starts", "candidates": "--candidates"}.get(name, name)
+        raise ResourceError(f"{name} = {count} ({option} on the command line): {count} designs "
+                            f"of {nv} variables need about {format_bytes(need)}, more than "
+                            f"{limit_source()} ({format_bytes(avail)}); draw fewer",
+                            required=need, available=avail)
+
+
+def start_designs(lower, upper, starts, sampler="sobol", seed=0):
+    """(starts, nv) starting designs in the box [lower, upper] (user units).
+
+    Uniform in each variable, log-uniform where upper / lower > 10 (and lower > 0). The same
+    seed gives the same designs.
+
+    Raises
+    ------
+    ModelError
+        starts < 1, an unknown sampler, or lower > upper.
+    """
+    from scipy.stats import qmc
+
+    lower = np.atleast_1d(np.asarray(lower, float))
+    upper = np.atleast_1d(np.asarray(upper, float))
+    if isinstance(starts, bool) or not isinstance(starts, (int, np.integer)) or starts < 1:
+        raise ModelError(f"starts must be a positive integer, got {starts!r}")
+    if sampler not in SAMPLERS:
+        raise ModelError(f"sampler must be one of {', '.join(SAMPLERS)}, got {sampler!r}")
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer))
+                             or seed < 0):
+        raise ModelError(f"seed must be an integer >= 0 (or None), got {seed!r}")
+    if lower.shape != upper.shape or np.any(~np.isfinite(lower)) or np.any(upper < lower):
+        raise ModelError(f"start range: lower {lower.tolist()} and upper {upper.tolist()} must "
+                         f"be finite, of the same length, with lower <= upper")
+    check_sample_memory(starts, lower.size)
+    nv = lower.size
+    if sampler == "sobol":
+        eng = qmc.Sobol(d=nv, scramble=True, seed=seed)
+        with warnings.catch_warnings():       # balance is best at powers of 2; any n is valid
+            warnings.simplefilter("ignore", UserWarning)
+            u = eng.random(int(starts))
+    else:
+        u = qmc.LatinHypercube(d=nv, seed=seed).random(int(starts))
+    log = (lower > 0) & (upper > 10 * lower)
+    x = lower + u * (upper - lower)
+    if np.any(log):
+        ll, lu = np.log(lower[log]), np.log(upper[log])
+        x[:, log] = np.exp(ll + u[:, log] * (lu - ll))
+    return np.clip(x, lower, upper)
+
+
+class StartResult(StoredResult):
+    """A stored result of `start_job` (a start whose simulation failed has design None)."""
+    start: list[float]
+    design: list[float] | None
+    objective: float | None
+    max_violation: float | None
+    converged: bool
+    simulations: int
+    wall_time_s: float
+    reason: str | None = None
+
+
+def start_job(case, start, optimizer, options):
+    """One start (a batch job: plain data in, JSON out): `optimize_fully(case, start,
+    optimizer=optimizer, **options)` summarised."""
+    try:
+        # each start's local optimum is not verified: multistart verifies the best one
+        res = optimize_fully(case, start, optimizer=optimizer, verify=False, **(options or {}))
+    except SimulationError as exc:
+        # a start whose own simulation fails (e.g. a very flexible design): no local optimum
+        return dict(start=[float(v) for v in start], design=None, objective=None,
+                    max_violation=None, converged=False, simulations=1, wall_time_s=0.0,
+                    optimizer_share=float("nan"),
+                    reason=f"the start's simulation failed: {exc}", error=str(exc))
+    return dict(start=[float(v) for v in start], design=[float(v) for v in res.design],
+                objective=float(res.objective), max_violation=float(res.max_violation),
+                converged=bool(res.converged), reason=res.reason,
+                simulations=int(res.simulations), wall_time_s=float(res.wall_time_s),
+                optimizer_share=float(res.details.get("optimizer_share", float("nan"))))
+
+
+start_job.result_schema = StartResult
+
+
+@dataclass
+class MultistartResult:
+    """Outcome of `multistart`.
+
+    Attributes
+    ----------
+    case, variables, units, optimizer, sampler : what was run.
+    best : the lightest feasible local optimum (dict: start, design, objective, max_violation
+        (re-checked), converged, simulations, ...), None when no start ended feasible.
+    optima : every start's local optimum, in the order of the starts (same keys; max_violation
+        re-checked by a fresh simulation, `feasible` added; a start whose own simulation
+        failed has design None and its `reason`).
+    reached_best : how many starts ended feasible within best_tolerance of the best objective.
+    best_tolerance : relative (0.003). wall_time_s. simulations : all starts' simulations and
+        the re-checks.
+    """
+    case: str
+    variables: list
+    units: list
+    optimizer: str
+    sampler: str
+    best: dict | None
+    optima: list
+    reached_best: int
+    best_tolerance: float
+    wall_time_s: float
+    simulations: int
+    details: dict = field(default_factory=dict)
+
+    @property
+    def converged(self):
+        """A feasible design was found."""
+        return self.best is not None
+
+    @property
+    def design(self):
+        return None if self.best is None else np.asarray(self.best["design"])
+
+    @property
+    def objective(self):
+        return None if self.best is None else self.best["objective"]
+
+    def spread(self):
+        """(lightest, heaviest) objective of the feasible local optima (None without any)."""
+        f = [o["objective"] for o in self.optima if o["feasible"]]
+        return (min(f), max(f)) if f else None
+
+    def to_dict(self, history=True):
+        d = dict(method="fully", multistart=True, case=self.case, variables=self.variables,
+                 units=self.units, optimizer=self.optimizer, sampler=self.sampler,
+                 starts=len(self.optima), best=self.best, optima=self.optima,
+                 reached_best=self.reached_best, best_tolerance=self.best_tolerance,
+                 feasible_starts=sum(o["feasible"] for o in self.optima),
+                 wall_time_s=self.wall_time_s, simulations=self.simulations,
+                 converged=self.converged)
+        d.update(self.details)
+        return jsonable(d)
+
+    def to_json(self, indent=None):
+        return json.dumps(self.to_dict(), indent=indent)
+
+    def summary(self):
+        n = len(self.optima)
+        lines = [f"fully coupled, {n} starts ({self.sampler}), optimizer {self.optimizer}, "
+                 f"case {self.case}: {sum(o['feasible'] for o in self.optima)} of {n} ended "
+                 f"feasible (re-simulated)"]
+        if self.best is None:
+            lines.append("  no feasible design found")
+        else:
+            p = ", ".join(f"{v:.5g}" for v in self.best["design"])
+            lines.append(f"  best design [{p}] {self.units[0] if self.units else ''}, objective "
+                         f"{self.best['objective']:.6g}, violation "
+                         f"{self.best['max_violation']:.1e}")
+            lines.append(f"  {self.reached_best} of {n} starts reached it (within "
+                         f"{self.best_tolerance * 100:.1f} %)")
+            ver = describe_verification(self.best)
+            if ver:
+                lines.append(f"  {ver}")
+        for k, o in enumerate(self.optima):
+            if o.get("design") is None:
+                lines.append(f"  start {k}: {o['reason']}")
+                continue
+            lines.append(f"  start {k}: objective {o['objective']:.6g}, violation "
+                         f"{o['max_violation']:.1e}, {o['simulations']} simulations"
+                         + ("" if o["feasible"] else "  INFEASIBLE"))
+        lines.append(f"  {self.simulations} simulations, {self.wall_time_s:.1f} s")
+        return "\n".join(lines)
+
+    def plot(self, path, limit_m=None):
+        """Figure: each start's local optimum (objective; infeasible ones marked)."""
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for k, o in enumerate(self.optima):
+            if o.get("design") is None:
+                continue
+            ax.plot(k, o["objective"], "o" if o["feasible"] else "x",
+                    color="C0" if o["feasible"] else "C3")
+        ax.set_xlabel("start")
+        ax.set_ylabel("objective of the local optimum")
+        ax.set_yscale("log")
+        ax.set_title("multi-start: local optima (x: infeasible)")
+        ax.grid(True, alpha=0.3)
+        try:
+            return save_figure(fig, path, dpi=120)
+        finally:
+            plt.close(fig)
+
+
+def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0,
+               start_range=None, candidates=None, workers=None, dask=None, store=None, progress=None,
+               best_tolerance=0.003, feasibility_tol=FEASIBILITY_TOL, resume=False, verify=True,
+               **options):
+    """Run the fully coupled optimization from `starts` quasi-random starting designs.
+
+    Parameters
+    ----------
+    case : a general-format case path or name, a dict or a Description (plain data, sent to
+        the workers), or a Problem (its description is sent).
+    starts : int, default 8
+    optimizer : str, default 'nlopt-mma'
+        Any of `flexmbs.methods.fully.OPTIMIZERS` (docs/optimizers.md: the most
+        four-bar starts reached the light design with nlopt-mma, at a small optimizer share).
+    sampler : {'sobol', 'lhs'}, default 'sobol'
+    seed : int, default 0
+        Seed of the sampler (the same seed gives the same starts).
+    start_range : (lower, upper), optional
+        Box the starts are drawn from (user units, inside the bounds); default the bounds.
+    candidates : int, optional
+        Draw this many designs (>= starts), simulate each once without gradients, and start
+        from the `starts` feasible ones of lowest objective (then the least violated): no
+        start in an infeasible basin that the optimizer cannot leave.
+    workers, dask, store : as `flexmbs.batch.run_batch` (store: one JSON file per start, so
+        an interrupted multi-start resumes where it stopped: starts already in the store are
+        not run again, unless their fingerprint (flexmbs.model.fingerprint: the case as resolved,
+        the start, the optimizer and its options, the flexmbs version) differs: those run
+        again, with a warning naming their file).
+    progress : bool, text stream or callable, optional
+        True: a tqdm bar on stderr (starts done, best feasible objective so far); a text
+        stream: that bar on the stream; a callable: called with each finished start's summary
+        (its job name under 'name'); None/False (default): nothing shown.
+    resume : bool, default False
+        Continue an interrupted multi-start from `store` (required): the starts found there
+        are taken as they are. (A rerun with the same store does so anyway; resume=True
+        only checks that a store is given.)
+    best_tolerance : float, default 0.003
+        A start reached the best when it ended feasible within this relative objective.
+    feasibility_tol : float, default flexmbs.problem.FEASIBILITY_TOL (1e-6)
+        Largest re-checked violation max(0, max g) of a feasible design.
+    verify : bool, float or 'check', default True
+        Verify the best design at converged resolution (as `optimize_fully`'s verify): when
+        it is infeasible at the step that resolves it, the optimization continues from it at
+        that step (in this process) and its result replaces the best (best['verification'],
+        best['continued_from']; details['verification']).
+    **options : keyword arguments of `optimize_fully` (max_iterations, screen, ...).
+
+    Returns
+    -------
+    MultistartResult
+    """
+
+    t0 = time.perf_counter()
+    if not isinstance(optimizer, str) or optimizer not in OPTIMIZERS + ("auto",):
+        raise ModelError(f"optimizer must be 'auto' or one of {', '.join(OPTIMIZERS)}, got "
+                         f"{optimizer!r}")
+
+    check_progress(progress)
+    check_dask(dask)
+    if not isinstance(resume, bool):
+        raise ModelError(f"resume must be True or False, got {resume!r}")
+    if resume and store is None:
+        raise ModelError("multistart: resume=True needs the store folder of the interrupted "
+                         "run (store=FOLDER; command line: --store FOLDER)")
+    for bad in ("history", "progress"):
+        if bad in options:
+            raise ModelError(f"multistart: option {bad!r} is per run; give store=FOLDER to keep "
+                             "each start's result")
+    problem = load_problem(case)
+    lo, hi = problem.lower, problem.upper
+    if start_range is not None:
+        try:
+            slo, shi = (problem.mechanism.design_values(v) for v in start_range)
+        except (TypeError, ValueError) as exc:
+            raise ModelError(f"start_range must be (lower, upper) designs: {exc}") from None
+        if np.any(slo < lo) or np.any(shi > hi):
+            raise ModelError(f"start_range {np.asarray(slo).tolist()}..{np.asarray(shi).tolist()} "
+                             f"must lie inside the bounds {lo.tolist()}..{hi.tolist()}")
+        lo, hi = slo, shi
+    pre = 0
+    if candidates is None:
+        x0 = start_designs(lo, hi, starts, sampler, seed)
+    else:
+        if isinstance(candidates, bool) or not isinstance(candidates, int) or candidates < starts:
+            raise ModelError(f"candidates must be an integer >= starts ({starts}), got "
+                             f"{candidates!r}")
+        check_sample_memory(candidates, lo.size, "candidates")
+        cand = start_designs(lo, hi, candidates, sampler, seed)
+        key = []
+        for x in cand:
+            try:
+                ev = problem.evaluate(x, gradient=False)
+            except SimulationError:
+                key.append((2, np.inf, np.inf))
+                continue
+            g = np.asarray(ev.constraints, float)
+            viol = float(max(0.0, g.max())) if g.size else 0.0
+            key.append((int(viol > feasibility_tol), viol if viol > feasibility_tol else 0.0,
+                        float(ev.objective)))
+        pre = len(cand)
+        x0 = cand[sorted(range(len(cand)), key=lambda k: key[k])[:starts]]
+    # plain data for the workers: the case path, or the Description (picklable)
+    if isinstance(case, (str, Path, dict)):
+        payload = str(case) if isinstance(case, Path) else case
+    elif hasattr(problem, "description") and type(problem).__name__ == "Problem":
+        payload = problem.description
+    else:
+        payload = problem                          # a Problem-like object (pickled for workers)
+    jobs = {f"start{k:03d}": dict(case=payload, start=x.tolist(), optimizer=optimizer,
+                                  options=options) for k, x in enumerate(x0)}
+    def best_so_far(results):
+        f = [o["objective"] for o in results.values() if o.get("design") is not None
+             and o.get("max_violation") is not None and o["max_violation"] <= feasibility_tol]
+        return describe_start(min(f) if f else None)
+
+    if progress is None or progress is False:
+        show = False
+    elif callable(progress) and not hasattr(progress, "write"):
+        def show(name, value):
+            progress(dict(value, name=name))
+    else:
+        show = progress
+    # what each stored start answers: the description as resolved (overrides applied), the
+    # start, the optimizer and its options; a stored start that differs is run again
+    fps = {name: fingerprint(problem.description, "multistart start",
+                             dict(start=job["start"], optimizer=optimizer, options=options))
+           for name, job in jobs.items()}
+    out = run_batch(start_job, jobs, workers=workers, dask=dask, store=store,
+                    progress=show, label="starts", describe=best_so_far, fingerprints=fps)
+    optima = []
+    sims = pre
+    for name in jobs:
+        o = dict(out[name])
+        sims += int(o.get("simulations") or 0)
+        if o.get("design") is None:                # the start's simulation failed
+            o["feasible"] = False
+            optima.append(o)
+            continue
+        # feasibility re-checked by a fresh simulation, here
+        sims += 1
+        ev = problem.evaluate(o["design"], gradient=False)
+        g = np.asarray(ev.constraints, float)
+        o["max_violation"] = float(max(0.0, g.max())) if g.size else 0.0
+        o["objective"] = float(ev.objective)
+        o["feasible"] = o["max_violation"] <= feasibility_tol
+        optima.append(o)
+    feas = [o for o in optima if o["feasible"]]
+    best = min(feas, key=lambda o: o["objective"]) if feas else None
+    reached = 0 if best is None else sum(
+        o["objective"] <= best["objective"] * (1 + best_tolerance) for o in feas)
+    verification = None
+    if best is not None:
+        best, verification, extra = _verified_best(problem, best, optimizer, options, verify)
+        sims += extra
+    desc = problem.description
+    return MultistartResult(
+        case=desc.case.name, variables=list(problem.variables),
+        units=[getattr(v, "unit", "") for v in desc.design], optimizer=optimizer,
+        sampler=sampler, best=best, optima=optima, reached_best=int(reached),
+        best_tolerance=best_tolerance, wall_time_s=time.perf_counter() - t0,
+        simulations=sims, details=dict(seed=seed, candidates=candidates,
+                                       verification=verification,
+                                       start_lower=np.asarray(lo).tolist(),
+                                       start_upper=np.asarray(hi).tolist(),
+                                       options={k: v for k, v in options.items()}))
+
+
+def _verified_best(problem, best, optimizer, options, verify):
+    """(best, its verification as JSON or None, simulations run): the best local optimum
+    verified at converged resolution, continued at the finer step when infeasible there
+    (flexmbs.methods.verified)."""
+
+    verify = check_verify(verify)
+    if verify is False:
+        return best, None, 0
+    stub = OptimizationResult(
+        method="fully", case=problem.description.case.name, variables=list(problem.variables),
+        units=[], design=np.asarray(best["design"], float),
+        start=np.asarray(best["start"], float), objective=float(best["objective"]),
+        objective_name="", mass_kg=None, max_violation=best["max_violation"],
+        max_deviation_m=None, iterations=0, inner_iterations=None, evaluations=0,
+        simulations=0, converged=bool(best["converged"]), reason=str(best["reason"]),
+        history=[], wall_time_s=0.0)
+    res = finish(problem, stub, lambda fine, x: optimize_fully(
+        fine, x, optimizer=optimizer, verify=False, **options), verify)
+    if res.verification is None:
+        return best, None, 0
+    best = dict(best, verification=res.details["verification"])
+    if res is not stub:                 # continued on the finer step
+        best.update(design=[float(v) for v in res.design], objective=float(res.objective),
+                    max_violation=float(res.max_violation), converged=bool(res.converged),
+                    reason=res.reason, continued_from=res.details["continued_from"])
+    return best, best["verification"], int(res.simulations)
