@@ -33,9 +33,9 @@ CHUNK_VALUES = 250_000
 #: Bytes of work memory of the checks at most (a few temporaries of CHUNK_VALUES doubles).
 CHECK_WORK_BYTES = 6 * 8 * CHUNK_VALUES
 
-__all__ = ["MAX_STEPS", "time_steps", "MemoryEstimate", "estimate_memory", "available_memory", "memory_limit",
-           "check_memory", "limit_source", "format_bytes", "format_seconds", "call_with_stack", "stack_limit",
-           "DENSE_MAX_ORDER", "STACK_BYTES_PER_UNKNOWN"]
+__all__ = ["MAX_STEPS", "time_steps", "MemoryEstimate", "estimate_memory", "available_memory",
+           "memory_limit", "check_memory", "limit_source", "format_bytes", "format_seconds",
+           "call_with_stack", "stack_limit", "DENSE_MAX_ORDER", "STACK_BYTES_PER_UNKNOWN"]
 
 #: Largest order of a dense system: the core indexes the n x n values with 32-bit integers.
 DENSE_MAX_ORDER = 46340
@@ -285,13 +285,13 @@ def check_memory(est: MemoryEstimate, limit=None, what="this run"):
 MAX_STEPS = 2**31 - 2
 
 
-def time_steps(t_end, h, memory_limit=None):
+def time_steps(t_end, h, limit=None):
     """Number of steps of the grid t_j = j h up to t_end, checked without building the grid.
 
     Raises ModelError if t_end is not a whole number of steps, ResourceError if the grid is too
     long for the core (MAX_STEPS) or cannot fit: a run on it holds at least 40 bytes per point
-    (the grid, its transient, and q, qd, qdd of one stored coordinate); `memory_limit` as in
-    `simulate`.
+    (the grid, its transient, and q, qd, qdd of one stored coordinate); `limit` is the
+    memory limit as `memory_limit` takes it (None: the process's).
     """
     for name, v in (("h", h), ("t_end", t_end)):
         if not (isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, bool)
@@ -307,11 +307,11 @@ def time_steps(t_end, h, memory_limit=None):
         raise ModelError(f"t_end = {t_end} s is not a whole number of steps h = {h} s "
                          f"(nearest: {nsteps * h:.10g} s)")
     need = 40.0 * (nsteps + 1)
-    avail = memory_limit(memory_limit)
+    avail = memory_limit(limit)
     if need > avail:
         raise ResourceError(f"t_end = {t_end} s with h = {h} s is {nsteps + 1} time points: the grid "
                             f"and one stored coordinate alone need {format_bytes(need)}, more than "
-                            f"{limit_source(memory_limit)} ({format_bytes(avail)}): use a coarser "
+                            f"{limit_source(limit)} ({format_bytes(avail)}): use a coarser "
                             "step h or "
                             "a shorter t_end", required=need, available=avail)
     return nsteps

@@ -367,11 +367,6 @@ def plot_overview(problem, result, evaluation, file=None, *, magnification=None)
     elif hist:
         plot_histories(evaluation.t, hist[:3], ax=ax2, scale=1.0, unit="",
                        title="constrained responses")
-    else:
-        ax2.set_axis_off()
-        ax2.text(0.5, 0.5, "no constrained response to plot:\nadd [[responses]] and "
-                 "[[constraints]] tables\n(docs/case-format.md)", ha="center", va="center",
-                 transform=ax2.transAxes, fontsize=10)
     d = problem.description
     design = ", ".join(f"{n} = {v:.4g} {u}" for n, v, u in
                        zip(problem.variables, evaluation.x, problem.mechanism.units))
