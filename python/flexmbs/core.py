@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import threading
 import weakref
+from enum import IntEnum
 
 import numpy as np
 
@@ -14,8 +15,33 @@ from flexmbs.model.arrays import Model
 from flexmbs.resources import format_bytes, limit_source
 from flexmbs.resources import memory_limit as _memory_limit
 
-__all__ = ["KluAnalysis", "core_model_args", "klu_analysis", "system_matrices",
+__all__ = ["Status", "SolverStatus", "KluAnalysis", "core_model_args", "klu_analysis", "system_matrices",
            "simulate_arrays", "simulate_adjoint_arrays", "beam_element"]
+
+class Status(IntEnum):
+    """What a compiled run returns: the GA_* codes of fortran/generalized_alpha.f90 (one table
+    for both languages: tests/test_core_status.py reads the Fortran's and compares)."""
+    OK = 0                    #: simulation completed
+    NEWTON_FAILED = 1         #: Newton failed after all step cuts
+    SINGULAR = 2              #: singular iteration matrix after all cuts
+    STATIC_FAILED = 3         #: static equilibrium not found
+    INITIAL_SINGULAR = 4      #: [M Phi_q^T; Phi_q 0] singular at t = 0
+    INCONSISTENT_INITIAL = 5  #: q0 violates a constraint (rest start)
+    NONFINITE = 6             #: NaN/Inf in a law, residual or solution
+    BAD_INPUT = 7             #: settings out of range
+    LINEAR_SOLVER = 8         #: linear solver set-up failed (info: its SolverStatus)
+    NO_MEMORY = 9             #: an allocation failed (info: time, bytes, 0, what)
+    TAPE_FULL = 10            #: the adjoint's tape has no room for the sub-steps of cut steps
+
+
+class SolverStatus(IntEnum):
+    """The linear solver's codes, LS_* of fortran/linear_solver.f90 (KLU's analysis too)."""
+    OK = 0            #: success
+    SINGULAR = 1      #: zero or negligible pivot
+    NO_MEMORY = 2     #: allocation failed
+    INVALID = 3       #: bad pattern or call order
+    NONFINITE = 4     #: NaN or Inf among the values
+
 
 # The core's BLAS works on small systems thousands of times per run: one thread
 # (no pool latency); parallelism belongs to batch runs over designs.
@@ -45,11 +71,11 @@ class KluAnalysis:
             with self._lock:
                 if self._handle == 0:
                     handle, status = _core.klu_analyze(self._ap, self._ai)
-                    if status == 2 or (status == 0 and handle == 0):
+                    if status == SolverStatus.NO_MEMORY or (status == SolverStatus.OK and handle == 0):
                         raise ResourceError(f"out of memory in KLU's symbolic analysis of the "
                                             f"{self._ap.size - 1} x {self._ap.size - 1} "
                                             f"iteration matrix ({self._ai.size} nonzeros)")
-                    if status != 0:
+                    if status != SolverStatus.OK:
                         raise ModelError(f"KLU rejected the sparsity pattern of the iteration "
                                          f"matrix ({self._ap.size - 1} unknowns, "
                                          f"{self._ai.size} nonzeros; status {int(status)})")

@@ -37,7 +37,8 @@ import numpy as np
 
 from flexmbs.analysis.simulate import (_tape_bytes, checkpoint_bytes, checkpoint_rows, law_times,
                                        NEWTON_MODES, Result, simulate)
-from flexmbs.core import core_model_args, klu_analysis, simulate_adjoint_arrays, simulate_arrays
+from flexmbs.core import (Status, core_model_args, klu_analysis, simulate_adjoint_arrays,
+                          simulate_arrays)
 from flexmbs.errors import ModelError, ResourceError, SimulationError
 from flexmbs.model.arrays import Model
 from flexmbs.resources import STACK_BYTES_PER_UNKNOWN, call_with_stack, format_bytes, limit_source
@@ -48,7 +49,6 @@ __all__ = ["adjoint_gradient", "simulate_for_adjoint", "adjoint_memory", "check_
            "checkpoint_memory", "checkpoint_interval"]
 
 _SOLVERS = {"dense": 1, "klu": 2}
-_TAPE_FULL = 10    # GA_TAPE_FULL of generalized_alpha.f90
 
 
 def adjoint_memory(ndof, nc, nt, nf, nel=0):
@@ -307,9 +307,9 @@ def _integrator_args(st):
 
 def _core_failure(status, info, where, failure):
     """Raise for a core call that returned a non-zero status: ResourceError for a failed
-    allocation (status 9; `where` says during what), else SimulationError('adjoint_gradient: '
+    allocation (Status.NO_MEMORY; `where` says during what), else SimulationError('adjoint_gradient: '
     + failure) at the time info[0]."""
-    if status == 9:
+    if status == Status.NO_MEMORY:
         raise ResourceError(f"adjoint_gradient: an allocation failed in the core{where} "
                             f"({format_bytes(info[1]) if info[1] > 0 else 'size unknown'})",
                             required=float(info[1]) if info[1] > 0 else None)
@@ -339,7 +339,7 @@ def _segment_tape(model, result, margs, pat, x_start, j0, nseg):
             ckpt_every=0, restart=1, x_start=x_start, j_start=int(j0),
             klu_analysis=klu_analysis(model, st["solver"]))
         status, info = int(out[5]), out[6]
-        if status == _TAPE_FULL and attempt == 0:
+        if status == Status.TAPE_FULL and attempt == 0:
             ncol = nseg * 2 ** int(st["max_cuts"]) + 1
             continue
         break

@@ -9,7 +9,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from flexmbs.analysis.validity import ValidityLimits, apply_validity, check_result, diagnose_failure
-from flexmbs.core import core_model_args, klu_analysis, simulate_arrays, system_matrices
+from flexmbs.core import (SolverStatus, Status, core_model_args, klu_analysis, simulate_arrays,
+                          system_matrices)
 from flexmbs.errors import ModelError, ResourceError, SettingWarning, SimulationError
 from flexmbs.model.arrays import Model
 from flexmbs.model.kinematics import drive_velocities
@@ -232,46 +233,48 @@ class Result:
 
 def _messages(model, status, info, max_cuts, diagnosis=""):
     t, res, it, extra = info
-    if diagnosis and status in (1, 2, 3, 4, 6):
-        where = ("static equilibrium at t = 0" if status == 3 else
-                 "the initial system [M Phi_q^T; Phi_q 0]" if status == 4 else f"t = {t:.6g} s")
-        kind = {1: "Newton-Raphson did not converge", 2: "singular iteration matrix",
-                3: "no solution", 4: "singular", 6: "non-finite values (NaN/Inf)"}[status]
+    if diagnosis and status in (Status.NEWTON_FAILED, Status.SINGULAR, Status.STATIC_FAILED,
+                                 Status.INITIAL_SINGULAR, Status.NONFINITE):
+        where = ("static equilibrium at t = 0" if status == Status.STATIC_FAILED else
+                 "the initial system [M Phi_q^T; Phi_q 0]" if status == Status.INITIAL_SINGULAR
+                 else f"t = {t:.6g} s")
+        kind = {Status.NEWTON_FAILED: "Newton-Raphson did not converge",
+                Status.SINGULAR: "singular iteration matrix", Status.STATIC_FAILED: "no solution",
+                Status.INITIAL_SINGULAR: "singular",
+                Status.NONFINITE: "non-finite values (NaN/Inf)"}[status]
         return f"{where}: {kind}: {diagnosis}"
-    if status == 1:
+    if status == Status.NEWTON_FAILED:
         return (f"Newton-Raphson did not converge at t = {t:.6g} s even after cutting the "
                 f"step {max_cuts} times: scaled increment {res:.3g} after {int(it)} iterations")
-    if status == 2:
+    if status == Status.SINGULAR:
         return (f"singular iteration matrix at t = {t:.6g} s (Newton iteration {int(it)}): "
                 "the mechanism may be underconstrained (a body not held, a free rotation "
                 "without stiffness) or in a singular posture")
-    if status == 3:
+    if status == Status.STATIC_FAILED:
         if extra >= 10:
             return (f"static equilibrium at t = 0: singular stiffness matrix (Newton iteration "
                     f"{int(it)}, largest residual {res:.3g}): the mechanism is not held (a body "
                     "or a rotation without support or stiffness)")
         return (f"static equilibrium at t = 0 not found (scaled increment {res:.3g} after "
                 f"{int(it)} iterations): the mechanism may not be held against its loads")
-    if status == 4:
+    if status == Status.INITIAL_SINGULAR:
         return ("the initial system [M Phi_q^T; Phi_q 0] is singular: a coordinate has no mass "
                 "and no constraint, or constraints are redundant")
-    if status == 5:
+    if status == Status.INCONSISTENT_INITIAL:
         r = int(extra) - 1
         return (f"the initial configuration violates constraint '{model.row_label(r)}' by "
                 f"{res:.3g}: start from 'static' or make the laws match the model at t = 0")
-    if status == 6:
+    if status == Status.NONFINITE:
         return f"non-finite values (NaN/Inf) appeared at t = {t:.6g} s (iteration {int(it)})"
-    if status == 7:
+    if status == Status.BAD_INPUT:
         return "invalid settings passed to the core"
-    if status == 8:
-        why = {3: ": KLU rejected the sparsity pattern, or the model's KLU analysis "
+    if status == Status.LINEAR_SOLVER:
+        why = {SolverStatus.INVALID: ": KLU rejected the sparsity pattern, or the model's KLU analysis "
                   "(flexmbs.core.KluAnalysis) is of another pattern"}.get(int(extra), "")
         return f"the sparse linear solver could not be set up (code {int(extra)}){why}"
     return f"simulation failed with status {status}"
 
 
-_NO_MEMORY = 9     # GA_NO_MEMORY of generalized_alpha.f90: info = [t, bytes, 0, what]
-_TAPE_FULL = 10    # GA_TAPE_FULL: the tape has no room for the sub-steps of the cut steps
 
 
 def _no_memory_error(cm, solver, info):
@@ -708,7 +711,7 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     try:
         (q_out, qd_out, qdd_out, mu_out, stats, status, info, dq_out, dmu_out, *tape_out,
          ckpt_out) = run(ntape)
-        if status == _TAPE_FULL:
+        if status == Status.TAPE_FULL:
             # more sub-steps than room: once more with room for every step cut max_cuts times
             ntape = ncore * 2 ** int(max_cuts) + 1
             est.parts[TAPE_PART] = tape_bytes(ntape)
@@ -730,7 +733,7 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     st["solver"] = solver
     st["unknowns"] = cm.n
     st["memory_estimate"] = est.total        # bytes, the estimate checked before the run
-    if status == _NO_MEMORY:
+    if status == Status.NO_MEMORY:
         raise _no_memory_error(cm, solver, info)
     if status != 0:
         try:

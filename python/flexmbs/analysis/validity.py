@@ -45,7 +45,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from flexmbs.core import system_matrices
+from flexmbs.core import Status, system_matrices
 from flexmbs.errors import InvalidResultError, ModelError, ValidityWarning
 from flexmbs.model.constraints import constraint_jacobian, constraint_values_t, row_table
 from flexmbs.resources import CHUNK_VALUES
@@ -527,14 +527,14 @@ def diagnose_failure(model, status, *, q=None, law_val=None, props=None):
         return ("over-constrained: redundant constraints (the constraint Jacobian has rank "
                 f"{model.compile().nc - len(red)} for {model.compile().nc} rows): "
                 + "; ".join(parts) + ". Remove the duplicate joint or constraint")
-    free = free_directions(model, q, mass=(status != 3))
+    free = free_directions(model, q, mass=(status != Status.STATIC_FAILED))
     if free:
         items = ", ".join(f"node {n} {d}" + (f" (body '{b}')" if b else "") for n, d, b in free[:6])
         more = f" and {len(free) - 6} more" if len(free) > 6 else ""
-        what = "stiffness" if status == 3 else "mass, stiffness"
+        what = "stiffness" if status == Status.STATIC_FAILED else "mass, stiffness"
         return (f"under-constrained: the mechanism is not held: {len(free)} free motion(s) "
                 f"with no constraint and no {what}, largest at {items}{more}")
-    if status == 3 and free == []:
+    if status == Status.STATIC_FAILED and free == []:
         cm = model.compile()
         loads = np.abs(cm.ld_amp[:cm.nload])
         big = (f" (largest load {loads.max():.3g} at node {(int(cm.ld_dof[np.argmax(loads)]) - 1) // 3})"
