@@ -446,6 +446,21 @@ class Problem:
                       sensitivity_dofs=dofs, constraint_force_derivatives=forces)
         return model, mech.t_end, mech.h, kw
 
+    def animate(self, result, path, *, evaluation=None, **options):
+        """Write a simulated motion of this problem (`simulate(x, store='all')`) as a film,
+        .gif or .mp4 (flexmbs.visual.animation.animate: every body, the deflection magnified
+        over the rigid reference, coloured by a response, the constrained histories of
+        `evaluation` underneath). Returns flexmbs.visual.animation.Animation."""
+        from flexmbs.visual.animation import animate      # matplotlib: loaded when drawing
+        return animate(self, result, path, evaluation=evaluation, **options)
+
+    def to_vtk(self, result, path, *, frames=None):
+        """Write a simulated motion of this problem (`simulate(x, store='all')`) as a ParaView
+        time series, a .pvd file and a folder of .vtu frames (flexmbs.visual.export.to_vtk).
+        Returns (pvd path, vtu paths, steps)."""
+        from flexmbs.visual.export import to_vtk           # meshio: loaded when exporting
+        return to_vtk(self, result, path, frames=frames)
+
     def simulate(self, x=None, *, gradient=False, responses=None, store=None,
                  differentiate=None, tape=False, checkpoints=None):
         """Simulate design x (default: start); with gradient=True the design derivatives of

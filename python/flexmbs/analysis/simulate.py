@@ -213,17 +213,17 @@ class Result:
         """Write this motion as a film, .gif or .mp4 (flexmbs.visual.animation.animate: every body,
         the deflection magnified over the rigid reference, coloured by a response, the
         constrained histories of `evaluation` underneath). The result must come from
-        `problem` with store='all'. Returns flexmbs.visual.animation.Animation."""
-        from flexmbs.visual.animation import animate
-        return animate(problem, self, path, evaluation=evaluation, **options)
+        `problem` with store='all': ``problem.animate(result, path, ...)`` does the same.
+        Returns flexmbs.visual.animation.Animation."""
+        return problem.animate(self, path, evaluation=evaluation, **options)
 
     def to_vtk(self, path, problem, *, frames=None):
         """Write this motion as a ParaView time series, a .pvd file and a folder of .vtu
         frames (flexmbs.visual.export.to_vtk: every body's nodes and elements with displacement,
         rotation, strains, stress and deviation). The result must come from `problem` with
-        store='all'. Returns (pvd path, vtu paths, steps)."""
-        from flexmbs.visual.export import to_vtk
-        return to_vtk(problem, self, path, frames=frames)
+        store='all': ``problem.to_vtk(result, path, ...)`` does the same. Returns (pvd path,
+        vtu paths, steps)."""
+        return problem.to_vtk(self, path, frames=frames)
 
     @property
     def mean_newton_iterations(self):
