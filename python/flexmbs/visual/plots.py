@@ -27,6 +27,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from flexmbs.files import save_figure
+from flexmbs.visual.scene import scene
 from flexmbs.model.description import Deviation
 
 __all__ = ["plot_histories", "plot_motion", "plot_overview", "magnified_postures",
@@ -284,7 +285,6 @@ def plot_motion(problem, result, file=None, *, ax=None, postures=6, magnificatio
 def _rigid_outlines(problem, result, steps, magnification):
     """[(flexible (k, m, 2) magnified, rigid (k, m, 2))] outline of every rigid body at the
     steps (flexmbs.visual.scene)."""
-    from flexmbs.visual.scene import scene
     if not any(b.kind == "rigid" for b in problem.mechanism.model.bodies.values()):
         return []
     sc = scene(problem, result, steps)
