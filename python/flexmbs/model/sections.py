@@ -92,6 +92,8 @@ class Material:
         frequency), giving eta = 2 zeta / (2 pi f). Both or neither, and not with
         `damping_time`.
 
+    Notes
+    -----
     Damping has no static effect (the forces depend on the strain rates) and does not
     change the stress responses, which are the elastic D Gamma.
     """
