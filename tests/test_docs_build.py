@@ -56,3 +56,17 @@ def test_strict_build_has_no_warning(tmp_path):
     names = [n for n in flexmbs.__all__ if n != "__version__"]
     absent = [n for n in names if f'id="flexmbs.{n}"' not in index]
     assert not absent, f"public names missing from the reference's index: {absent}"
+
+
+def test_doctest_blocks_fenced_outside_examples():
+    """tools/doctest_blocks.py fences a '>>>' block (to its blank line) as pycon code outside a
+    numpydoc Examples section and leaves one inside it to griffe's parser: the two cases of its
+    docstring, on a docstring written for them."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    try:
+        from doctest_blocks import fence_doctests
+    finally:
+        sys.path.remove(str(ROOT / "tools"))
+    text = "Intro.\n\n>>> a = [[1]]\n>>> a[0][0]\n1\n\nAfter.\n\nExamples\n--------\n>>> 2\n2"
+    assert fence_doctests(text) == ("Intro.\n\n```pycon\n>>> a = [[1]]\n>>> a[0][0]\n1\n```\n\n"
+                                    "After.\n\nExamples\n--------\n>>> 2\n2")
