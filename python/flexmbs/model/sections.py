@@ -82,7 +82,9 @@ class Material:
 
     Parameters
     ----------
-    E : Young's modulus (Pa).  nu : Poisson's ratio.  rho : density (kg/m^3).
+    E : Young's modulus (Pa).
+    nu : Poisson's ratio.
+    rho : density (kg/m^3).
     damping_time : the Kelvin–Voigt (retardation) time eta (s), default 0 (undamped):
         every stress resultant of a beam gets a viscous part eta D dGamma/dt (D = EA, kGA,
         EI; fortran/beam2d.f90), stiffness-proportional damping whose modal damping ratio
