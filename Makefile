@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PYTEST_ARGS ?=
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo test docs bench clean
 
 setup:
 	@bash tools/setup.sh
@@ -14,6 +14,10 @@ demo: setup
 # pytest exits with 5 when it collected no test: that fails here too.
 test: setup
 	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+# the API reference from the docstrings, strict (a warning fails it): build/docs/index.html
+docs: setup
+	$(PY) -m mkdocs build --strict --quiet
 
 # benchmarks (not tests): Exudyn is the peer of the work-precision study (the `bench` extra)
 bench: setup

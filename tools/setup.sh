@@ -2,7 +2,8 @@
 # Set up everything flexmbs needs, and be quick when it is already there:
 #   1. system packages (gfortran, SuiteSparse, LAPACK/OpenBLAS, pkg-config), with apt-get as root;
 #   2. a virtual environment .venv;
-#   3. the package, editable, with its test extras (rebuilt on import after Fortran edits).
+#   3. the package, editable, with its test, batch and docs extras (rebuilt on import after
+#      Fortran edits; docs: mkdocs + mkdocstrings, the API reference that the tests build).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -49,7 +50,7 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ] || ! "$VENV/bin/python"
     echo "flexmbs setup: installing build tools and flexmbs (editable) into $VENV"
     "$VENV/bin/python" -m pip install -q --upgrade pip >/dev/null 2>&1 || true
     "$VENV/bin/python" -m pip install -q "meson-python>=0.15" "meson>=1.1" ninja "numpy>=1.26"
-    "$VENV/bin/python" -m pip install -q --no-build-isolation -e ".[test,batch]"
+    "$VENV/bin/python" -m pip install -q --no-build-isolation -e ".[test,batch,docs]"
     "$VENV/bin/python" -c "import flexmbs" 
     echo "$want" > "$stamp"
 fi

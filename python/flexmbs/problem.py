@@ -246,6 +246,8 @@ class Problem:
         K time points (a K beyond the N steps: the initial state only, as K = N).
         Checkpointing costs about one more forward run.
 
+    Notes
+    -----
     Evaluation is re-entrant: `evaluate` and `simulate` put a design's sections into a model
     of their own (Mechanism.design_model, sharing the structure, its compiled arrays and KLU
     analysis), never into the problem's shared `mechanism.model`, so several threads may

@@ -18,8 +18,8 @@ stiffness that differ by orders of magnitude; a single norm of the whole
 matrix would hide an error in the small (bending) entries behind the large
 (axial) ones.
 
-Example
--------
+Examples
+--------
 >>> from flexmbs.analysis.checks import check_tangent
 >>> check_tangent(nen=3).max_relative_error < 1e-6
 True

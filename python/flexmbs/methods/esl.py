@@ -25,8 +25,8 @@ Since the internal forces and the tangent stiffness are linear in the section st
 K^b(p) = sum_e sum_j s_je(p) K_je^b, which gives dK^b/dp from the section property
 derivatives (`Case.element_property_derivatives`, `Section.property_derivatives`).
 
-Example
--------
+Examples
+--------
 >>> from flexmbs.methods.esl import TangentFrame, equivalent_static_loads   # doctest: +SKIP
 >>> loads = equivalent_static_loads(model, result, [("arm1", TangentFrame(arm1.first))])
 >>> loads["arm1"].g_eq.shape                     # (time steps, free body coordinates)

@@ -260,7 +260,8 @@ class OptimizationResult:
     variables, units : names and units of the design variables.
     design : (nv,) final design (the variables' own units).
     start : (nv,) starting design.
-    objective : the objective's value at `design`; objective_name : its response.
+    objective : the objective's value at `design`.
+    objective_name : its response.
     mass_kg : mass of the design (the objective when it is a mass response, else the mass of
         every beam), or None.
     max_violation : max(0, max g) of the final design in a fresh full simulation (g relative
@@ -269,7 +270,8 @@ class OptimizationResult:
         design, or None when no deviation is constrained.
     iterations : cycles (weakly: MBS analyses) or optimizer iterations (fully).
     inner_iterations : summed iterations of the static problems (weakly), None (fully).
-    evaluations : distinct designs analysed; simulations : full simulations run.
+    evaluations : distinct designs analysed.
+    simulations : full simulations run.
     converged, reason : the stopping test's verdict, in words.
     history : one record per cycle / iteration (see the module docstring).
     wall_time_s : wall time of the whole run.

@@ -50,8 +50,8 @@ checked against ALL constraints by a simulation: details `max_violation` and `fe
 result's reason says when that design violates a constraint. An objective without a static
 form is a CaseError.
 
-Example
--------
+Examples
+--------
 >>> from flexmbs.optimize import optimize_weakly                            # doctest: +SKIP
 >>> r = optimize_weakly("robot_2dof")                                      # doctest: +SKIP
 >>> round(r.mass_kg, 3)                                                    # doctest: +SKIP

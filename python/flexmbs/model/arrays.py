@@ -6,8 +6,8 @@ joints connect nodes by constraints (eq. 1). A model compiles, once per
 structure, into the flat arrays of the Fortran core; a change of section
 (a new design) only refreshes the element properties.
 
-Example
--------
+Examples
+--------
 >>> import numpy as np
 >>> from flexmbs import Model, Material, Circle, TimeLaw, simulate
 >>> steel = Material(E=210e9, nu=0.3, rho=7800)

@@ -26,8 +26,8 @@ link x row gives -(cos a - sin b) phid_i^2 + lawcoef law'', a y row -(sin a + co
 + lawcoef law''; a prismatic row, with e = R(phi_a) e0, e' = R(pi/2) e, d = x_b - x_a,
 -(-e.d phid_a^2 + 2 phid_a e'.(xd_b - xd_a)) + lawcoef law''.
 
-Example
--------
+Examples
+--------
 >>> import numpy as np
 >>> from flexmbs import Model, Circle, Material
 >>> from flexmbs.model.constraints import constraint_values, law_tables

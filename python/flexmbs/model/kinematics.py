@@ -31,8 +31,8 @@ identically.
 - `drive_velocities` is the rigid-body velocity field the drives impose at one state (for a
   start from rest of a moving mechanism).
 
-Example
--------
+Examples
+--------
 >>> import numpy as np
 >>> from flexmbs import Model, Material, Circle, TimeLaw
 >>> from flexmbs.model.kinematics import rigid_reference, drive_velocities

@@ -82,7 +82,9 @@ class Material:
 
     Parameters
     ----------
-    E : Young's modulus (Pa).  nu : Poisson's ratio.  rho : density (kg/m^3).
+    E : Young's modulus (Pa).
+    nu : Poisson's ratio.
+    rho : density (kg/m^3).
     damping_time : the Kelvin–Voigt (retardation) time eta (s), default 0 (undamped):
         every stress resultant of a beam gets a viscous part eta D dGamma/dt (D = EA, kGA,
         EI; fortran/beam2d.f90), stiffness-proportional damping whose modal damping ratio
@@ -92,6 +94,8 @@ class Material:
         frequency), giving eta = 2 zeta / (2 pi f). Both or neither, and not with
         `damping_time`.
 
+    Notes
+    -----
     Damping has no static effect (the forces depend on the strain rates) and does not
     change the stress responses, which are the elastic D Gamma.
     """

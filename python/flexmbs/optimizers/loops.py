@@ -117,9 +117,10 @@ def kkt_residual(df, g, dg, x, lower, upper, active_tol=1e-3):
 
     Parameters
     ----------
-    df : (n,) objective gradient; g : (m,) constraints (<= 0 feasible, relative: 0 is the
-    limit); dg : (m, n) their gradients; x, lower, upper : (n,) the design and its bounds
-    (same scaling as df and dg).
+    df : (n,) objective gradient
+    g : (m,) constraints (<= 0 feasible, relative: 0 is the limit)
+    dg : (m, n) their gradients
+    x, lower, upper : (n,) the design and its bounds (same scaling as df and dg)
     active_tol : float, default 1e-3
 
     Returns

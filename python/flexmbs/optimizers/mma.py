@@ -184,6 +184,8 @@ class MMA:
         conservativeness (they are satisfied with a margin; Svanberg checks all of them, which
         with one constraint per time step spends inner iterations on irrelevant steps).
 
+    Notes
+    -----
     Use (GCMMA)::
 
         x_trial = mma.step(x, f0, df0, f, df)

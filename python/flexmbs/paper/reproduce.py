@@ -21,8 +21,8 @@ the published optimum of their method, with their own checks (`variant_checks`).
 
 The command line is ``flexmbs reproduce`` (flexmbs/cli/reproduce.py).
 
-Example
--------
+Examples
+--------
 >>> from flexmbs.paper.reproduce import reproduce
 >>> from flexmbs.paper.report import publish
 >>> report = publish(reproduce([1], "reproduction", workers=2))   # doctest: +SKIP

@@ -10,8 +10,8 @@ into a given Axes) and, if `file` is given, saves it there. The figures:
   deviation response follows;
 - `plot_overview`: both side by side, the figure that ``flexmbs simulate --plot`` writes.
 
-Example
--------
+Examples
+--------
 >>> from flexmbs.problem import Problem
 >>> from flexmbs.visual.plots import plot_overview
 >>> prob = Problem("robot_2dof")
