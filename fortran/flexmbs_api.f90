@@ -261,7 +261,15 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
                     static_start=static_start /= 0, kscale=kscale, penalty=penalty, &
                     polish=polish /= 0)
     s%klu_analysis = transfer(klu_analysis, s%klu_analysis)
-    if (ntg > 1) s%tgrid = tg
+    if (ntg > 1) then          ! the non-uniform grid: allocated with its failure reported
+        allocate (s%tgrid(ntg), stat=stat)
+        if (stat /= 0) then
+            status = int(GA_NO_MEMORY, c_int)
+            info = [0.0_c_double, 8.0_c_double * ntg, 0.0_c_double, real(MEM_MODEL, c_double)]
+            return
+        end if
+        s%tgrid(:) = tg
+    end if
     if (nv > 0 .and. want_dmu /= 0 .and. ndmu >= nc) then
         call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
                          mu_out, st, stat, info, dprop(:, :, 1:nv), int(sens_dofs), dq_out(:, 1:nv, :), &
@@ -384,7 +392,15 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
                     max_cuts=int(max_cuts), solver=int(solver), static_start=static_start /= 0, &
                     kscale=kscale, penalty=penalty)
     s%klu_analysis = transfer(klu_analysis, s%klu_analysis)
-    if (ntg > 1) s%tgrid = tg
+    if (ntg > 1) then          ! the non-uniform grid: allocated with its failure reported
+        allocate (s%tgrid(ntg), stat=stat)
+        if (stat /= 0) then
+            status = int(GA_NO_MEMORY, c_int)
+            info = [0.0_c_double, 8.0_c_double * ntg, 0.0_c_double, real(MEM_MODEL, c_double)]
+            return
+        end if
+        s%tgrid(:) = tg
+    end if
     if (have_in /= 0) then
         call ga_adjoint(m, s, int(ap), int(ai), q0, qd0, qt, qdt, qddt, mut, th, int(grid), gq, gmu, &
                         dprop(:, 1:max(nel, 0), :), grad, gprop(:, 1:max(nel, 0), :), stat, info, &
