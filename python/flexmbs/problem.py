@@ -20,9 +20,10 @@ simulations in all whatever the number of variables (measured from 4 to 2048);
 from __future__ import annotations
 
 import time as _time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -69,13 +70,21 @@ GRADIENT_METHODS = ("direct", "adjoint", "auto")
 #: with every state stored and its factorization per step
 ADJOINT_MARGIN = 4
 ADJOINT_MIN_VARIABLES = 16     # docs/adjoint.md 4e: direct is faster below 8-16 variables
-#: the adjoint evaluates the responses' per-step partials on identity derivatives, in chunks of
-#: columns of at most this many bytes
-ADJOINT_CHUNK_BYTES = 32e6
-#: response types whose values depend on the design directly, not only through the motion (a
-#: stress through the section depth): the adjoint evaluates their partials with respect to the
-#: design variables too; a new response type of that kind must be listed here
-EXPLICIT_DESIGN_RESPONSES = (Stress,)
+
+
+class Partials(NamedTuple):
+    """The per-step partial derivatives of a history response (nt steps) for the adjoint's
+    right-hand sides (`Problem._partials`): dofs, the coordinates it reads ((m,), the same at
+    every step, or (nt, m), distinct within a step); dq (nt, m), with respect to them; dmu
+    (nt, nc) or None, with respect to the constraint multipliers; design (nt, nv) or None,
+    with respect to the design variables directly (a stress through its section depth; the
+    rest of its dependence on the design goes through the motion)."""
+    dofs: np.ndarray
+    dq: np.ndarray
+    dmu: np.ndarray | None
+    design: np.ndarray | None
+
+
 #: The part of an adjoint's MemoryEstimate (Problem.memory_estimate) holding the per-step
 #: partials of the backward pass (flexmbs.analysis.adjoint.adjoint_memory).
 ADJOINT_PART = "adjoint's per-step partials"
@@ -528,9 +537,6 @@ class Problem:
                 parts.append(deviation_terms(node, ref, result, t, frame, rel, gradient))
             return deviation(parts, gradient)
         if isinstance(r, Stress):
-            virtual = getattr(result, "_virtual", None)
-            if gradient and virtual is not None:
-                return self._stress_partials(r, x, result, virtual, model)
             # the largest normal stress over the beams' elements and stations, step by step
             vals, grads = [], []
             for b, stations, k in self._stress_places(r):
@@ -570,33 +576,31 @@ class Problem:
         p = self._point(r.at.body, r.at)
         return [(p.body, [p.xi], slice(p.index, p.index + 1))]
 
-    def _stress_partials(self, r, x, result, virtual, model):
-        """A Stress response and its partials on the adjoint's virtual columns (`virtual` =
-        (number of coordinate and force columns, the chunk's column ids); coordinate column k
-        is result.sens_dofs[k], the design columns follow the forces): the value at each step
-        is the largest station's, so its partials are those of that station only, with respect
-        to its element's coordinates and half depth (beam_stress(local=True)): no identity
-        derivatives pushed through every element."""
-        front, cols = virtual
-        cache = getattr(result, "_cache", None)
-        if cache is not None and r.name in cache:
-            v, j, dloc, ddc, dofs, dcs = cache[r.name]
-        else:
+    def _partials(self, r, x, result, model, nc):
+        """Value (nt,) of a history response r on the adjoint's forward run and its partials
+        at every step, all steps at once, as `Partials`: with respect to the coordinates it
+        reads, the constraint multipliers and (a stress, through its section depth) the
+        design variables.
+
+        A stress's value at each step is its largest station's, so its partials are that
+        station's, with respect to its element's coordinates and half depth
+        (beam_stress(local=True)). Any other response reads the coordinates of a few nodes
+        (`_nodes_needed`) and the multipliers: it is evaluated once with identity derivatives
+        of those columns only (len(dofs) + nc per step)."""
+        nt = result.q.shape[0]
+        if isinstance(r, Stress):
             v, j, dloc, ddc, dofs, dcs = self._stress_local(r, x, result, model)
-            if cache is not None:
-                cache[r.name] = (v, j, dloc, ddc, dofs, dcs)
-        rows = np.arange(v.shape[0])
-        pos = np.full(front + dcs.shape[1], -1)                        # virtual id -> column
-        pos[cols] = np.arange(cols.size)
-        out = np.zeros((v.shape[0], cols.size))
-        k = pos[np.searchsorted(np.asarray(result.sens_dofs), dofs)]   # coordinate columns
-        n_idx = np.broadcast_to(rows[:, None], k.shape)
-        ok = k >= 0
-        np.add.at(out, (n_idx[ok], k[ok]), dloc[ok])
-        kd = pos[front + np.arange(dcs.shape[1])]                      # design columns
-        okd = kd >= 0
-        out[:, kd[okd]] += ddc[:, None] * dcs[:, okd]
-        return v[rows, j], out
+            return v[np.arange(nt), j], Partials(dofs, dloc, None, ddc[:, None] * dcs)
+        dofs = np.array([3 * n + k for n in self._nodes_needed([r.name]) for k in range(3)],
+                        dtype=int)
+        m = dofs.size
+        eye = np.eye(m + nc)
+        vres = replace(result, sens_dofs=dofs,
+                       dq=np.broadcast_to(eye[:m], (nt, m, m + nc)),
+                       dmu=np.broadcast_to(eye[m:], (nt, nc, m + nc)))
+        value, g = self._response(r, x, vres, True, model=model)
+        g = np.asarray(g, float).reshape(nt, m + nc)
+        return value, Partials(dofs, g[:, :m], g[:, m:], None)
 
     def _stress_local(self, r, x, result, model):
         """(values, station index, its partials on its element's coordinates and half depth,
@@ -868,16 +872,13 @@ class Problem:
         """evaluate() with the gradients of the objective and constraint rows by the discrete
         adjoint (its forward run keeps the tape of every (sub-)step).
 
-        The responses are evaluated on the run with 'virtual' design variables: one per
-        differentiated coordinate and constraint row (dq, dmu identities) and the real ones
-        (explicit dependences, e.g. a stress's section depth): their gradients (nt, V) are
-        the per-step partials (the design columns only for responses that depend on the
-        design explicitly: a stress). The aggregation weights of each row over time come from
-        constraint_weights; weights times partials are the adjoint's right-hand sides
+        The responses of the objective and the constraints are evaluated on the run with
+        their partial derivatives at every step, all steps at once (`_partials`: with respect
+        to the few coordinates each reads, the multipliers and, for a stress, the design
+        directly). The aggregation weights of each row over time come from
+        constraint_weights; weights times partials, scattered into (nt, ndof, rows) and
+        (nt, nc, rows), are the adjoint's right-hand sides
         (flexmbs.analysis.adjoint.adjoint_gradient)."""
-        from dataclasses import replace
-
-
         mech = self.mechanism
         run = self._run(x, False, timed, store, tape=True)     # the design set once
         ckpt = self._check_adjoint_memory(x, timed, run)
@@ -887,42 +888,20 @@ class Problem:
             kw = dict(kw, tape=False, checkpoints=int(ckpt))
         result = simulate(model, t_end, h, **kw)
         result.stats["adjoint_checkpoints"] = ckpt
-        nodes = self._nodes_needed(timed)
-        sdofs = np.array([3 * n + k for n in (nodes or [0]) for k in range(3)])
         t = mech.t
-        nt, nsens, nc, nv = t.size, sdofs.size, result.mu.shape[1], len(mech.variables)
+        nt, nc, nv = t.size, result.mu.shape[1], len(mech.variables)
         dprop = mech.element_property_derivatives(x)
-        # design columns only for responses depending on the design explicitly (a stress's
-        # section depth); the others' partials there are zero
-        explicit = any(isinstance(r, EXPLICIT_DESIGN_RESPONSES) for r in self._resp.values())
-        nvirt = nsens + nc + (nv if explicit else 0)
-        values, partials, grads, cache = {}, {}, {}, {}
+        used = set(self.used_responses())
+        values, partials, grads = {}, {}, {}
         for name, r in self._resp.items():
             if isinstance(r, Mass):
                 values[name], grads[name] = self._response(r, x, None, True, dprop, model)
+                continue
+            grads[name] = np.zeros((nt, nv))
+            if name in used:
+                values[name], partials[name] = self._partials(r, x, result, model, nc)
             else:
-                partials[name] = []
-                grads[name] = np.zeros((nt, nv))
-        # the virtual columns in chunks of at most ADJOINT_CHUNK_BYTES of dq
-        width = max(1, min(nvirt, int(ADJOINT_CHUNK_BYTES // (8.0 * nt * max(nsens, nc, 1)))))
-        for c0 in range(0, nvirt, width):
-            cols = np.arange(c0, min(c0 + width, nvirt))
-            dq = np.zeros((nt, nsens, cols.size))
-            k = np.flatnonzero(cols < nsens)
-            dq[:, cols[k], k] = 1.0
-            dmu = np.zeros((nt, nc, cols.size))
-            k = np.flatnonzero((cols >= nsens) & (cols < nsens + nc))
-            dmu[:, cols[k] - nsens, k] = 1.0
-            vres = replace(result, sens_dofs=sdofs, dq=dq, dmu=dmu)
-            vres._virtual = (nsens + nc, cols)
-            vres._cache = cache
-            for name in partials:
-                values[name], part = self._response(self._resp[name], x, vres, True,
-                                                    model=model)
-                partials[name].append(np.asarray(part, float).reshape(nt, cols.size))
-        partials = {n: np.concatenate(p, axis=1) for n, p in partials.items()}
-        # the scalar responses' part, then the weights over time of every row (the rows'
-        # gradients are these weights times the histories' gradients)
+                values[name] = self._response(r, x, result, False, model=model)[0]
         cons, jac, names, _ = constraint_rows(self.description, values, grads, t, nv, True)
         obj = self.description.objective
         f = df = None
@@ -939,20 +918,28 @@ class Problem:
         if live:
             gq = np.zeros((nt, cm.ndof, len(live)))
             gmu = np.zeros((nt, nc, len(live)))
-            for i, k in enumerate(live):
-                n, w = rows[k]
+            steps = np.arange(nt)[:, None, None]
+            for n in dict.fromkeys(rows[k][0] for k in live):
+                # every live row of response n at once: weights over time W (nt, rows)
+                idx = np.array([i for i, k in enumerate(live) if rows[k][0] == n])
+                W = np.column_stack([rows[live[i]][1] for i in idx])
                 p = partials[n]
-                gq[:, sdofs, i] = w[:, None] * p[:, :nsens]
-                gmu[:, :, i] = w[:, None] * p[:, nsens:nsens + nc]
-                if explicit:
-                    out[k] = w @ p[:, nsens + nc:]
+                seed = p.dq[:, :, None] * W[:, None, :]
+                if p.dofs.ndim == 1:
+                    gq[np.ix_(np.arange(nt), p.dofs, idx)] += seed
+                else:
+                    gq[steps, p.dofs[:, :, None], idx[None, None, :]] += seed
+                if p.dmu is not None:
+                    gmu[:, :, idx] += p.dmu[:, :, None] * W[:, None, :]
+                if p.design is not None:
+                    out[np.asarray(live)[idx]] += W.T @ p.design
             out[live] += adjoint_gradient(model, result, dprop, gq, gmu).T
         jac = jac + out[:len(names)]
         if obj is not None:
             df = np.asarray(df, float) + out[-1]
         cons, jac, names = with_linear_rows(mech, x, cons, jac, names)
         return Evaluation(x=x, t=t, values=values,
-                          gradients={n: (None if n in partials else g) for n, g in grads.items()},
+                          gradients={n: (None if n in timed else g) for n, g in grads.items()},
                           objective=f, d_objective=df, constraints=cons, jacobian=jac,
                           constraint_names=names, stats=_stats(result),
                           wall_time=_time.perf_counter() - t0, gradient_method="adjoint",
