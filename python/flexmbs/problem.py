@@ -44,7 +44,7 @@ from flexmbs.responses.aggregate import aggregate, aggregate_weights
 from flexmbs.responses.deviation import deviation, deviation_terms
 from flexmbs.responses.forces import constraint_force, joint_reaction
 from flexmbs.responses.station import chord_deflection, locate, station_strain
-from flexmbs.responses.stress import beam_stress
+from flexmbs.responses.stress import beam_stress, normal_partials
 
 __all__ = ["Problem", "Evaluation", "load_problem", "constraint_rows", "GRADIENT_METHODS",
            "FEASIBILITY_TOL", "is_feasible"]
@@ -603,27 +603,35 @@ class Problem:
         return value, Partials(dofs, g[:, :m], g[:, m:], None)
 
     def _stress_local(self, r, x, result, model):
-        """(values, station index, its partials on its element's coordinates and half depth,
-        those coordinates, dc/dp of its element) at each step of a Stress response."""
+        """(values (nt, stations), station index j (nt,), its partials on its element's
+        coordinates (nt, 3 nen) and half depth (nt,), those coordinates (nt, 3 nen), dc/dp of
+        its element (nt, nv)) at each step of a Stress response: the partials of the largest
+        station of each step only (flexmbs.responses.stress.normal_partials)."""
         mech = self.mechanism
-        vals, dloc, ddc, dofs, dcs = [], [], [], [], []
+        places, vals = [], []
         for b, stations, k in self._stress_places(r):
             c, dc = mech.half_depths(x, b)
-            bs = beam_stress(model, result, b, stations=stations, local=True)
+            bs = beam_stress(model, result, b, stations=stations)
             normal = bs.normal[:, k]
             nt, nel, nst = normal.shape
+            places.append((b, bs, np.arange(bs.normal.shape[1])[k], nst, dc))
             vals.append(normal.reshape(nt, -1))
-            dloc.append(bs.d_normal_local[:, k].reshape(nt, nel * nst, -1))
-            ddc.append(bs.d_normal_dc[:, k].reshape(nt, -1))
-            dofs.append(np.repeat(bs.dofs[k], nst, axis=0))          # (nel nst, 3 nen)
-            dcs.append(np.repeat(dc[k], nst, axis=0))                # (nel nst, nv)
+        offsets = np.cumsum([0] + [v.shape[1] for v in vals])
         v = np.concatenate(vals, axis=1)
         j = np.argmax(v, axis=1)
-        rows = np.arange(v.shape[0])
-        dloc = np.concatenate(dloc, axis=1)[rows, j]                   # (nt, 3 nen)
-        ddc = np.concatenate(ddc, axis=1)[rows, j]                     # (nt,)
-        dofs = np.concatenate(dofs, axis=0)[j]                         # (nt, 3 nen)
-        dcs = np.concatenate(dcs, axis=0)[j]                           # (nt, nv)
+        owner = np.searchsorted(offsets, j, side="right") - 1
+        dloc = ddc = dofs = dcs = None
+        for i, (b, bs, elems, nst, dc) in enumerate(places):
+            steps = np.flatnonzero(owner == i)
+            if steps.size == 0:
+                continue
+            local = j[steps] - offsets[i]
+            el = elems[local // nst]
+            d_dofs, d, d_dc = normal_partials(model, result, b, bs, steps, el, local % nst)
+            if dloc is None:
+                dloc, dofs = np.zeros((nt, d.shape[1])), np.zeros((nt, d.shape[1]), int)
+                ddc, dcs = np.zeros(nt), np.zeros((nt, dc.shape[1]))
+            dloc[steps], dofs[steps], ddc[steps], dcs[steps] = d, d_dofs, d_dc, dc[el]
         return v, j, dloc, ddc, dofs, dcs
 
     def _reaction(self, joint, rows, component, result, gradient):
