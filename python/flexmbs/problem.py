@@ -310,7 +310,7 @@ class Problem:
         flexmbs.analysis.adaptive."""
         mech = self.mechanism
         x = mech.start if x is None else mech.design_values(x)
-        timed = [n for n, r in self._resp.items() if not isinstance(r, Mass)]
+        timed = self._timed()
         if not timed:
             return {}
         model, t_end, h, kw = self._run(x, False, timed, None, steps=steps)
@@ -387,29 +387,45 @@ class Problem:
     def _point_nodes(p):
         return list(p.nodes) if hasattr(p, "nodes") else [p]
 
+    def _kind(self, r):
+        """The ResponseKind of response r (`RESPONSE_KINDS`, by its description class)."""
+        for cls in type(r).__mro__:
+            if cls in RESPONSE_KINDS:
+                return RESPONSE_KINDS[cls]
+        raise ModelError(f"response {r.name!r}: type {r.type!r} cannot be evaluated")
+
+    def _timed(self):
+        """The names of the responses that are histories of a simulation (not a mass)."""
+        return [n for n, r in self._resp.items() if self._kind(r).timed]
+
     def _nodes_needed(self, names):
-        mech = self.mechanism
         nodes = set()
         for n in names:
             r = self._resp[n]
-            if isinstance(r, Deviation):
-                for t in r.terms:
-                    nodes.update(self._point_nodes(self._point(t.body, t.at)))
-                    if t.relative_to is not None:
-                        nodes.update(self._point_nodes(
-                            self._point(t.relative_to.body, t.relative_to.at)))
-            elif isinstance(r, Stress):
-                for b in r.beams:
-                    nodes.update(mech.model.body(b).nodes)
-            elif isinstance(r, (Deflection, Strain)):
-                p = self._point(r.at.body, r.at)
-                nodes.update(self._point_nodes(p))
-                if isinstance(r, Deflection):
-                    nodes.update((p.first, p.last))
+            kind = self._kind(r)
+            if kind.nodes is not None:
+                nodes.update(kind.nodes(self, r))
         return sorted(nodes)
 
+    def _deviation_nodes(self, r):
+        for t in r.terms:
+            yield from self._point_nodes(self._point(t.body, t.at))
+            if t.relative_to is not None:
+                yield from self._point_nodes(self._point(t.relative_to.body, t.relative_to.at))
+
+    def _stress_nodes(self, r):
+        for b in r.beams:
+            yield from self.mechanism.model.body(b).nodes
+
+    def _station_nodes(self, r):
+        return self._point_nodes(self._point(r.at.body, r.at))
+
+    def _deflection_nodes(self, r):
+        p = self._point(r.at.body, r.at)
+        return self._point_nodes(p) + [p.first, p.last]
+
     def _needs_forces(self, names):
-        return any(isinstance(self._resp[n], (Torque, Reaction)) for n in names)
+        return any(self._kind(self._resp[n]).forces for n in names)
 
     def _run(self, x, gradient, responses, store, differentiate=None, tape=False,
              checkpoints=None, steps=None):
@@ -494,7 +510,7 @@ class Problem:
         (flexmbs.analysis.adjoint.checkpoint_memory); est.checkpoints tells the interval (None: the
         tape of every state)."""
         if responses is None:
-            responses = [n for n, r in self._resp.items() if not isinstance(r, Mass)]
+            responses = self._timed()
             if not responses and store is None:
                 return None
         want = self._gradient_names(gradient) if self.mechanism.variables else []
@@ -509,64 +525,72 @@ class Problem:
         """Value and gradient (or None) of response r at design x on simulation `result`;
         dprop: mechanism.element_property_derivatives(x) when already computed (Mass);
         model: the model of design x (mechanism.design_model(x)) when already made."""
+        kind = self._kind(r)
+        if model is None and kind.design_model:
+            model = self.mechanism.design_model(x)
+        return kind.value(self, r, x, result, gradient, model, dprop)
+
+    def _mass_value(self, r, x, result, gradient, model, dprop):
         mech = self.mechanism
-        if model is None and isinstance(r, (Mass, Stress)):
-            model = mech.design_model(x)
-        if isinstance(r, Mass):
-            bodies = r.bodies if r.bodies is not None else mech.beams
-            m = model
-            if gradient and dprop is None:
-                dprop = mech.element_property_derivatives(x)
-            props = m.element_properties()
-            value, grad = 0.0, np.zeros(len(mech.variables))
-            for b in bodies:
-                for e in m.body(b).elements:
-                    length = m._elements[e][1]
-                    value += length * props[3, e]
-                    if gradient:
-                        grad += length * dprop[3, e]
-            return value, (grad if gradient else None)
-        if isinstance(r, Deviation):
-            ref = mech.reference          # the reference coordinates of these nodes only
-            parts = []
-            for t in r.terms:
-                node = self._point(t.body, t.at)
-                rel = self._point(t.relative_to.body, t.relative_to.at) \
-                    if t.relative_to is not None else None
-                frame = mech.model.body(t.frame).first if t.frame != "ground" else None
-                parts.append(deviation_terms(node, ref, result, t, frame, rel, gradient))
-            return deviation(parts, gradient)
-        if isinstance(r, Stress):
-            # the largest normal stress over the beams' elements and stations, step by step
-            vals, grads = [], []
-            for b, stations, k in self._stress_places(r):
-                c, dc = mech.half_depths(x, b)
-                bs = beam_stress(model, result, b, stations=stations,
-                                 dc=dc if gradient else None)
-                nt = bs.normal.shape[0]
-                vals.append(bs.normal[:, k].reshape(nt, -1))
+        bodies = r.bodies if r.bodies is not None else mech.beams
+        if gradient and dprop is None:
+            dprop = mech.element_property_derivatives(x)
+        props = model.element_properties()
+        value, grad = 0.0, np.zeros(len(mech.variables))
+        for b in bodies:
+            for e in model.body(b).elements:
+                length = model._elements[e][1]
+                value += length * props[3, e]
                 if gradient:
-                    grads.append(bs.d_normal[:, k].reshape(nt, vals[-1].shape[1], -1))
-            v = np.concatenate(vals, axis=1)
-            j = np.argmax(v, axis=1)
-            rows = np.arange(v.shape[0])
-            return v[rows, j], (np.concatenate(grads, axis=1)[rows, j] if gradient else None)
-        if isinstance(r, Deflection):
-            return chord_deflection(result, self._point(r.at.body, r.at), gradient)
-        if isinstance(r, Strain):
-            return station_strain(model or mech.model, result, self._point(r.at.body, r.at),
-                                  r.component, gradient)
-        if isinstance(r, Torque):
-            # the force of the drive's row: the torque on its body (the module's convention)
-            k = [dr.name for dr in self.description.drives].index(r.drive)
-            rows = mech.drive_rows[k]
-            return constraint_force(mech.model, result, rows[0],
-                                    result.dmu if gradient else None)
-        if isinstance(r, Reaction):
-            k = [j.name for j in self.description.joints].index(r.joint)
-            return self._reaction(self.description.joints[k], mech.joint_rows[k], r.component,
-                                  result, gradient)
-        raise ModelError(f"response {r.name!r}: type {r.type!r} cannot be evaluated")
+                    grad += length * dprop[3, e]
+        return value, (grad if gradient else None)
+
+    def _deviation_value(self, r, x, result, gradient, model, dprop):
+        mech = self.mechanism
+        ref = mech.reference          # the reference coordinates of these nodes only
+        parts = []
+        for t in r.terms:
+            node = self._point(t.body, t.at)
+            rel = self._point(t.relative_to.body, t.relative_to.at) \
+                if t.relative_to is not None else None
+            frame = mech.model.body(t.frame).first if t.frame != "ground" else None
+            parts.append(deviation_terms(node, ref, result, t, frame, rel, gradient))
+        return deviation(parts, gradient)
+
+    def _stress_value(self, r, x, result, gradient, model, dprop):
+        # the largest normal stress over the beams' elements and stations, step by step
+        vals, grads = [], []
+        for b, stations, k in self._stress_places(r):
+            c, dc = self.mechanism.half_depths(x, b)
+            bs = beam_stress(model, result, b, stations=stations,
+                             dc=dc if gradient else None)
+            nt = bs.normal.shape[0]
+            vals.append(bs.normal[:, k].reshape(nt, -1))
+            if gradient:
+                grads.append(bs.d_normal[:, k].reshape(nt, vals[-1].shape[1], -1))
+        v = np.concatenate(vals, axis=1)
+        j = np.argmax(v, axis=1)
+        rows = np.arange(v.shape[0])
+        return v[rows, j], (np.concatenate(grads, axis=1)[rows, j] if gradient else None)
+
+    def _deflection_value(self, r, x, result, gradient, model, dprop):
+        return chord_deflection(result, self._point(r.at.body, r.at), gradient)
+
+    def _strain_value(self, r, x, result, gradient, model, dprop):
+        return station_strain(model or self.mechanism.model, result,
+                              self._point(r.at.body, r.at), r.component, gradient)
+
+    def _torque_value(self, r, x, result, gradient, model, dprop):
+        # the force of the drive's row: the torque on its body (the module's convention)
+        k = [dr.name for dr in self.description.drives].index(r.drive)
+        rows = self.mechanism.drive_rows[k]
+        return constraint_force(self.mechanism.model, result, rows[0],
+                                result.dmu if gradient else None)
+
+    def _reaction_value(self, r, x, result, gradient, model, dprop):
+        k = [j.name for j in self.description.joints].index(r.joint)
+        return self._reaction(self.description.joints[k], self.mechanism.joint_rows[k],
+                              r.component, result, gradient)
 
     def _stress_places(self, r):
         """(beam, stations of beam_stress, element slice) of a Stress response: every element
@@ -580,17 +604,15 @@ class Problem:
         """Value (nt,) of a history response r on the adjoint's forward run and its partials
         at every step, all steps at once, as `Partials`: with respect to the coordinates it
         reads, the constraint multipliers and (a stress, through its section depth) the
-        design variables.
+        design variables (its kind's `partials`)."""
+        return self._kind(r).partials(self, r, x, result, model, nc)
 
-        A stress's value at each step is its largest station's, so its partials are that
-        station's, with respect to its element's coordinates and half depth
-        (beam_stress(local=True)). Any other response reads the coordinates of a few nodes
-        (`_nodes_needed`) and the multipliers: it is evaluated once with identity derivatives
-        of those columns only (len(dofs) + nc per step)."""
+    def _identity_partials(self, r, x, result, model, nc):
+        """`_partials` of a response that reads the coordinates of a few nodes
+        (`_nodes_needed`) and the multipliers, and the design through the motion only: it is
+        evaluated once with identity derivatives of those columns (len(dofs) + nc per
+        step)."""
         nt = result.q.shape[0]
-        if isinstance(r, Stress):
-            v, j, dloc, ddc, dofs, dcs = self._stress_local(r, x, result, model)
-            return v[np.arange(nt), j], Partials(dofs, dloc, None, ddc[:, None] * dcs)
         dofs = np.array([3 * n + k for n in self._nodes_needed([r.name]) for k in range(3)],
                         dtype=int)
         m = dofs.size
@@ -601,6 +623,13 @@ class Problem:
         value, g = self._response(r, x, vres, True, model=model)
         g = np.asarray(g, float).reshape(nt, m + nc)
         return value, Partials(dofs, g[:, :m], g[:, m:], None)
+
+    def _stress_partials(self, r, x, result, model, nc):
+        """`_partials` of a Stress: its value at each step is its largest station's, so its
+        partials are that station's, with respect to its element's coordinates and half
+        depth (`_stress_local`)."""
+        v, j, dloc, ddc, dofs, dcs = self._stress_local(r, x, result, model)
+        return v[np.arange(v.shape[0]), j], Partials(dofs, dloc, None, ddc[:, None] * dcs)
 
     def _stress_local(self, r, x, result, model):
         """(values (nt, stations), station index j (nt,), its partials on its element's
@@ -685,10 +714,10 @@ class Problem:
         t = self.mechanism.t
         n = 0
         obj = self.description.objective
-        if obj is not None and not isinstance(self._resp[obj.response], Mass):
+        if obj is not None and self._kind(self._resp[obj.response]).timed:
             n += 1
         for c in self.description.constraints:
-            if isinstance(self._resp[c.response], Mass):
+            if not self._kind(self._resp[c.response]).timed:
                 continue
             bounds = (c.upper is not None) + (c.lower is not None)
             n += bounds * (t.size if c.over == "every_step" else 1)
@@ -767,7 +796,7 @@ class Problem:
         x = mech.start if x is None else mech.design_values(x)
         want = self._gradient_names(gradient) if mech.variables else []
         gradient = bool(want)
-        timed = [n for n, r in self._resp.items() if not isinstance(r, Mass)]
+        timed = self._timed()
         chosen = self.gradient_method(method)
         if gradient and timed and chosen == "adjoint":
             return self._evaluate_adjoint(x, timed, t0, store)
@@ -902,7 +931,7 @@ class Problem:
         used = set(self.used_responses())
         values, partials, grads = {}, {}, {}
         for name, r in self._resp.items():
-            if isinstance(r, Mass):
+            if not self._kind(r).timed:
                 values[name], grads[name] = self._response(r, x, None, True, dprop, model)
                 continue
             grads[name] = np.zeros((nt, nv))
@@ -980,6 +1009,39 @@ class Problem:
                   if c.upper is not None and isinstance(self._resp[c.response], Deviation)]
         return min(limits) if limits else None
 
+
+
+class ResponseKind(NamedTuple):
+    """How a Problem evaluates one type of response (`RESPONSE_KINDS`): a new response type
+    is a description class (flexmbs.model.description) and one entry here.
+
+    value(problem, r, x, result, gradient, model, dprop): its value and gradient (or None);
+    nodes(problem, r): the nodes whose coordinates it reads (None: none); forces: it reads the
+    constraint multipliers (motor torques, joint reactions); timed: a history of the
+    simulation (False: a function of the design alone, a mass); design_model: its value needs
+    the design's model (sections); partials(problem, r, x, result, model, nc): its value and
+    `Partials` at every step for the adjoint (default: identity derivatives of the
+    coordinates it reads and of the multipliers, right for a response that depends on the
+    design through the motion only)."""
+    value: object
+    nodes: object = None
+    forces: bool = False
+    timed: bool = True
+    design_model: bool = False
+    partials: object = Problem._identity_partials
+
+
+#: the response types a Problem evaluates, by description class
+RESPONSE_KINDS = {
+    Mass: ResponseKind(Problem._mass_value, timed=False, design_model=True),
+    Deviation: ResponseKind(Problem._deviation_value, Problem._deviation_nodes),
+    Stress: ResponseKind(Problem._stress_value, Problem._stress_nodes, design_model=True,
+                         partials=Problem._stress_partials),
+    Deflection: ResponseKind(Problem._deflection_value, Problem._deflection_nodes),
+    Strain: ResponseKind(Problem._strain_value, Problem._station_nodes),
+    Torque: ResponseKind(Problem._torque_value, forces=True),
+    Reaction: ResponseKind(Problem._reaction_value, forces=True),
+}
 
 def _stats(result):
     """An Evaluation's stats: the simulation's (Result.stats) with its wall_time (s); {}
