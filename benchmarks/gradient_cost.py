@@ -14,8 +14,13 @@ Rows:
   bodies.arm2.elements = E), so nv = 4 E variables; the model grows with E too (3 (4 E + 2)
   coordinates), so every column is also given relative to the simulation of the same model.
 
-For each row it times (wall time, best of a few repeats, sim and adjoint interleaved;
---repeat-large for the largest):
+With --case-constraints the tapered rows keep the case's own responses and constraints instead:
+the KS deviation (28) and the KS stress of both arms (2 functionals; direct differentiation
+is then not run beyond 32 variables unless --direct-max says so: the stress's derivatives of
+every node of the arms).
+
+For each row it times (wall time, or with --cpu the process's CPU time; best of a few
+repeats, sim and adjoint interleaved; --repeat-large for the largest):
 
 - sim: `evaluate(x, gradient=False)`, the simulation and the responses;
 - direct: `evaluate(x, gradient='used', method='direct')` (nv right-hand sides per step);
@@ -29,6 +34,7 @@ Direct differentiation is not run beyond --direct-max variables (default 128; at
 about a minute, at 2048 some 15 minutes: its cost grows like nv x elements).
 
     nice .venv/bin/python benchmarks/gradient_cost.py [--t-end 0.65] [E ...]   # default 1 8 32 128 512
+    nice .venv/bin/python benchmarks/gradient_cost.py --no-robot --case-constraints --cpu 64
 """
 import argparse
 import importlib
@@ -50,49 +56,52 @@ RESPONSES = [
                 "relative_to": {"body": "arm1", "at": "A"}}]},
     {"name": "mass", "type": "mass"}]
 CONSTRAINT = {"response": "deviation_28", "upper": 1.0e-3, "over": "ks", "parameter": 200.0}
+#: the clock of every timing: time.perf_counter (wall), or time.process_time with --cpu
+clock = time.perf_counter
 
 
 class _CoreTimer:
-    """Wall time of the core's forward runs and backward passes during a call (the modules'
-    `_core` replaced by a proxy for its duration)."""
+    """Time of the core's forward runs and backward passes during a call (the core's
+    functions `simulate_arrays` and `simulate_adjoint_arrays`, as the modules imported them,
+    replaced by timed proxies for its duration)."""
+
+    PATCHES = ((simulate_module, "simulate_arrays", "fwd"),
+               (adjoint_module, "simulate_arrays", "fwd"),
+               (adjoint_module, "simulate_adjoint_arrays", "bwd"))
 
     def __init__(self):
         self.fwd = self.bwd = 0.0
 
     def __enter__(self):
-        real = simulate_module._core
         timer = self
 
         def timed(call, field):
             def run(*a, **kw):
-                t0 = time.perf_counter()
+                t0 = clock()
                 try:
                     return call(*a, **kw)
                 finally:
-                    setattr(timer, field, getattr(timer, field) + time.perf_counter() - t0)
+                    setattr(timer, field, getattr(timer, field) + clock() - t0)
             return run
 
-        class Proxy:
-            simulate = staticmethod(timed(real.simulate, "fwd"))
-            simulate_adjoint = staticmethod(timed(real.simulate_adjoint, "bwd"))
-
-            def __getattr__(self, name):
-                return getattr(real, name)
-
-        self._real = real
-        simulate_module._core = adjoint_module._core = Proxy()
+        self._real = [(m, name, getattr(m, name)) for m, name, _ in self.PATCHES
+                      if hasattr(m, name)]
+        for m, name, field in self.PATCHES:
+            if hasattr(m, name):
+                setattr(m, name, timed(getattr(m, name), field))
         return self
 
     def __exit__(self, *exc):
-        simulate_module._core = adjoint_module._core = self._real
+        for m, name, real in self._real:
+            setattr(m, name, real)
 
 
 def best(f, repeat):
     ts = []
     for _ in range(repeat):
-        t0 = time.perf_counter()
+        t0 = clock()
         f()
-        ts.append(time.perf_counter() - t0)
+        ts.append(clock() - t0)
     return min(ts)
 
 
@@ -101,9 +110,9 @@ def best_split(f, repeat):
     out = None
     for _ in range(repeat):
         with _CoreTimer() as ct:
-            t0 = time.perf_counter()
+            t0 = clock()
             f()
-            total = time.perf_counter() - t0
+            total = clock() - t0
         if out is None or total < out[0]:
             out = (total, ct.fwd, ct.bwd)
     return out
@@ -147,12 +156,23 @@ def main():
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--repeat-large", type=int, default=1,
                     help="repeats beyond 128 variables (default 1)")
-    ap.add_argument("--direct-max", type=int, default=128,
-                    help="largest nv for which direct differentiation is run (beyond: '-')")
+    ap.add_argument("--direct-max", type=int, default=None,
+                    help="largest nv for which direct differentiation is run (beyond: '-'; "
+                         "default 128, 32 with --case-constraints)")
     ap.add_argument("--no-robot", action="store_true", help="skip the robot_2dof rows")
+    ap.add_argument("--case-constraints", action="store_true",
+                    help="tapered rows with the case's own KS deviation and KS stress "
+                         "constraints (direct not run beyond 32 variables by default)")
+    ap.add_argument("--cpu", action="store_true",
+                    help="time the process's CPU time instead of the wall time")
     args = ap.parse_args()
+    global clock
+    if args.cpu:
+        clock = time.process_time
+    if args.direct_max is None:
+        args.direct_max = 32 if args.case_constraints else 128
     t_begin = time.perf_counter()
-    print(f"t_end {args.t_end} s, h 5e-4; wall times in s (best of {args.repeat}), ratios to sim "
+    print(f"t_end {args.t_end} s, h 5e-4; {'CPU' if args.cpu else 'wall'} times in s (best of {args.repeat}), ratios to sim "
           "of the same model; adjoint split: fwd = forward run with the tape, bwd = backward "
           "pass, py = the rest (Python)")
     print(f"{'case':<16} {'nv':>5} {'ndof':>5} {'nf':>4} {'sim':>7} {'adjoint':>8} {'direct':>8} "
@@ -165,11 +185,12 @@ def main():
                                                     "constraints.0.parameter": 200.0}),
             args.repeat, args.direct_max)
     for e in args.elements:
-        p = Problem("robot_2dof_tapered_tubes", {
-            "time.t_end": args.t_end, "bodies.arm1.elements": e, "bodies.arm2.elements": e,
-            "responses": RESPONSES, "constraints": [dict(CONSTRAINT)]})
+        over = {"time.t_end": args.t_end, "bodies.arm1.elements": e, "bodies.arm2.elements": e}
+        if not args.case_constraints:
+            over.update({"responses": RESPONSES, "constraints": [dict(CONSTRAINT)]})
+        p = Problem("robot_2dof_tapered_tubes", over)
         rep = args.repeat if 4 * e <= 128 else args.repeat_large
-        row(f"tubes E={e}", p, rep, args.direct_max)
+        row(f"tubes{'+stress' if args.case_constraints else ''} E={e}", p, rep, args.direct_max)
     print(f"total {time.perf_counter() - t_begin:.0f} s")
 
 

@@ -179,19 +179,17 @@ def test_torques_and_reactions_three_arm_robot():
     assert max(_rel_by_response(adj, direct).values()) < REL
 
 
-@pytest.mark.parametrize("case,t_end,over,chunk", [("slider_crank_press", 0.02, "pnorm", None),
-                                                   ("slider_crank_press", 0.02, "ks", 1.0),
-                                                   ("fourbar_tubes", 0.01, "every_step", None)])
-def test_stress_responses(case, t_end, over, chunk, monkeypatch):
+@pytest.mark.parametrize("case,t_end,over", [("slider_crank_press", 0.02, "pnorm"),
+                                             ("slider_crank_press", 0.02, "ks"),
+                                             ("fourbar_tubes", 0.01, "every_step")])
+def test_stress_responses(case, t_end, over, monkeypatch):
     """Stresses (explicit dependence on the section depth) and spring-dampers (the press):
     adjoint against direct differentiation, 1e-8 relative, with the Newton tolerance at 1e-12
     for both runs (at the default 1e-10 the direct method's tangent, taken one Newton
     iteration before convergence, is 3e-8 off the converged one on the press stress; the
-    adjoint's is within 1e-9). 'every_step': one adjoint functional per step; chunk: the
-    responses' partials taken one virtual column at a time (ADJOINT_CHUNK_BYTES)."""
+    adjoint's is within 1e-9). 'every_step': one adjoint functional per step (the per-step
+    partials seeded into every row at once)."""
     monkeypatch.setattr(problem_module, "simulate", functools.partial(simulate, tol=1e-12))
-    if chunk is not None:
-        monkeypatch.setattr(problem_module, "ADJOINT_CHUNK_BYTES", chunk)
     p = _all_over(case, t_end, over)
     direct = p.evaluate(p.start, method="direct")
     adj = p.evaluate(p.start, method="adjoint")

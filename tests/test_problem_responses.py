@@ -222,3 +222,15 @@ def test_torque_of_an_unknown_drive_is_a_case_error():
     with pytest.raises(CaseError, match=r"response 'r': unknown joint 'hip' \(named joints: "
                                         r"elbow_hinge, shoulder_pin, wrist_hinge\)"):
         Problem(raw)
+
+
+def test_every_response_type_has_a_kind():
+    """Every response type a case may declare (flexmbs.model.description.Response) has its
+    entry in flexmbs.problem.RESPONSE_KINDS (how a Problem evaluates it, the nodes it reads,
+    its adjoint partials): a new type without one would fail only when a case uses it."""
+    import typing
+    from flexmbs.model.description import Response
+    from flexmbs.problem import RESPONSE_KINDS
+    union = typing.get_args(Response)[0]
+    assert set(typing.get_args(union)) == set(RESPONSE_KINDS)
+

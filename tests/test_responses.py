@@ -60,6 +60,49 @@ def test_cantilever_bending_stress_at_the_gauss_stations(section, order):
     assert np.allclose(st.von_mises, np.sqrt(st.normal ** 2 + 3 * st.shear ** 2), rtol=1e-14)
 
 
+
+@pytest.mark.parametrize("order", [2, 1], ids=["quadratic", "linear"])
+def test_normal_stress_partials_at_chosen_stations(order):
+    """normal_partials (the adjoint's seeds of a largest stress: one station per step) on a
+    cantilever under a tip load with an axial part (eps 1e-3 and kappa nonzero, far from the
+    kinks of |eps| and |kappa| at 0 for the step used): at chosen (step, element, station)
+    triples its partials with respect to the element's coordinates equal central
+    differences of beam_stress's normal stress in those coordinates (step 1e-7 m or rad:
+    truncation and rounding about 1e-9 relative; tolerance 1e-6), and equal
+    beam_stress(local=True)'s partials of every station, and its d/dc E |kappa|, to rounding
+    (1e-12 relative)."""
+    from dataclasses import replace
+    from flexmbs.responses.stress import normal_partials
+    section = fx.Tube(0.06, 0.005)
+    m, b = cantilever(section, 4, order)
+    EA, _, EI, _, _ = section.properties(STEEL)
+    m.add_load(b.last, fx=1e-3 * EA, fy=-1e-3 * EI)        # eps 1e-3, kappa up to 1e-3 / m
+    r = fx.simulate(m, 2e-3, 1e-3, start="static", store="all")
+    st = beam_stress(m, r, b, local=True)
+    nt, nel, nst = st.normal.shape
+    steps = np.array([0, nt - 1, nt - 1, 1])
+    elems = np.array([0, 3, 1, 2])
+    stats = np.array([0, nst - 1, 0, nst - 1])
+    dofs, d, d_dc = normal_partials(m, r, b, st, steps, elems, stats)
+    local = st.d_normal_local[steps, elems, stats]
+    assert np.array_equal(dofs, st.dofs[elems])
+    assert np.abs(d - local).max() < 1e-12 * np.abs(local).max()
+    ref = st.d_normal_dc[steps, elems, stats]
+    assert np.abs(d_dc - ref).max() < 1e-12 * np.abs(ref).max()
+    h = 1e-7
+    fd = np.zeros_like(d)
+    for i in range(steps.size):
+        for a in range(dofs.shape[1]):
+            col = int(np.searchsorted(r.dofs, dofs[i, a]))
+            plus, minus = r.q.copy(), r.q.copy()
+            plus[steps[i], col] += h
+            minus[steps[i], col] -= h
+            up = beam_stress(m, replace(r, q=plus), b).normal[steps[i], elems[i], stats[i]]
+            dn = beam_stress(m, replace(r, q=minus), b).normal[steps[i], elems[i], stats[i]]
+            fd[i, a] = (up - dn) / (2 * h)
+    assert np.abs(d - fd).max() < 1e-6 * np.abs(fd).max()
+
+
 def test_cantilever_root_stress_at_the_nodes():
     """Stations at the nodes: the root stress P L c / I (Euler-Bernoulli), exactly represented
     by the quadratic element's linear curvature, and P (L - h / 2) c / I for 2-node elements,

@@ -20,9 +20,10 @@ simulations in all whatever the number of variables (measured from 4 to 2048);
 from __future__ import annotations
 
 import time as _time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -43,7 +44,7 @@ from flexmbs.responses.aggregate import aggregate, aggregate_weights
 from flexmbs.responses.deviation import deviation, deviation_terms
 from flexmbs.responses.forces import constraint_force, joint_reaction
 from flexmbs.responses.station import chord_deflection, locate, station_strain
-from flexmbs.responses.stress import beam_stress
+from flexmbs.responses.stress import beam_stress, normal_partials
 
 __all__ = ["Problem", "Evaluation", "load_problem", "constraint_rows", "GRADIENT_METHODS",
            "FEASIBILITY_TOL", "is_feasible"]
@@ -69,13 +70,21 @@ GRADIENT_METHODS = ("direct", "adjoint", "auto")
 #: with every state stored and its factorization per step
 ADJOINT_MARGIN = 4
 ADJOINT_MIN_VARIABLES = 16     # docs/adjoint.md 4e: direct is faster below 8-16 variables
-#: the adjoint evaluates the responses' per-step partials on identity derivatives, in chunks of
-#: columns of at most this many bytes
-ADJOINT_CHUNK_BYTES = 32e6
-#: response types whose values depend on the design directly, not only through the motion (a
-#: stress through the section depth): the adjoint evaluates their partials with respect to the
-#: design variables too; a new response type of that kind must be listed here
-EXPLICIT_DESIGN_RESPONSES = (Stress,)
+
+
+class Partials(NamedTuple):
+    """The per-step partial derivatives of a history response (nt steps) for the adjoint's
+    right-hand sides (`Problem._partials`): dofs, the coordinates it reads ((m,), the same at
+    every step, or (nt, m), distinct within a step); dq (nt, m), with respect to them; dmu
+    (nt, nc) or None, with respect to the constraint multipliers; design (nt, nv) or None,
+    with respect to the design variables directly (a stress through its section depth; the
+    rest of its dependence on the design goes through the motion)."""
+    dofs: np.ndarray
+    dq: np.ndarray
+    dmu: np.ndarray | None
+    design: np.ndarray | None
+
+
 #: The part of an adjoint's MemoryEstimate (Problem.memory_estimate) holding the per-step
 #: partials of the backward pass (flexmbs.analysis.adjoint.adjoint_memory).
 ADJOINT_PART = "adjoint's per-step partials"
@@ -303,7 +312,7 @@ class Problem:
         flexmbs.analysis.adaptive."""
         mech = self.mechanism
         x = mech.start if x is None else mech.design_values(x)
-        timed = [n for n, r in self._resp.items() if not isinstance(r, Mass)]
+        timed = self._timed()
         if not timed:
             return {}
         model, t_end, h, kw = self._run(x, False, timed, None, steps=steps)
@@ -380,29 +389,45 @@ class Problem:
     def _point_nodes(p):
         return list(p.nodes) if hasattr(p, "nodes") else [p]
 
+    def _kind(self, r):
+        """The ResponseKind of response r (`RESPONSE_KINDS`, by its description class)."""
+        for cls in type(r).__mro__:
+            if cls in RESPONSE_KINDS:
+                return RESPONSE_KINDS[cls]
+        raise ModelError(f"response {r.name!r}: type {r.type!r} cannot be evaluated")
+
+    def _timed(self):
+        """The names of the responses that are histories of a simulation (not a mass)."""
+        return [n for n, r in self._resp.items() if self._kind(r).timed]
+
     def _nodes_needed(self, names):
-        mech = self.mechanism
         nodes = set()
         for n in names:
             r = self._resp[n]
-            if isinstance(r, Deviation):
-                for t in r.terms:
-                    nodes.update(self._point_nodes(self._point(t.body, t.at)))
-                    if t.relative_to is not None:
-                        nodes.update(self._point_nodes(
-                            self._point(t.relative_to.body, t.relative_to.at)))
-            elif isinstance(r, Stress):
-                for b in r.beams:
-                    nodes.update(mech.model.body(b).nodes)
-            elif isinstance(r, (Deflection, Strain)):
-                p = self._point(r.at.body, r.at)
-                nodes.update(self._point_nodes(p))
-                if isinstance(r, Deflection):
-                    nodes.update((p.first, p.last))
+            kind = self._kind(r)
+            if kind.nodes is not None:
+                nodes.update(kind.nodes(self, r))
         return sorted(nodes)
 
+    def _deviation_nodes(self, r):
+        for t in r.terms:
+            yield from self._point_nodes(self._point(t.body, t.at))
+            if t.relative_to is not None:
+                yield from self._point_nodes(self._point(t.relative_to.body, t.relative_to.at))
+
+    def _stress_nodes(self, r):
+        for b in r.beams:
+            yield from self.mechanism.model.body(b).nodes
+
+    def _station_nodes(self, r):
+        return self._point_nodes(self._point(r.at.body, r.at))
+
+    def _deflection_nodes(self, r):
+        p = self._point(r.at.body, r.at)
+        return self._point_nodes(p) + [p.first, p.last]
+
     def _needs_forces(self, names):
-        return any(isinstance(self._resp[n], (Torque, Reaction)) for n in names)
+        return any(self._kind(self._resp[n]).forces for n in names)
 
     def _run(self, x, gradient, responses, store, differentiate=None, tape=False,
              checkpoints=None, steps=None):
@@ -502,7 +527,7 @@ class Problem:
         (flexmbs.analysis.adjoint.checkpoint_memory); est.checkpoints tells the interval (None: the
         tape of every state)."""
         if responses is None:
-            responses = [n for n, r in self._resp.items() if not isinstance(r, Mass)]
+            responses = self._timed()
             if not responses and store is None:
                 return None
         want = self._gradient_names(gradient) if self.mechanism.variables else []
@@ -517,67 +542,72 @@ class Problem:
         """Value and gradient (or None) of response r at design x on simulation `result`;
         dprop: mechanism.element_property_derivatives(x) when already computed (Mass);
         model: the model of design x (mechanism.design_model(x)) when already made."""
+        kind = self._kind(r)
+        if model is None and kind.design_model:
+            model = self.mechanism.design_model(x)
+        return kind.value(self, r, x, result, gradient, model, dprop)
+
+    def _mass_value(self, r, x, result, gradient, model, dprop):
         mech = self.mechanism
-        if model is None and isinstance(r, (Mass, Stress)):
-            model = mech.design_model(x)
-        if isinstance(r, Mass):
-            bodies = r.bodies if r.bodies is not None else mech.beams
-            m = model
-            if gradient and dprop is None:
-                dprop = mech.element_property_derivatives(x)
-            props = m.element_properties()
-            value, grad = 0.0, np.zeros(len(mech.variables))
-            for b in bodies:
-                for e in m.body(b).elements:
-                    length = m._elements[e][1]
-                    value += length * props[3, e]
-                    if gradient:
-                        grad += length * dprop[3, e]
-            return value, (grad if gradient else None)
-        if isinstance(r, Deviation):
-            ref = mech.reference          # the reference coordinates of these nodes only
-            parts = []
-            for t in r.terms:
-                node = self._point(t.body, t.at)
-                rel = self._point(t.relative_to.body, t.relative_to.at) \
-                    if t.relative_to is not None else None
-                frame = mech.model.body(t.frame).first if t.frame != "ground" else None
-                parts.append(deviation_terms(node, ref, result, t, frame, rel, gradient))
-            return deviation(parts, gradient)
-        if isinstance(r, Stress):
-            virtual = getattr(result, "_virtual", None)
-            if gradient and virtual is not None:
-                return self._stress_partials(r, x, result, virtual, model)
-            # the largest normal stress over the beams' elements and stations, step by step
-            vals, grads = [], []
-            for b, stations, k in self._stress_places(r):
-                c, dc = mech.half_depths(x, b)
-                bs = beam_stress(model, result, b, stations=stations,
-                                 dc=dc if gradient else None)
-                nt = bs.normal.shape[0]
-                vals.append(bs.normal[:, k].reshape(nt, -1))
+        bodies = r.bodies if r.bodies is not None else mech.beams
+        if gradient and dprop is None:
+            dprop = mech.element_property_derivatives(x)
+        props = model.element_properties()
+        value, grad = 0.0, np.zeros(len(mech.variables))
+        for b in bodies:
+            for e in model.body(b).elements:
+                length = model._elements[e][1]
+                value += length * props[3, e]
                 if gradient:
-                    grads.append(bs.d_normal[:, k].reshape(nt, vals[-1].shape[1], -1))
-            v = np.concatenate(vals, axis=1)
-            j = np.argmax(v, axis=1)
-            rows = np.arange(v.shape[0])
-            return v[rows, j], (np.concatenate(grads, axis=1)[rows, j] if gradient else None)
-        if isinstance(r, Deflection):
-            return chord_deflection(result, self._point(r.at.body, r.at), gradient)
-        if isinstance(r, Strain):
-            return station_strain(model or mech.model, result, self._point(r.at.body, r.at),
-                                  r.component, gradient)
-        if isinstance(r, Torque):
-            # the force of the drive's row: the torque on its body (the module's convention)
-            k = [dr.name for dr in self.description.drives].index(r.drive)
-            rows = mech.drive_rows[k]
-            return constraint_force(mech.model, result, rows[0],
-                                    result.dmu if gradient else None)
-        if isinstance(r, Reaction):
-            k = [j.name for j in self.description.joints].index(r.joint)
-            return self._reaction(self.description.joints[k], mech.joint_rows[k], r.component,
-                                  result, gradient)
-        raise ModelError(f"response {r.name!r}: type {r.type!r} cannot be evaluated")
+                    grad += length * dprop[3, e]
+        return value, (grad if gradient else None)
+
+    def _deviation_value(self, r, x, result, gradient, model, dprop):
+        mech = self.mechanism
+        ref = mech.reference          # the reference coordinates of these nodes only
+        parts = []
+        for t in r.terms:
+            node = self._point(t.body, t.at)
+            rel = self._point(t.relative_to.body, t.relative_to.at) \
+                if t.relative_to is not None else None
+            frame = mech.model.body(t.frame).first if t.frame != "ground" else None
+            parts.append(deviation_terms(node, ref, result, t, frame, rel, gradient))
+        return deviation(parts, gradient)
+
+    def _stress_value(self, r, x, result, gradient, model, dprop):
+        # the largest normal stress over the beams' elements and stations, step by step
+        vals, grads = [], []
+        for b, stations, k in self._stress_places(r):
+            c, dc = self.mechanism.half_depths(x, b)
+            bs = beam_stress(model, result, b, stations=stations,
+                             dc=dc if gradient else None)
+            nt = bs.normal.shape[0]
+            vals.append(bs.normal[:, k].reshape(nt, -1))
+            if gradient:
+                grads.append(bs.d_normal[:, k].reshape(nt, vals[-1].shape[1], -1))
+        v = np.concatenate(vals, axis=1)
+        j = np.argmax(v, axis=1)
+        rows = np.arange(v.shape[0])
+        return v[rows, j], (np.concatenate(grads, axis=1)[rows, j] if gradient else None)
+
+    def _deflection_value(self, r, x, result, gradient, model, dprop):
+        return chord_deflection(result, self._point(r.at.body, r.at), gradient)
+
+    def _strain_value(self, r, x, result, gradient, model, dprop):
+        return station_strain(model or self.mechanism.model, result,
+                              self._point(r.at.body, r.at), r.component, gradient)
+
+    def _torque_value(self, r, x, result, gradient, model, dprop):
+        # the force of the drive's row: the torque on its body (the module's convention)
+        k = [dr.name for dr in self.description.drives].index(r.drive)
+        rows = self.mechanism.drive_rows[k]
+        return constraint_force(self.mechanism.model, result, rows[0],
+                                result.dmu if gradient else None)
+
+    def _reaction_value(self, r, x, result, gradient, model, dprop):
+        k = [j.name for j in self.description.joints].index(r.joint)
+        return self._reaction(self.description.joints[k], self.mechanism.joint_rows[k],
+                              r.component, result, gradient)
 
     def _stress_places(self, r):
         """(beam, stations of beam_stress, element slice) of a Stress response: every element
@@ -587,56 +617,67 @@ class Problem:
         p = self._point(r.at.body, r.at)
         return [(p.body, [p.xi], slice(p.index, p.index + 1))]
 
-    def _stress_partials(self, r, x, result, virtual, model):
-        """A Stress response and its partials on the adjoint's virtual columns (`virtual` =
-        (number of coordinate and force columns, the chunk's column ids); coordinate column k
-        is result.sens_dofs[k], the design columns follow the forces): the value at each step
-        is the largest station's, so its partials are those of that station only, with respect
-        to its element's coordinates and half depth (beam_stress(local=True)): no identity
-        derivatives pushed through every element."""
-        front, cols = virtual
-        cache = getattr(result, "_cache", None)
-        if cache is not None and r.name in cache:
-            v, j, dloc, ddc, dofs, dcs = cache[r.name]
-        else:
-            v, j, dloc, ddc, dofs, dcs = self._stress_local(r, x, result, model)
-            if cache is not None:
-                cache[r.name] = (v, j, dloc, ddc, dofs, dcs)
-        rows = np.arange(v.shape[0])
-        pos = np.full(front + dcs.shape[1], -1)                        # virtual id -> column
-        pos[cols] = np.arange(cols.size)
-        out = np.zeros((v.shape[0], cols.size))
-        k = pos[np.searchsorted(np.asarray(result.sens_dofs), dofs)]   # coordinate columns
-        n_idx = np.broadcast_to(rows[:, None], k.shape)
-        ok = k >= 0
-        np.add.at(out, (n_idx[ok], k[ok]), dloc[ok])
-        kd = pos[front + np.arange(dcs.shape[1])]                      # design columns
-        okd = kd >= 0
-        out[:, kd[okd]] += ddc[:, None] * dcs[:, okd]
-        return v[rows, j], out
+    def _partials(self, r, x, result, model, nc):
+        """Value (nt,) of a history response r on the adjoint's forward run and its partials
+        at every step, all steps at once, as `Partials`: with respect to the coordinates it
+        reads, the constraint multipliers and (a stress, through its section depth) the
+        design variables (its kind's `partials`)."""
+        return self._kind(r).partials(self, r, x, result, model, nc)
+
+    def _identity_partials(self, r, x, result, model, nc):
+        """`_partials` of a response that reads the coordinates of a few nodes
+        (`_nodes_needed`) and the multipliers, and the design through the motion only: it is
+        evaluated once with identity derivatives of those columns (len(dofs) + nc per
+        step)."""
+        nt = result.q.shape[0]
+        dofs = np.array([3 * n + k for n in self._nodes_needed([r.name]) for k in range(3)],
+                        dtype=int)
+        m = dofs.size
+        eye = np.eye(m + nc)
+        vres = replace(result, sens_dofs=dofs,
+                       dq=np.broadcast_to(eye[:m], (nt, m, m + nc)),
+                       dmu=np.broadcast_to(eye[m:], (nt, nc, m + nc)))
+        value, g = self._response(r, x, vres, True, model=model)
+        g = np.asarray(g, float).reshape(nt, m + nc)
+        return value, Partials(dofs, g[:, :m], g[:, m:], None)
+
+    def _stress_partials(self, r, x, result, model, nc):
+        """`_partials` of a Stress: its value at each step is its largest station's, so its
+        partials are that station's, with respect to its element's coordinates and half
+        depth (`_stress_local`)."""
+        v, j, dloc, ddc, dofs, dcs = self._stress_local(r, x, result, model)
+        return v[np.arange(v.shape[0]), j], Partials(dofs, dloc, None, ddc[:, None] * dcs)
 
     def _stress_local(self, r, x, result, model):
-        """(values, station index, its partials on its element's coordinates and half depth,
-        those coordinates, dc/dp of its element) at each step of a Stress response."""
+        """(values (nt, stations), station index j (nt,), its partials on its element's
+        coordinates (nt, 3 nen) and half depth (nt,), those coordinates (nt, 3 nen), dc/dp of
+        its element (nt, nv)) at each step of a Stress response: the partials of the largest
+        station of each step only (flexmbs.responses.stress.normal_partials)."""
         mech = self.mechanism
-        vals, dloc, ddc, dofs, dcs = [], [], [], [], []
+        places, vals = [], []
         for b, stations, k in self._stress_places(r):
             c, dc = mech.half_depths(x, b)
-            bs = beam_stress(model, result, b, stations=stations, local=True)
+            bs = beam_stress(model, result, b, stations=stations)
             normal = bs.normal[:, k]
             nt, nel, nst = normal.shape
+            places.append((b, bs, np.arange(bs.normal.shape[1])[k], nst, dc))
             vals.append(normal.reshape(nt, -1))
-            dloc.append(bs.d_normal_local[:, k].reshape(nt, nel * nst, -1))
-            ddc.append(bs.d_normal_dc[:, k].reshape(nt, -1))
-            dofs.append(np.repeat(bs.dofs[k], nst, axis=0))          # (nel nst, 3 nen)
-            dcs.append(np.repeat(dc[k], nst, axis=0))                # (nel nst, nv)
+        offsets = np.cumsum([0] + [v.shape[1] for v in vals])
         v = np.concatenate(vals, axis=1)
         j = np.argmax(v, axis=1)
-        rows = np.arange(v.shape[0])
-        dloc = np.concatenate(dloc, axis=1)[rows, j]                   # (nt, 3 nen)
-        ddc = np.concatenate(ddc, axis=1)[rows, j]                     # (nt,)
-        dofs = np.concatenate(dofs, axis=0)[j]                         # (nt, 3 nen)
-        dcs = np.concatenate(dcs, axis=0)[j]                           # (nt, nv)
+        owner = np.searchsorted(offsets, j, side="right") - 1
+        dloc = ddc = dofs = dcs = None
+        for i, (b, bs, elems, nst, dc) in enumerate(places):
+            steps = np.flatnonzero(owner == i)
+            if steps.size == 0:
+                continue
+            local = j[steps] - offsets[i]
+            el = elems[local // nst]
+            d_dofs, d, d_dc = normal_partials(model, result, b, bs, steps, el, local % nst)
+            if dloc is None:
+                dloc, dofs = np.zeros((nt, d.shape[1])), np.zeros((nt, d.shape[1]), int)
+                ddc, dcs = np.zeros(nt), np.zeros((nt, dc.shape[1]))
+            dloc[steps], dofs[steps], ddc[steps], dcs[steps] = d, d_dofs, d_dc, dc[el]
         return v, j, dloc, ddc, dofs, dcs
 
     def _reaction(self, joint, rows, component, result, gradient):
@@ -690,10 +731,10 @@ class Problem:
         t = self.mechanism.t
         n = 0
         obj = self.description.objective
-        if obj is not None and not isinstance(self._resp[obj.response], Mass):
+        if obj is not None and self._kind(self._resp[obj.response]).timed:
             n += 1
         for c in self.description.constraints:
-            if isinstance(self._resp[c.response], Mass):
+            if not self._kind(self._resp[c.response]).timed:
                 continue
             bounds = (c.upper is not None) + (c.lower is not None)
             n += bounds * (t.size if c.over == "every_step" else 1)
@@ -772,7 +813,7 @@ class Problem:
         x = mech.start if x is None else mech.design_values(x)
         want = self._gradient_names(gradient) if mech.variables else []
         gradient = bool(want)
-        timed = [n for n, r in self._resp.items() if not isinstance(r, Mass)]
+        timed = self._timed()
         chosen = self.gradient_method(method)
         if gradient and timed and chosen == "adjoint":
             return self._evaluate_adjoint(x, timed, t0, store)
@@ -885,16 +926,13 @@ class Problem:
         """evaluate() with the gradients of the objective and constraint rows by the discrete
         adjoint (its forward run keeps the tape of every (sub-)step).
 
-        The responses are evaluated on the run with 'virtual' design variables: one per
-        differentiated coordinate and constraint row (dq, dmu identities) and the real ones
-        (explicit dependences, e.g. a stress's section depth): their gradients (nt, V) are
-        the per-step partials (the design columns only for responses that depend on the
-        design explicitly: a stress). The aggregation weights of each row over time come from
-        constraint_weights; weights times partials are the adjoint's right-hand sides
+        The responses of the objective and the constraints are evaluated on the run with
+        their partial derivatives at every step, all steps at once (`_partials`: with respect
+        to the few coordinates each reads, the multipliers and, for a stress, the design
+        directly). The aggregation weights of each row over time come from
+        constraint_weights; weights times partials, scattered into (nt, ndof, rows) and
+        (nt, nc, rows), are the adjoint's right-hand sides
         (flexmbs.analysis.adjoint.adjoint_gradient)."""
-        from dataclasses import replace
-
-
         mech = self.mechanism
         run = self._run(x, False, timed, store, tape=True)     # the design set once
         ckpt = self._check_adjoint_memory(x, timed, run)
@@ -904,42 +942,20 @@ class Problem:
             kw = dict(kw, tape=False, checkpoints=int(ckpt))
         result = simulate(model, t_end, h, **kw)
         result.stats["adjoint_checkpoints"] = ckpt
-        nodes = self._nodes_needed(timed)
-        sdofs = np.array([3 * n + k for n in (nodes or [0]) for k in range(3)])
         t = mech.t
-        nt, nsens, nc, nv = t.size, sdofs.size, result.mu.shape[1], len(mech.variables)
+        nt, nc, nv = t.size, result.mu.shape[1], len(mech.variables)
         dprop = mech.element_property_derivatives(x)
-        # design columns only for responses depending on the design explicitly (a stress's
-        # section depth); the others' partials there are zero
-        explicit = any(isinstance(r, EXPLICIT_DESIGN_RESPONSES) for r in self._resp.values())
-        nvirt = nsens + nc + (nv if explicit else 0)
-        values, partials, grads, cache = {}, {}, {}, {}
+        used = set(self.used_responses())
+        values, partials, grads = {}, {}, {}
         for name, r in self._resp.items():
-            if isinstance(r, Mass):
+            if not self._kind(r).timed:
                 values[name], grads[name] = self._response(r, x, None, True, dprop, model)
+                continue
+            grads[name] = np.zeros((nt, nv))
+            if name in used:
+                values[name], partials[name] = self._partials(r, x, result, model, nc)
             else:
-                partials[name] = []
-                grads[name] = np.zeros((nt, nv))
-        # the virtual columns in chunks of at most ADJOINT_CHUNK_BYTES of dq
-        width = max(1, min(nvirt, int(ADJOINT_CHUNK_BYTES // (8.0 * nt * max(nsens, nc, 1)))))
-        for c0 in range(0, nvirt, width):
-            cols = np.arange(c0, min(c0 + width, nvirt))
-            dq = np.zeros((nt, nsens, cols.size))
-            k = np.flatnonzero(cols < nsens)
-            dq[:, cols[k], k] = 1.0
-            dmu = np.zeros((nt, nc, cols.size))
-            k = np.flatnonzero((cols >= nsens) & (cols < nsens + nc))
-            dmu[:, cols[k] - nsens, k] = 1.0
-            vres = replace(result, sens_dofs=sdofs, dq=dq, dmu=dmu)
-            vres._virtual = (nsens + nc, cols)
-            vres._cache = cache
-            for name in partials:
-                values[name], part = self._response(self._resp[name], x, vres, True,
-                                                    model=model)
-                partials[name].append(np.asarray(part, float).reshape(nt, cols.size))
-        partials = {n: np.concatenate(p, axis=1) for n, p in partials.items()}
-        # the scalar responses' part, then the weights over time of every row (the rows'
-        # gradients are these weights times the histories' gradients)
+                values[name] = self._response(r, x, result, False, model=model)[0]
         cons, jac, names, _ = constraint_rows(self.description, values, grads, t, nv, True)
         obj = self.description.objective
         f = df = None
@@ -956,20 +972,28 @@ class Problem:
         if live:
             gq = np.zeros((nt, cm.ndof, len(live)))
             gmu = np.zeros((nt, nc, len(live)))
-            for i, k in enumerate(live):
-                n, w = rows[k]
+            steps = np.arange(nt)[:, None, None]
+            for n in dict.fromkeys(rows[k][0] for k in live):
+                # every live row of response n at once: weights over time W (nt, rows)
+                idx = np.array([i for i, k in enumerate(live) if rows[k][0] == n])
+                W = np.column_stack([rows[live[i]][1] for i in idx])
                 p = partials[n]
-                gq[:, sdofs, i] = w[:, None] * p[:, :nsens]
-                gmu[:, :, i] = w[:, None] * p[:, nsens:nsens + nc]
-                if explicit:
-                    out[k] = w @ p[:, nsens + nc:]
+                seed = p.dq[:, :, None] * W[:, None, :]
+                if p.dofs.ndim == 1:
+                    gq[np.ix_(np.arange(nt), p.dofs, idx)] += seed
+                else:
+                    gq[steps, p.dofs[:, :, None], idx[None, None, :]] += seed
+                if p.dmu is not None:
+                    gmu[:, :, idx] += p.dmu[:, :, None] * W[:, None, :]
+                if p.design is not None:
+                    out[np.asarray(live)[idx]] += W.T @ p.design
             out[live] += adjoint_gradient(model, result, dprop, gq, gmu).T
         jac = jac + out[:len(names)]
         if obj is not None:
             df = np.asarray(df, float) + out[-1]
         cons, jac, names = with_linear_rows(mech, x, cons, jac, names)
         return Evaluation(x=x, t=t, values=values,
-                          gradients={n: (None if n in partials else g) for n, g in grads.items()},
+                          gradients={n: (None if n in timed else g) for n, g in grads.items()},
                           objective=f, d_objective=df, constraints=cons, jacobian=jac,
                           constraint_names=names, stats=_stats(result),
                           wall_time=_time.perf_counter() - t0, gradient_method="adjoint",
@@ -1002,6 +1026,39 @@ class Problem:
                   if c.upper is not None and isinstance(self._resp[c.response], Deviation)]
         return min(limits) if limits else None
 
+
+
+class ResponseKind(NamedTuple):
+    """How a Problem evaluates one type of response (`RESPONSE_KINDS`): a new response type
+    is a description class (flexmbs.model.description) and one entry here.
+
+    value(problem, r, x, result, gradient, model, dprop): its value and gradient (or None);
+    nodes(problem, r): the nodes whose coordinates it reads (None: none); forces: it reads the
+    constraint multipliers (motor torques, joint reactions); timed: a history of the
+    simulation (False: a function of the design alone, a mass); design_model: its value needs
+    the design's model (sections); partials(problem, r, x, result, model, nc): its value and
+    `Partials` at every step for the adjoint (default: identity derivatives of the
+    coordinates it reads and of the multipliers, right for a response that depends on the
+    design through the motion only)."""
+    value: object
+    nodes: object = None
+    forces: bool = False
+    timed: bool = True
+    design_model: bool = False
+    partials: object = Problem._identity_partials
+
+
+#: the response types a Problem evaluates, by description class
+RESPONSE_KINDS = {
+    Mass: ResponseKind(Problem._mass_value, timed=False, design_model=True),
+    Deviation: ResponseKind(Problem._deviation_value, Problem._deviation_nodes),
+    Stress: ResponseKind(Problem._stress_value, Problem._stress_nodes, design_model=True,
+                         partials=Problem._stress_partials),
+    Deflection: ResponseKind(Problem._deflection_value, Problem._deflection_nodes),
+    Strain: ResponseKind(Problem._strain_value, Problem._station_nodes),
+    Torque: ResponseKind(Problem._torque_value, forces=True),
+    Reaction: ResponseKind(Problem._reaction_value, forces=True),
+}
 
 def _stats(result):
     """An Evaluation's stats: the simulation's (Result.stats) with its wall_time (s); {}

@@ -45,7 +45,7 @@ from flexmbs.errors import ModelError
 from flexmbs.responses.strain import (columns, gauss_points, half_depth, raw_strain_derivatives,
                                       raw_strains, shape)
 
-__all__ = ["BeamStress", "beam_stress", "STATIONS"]
+__all__ = ["BeamStress", "beam_stress", "normal_partials", "STATIONS"]
 
 #: Named station sets: 'gauss' the reduced-integration Gauss points (where the element
 #: evaluates its strains and stress resultants), 'nodes' the element's nodes (strains
@@ -215,3 +215,44 @@ def beam_stress(model, result, body, *, stations="gauss", shear=False, dc=None, 
             out.d_von_mises = (normal[..., None] * out.d_normal
                                + 3.0 * out.shear[..., None] * out.d_shear) / vm
     return out
+
+
+def normal_partials(model, result, body, stress, steps, elements, stations):
+    """The partial derivatives of `stress.normal` (a beam_stress of `result`) at chosen
+    (step, element, station) triples only: what beam_stress(local=True) gives for every
+    element and station at every step (the discrete adjoint's seeds of a largest stress
+    need one station per step). body: the beam (name or Body) of `stress`.
+
+    steps, elements, stations : (m,) indices into the time, element and station axes of
+    stress.normal. Returns (dofs (m, 3 nen), the element's 0-based coordinates;
+    d (m, 3 nen), d normal / d those coordinates; d_dc (m,), d normal / d the element's half
+    depth c). From normal = E (|eps| + c |kappa|) with eps = e1 - e1_ref, e1 = cos(phi) x' +
+    sin(phi) y', phi = N_a phi_a, kappa = phi' - kappa_ref (the module's formulas):
+    d e1 / d x_a = cos(phi) N_a', d e1 / d y_a = sin(phi) N_a', d e1 / d phi_a = e2 N_a with
+    e2 = -sin(phi) x' + cos(phi) y', d kappa / d phi_a = N_a'."""
+    steps, elements, stations = (np.asarray(a, int) for a in (steps, elements, stations))
+    cm = model.compile()
+    ids = np.asarray(stress.elements, int)
+    nen = int(cm.el_nen[ids[0]])
+    edofs = (cm.el_dofs[:3 * nen, ids] - 1).T.astype(np.int64)[elements]   # (m, 3 nen)
+    qe = result.q[steps[:, None], columns(result.dofs, edofs)]
+    n, dn = shape(nen, stress.xi)                                         # (nen, nst)
+    na = n[:, stations].T                                                 # (m, nen)
+    dns = dn[:, stations].T / (0.5 * cm.el_len[ids[elements]])[:, None]
+    x, y, p = qe[:, 0::3], qe[:, 1::3], qe[:, 2::3]
+    dx, dy = np.sum(x * dns, axis=1), np.sum(y * dns, axis=1)
+    phi = np.sum(p * na, axis=1)
+    c, s = np.cos(phi)[:, None], np.sin(phi)[:, None]
+    e2 = (-s[:, 0] * dx + c[:, 0] * dy)[:, None]
+    b = model.body(body) if isinstance(body, str) else body
+    E = float(b.material.E)
+    sa = E * np.sign(stress.axial[steps, elements, stations])[:, None]
+    sk = E * np.sign(stress.bending[steps, elements, stations])[:, None]
+    hc = stress.half_depth[elements][:, None]
+    d = np.empty(qe.shape)
+    d[:, 0::3] = sa * c * dns
+    d[:, 1::3] = sa * s * dns
+    d[:, 2::3] = sa * e2 * na + sk * hc * dns
+    d_dc = np.abs(stress.bending[steps, elements, stations]) / hc[:, 0]
+    return edofs, d, d_dc
+
