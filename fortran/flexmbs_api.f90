@@ -170,7 +170,8 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
                     nckr, nck, ckpt_every, ckpt, restart, x_start, j_start, klu_analysis, ntg, tg)
     use iso_c_binding, only: c_double, c_int
     use model_data, only: mbs_model, model_from_arrays
-    use generalized_alpha, only: ga_settings, ga_stats, ga_simulate, GA_NO_MEMORY, MEM_MODEL, &
+    use generalized_alpha, only: ga_settings, ga_stats, ga_simulate, ga_set_grid, &
+                                 GA_NO_MEMORY, MEM_MODEL, &
                                  GA_BAD_INPUT
     !f2py threadsafe
     implicit none
@@ -261,14 +262,11 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
                     static_start=static_start /= 0, kscale=kscale, penalty=penalty, &
                     polish=polish /= 0)
     s%klu_analysis = transfer(klu_analysis, s%klu_analysis)
-    if (ntg > 1) then          ! the non-uniform grid: allocated with its failure reported
-        allocate (s%tgrid(ntg), stat=stat)
-        if (stat /= 0) then
-            status = int(GA_NO_MEMORY, c_int)
-            info = [0.0_c_double, 8.0_c_double * ntg, 0.0_c_double, real(MEM_MODEL, c_double)]
-            return
-        end if
-        s%tgrid(:) = tg
+    call ga_set_grid(s, tg, stat)      ! a non-uniform grid (ntg > 1), allocated with stat=
+    if (stat /= 0) then
+        status = int(GA_NO_MEMORY, c_int)
+        info = [0.0_c_double, 8.0_c_double * ntg, 0.0_c_double, real(MEM_MODEL, c_double)]
+        return
     end if
     if (nv > 0 .and. want_dmu /= 0 .and. ndmu >= nc) then
         call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
@@ -324,7 +322,7 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
                    ntg, tg)
     use iso_c_binding, only: c_double, c_int
     use model_data, only: mbs_model, model_from_arrays
-    use generalized_alpha, only: ga_settings, GA_NO_MEMORY, MEM_MODEL
+    use generalized_alpha, only: ga_settings, ga_set_grid, GA_NO_MEMORY, MEM_MODEL
     use adjoint, only: ga_adjoint
     !f2py threadsafe
     implicit none
@@ -392,14 +390,11 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
                     max_cuts=int(max_cuts), solver=int(solver), static_start=static_start /= 0, &
                     kscale=kscale, penalty=penalty)
     s%klu_analysis = transfer(klu_analysis, s%klu_analysis)
-    if (ntg > 1) then          ! the non-uniform grid: allocated with its failure reported
-        allocate (s%tgrid(ntg), stat=stat)
-        if (stat /= 0) then
-            status = int(GA_NO_MEMORY, c_int)
-            info = [0.0_c_double, 8.0_c_double * ntg, 0.0_c_double, real(MEM_MODEL, c_double)]
-            return
-        end if
-        s%tgrid(:) = tg
+    call ga_set_grid(s, tg, stat)      ! a non-uniform grid (ntg > 1), allocated with stat=
+    if (stat /= 0) then
+        status = int(GA_NO_MEMORY, c_int)
+        info = [0.0_c_double, 8.0_c_double * ntg, 0.0_c_double, real(MEM_MODEL, c_double)]
+        return
     end if
     if (have_in /= 0) then
         call ga_adjoint(m, s, int(ap), int(ai), q0, qd0, qt, qdt, qddt, mut, th, int(grid), gq, gmu, &

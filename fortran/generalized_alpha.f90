@@ -25,7 +25,7 @@ module generalized_alpha
                              LS_NO_MEMORY
     implicit none
     private
-    public :: ga_settings, ga_stats, ga_simulate, ga_coefficients
+    public :: ga_settings, ga_stats, ga_simulate, ga_coefficients, ga_set_grid
     ! for the adjoint (adjoint.f90): the static start and the scalings, recomputed exactly
     public :: ga_state, static_equilibrium, mass_scale, diagonal_scale, grid_time
     ! checkpoints of a run (the adjoint's segments, flexmbs/adjoint.py)
@@ -171,6 +171,18 @@ contains
             t = j * s%h
         end if
     end function grid_time
+
+    !> The non-uniform grid of a run, ga_settings%tgrid: the times tg of its grid points (one
+    !! time: the uniform grid j h, nothing to set). stat /= 0 when the allocation fails.
+    pure subroutine ga_set_grid(s, tg, stat)
+        type(ga_settings), intent(inout) :: s
+        real(wp), intent(in) :: tg(:)
+        integer, intent(out) :: stat
+        stat = 0
+        if (size(tg) <= 1) return
+        allocate (s%tgrid(size(tg)), stat=stat)
+        if (stat == 0) s%tgrid(:) = tg
+    end subroutine ga_set_grid
 
     !> Numbers of one checkpoint of ga_simulate (ckpt, x_start): q, qd, qdd, a, qdd_prev
     !! (ndof each), mu (nc), then h_prev and the run's scalings k and p of eq. (1).
