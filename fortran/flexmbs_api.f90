@@ -262,10 +262,9 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
                     static_start=static_start /= 0, kscale=kscale, penalty=penalty, &
                     polish=polish /= 0)
     s%klu_analysis = transfer(klu_analysis, s%klu_analysis)
-    call ga_set_grid(s, tg, stat)      ! a non-uniform grid (ntg > 1), allocated with stat=
+    call ga_set_grid(s, tg, stat, info)     ! a non-uniform grid (ntg > 1), or GA_NO_MEMORY
     if (stat /= 0) then
-        status = int(GA_NO_MEMORY, c_int)
-        info = [0.0_c_double, 8.0_c_double * ntg, 0.0_c_double, real(MEM_MODEL, c_double)]
+        status = int(stat, c_int)
         return
     end if
     if (nv > 0 .and. want_dmu /= 0 .and. ndmu >= nc) then
@@ -390,10 +389,9 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
                     max_cuts=int(max_cuts), solver=int(solver), static_start=static_start /= 0, &
                     kscale=kscale, penalty=penalty)
     s%klu_analysis = transfer(klu_analysis, s%klu_analysis)
-    call ga_set_grid(s, tg, stat)      ! a non-uniform grid (ntg > 1), allocated with stat=
+    call ga_set_grid(s, tg, stat, info)     ! a non-uniform grid (ntg > 1), or GA_NO_MEMORY
     if (stat /= 0) then
-        status = int(GA_NO_MEMORY, c_int)
-        info = [0.0_c_double, 8.0_c_double * ntg, 0.0_c_double, real(MEM_MODEL, c_double)]
+        status = int(stat, c_int)
         return
     end if
     if (have_in /= 0) then

@@ -173,15 +173,23 @@ contains
     end function grid_time
 
     !> The non-uniform grid of a run, ga_settings%tgrid: the times tg of its grid points (one
-    !! time: the uniform grid j h, nothing to set). stat /= 0 when the allocation fails.
-    pure subroutine ga_set_grid(s, tg, stat)
+    !! time: the uniform grid j h, nothing to set). status GA_OK, or GA_NO_MEMORY with info as
+    !! ga_simulate's (the bytes asked for, MEM_MODEL) when the allocation fails.
+    pure subroutine ga_set_grid(s, tg, status, info)
         type(ga_settings), intent(inout) :: s
         real(wp), intent(in) :: tg(:)
-        integer, intent(out) :: stat
-        stat = 0
+        integer, intent(out) :: status
+        real(wp), intent(inout) :: info(4)
+        integer :: ierr
+        status = GA_OK
         if (size(tg) <= 1) return
-        allocate (s%tgrid(size(tg)), stat=stat)
-        if (stat == 0) s%tgrid(:) = tg
+        allocate (s%tgrid(size(tg)), stat=ierr)
+        if (ierr /= 0) then
+            status = GA_NO_MEMORY
+            info = [0.0_wp, 8.0_wp * size(tg), 0.0_wp, real(MEM_MODEL, wp)]
+            return
+        end if
+        s%tgrid(:) = tg
     end subroutine ga_set_grid
 
     !> Numbers of one checkpoint of ga_simulate (ckpt, x_start): q, qd, qdd, a, qdd_prev
