@@ -5,7 +5,7 @@ stored) with 2, 8, 32, 128 quadratic elements per arm, run by `flexmbs.analysis.
 defaults (solver 'auto' = KLU, newton 'auto'). Per size:
 
 - the CPU time of the call (minimum over the repeats) and its Python set-up (total minus
-  the `_core.simulate` call, median; where_time_goes.core_timer);
+  the compiled run, flexmbs.core.simulate_arrays, median; where_time_goes.core_timer);
 - the floor: factorizations x klu_refactor + solves (Newton and static iterations) x
   klu_solve, each timed alone with the same libKLU through ctypes on the model's iteration
   matrix (where_time_goes.klu_costs, with KLU's default row scaling; flexmbs refactors

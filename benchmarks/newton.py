@@ -4,7 +4,7 @@ arm, 1300 steps, 4 design variables) and the same robot with 32 and 128 elements
 override of `elements`).
 
 For each size and strategy: process CPU time of Problem.simulate (the whole call, and the
-Fortran core alone: flexmbs.analysis.simulate's `_core` wrapped by a timer, as in where_time_goes.py),
+Fortran core alone: the compiled run flexmbs.core.simulate_arrays wrapped by a timer, as in where_time_goes.py),
 minimum over interleaved repeats (the six runs of a size alternate, so that a change of the
 machine's load hits them alike); the ratios sensitivities / simulation (target <= 1.5 in
 every mode) and time / full Newton's; Newton iterations and factorizations (of which, made for

@@ -5,7 +5,7 @@ For the robot of docs/paper-cases.md (p = 50 mm, h = 5e-4 s, 0.65 s = 1300 steps
 Newton or reuse_jacobian=True):
 
 1. **Python against Fortran.** flexmbs.analysis.simulate is timed as a whole and its call of
-   `_core.simulate` separately (the module's `_core` is wrapped by a timer for the duration of
+   the compiled run separately (`flexmbs.core.simulate_arrays`, wrapped by a timer for the duration of
    the benchmark; nothing in flexmbs is changed). Python set-up = total - core: argument
    checks, compiled arrays, tabulating the drive laws on the grid, building the Result.
 2. **Work counters** from Result.stats: Newton iterations (= linear solves), factorizations,
@@ -50,33 +50,32 @@ CONFIGS = [("dense", False), ("dense", True), ("klu", False), ("klu", True)]
 
 # ----------------------------------------------------------------------------- core timer
 class _CoreTimer:
-    """Stands in for flexmbs.analysis.simulate's `_core` module: times each simulate call."""
+    """Stands in for flexmbs.analysis.simulate's `simulate_arrays` (the compiled run,
+    flexmbs.core): times each call."""
 
-    def __init__(self, core):
-        self._core = core
-        self.calls = []          # (wall, cpu) of each _core.simulate call
+    def __init__(self, run):
+        self._run = run
+        self.calls = []          # (wall, cpu) of each compiled simulate call
 
-    def __getattr__(self, name):
-        return getattr(self._core, name)
-
-    def simulate(self, *args, **kw):
+    def __call__(self, *args, **kw):
         c0, w0 = time.process_time(), time.perf_counter()
         try:
-            return self._core.simulate(*args, **kw)
+            return self._run(*args, **kw)
         finally:
             self.calls.append((time.perf_counter() - w0, time.process_time() - c0))
 
 
 @contextlib.contextmanager
 def core_timer():
-    """Wrap flexmbs.analysis.simulate's reference to the compiled core for the duration of a block."""
+    """Wrap flexmbs.analysis.simulate's reference to the compiled run for the duration of a
+    block."""
     mod = sys.modules["flexmbs.analysis.simulate"]
-    timer = _CoreTimer(mod._core)
-    mod._core = timer
+    timer = _CoreTimer(mod.simulate_arrays)
+    mod.simulate_arrays = timer
     try:
         yield timer
     finally:
-        mod._core = timer._core
+        mod.simulate_arrays = timer._run
 
 
 def measure(model, tip, solver, reuse, repeats=5, budget=3.0, h=H, t_end=T_END):
@@ -352,7 +351,7 @@ def run(quick=False, outdir="benchmarks/results", log=print):
                       "Python ms/call", "Python %", "iter/step", "fact/step", "resid/step",
                       "LA bound us/step", "total/bound"], rows,
                      title="\nflexmbs.simulate on the robot, h = 5e-4 s, 1300 steps (CPU time, min of "
-                           "repeats; Python = simulate - _core.simulate)"))
+                           "repeats; Python = simulate - the compiled run)"))
     log(format_table(["el/arm", "unknowns", "dgetrf us", "dgetrs us", "scipy lu_factor us",
                       "scipy lu_solve us", "klu_refactor us", "klu_solve us", "KLU nnz"], rows_lb,
                      title="\nLinear algebra alone on the model's iteration matrix (same libraries as "
