@@ -349,3 +349,34 @@ def test_constraint_weights_are_the_rows_derivatives():
         gd = constraint_rows(p.description, {"deviation_28": dn, "mass": 1.0}, {}, t, 0, False)[0]
         fd = (gu - gd) / (2 * eps)
         assert np.abs(fd - W[:, j]).max() <= 1e-4 * np.abs(W).max(axis=1).max()
+
+
+def test_stress_over_beams_of_two_element_orders():
+    """One stress response over a beam of 2-node and a beam of 3-node elements, welded, KS
+    constrained: its largest station moves between the two beams over time, and the adjoint
+    gradient equals direct differentiation (1e-8 relative) in both orders of the beams."""
+    def problem(o1, o2):
+        return Problem({
+            "points": {"O": [0, 0], "A": [0.4, 0], "B": [0.8, 0.0]},
+            "materials": {"al": {"E": 7e10, "nu": 0.33, "rho": 2700}},
+            "design": [{"name": "d", "lower": 5, "upper": 50, "start": 20, "unit": "mm"},
+                       {"name": "e", "lower": 5, "upper": 50, "start": 15, "unit": "mm"}],
+            "bodies": [{"name": "a1", "type": "beam", "from": "O", "to": "A", "elements": 2,
+                        "order": o1, "material": "al",
+                        "section": {"shape": "circle", "diameter": "d"}},
+                       {"name": "a2", "type": "beam", "from": "A", "to": "B", "elements": 2,
+                        "order": o2, "material": "al",
+                        "section": {"shape": "circle", "diameter": "e"}},
+                       {"name": "tip", "type": "mass", "at": "B", "on": "a2", "mass": 0.5}],
+            "joints": [{"type": "pin", "body": "a1", "at": "O"},
+                       {"type": "weld", "bodies": ["a1", "a2"], "at": "A"}],
+            "drives": [{"type": "rotation", "body": "a1", "at": "O",
+                        "law": {"type": "smooth_step", "end": 0.2, "t1": 0.05}}],
+            "responses": [{"name": "sig", "type": "stress", "bodies": ["a1", "a2"]}],
+            "constraints": [{"response": "sig", "upper": 1e7, "over": "ks"}],
+            "time": {"t_end": 0.04, "h": 1e-3}})
+    for orders in ((1, 2), (2, 1)):
+        p = problem(*orders)
+        direct = p.evaluate(p.start, gradient=True, method="direct").jacobian
+        adjoint = p.evaluate(p.start, gradient=True, method="adjoint").jacobian
+        assert np.allclose(adjoint, direct, rtol=1e-8, atol=1e-12 * np.abs(direct).max())

@@ -20,6 +20,7 @@ simulations in all whatever the number of variables (measured from 4 to 2048);
 from __future__ import annotations
 
 import time as _time
+import warnings
 from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
@@ -32,7 +33,7 @@ from flexmbs.analysis.adaptive import choose_steps, subdivide
 from flexmbs.analysis.adjoint import (adjoint_gradient, adjoint_memory, checkpoint_interval,
                                       checkpoint_memory)
 from flexmbs.analysis.simulate import CHECKPOINT_PART, TAPE_PART, memory_estimate, simulate
-from flexmbs.errors import CaseError, ModelError, ResourceError
+from flexmbs.errors import CaseError, ModelError, ResourceError, SettingWarning
 from flexmbs.model.casefile import description_from_dict, read_description
 from flexmbs.model.description import (GROUND, Beam, Deflection, Deviation, Description, Mass,
                                  Reaction, Station, Strain, Stress, Torque)
@@ -333,12 +334,14 @@ class Problem:
             ts = self.description.time
             if ts.adaptive:
                 # the frozen step grid with every step divided, outputs on a grid as fine
-                fine = Problem(self.description, overrides={"time.output": ts.grid_h / factor},
+                fine = Problem(self.description, overrides={"time.output": ts.grid_h / factor,
+                                                            "time.t_end": self.mechanism.t_end},
                                gradient_method=self.default_gradient_method,
                                checkpoints=self.adjoint_checkpoints)
                 fine._steps = subdivide(self.steps(), factor)
             else:
-                fine = Problem(self.description, overrides={"time.h": ts.h / factor},
+                fine = Problem(self.description, overrides={"time.h": ts.h / factor,
+                                                            "time.t_end": self.mechanism.t_end},
                                gradient_method=self.default_gradient_method,
                                checkpoints=self.adjoint_checkpoints)
             self._refined[factor] = fine
@@ -666,18 +669,25 @@ class Problem:
         v = np.concatenate(vals, axis=1)
         j = np.argmax(v, axis=1)
         owner = np.searchsorted(offsets, j, side="right") - 1
-        dloc = ddc = dofs = dcs = None
+        chunks = []
         for i, (b, bs, elems, nst, dc) in enumerate(places):
             steps = np.flatnonzero(owner == i)
             if steps.size == 0:
                 continue
             local = j[steps] - offsets[i]
             el = elems[local // nst]
-            d_dofs, d, d_dc = normal_partials(model, result, b, bs, steps, el, local % nst)
-            if dloc is None:
-                dloc, dofs = np.zeros((nt, d.shape[1])), np.zeros((nt, d.shape[1]), int)
-                ddc, dcs = np.zeros(nt), np.zeros((nt, dc.shape[1]))
-            dloc[steps], dofs[steps], ddc[steps], dcs[steps] = d, d_dofs, d_dc, dc[el]
+            chunks.append((steps, *normal_partials(model, result, b, bs, steps, el, local % nst),
+                           dc[el]))
+        # beams of 2- and 3-node elements in one response: rows as wide as the widest element,
+        # the narrower ones padded with zero partials on their own first coordinate (the seeds
+        # are summed with np.add.at, so a repeated coordinate adds nothing)
+        width = max(c[2].shape[1] for c in chunks)
+        dloc, dofs = np.zeros((nt, width)), np.zeros((nt, width), int)
+        ddc, dcs = np.zeros(nt), np.zeros((nt, chunks[0][4].shape[1]))
+        for steps, d_dofs, d, d_dc, dc_el in chunks:
+            n = d.shape[1]
+            dloc[steps, :n], dofs[steps, :n], ddc[steps], dcs[steps] = d, d_dofs, d_dc, dc_el
+            dofs[steps, n:] = d_dofs[:, :1]
         return v, j, dloc, ddc, dofs, dcs
 
     def _reaction(self, joint, rows, component, result, gradient):
@@ -879,7 +889,9 @@ class Problem:
         model, t_end, h, kw = run
         est = memory_estimate(model, t_end, h, **kw)
         cm = model.compile()
-        nsteps = self.mechanism.t.size - 1
+        # the integration steps: the response grid's, or those of a non-uniform step grid
+        steps = kw.get("steps")
+        nsteps = self.mechanism.t.size - 1 if steps is None else len(steps) - 1
         est.parts[ADJOINT_PART] = adjoint_memory(cm.ndof, cm.nc, nsteps + 1,
                                                  self.gradient_functionals(), cm.nel)
         if checkpoints is None:
@@ -982,7 +994,9 @@ class Problem:
                 if p.dofs.ndim == 1:
                     gq[np.ix_(np.arange(nt), p.dofs, idx)] += seed
                 else:
-                    gq[steps, p.dofs[:, :, None], idx[None, None, :]] += seed
+                    # a step's coordinates may repeat (a stress row padded to the widest
+                    # element): add every seed
+                    np.add.at(gq, (steps, p.dofs[:, :, None], idx[None, None, :]), seed)
                 if p.dmu is not None:
                     gmu[:, :, idx] += p.dmu[:, :, None] * W[:, None, :]
                 if p.design is not None:
@@ -1177,6 +1191,10 @@ def _scalar(v, dv, how, parameter, t):
 
 def _static_state(model, q0, h):
     """Every coordinate of the static equilibrium at t = 0 of a built model from q0 (the core's
-    static start, one step h): the [initial] static_loads deformation (Mechanism.start_state)."""
-    r = simulate(model, h, h, start="static", q0=q0, store="all", validity="off")
+    static start, one step h): the [initial] static_loads deformation (Mechanism.start_state).
+    The static start's own advice about drives moving at t = 0 is not the case's: it starts
+    from 'rest' with this deformation."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SettingWarning)
+        r = simulate(model, h, h, start="static", q0=q0, store="all", validity="off")
     return np.array(r.q[0], float)
