@@ -168,3 +168,22 @@ def test_a_piecewise_motion_must_not_jump():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         Mechanism(Description.model_validate(_hub(_spin_up_case_law(4.0, 15.0))))
+
+
+def test_a_sum_motion_must_not_jump():
+    """A drive's sum of laws whose piecewise term jumps (0 then 1 rad at t = 0.5 s, plus a
+    harmonic, 0 there) jumps too: a ModelError naming the drive, the break and both values
+    (the harmonic's sin(pi) is 0 to rounding); two piecewise terms whose jumps cancel (+1 and -1 rad at the same break)
+    make a continuous motion, accepted."""
+    step_up = {"type": "piecewise", "segments": [
+        {"until": 0.5, "law": {"type": "constant", "value": 0.0}},
+        {"law": {"type": "polynomial", "coefficients": [1.0]}}]}
+    step_down = {"type": "piecewise", "segments": [
+        {"until": 0.5, "law": {"type": "constant", "value": 0.0}},
+        {"law": {"type": "polynomial", "coefficients": [-1.0]}}]}
+    wave = {"type": "harmonic", "amplitude": 0.1, "frequency_hz": 1.0}
+    with pytest.raises(ModelError, match="hub: the sum of laws jumps at t = 0.5 s from "
+                                         r"\S+e-1\d to 1 \(a piecewise term's break\)"):
+        Mechanism(Description.model_validate(_hub({"type": "sum", "laws": [step_up, wave]})))
+    Mechanism(Description.model_validate(_hub({"type": "sum",
+                                               "laws": [step_up, step_down, wave]})))

@@ -92,10 +92,34 @@ def make_law(spec, name="law", shift=0.0, joined=False):
             _check_joins(parts, breaks, name)
         return TimeLaw.piecewise(breaks, parts, name=name)
     if k == "sum":
-        return TimeLaw.sum([make_law(law, f"{name} term {i + 1}", shift if i == 0 else 0.0)
-                            for i, law in enumerate(spec.laws)], name=name)
+        total = TimeLaw.sum([make_law(law, f"{name} term {i + 1}", shift if i == 0 else 0.0)
+                             for i, law in enumerate(spec.laws)], name=name)
+        if joined:      # the terms may jump if their jumps cancel: the sum may not
+            _check_sum_joins(total, _breaks(spec), name)
+        return total
     raise ModelError(f"{name}: a law of type {k!r} has no formula (it is computed from the "
                      "rigid reference)")
+
+
+def _breaks(spec):
+    """The times where the piecewise parts of a law (nested in sums and segments too) change."""
+    if spec.type == "piecewise":
+        return ([g.until for g in spec.segments[:-1]]
+                + [b for g in spec.segments for b in _breaks(g.law)])
+    if spec.type == "sum":
+        return [b for law in spec.laws for b in _breaks(law)]
+    return []
+
+
+def _check_sum_joins(total, breaks, name):
+    """A motion given as a sum does not jump at the breaks of its piecewise terms: its value
+    just before a break (1e-12 of the time earlier) and at it agree (see _check_joins)."""
+    for b in sorted(set(breaks)):
+        before, at = total.evaluate(np.array([b - 1e-12 * max(1.0, abs(b)), b]))[0]
+        if abs(at - before) > 1e-6 * max(1.0, abs(before), abs(at)):
+            raise ModelError(f"{name}: the sum of laws jumps at t = {b:g} s from {before:.10g} "
+                             f"to {at:.10g} (a piecewise term's break); a motion cannot jump: "
+                             "give terms whose sum is continuous")
 
 
 def _check_joins(parts, breaks, name):
