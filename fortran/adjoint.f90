@@ -110,6 +110,12 @@ contains
             status = GA_BAD_INPUT
             return
         end if
+        if (allocated(s%tgrid)) then       ! a non-uniform grid covers the run's points
+            if (size(s%tgrid) < j0 + nt) status = GA_BAD_INPUT
+        end if
+        if (status == GA_BAD_INPUT) then
+            return
+        end if
         ! (two statements: Fortran's .and. does not guard an absent argument)
         state_ok = .true.
         if (present(adj_in)) state_ok = adjoint_state_fits(adj_in)

@@ -6,6 +6,8 @@ in the predictor, eqs. 3-5, and in the iteration matrix, eq. 7); on a grid froze
 optimization run the responses are smooth in the design, so direct differentiation and the
 discrete adjoint (their seeds carried through the output interpolation's transpose) are
 exact derivatives of them (Taylor tests)."""
+import warnings
+
 import numpy as np
 import pytest
 
@@ -200,3 +202,31 @@ def test_solvers_newton_modes_and_step_cuts_on_a_varying_grid(start):
     adj = adjoint_gradient(model, run, dprop, gq)[:, 0]
     ref_g = np.einsum("td,tdv->v", gq, direct.dq)
     assert np.abs(adj - ref_g).max() < 1e-8 * np.abs(ref_g).max()
+
+
+@pytest.mark.parametrize("adaptive", [False, True])
+def test_refined_problem_keeps_the_horizon(adaptive):
+    """A t_end that is not a whole number of steps (0.0103 s, steps of 1 ms) is rounded once,
+    to 0.010 s; the refined problems of the error estimates end there too (not at 0.0105 s or
+    0.01025 s, the rounding at their finer spacing), and an adaptive one runs on its halved
+    frozen grid."""
+    over = {"time.t_end": 0.0103, "time.h": 1e-3}
+    if adaptive:
+        over = {"time.t_end": 0.0103, "time.h": "auto", "time.output": 1e-3, "time.rtol": 1e-2}
+    with pytest.warns(UserWarning):
+        p = Problem("robot_2dof", over)
+    for k in (2, 4):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            fine = p.refined(k)
+            assert fine.mechanism.t_end == pytest.approx(p.mechanism.t_end, abs=1e-15)
+            fine.evaluate(gradient=False)
+
+
+def test_a_step_limit_below_the_shortest_step_is_refused():
+    """time.h_max below 1/1024 of the coarse pilot's step (1e-9 s against 1 ms / 1024) would
+    ask for 10^7 steps: a CaseError naming time.h_max, not a run that does not end."""
+    p = Problem("robot_2dof", {"time.t_end": 0.01, "time.h": "auto", "time.rtol": 1e-2,
+                               "time.h_max": 1e-9})
+    with pytest.raises(CaseError, match="time.h_max = 1e-09 s is below the shortest step"):
+        p.steps()

@@ -151,6 +151,25 @@ def test_cli_pvd_keeps_a_folder_of_other_files(tmp_path, monkeypatch, capsys):
     assert not (tmp_path / "m.pvd").exists()
 
 
+@pytest.mark.parametrize("name", ["..pvd", "...pvd"])
+def test_a_pvd_without_a_name_is_refused(tmp_path, monkeypatch, name):
+    """frame_folder of '..pvd' or '...pvd': the frames would go to '.' or '..' (the current or
+    the parent folder, whose files would be replaced): a ModelError before anything is
+    written, the folder's file kept. ('.pvd' alone has no suffix for Python: refused as not
+    a .pvd file.)"""
+    from flexmbs.errors import ModelError
+    from flexmbs.visual.export import frame_folder
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "mine.txt").write_text("mine")
+    with pytest.raises(ModelError, match="give the .pvd file a name"):
+        frame_folder(name)
+    with pytest.raises(ModelError, match="give the .pvd file a name"):
+        frame_folder(tmp_path / name)
+    with pytest.raises(ModelError):
+        frame_folder(".pvd")
+    assert (tmp_path / "mine.txt").read_text() == "mine"
+
+
 def test_cli_animate_writes_a_gif_and_a_pvd(tmp_path, capsys):
     """flexmbs animate with --frames 4 --magnify 20: a GIF of 4 frames, a .pvd of 4 frames
     whose DataSets are the files in the folder beside it; written twice, the second .pvd

@@ -295,3 +295,12 @@ def test_station_responses_carry_their_units():
                      {"name": "sig", "type": "stress", "at": at}],
                     section={"shape": "circle", "diameter": 0.02})
     assert units(p)["responses"] == {"w": "m", "eps": "1", "k": "1/m", "sig": "Pa"}
+
+
+def test_a_station_on_a_boundary_up_to_rounding_is_in_the_element_after_it():
+    """s = 0.58 of 50 elements: 0.58 * 50 is 28.999999999999996 in floating point, a boundary:
+    the station is in element 29 (0-based) at xi = -1, as s = 0.5 of 4 elements is, not in
+    element 28 at xi = 1 (same position, but strains and stresses read another element)."""
+    m = _cantilever([], elements=50).mechanism.model
+    p = locate(m, "rod", 0.58)
+    assert (p.index, p.xi) == (29, -1.0)

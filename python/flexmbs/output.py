@@ -27,7 +27,8 @@ PEAK_TIE_REL = 1e-2
 GRADIENT_DIFFERENCE_REL = 1e-3
 #: Said when a case has no responses (the command line's summary and JSON).
 NO_RESPONSES = ("the case has no responses: only the motion was simulated; add a "
-                "[[responses]] table (deviation, stress, torque, reaction, mass: "
+                "[[responses]] table (deviation, deflection, stress, strain, torque, reaction, "
+                "mass: "
                 "docs/case-format.md) for values, constraints and design gradients")
 
 #: The units of the statistics of `run_statistics` that have one.

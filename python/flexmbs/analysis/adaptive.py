@@ -32,6 +32,7 @@ the design, and their direct and adjoint derivatives are exact on that grid.
 from __future__ import annotations
 
 import numpy as np
+from scipy.integrate import trapezoid
 
 from flexmbs.errors import CaseError
 
@@ -39,6 +40,8 @@ __all__ = ["choose_steps", "subdivide", "GROWTH", "LADDER"]
 
 #: Largest ratio of neighbouring steps.
 GROWTH = 1.5
+#: the shortest step: 1/SHORTEST of the coarse pilot's (a smaller time.h_max is an error)
+SHORTEST = 1024
 #: Steps are H 2**(k / LADDER) (k integer), H the coarse pilot's step.
 LADDER = 4
 #: Pilot steps the error density's running maximum spans on either side.
@@ -86,6 +89,10 @@ def choose_steps(problem, x=None, *, tol=None, rtol=None, h_max=None, info=None)
     # pilots: H = 2 h (h the response grid's spacing) and h; one H = h and h / 2 on an odd grid
     big = 2 if n % 2 == 0 else 1
     hc = big * h
+    if h_max < hc / SHORTEST:
+        raise CaseError(f"time.h_max = {h_max:g} s is below the shortest step the grid takes, "
+                        f"1/{SHORTEST} of the coarse pilot's {hc:g} s ({hc / SHORTEST:g} s): "
+                        "give a larger h_max, or a fixed step time.h")
     nc = int(round(t_end / hc))
     t0 = time.perf_counter()
     rc = _histories(problem.values_on(x, np.linspace(0.0, t_end, nc + 1)), n + 1)
@@ -108,17 +115,17 @@ def choose_steps(problem, x=None, *, tol=None, rtol=None, h_max=None, info=None)
     tp = hf * np.arange(r.shape[0])
     w = np.interp(tp, tw, w)
     w = np.maximum(w, 1e-300)
-    integral_w = np.trapezoid(w, tp)
+    integral_w = trapezoid(w, tp)
     if e_coarse <= 0 or integral_w <= 0:
         c = 0.0
     else:
         c = e_coarse / (hc**2 * integral_w)
     if c > 0:
-        k = np.sqrt(1.0 / (c * np.trapezoid(w ** (1.0 / 3.0), tp)))
+        k = np.sqrt(1.0 / (c * trapezoid(w ** (1.0 / 3.0), tp)))
         hs = k * w ** (-1.0 / 3.0)
     else:
         hs = np.full(tp.size, h_max)
-    hs = np.clip(hs, hc / 1024, h_max)
+    hs = np.clip(hs, hc / SHORTEST, h_max)
     for i in range(1, hs.size):                  # growth ratio between neighbours
         hs[i] = min(hs[i], GROWTH * hs[i - 1])
     for i in range(hs.size - 2, -1, -1):

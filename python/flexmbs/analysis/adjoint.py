@@ -135,7 +135,9 @@ def simulate_for_adjoint(model, t_end, h=5e-4, *, checkpoints=None, **kwargs):
         if checkpoints != "auto":
             raise ModelError(f"checkpoints must be None, 'auto' or an integer >= 1, got "
                              f"{checkpoints!r}")
-        checkpoints = checkpoint_interval(model, time_steps(t_end, h, np.inf))
+        steps = kwargs.get("steps")
+        n = time_steps(t_end, h, np.inf) if steps is None else len(steps) - 1
+        checkpoints = checkpoint_interval(model, n)
     if checkpoints is None:
         return simulate(model, t_end, h, tape=True, polish=True, **kwargs)
     return simulate(model, t_end, h, polish=True, checkpoints=checkpoints, **kwargs)

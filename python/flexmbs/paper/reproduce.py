@@ -193,9 +193,11 @@ def multistart_job(case, overrides=None, options=None, multistart=None, workers=
     d.update(mass_kg=None, design=None, max_deviation_m=None, feasible=False,
              case_overrides=dict(overrides or {}), case_name=case)
     if res.best is not None:
-        # at the step its verification settled on (the case's own when not verified)
+        # at the step its verification settled on (the case's own when not verified, or
+        # when its steps are error-controlled: time.h = "auto" takes no fixed step)
         ver = res.details.get("verification")
-        at = dict(overrides or {}, **({"time.h": ver["h"]} if ver else {}))
+        fixed = ver and not prob.description.time.adaptive
+        at = dict(overrides or {}, **({"time.h": ver["h"]} if fixed else {}))
         chk = max_deviation_job(case, res.best["design"], at or None)
         d.update(mass_kg=chk["mass_kg"], design=chk["design"],
                  max_deviation_m=chk["max_deviation_m"], t_at_max_s=chk["t_at_max_s"],

@@ -71,8 +71,10 @@ def locate(model, body, s):
                          f"fraction of the beam's length from its first node), got {s!r}")
     nel = len(b.elements)
     u = float(s) * nel
-    k = min(int(math.floor(u)), nel - 1)
-    xi = 2.0 * (u - k) - 1.0
+    # a station on an element boundary (s n a whole number up to rounding, e.g. 0.58 of 50
+    # elements: 28.999999999999996) is in the element after it, at xi = -1
+    k = min(int(math.floor(u + 1e-9 * max(1, nel))), nel - 1)
+    xi = min(1.0, max(-1.0, 2.0 * (u - k) - 1.0))
     e = b.elements[k]
     ids, length, _ = model._elements[e]
     n, dn = shape(len(ids), np.array([xi]))

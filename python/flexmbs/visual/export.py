@@ -52,6 +52,9 @@ def frame_folder(path):
     if path.suffix.lower() != ".pvd":
         raise ModelError(f"{os.fspath(path)!r}: a ParaView time series is a .pvd file")
     folder = path.with_suffix("")
+    if folder.name in ("", ".", ".."):
+        raise ModelError(f"{os.fspath(path)!r}: give the .pvd file a name (its frames go to a "
+                         "folder of that name beside it)")
     if folder.exists():
         if not folder.is_dir():
             raise ModelError(f"{os.fspath(path)!r}: its frames go to {os.fspath(folder)!r}, "
