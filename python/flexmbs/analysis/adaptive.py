@@ -32,7 +32,6 @@ the design, and their direct and adjoint derivatives are exact on that grid.
 from __future__ import annotations
 
 import numpy as np
-from scipy.integrate import trapezoid
 
 from flexmbs.errors import CaseError
 
@@ -61,6 +60,12 @@ def _histories(values, nt):
     cols = [np.asarray(v, float).reshape(nt, -1) for v in values.values()
             if np.ndim(v) >= 1 and np.shape(v)[0] == nt]
     return np.hstack(cols) if cols else np.zeros((nt, 0))
+
+
+def _trapezoid(y, x):
+    """The trapezoid rule of y over x (numpy 1.26, which pyproject allows, has no
+    np.trapezoid; scipy's would load scipy with every flexmbs import)."""
+    return float(np.sum(0.5 * (y[1:] + y[:-1]) * np.diff(x)))
 
 
 def _tolerances(r, tol, rtol):
@@ -115,13 +120,13 @@ def choose_steps(problem, x=None, *, tol=None, rtol=None, h_max=None, info=None)
     tp = hf * np.arange(r.shape[0])
     w = np.interp(tp, tw, w)
     w = np.maximum(w, 1e-300)
-    integral_w = trapezoid(w, tp)
+    integral_w = _trapezoid(w, tp)
     if e_coarse <= 0 or integral_w <= 0:
         c = 0.0
     else:
         c = e_coarse / (hc**2 * integral_w)
     if c > 0:
-        k = np.sqrt(1.0 / (c * trapezoid(w ** (1.0 / 3.0), tp)))
+        k = np.sqrt(1.0 / (c * _trapezoid(w ** (1.0 / 3.0), tp)))
         hs = k * w ** (-1.0 / 3.0)
     else:
         hs = np.full(tp.size, h_max)
