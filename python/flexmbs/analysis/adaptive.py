@@ -34,6 +34,7 @@ from __future__ import annotations
 import numpy as np
 
 from flexmbs.errors import CaseError
+from flexmbs.responses.aggregate import trapezoid_weights
 
 __all__ = ["choose_steps", "subdivide", "GROWTH", "LADDER"]
 
@@ -60,12 +61,6 @@ def _histories(values, nt):
     cols = [np.asarray(v, float).reshape(nt, -1) for v in values.values()
             if np.ndim(v) >= 1 and np.shape(v)[0] == nt]
     return np.hstack(cols) if cols else np.zeros((nt, 0))
-
-
-def _trapezoid(y, x):
-    """The trapezoid rule of y over x (numpy 1.26, which pyproject allows, has no
-    np.trapezoid; scipy's would load scipy with every flexmbs import)."""
-    return float(np.sum(0.5 * (y[1:] + y[:-1]) * np.diff(x)))
 
 
 def _tolerances(r, tol, rtol):
@@ -120,13 +115,14 @@ def choose_steps(problem, x=None, *, tol=None, rtol=None, h_max=None, info=None)
     tp = hf * np.arange(r.shape[0])
     w = np.interp(tp, tw, w)
     w = np.maximum(w, 1e-300)
-    integral_w = _trapezoid(w, tp)
+    quad = trapezoid_weights(tp)         # the trapezoid rule on the pilot's times
+    integral_w = float(quad @ w)
     if e_coarse <= 0 or integral_w <= 0:
         c = 0.0
     else:
         c = e_coarse / (hc**2 * integral_w)
     if c > 0:
-        k = np.sqrt(1.0 / (c * _trapezoid(w ** (1.0 / 3.0), tp)))
+        k = np.sqrt(1.0 / (c * float(quad @ w ** (1.0 / 3.0))))
         hs = k * w ** (-1.0 / 3.0)
     else:
         hs = np.full(tp.size, h_max)
