@@ -40,7 +40,7 @@ import numpy as np
 
 from flexmbs.errors import ModelError
 from flexmbs.methods.result import OptimizationResult, open_history
-from flexmbs.methods.verified import check_verify, finish
+from flexmbs.methods.verified import check_verify, continuation_options, finish
 from flexmbs.model.description import Mass
 from flexmbs.model.fingerprint import fingerprint, run_options
 from flexmbs.model.sections import real_number
@@ -506,8 +506,7 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
     arguments = dict(locals())
     options = run_options(arguments)      # the arguments: what a history answers
     # the options of a continuation on a finer step (flexmbs.methods.verified)
-    again = {k: v for k, v in arguments.items() if k not in ("problem", "x0", "history",
-                                                               "resume", "verify")}
+    again = continuation_options(arguments)
 
     t0 = time.perf_counter()
     verify = check_verify(verify)

@@ -20,7 +20,8 @@ from flexmbs.analysis.accuracy import VERIFY_RTOL, verify as verify_design
 from flexmbs.errors import ModelError
 from flexmbs.model.description import Mass
 
-__all__ = ["finish", "check_verify", "verify_rtol", "MAX_CONTINUATIONS"]
+__all__ = ["finish", "check_verify", "verify_rtol", "continuation_options",
+           "MAX_CONTINUATIONS"]
 
 #: continuations on finer steps at most (each on a finer step than the one before)
 MAX_CONTINUATIONS = 2
@@ -37,6 +38,13 @@ def check_verify(verify):
         return float(verify)
     raise ModelError(f"verify must be True, False, 'check' or a relative accuracy in (0, 0.1] "
                      f"(e.g. 1e-3), got {verify!r}")
+
+
+def continuation_options(arguments):
+    """The keyword arguments of a method's call (its `locals()` on entry) that a continuation
+    on a finer step repeats: all but the problem, the start, the history, resume and verify."""
+    return {k: v for k, v in arguments.items()
+            if k not in ("problem", "x0", "history", "resume", "verify")}
 
 
 def verify_rtol(verify):

@@ -71,7 +71,7 @@ from flexmbs.methods.cycles import (CycleControl, check_cycle_options, check_rem
 from flexmbs.methods.esl import (BodyStiffness, ChordFrame, EquivalentStaticLoads, TangentFrame,
                          equivalent_static_loads, esl_change, solve_static)
 from flexmbs.methods.result import OptimizationResult, open_history
-from flexmbs.methods.verified import check_verify, finish
+from flexmbs.methods.verified import check_verify, continuation_options, finish
 from flexmbs.model.description import (Beam, Deviation, Mass, PointMass, Station, Stress,
                                  body_points)
 from flexmbs.model.fingerprint import fingerprint, run_options
@@ -785,8 +785,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
     arguments = dict(locals())
     options = run_options(arguments)      # the arguments: what a history answers
     # the options of a continuation on a finer step (flexmbs.methods.verified)
-    again = {k: v for k, v in arguments.items() if k not in ("problem", "x0", "history",
-                                                               "resume", "verify")}
+    again = continuation_options(arguments)
     t_start = time.perf_counter()
     verify = check_verify(verify)
     problem = load_problem(problem)
