@@ -40,6 +40,11 @@ _RUN_KEYS = ("steps", "newton_iterations", "factorizations", "step_cuts",
              "symbolic_analyses", "solver", "unknowns", "newton", "adjoint_checkpoints")
 
 
+def _drive_unit(drive):
+    """The unit of a drive's force: a torque (N m) of a rotation drive, else a force (N)."""
+    return "N m" if drive.type == "rotation" else "N"
+
+
 def response_unit(response, description):
     """The unit of a response's values (SI), or None when its type has no known one.
 
@@ -55,7 +60,7 @@ def response_unit(response, description):
     if kind == "torque":
         for d in description.drives:
             if d.name == response.drive:
-                return "N m" if d.type == "rotation" else "N"
+                return _drive_unit(d)
         return None
     if kind == "strain":
         return "1/m" if response.component == "curvature" else "1"
@@ -205,5 +210,5 @@ def motion_summary(problem, result):
         j = int(np.argmax(np.abs(f)))
         out["drives"][d.name or f"drive {k + 1}"] = {
             "max_abs": float(abs(f[j])), "t": float(t[j]),
-            "unit": "N m" if d.type == "rotation" else "N"}
+            "unit": _drive_unit(d)}
     return out
