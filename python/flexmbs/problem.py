@@ -994,9 +994,13 @@ class Problem:
                 if p.dofs.ndim == 1:
                     gq[np.ix_(np.arange(nt), p.dofs, idx)] += seed
                 else:
-                    # a step's coordinates may repeat (a stress row padded to the widest
-                    # element): add every seed
-                    np.add.at(gq, (steps, p.dofs[:, :, None], idx[None, None, :]), seed)
+                    at = (steps, p.dofs[:, :, None], idx[None, None, :])
+                    if (p.dofs[:, 1:] == p.dofs[:, :1]).any():
+                        # a stress row padded to the widest element repeats its first
+                        # coordinate: add every seed (np.add.at, 7x slower than +=)
+                        np.add.at(gq, at, seed)
+                    else:
+                        gq[at] += seed
                 if p.dmu is not None:
                     gmu[:, :, idx] += p.dmu[:, :, None] * W[:, None, :]
                 if p.design is not None:
