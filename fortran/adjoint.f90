@@ -40,10 +40,10 @@ contains
     !! acceleration and physical multiplier of every converged (sub-)step of the forward run
     !! (its tape, ga_simulate), run with the settings s from q0, qd0; th(c): the step that led
     !! to column c (th(1): the step before the first state, 0 at the run's start, a
-    !! segment's checkpoint h_prev); grid(j + 1): the column of grid point j. gq (ndof, nf, nsteps + 1), gmu
-    !! (>= nc, nf, nsteps + 1): dG_f/dq_j and dG_f/dmu_j on the grid. Out: grad(v, f) =
-    !! dG_f/dp_v and gprop(:, e, f) = dG_f/dprop_e. status: GA_* codes; info = [time, 0, 0,
-    !! extra] on failure.
+    !! segment's checkpoint h_prev); grid(j + 1): the column of grid point j. gq (ndof, nf,
+    !! nsteps + 1), gmu (>= nc, nf, nsteps + 1): dG_f/dq_j and dG_f/dmu_j on the grid. Out:
+    !! grad(v, f) = dG_f/dp_v and gprop(:, e, f) = dG_f/dprop_e. status: GA_* codes; info =
+    !! [time, 0, 0, extra] on failure.
     !!
     !! Segments (checkpointing, flexmbs/adjoint.py): with j_start, the tape is that of the
     !! s%nsteps steps from grid point j_start on (a run restarted from a checkpoint,

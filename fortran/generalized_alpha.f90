@@ -650,15 +650,8 @@ contains
             betap = (1 - alpha_m) / (beta * hh**2 * (1 - alpha_f))
             gammap = gamma / (beta * hh)
             tnew = tn + hh
-            ! predictor, eqs. (3)-(5), with qdd_{n+1} = qdd_n; in modified Newton,
-            ! qdd_{n+1} extrapolated linearly from the last two steps instead: a
-            ! closer start for the slower (linear) convergence of a reused Jacobian
-            ! (-25 % iterations on the robot; full Newton gains nothing from it)
-            ! (one pass over the coordinates; per coordinate the operations of the
-            ! array expressions: a_part, qdd_pred, a_new = a_part + (1 - alpha_f) /
-            ! (1 - alpha_m) qdd_pred, then q, qd and, kept for eq. (3), a = a_part)
             ! variable steps: a_n approximates qdd(t_n + (alpha_m - alpha_f) h) to second order
-            ! (Arnold & Bruls 2007, Multibody Syst Dyn 18:185-202, sec. 3; from eq. (4):
+            ! (Arnold & Bruls 2007, Multibody Syst Dyn 18:185-202; from eq. (3) with qdd smooth:
             ! a_n - qdd_n = (alpha_m - alpha_f) h qddd + O(h^2)), h the step that ended at t_n.
             ! When this step's length hh differs from that one's (h_prev), a_n is moved to the
             ! point the step of length hh needs: a_n <- qdd_n + (hh / h_prev) (a_n - qdd_n),
@@ -670,6 +663,13 @@ contains
                 x%a = x%qdd + hratio * (x%a - x%qdd)
                 if (nv > 0) x%da = x%dqdd + hratio * (x%da - x%dqdd)
             end if
+            ! predictor, eqs. (3)-(5), with qdd_{n+1} = qdd_n; in modified Newton,
+            ! qdd_{n+1} extrapolated linearly from the last two steps instead: a
+            ! closer start for the slower (linear) convergence of a reused Jacobian
+            ! (-25 % iterations on the robot; full Newton gains nothing from it)
+            ! (one pass over the coordinates; per coordinate the operations of the
+            ! array expressions: a_part, qdd_pred, a_new = a_part + (1 - alpha_f) /
+            ! (1 - alpha_m) qdd_pred, then q, qd and, kept for eq. (3), a = a_part)
             extrapolate = mod_step .and. x%h_prev > 0
             hratio = 0
             if (extrapolate) hratio = hh / x%h_prev
