@@ -45,6 +45,9 @@ def description_digest(description):
         # keys left at their defaults are left out: a key added to the format with a
         # default (the same question) does not change the fingerprint of older results
         data = description.model_dump(mode="json", by_alias=True, exclude_defaults=True)
+        # the [optimize] table is the run's options, fingerprinted as such (a resumed run
+        # may raise its limits)
+        data.pop("optimize", None)
     elif isinstance(description, dict):
         data = description
     else:
