@@ -280,7 +280,9 @@ def test_bad_input(robot):
                        match=r"design must be 4 finite numbers \(p1, p2, p3, p4\), got \[50, 50, 50\]"):
         optimize_fully(robot, [50, 50, 50])
     with pytest.raises(TypeError):
-        optimize_fully(robot, options=dict(sensitivity="fd"))     # finite differences are not an option
+        optimize_fully(robot, sensitivity="fd")     # finite differences are not an option
+    with pytest.raises(ModelError, match=r"unknown option 'sensitivity'; allowed: max_iterations"):
+        optimize_fully(robot, options=dict(sensitivity="fd"))
 
 
 # ----------------------------------------------------------------------------- the press

@@ -34,7 +34,8 @@ from flexmbs.errors import ModelError
 
 __all__ = ["FullyOptions", "SQPOptions", "MMAOptions", "SLSQPOptions", "NLoptOptions",
            "WeaklyOptions", "MultistartOptions", "OptimizeSection", "OPTIMIZER_TABLES",
-           "OPTIMIZER_OPTIONS", "build", "check_verify_value", "option_table", "from_keywords"]
+           "OPTIMIZER_OPTIONS", "build", "check_verify_value", "option_table", "from_keywords", "doc_rows",
+           "markdown_table"]
 
 
 def _not_bool(v):
@@ -191,31 +192,32 @@ OPTIMIZER_OPTIONS = {"mma": "mma", "sqp": "sqp", "slsqp": "slsqp", "nlopt-mma": 
 class FullyOptions(_Options):
     """The fully coupled method (flexmbs.methods.fully.optimize_fully).
 
-    ====================  ========  =============================================================
-    option                default   meaning
-    ====================  ========  =============================================================
-    max_iterations        100       optimizer iterations at most (NLopt: every new design
-                                    simulated counts as one)
-    max_simulations       1000      simulations at most
-    objective_rel_change  1e-3      the paper's test: relative objective change between two
-                                    iterations below this ...
-    constraint_violation  1e-6      ... and constraint violation max(0, max g) at most this
-                                    (flexmbs.problem.FEASIBILITY_TOL)
-    design_rel_change     None      if given, the relative change of the scaled design must be
-                                    below it too (the paper's four-bar: 1e-3)
-    kkt_tol               1e-3      first-order test that must hold as well (relative KKT
-                                    residual, flexmbs.optimizers.loops.kkt_residual)
-    active_tol            1e-3      constraints with g >= -active_tol are active (KKT test,
-                                    history's active_steps)
-    scale                 None      design scale, x = p / scale (the variables' units); None:
-                                    the start
-    verify                True      verify the final design at converged resolution (True, a
-                                    relative accuracy in (0, 0.1], 'check': report only, False)
-    sqp                   SQPOptions()    the trust-region SQP's options
-    mma                   MMAOptions()    the hand-written MMA's options
-    slsqp                 SLSQPOptions()  scipy SLSQP's options
-    nlopt                 NLoptOptions()  NLopt's optimizers' options
-    ====================  ========  =============================================================
+    ====================  ================  ==========================================================
+    option                default           meaning
+    ====================  ================  ==========================================================
+    max_iterations        100               optimizer iterations at most (NLopt: every new design
+                                            simulated counts as one)
+    max_simulations       1000              simulations at most
+    objective_rel_change  1e-3              the paper's test: relative objective change between
+                                            two iterations below this ...
+    constraint_violation  1e-6              ... and constraint violation max(0, max g) at most
+                                            this (flexmbs.problem.FEASIBILITY_TOL)
+    design_rel_change     None              if given, the relative change of the scaled design
+                                            must be below it too (the paper's four-bar: 1e-3)
+    kkt_tol               1e-3              first-order test that must hold as well (relative KKT
+                                            residual, flexmbs.optimizers.loops.kkt_residual)
+    active_tol            1e-3              constraints with g >= -active_tol are active (KKT test,
+                                            history's active_steps)
+    scale                 None              design scale, x = p / scale (the variables' units);
+                                            None: the start
+    verify                True              verify the final design at converged resolution
+                                            (True, a relative accuracy in (0, 0.1], 'check':
+                                            report only, False)
+    sqp                   SQPOptions()      the trust-region SQP's options
+    mma                   MMAOptions()      the hand-written MMA's options
+    slsqp                 SLSQPOptions()    scipy SLSQP's options
+    nlopt                 NLoptOptions()    NLopt's optimizers' options
+    ====================  ================  ==========================================================
 
     Only the table of the optimizer run may differ from its defaults (`check_optimizer`).
     """
@@ -380,15 +382,15 @@ class OptimizeSection(FullyOptions):
     ``mma``, ``slsqp``, ``nlopt``), and the tables ``weakly`` (WeaklyOptions) and
     ``multistart`` (MultistartOptions).
 
-    ==========  ============  =============================================================
-    option      default       meaning
-    ==========  ============  =============================================================
-    method      'weakly'      the method of `flexmbs optimize`: 'weakly' or 'fully'
-    optimizer   'auto'        the fully coupled method's optimizer ('auto' or one of
-                              flexmbs.methods.fully.OPTIMIZERS)
-    weakly      WeaklyOptions()      the weakly coupled method's options
-    multistart  MultistartOptions()  the multi-start's options
-    ==========  ============  =============================================================
+    ==========  ====================  =============================================================
+    option      default               meaning
+    ==========  ====================  =============================================================
+    method      'weakly'              the method of `flexmbs optimize`: 'weakly' or 'fully'
+    optimizer   'auto'                the fully coupled method's optimizer ('auto' or one of
+                                      flexmbs.methods.fully.OPTIMIZERS)
+    weakly      WeaklyOptions()       the weakly coupled method's options
+    multistart  MultistartOptions()   the multi-start's options
+    ==========  ====================  =============================================================
     """
     method: Literal["weakly", "fully"] = "weakly"
     optimizer: Literal["auto", "mma", "sqp", "slsqp", "nlopt-mma", "nlopt-ccsaq",
@@ -495,3 +497,29 @@ def from_keywords(function, kind, options, keywords, tables=None, stacklevel=3):
                   f"options={kind.__name__}({new}) (or the same as a dict)",
                   DeprecationWarning, stacklevel=stacklevel)
     return data
+
+
+def doc_rows(kind):
+    """[(option, default, meaning)] of the table in an options class's docstring (its
+    continuation lines joined)."""
+    import inspect
+    lines = inspect.cleandoc(kind.__doc__).splitlines()
+    rules = [k for k, line in enumerate(lines) if line.startswith("=") and set(line) <= {"=", " "}]
+    rule = lines[rules[0]]
+    starts = [k for k, ch in enumerate(rule) if ch == "=" and (k == 0 or rule[k - 1] == " ")]
+    rows = []
+    for line in lines[rules[1] + 1:rules[2]]:
+        cells = [line[a:b].strip() for a, b in zip(starts, starts[1:] + [None])]
+        if cells[0]:
+            rows.append(cells)
+        else:
+            rows[-1][-1] += " " + " ".join(c for c in cells[1:] if c)
+    return [tuple(r) for r in rows]
+
+
+def markdown_table(kind):
+    """The table of an options class's docstring as a markdown table (docs/optimizers.md)."""
+    out = ["| option | default | meaning |", "|---|---|---|"]
+    for name, default, meaning in doc_rows(kind):
+        out.append(f"| `{name}` | `{default}` | {meaning} |")
+    return "\n".join(out)
