@@ -351,14 +351,16 @@ def test_stored_multistart_start_of_the_wrong_content(tmp_path):
     from flexmbs.problem import Problem
 
     prob = Problem("robot_2dof", overrides={"time.t_end": 0.05})
-    first = multistart(prob, 1, store=tmp_path, options=dict(verify=False), fully=dict(max_iterations=2))
+    first = multistart(prob, 1, store=tmp_path, options=dict(verify=False),
+                       fully=dict(max_iterations=2))
     f = tmp_path / "start000.json"
     good = json.loads(f.read_text())
     for bad in ({"fingerprint": good["fingerprint"], "foo": 1},
                 dict(good, objective=str(good["objective"]), simulations="3")):
         f.write_text(json.dumps(bad))
         with pytest.warns(UserWarning, match=r"start000\.json.*key '"):
-            again = multistart(prob, 1, store=tmp_path, options=dict(verify=False), fully=dict(max_iterations=2))
+            again = multistart(prob, 1, store=tmp_path, options=dict(verify=False),
+                               fully=dict(max_iterations=2))
         assert again.optima[0]["objective"] == pytest.approx(first.optima[0]["objective"],
                                                              rel=1e-12)
 

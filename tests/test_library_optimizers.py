@@ -118,9 +118,11 @@ def test_bad_optimizer_name_is_named_with_the_allowed_values():
     assert "'ipopt'" in str(exc.value)
     for name in OPTIMIZERS:
         assert name in str(exc.value)
-    with pytest.raises(ModelError, match="screen must be a number <= 0"):
+    with pytest.raises(ModelError, match=r"option nlopt.screen = 0.5: Input should be less "
+                                         r"than or equal to 0"):
         optimize_fully(_two_bar(), optimizer="nlopt-mma", options=dict(screen=0.5))
-    with pytest.raises(ModelError, match="optimizer must be .auto. or one of"):
+    with pytest.raises(ModelError, match="option optimizer = 'newton': Input should be 'auto', "
+                                         "'mma'"):
         multistart(_two_bar(), 2, workers=1, options=dict(optimizer="newton"))
     with pytest.raises(ModelError, match="sampler must be one of sobol, lhs"):
         start_designs([1.0], [2.0], 4, sampler="grid")
@@ -258,7 +260,8 @@ def test_multistart_candidates_start_from_feasible_light_designs():
     feasible ones of lowest objective kept. The feasible set [0.5, 1] and [3, 10] is 41 % of
     the log range of [0.1, 10] (6.6 of 16 stratified points), so every start must be a
     feasible design (outside the gap (1, 3)), and the best is the global optimum x = 0.5."""
-    res = multistart(_two_basins(), 3, workers=1, options=dict(candidates=16, optimizer="nlopt-ccsaq"))
+    res = multistart(_two_basins(), 3, workers=1,
+                     options=dict(candidates=16, optimizer="nlopt-ccsaq"))
     for o in res.optima:
         x = o["start"][0]
         assert 0.5 <= x <= 1.0 or 3.0 <= x <= 10.0

@@ -164,10 +164,11 @@ def test_bad_arguments_are_typed_errors():
     case = GENERAL / "slider_crank_press.toml"
     with pytest.raises(ModelError, match=r"x0 = \[70.0\] lies outside the bounds"):
         optimize_weakly(case, [70.0])
-    with pytest.raises(ModelError, match="frames must be a dict"):
+    with pytest.raises(ModelError, match=r"option frames = \['rod'\]: Input should be a valid "
+                                         r"dictionary"):
         optimize_weakly(case, options=dict(frames=["rod"]))
-    with pytest.raises(ModelError, match="frame_kind must be 'auto', 'tangent', 'chord', "
-                                         "got 'arc'"):
+    with pytest.raises(ModelError, match="option frame_kind = 'arc': Input should be 'auto', "
+                                         "'tangent' or 'chord'"):
         optimize_weakly(case, options=dict(frame_kind="arc"))
 
 

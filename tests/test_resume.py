@@ -184,11 +184,13 @@ def test_multistart_progress_and_batch(capsys):
     objective on stderr; a callable receives each start's summary; nothing without progress."""
     from flexmbs.optimize import multistart
     seen = []
-    multistart(_robot(), 2, workers=1, progress=lambda rec: seen.append(rec["name"]), options=dict(optimizer="mma"), fully=dict(max_iterations=2))
+    multistart(_robot(), 2, workers=1, progress=lambda rec: seen.append(rec["name"]),
+               options=dict(optimizer="mma"), fully=dict(max_iterations=2))
     assert sorted(seen) == ["start000", "start001"]
     out, err = capsys.readouterr()
     assert out == "" and err == ""
-    multistart(_robot(), 2, workers=1, progress=True, options=dict(optimizer="mma"), fully=dict(max_iterations=2))
+    multistart(_robot(), 2, workers=1, progress=True, options=dict(optimizer="mma"),
+               fully=dict(max_iterations=2))
     out, err = capsys.readouterr()
     assert "starts:" in err and "2/2" in err and ("best feasible" in err or "no feasible" in err)
 

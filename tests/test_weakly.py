@@ -100,7 +100,8 @@ def test_table5_weakly_oscillates():
     """Paper 8.1 / Table 5 (0.66 s): the weakly coupled method does not converge, the objective
     oscillates between cycles (docs/paper-cases.md prototype: between about 1.076 and 1.133 kg). The run
     must stop as not converged and the masses must keep swinging by several per cent."""
-    r = optimize_weakly(Problem("robot_2dof", overrides={"time.t_end": 0.66}), options=dict(max_cycles=15))
+    r = optimize_weakly(Problem("robot_2dof", overrides={"time.t_end": 0.66}),
+                        options=dict(max_cycles=15))
     assert not r.converged
     masses = np.array([h["mass_kg"] for h in r.history[3:]])
     assert masses.max() / masses.min() - 1 > 0.03
@@ -115,7 +116,8 @@ def test_table7_weakly_infeasible_start():
     238-242 (Table 8, for the start 55 mm, which reaches the same design). Mass within 1 %,
     design within 2 %."""
     # verify='check': the paper's method at the paper's step (its verification is reported)
-    r = optimize_weakly(Problem("robot_2dof", overrides={"time.t_end": 0.6685}), [45.0] * 4, options=dict(verify="check"))
+    r = optimize_weakly(Problem("robot_2dof", overrides={"time.t_end": 0.6685}), [45.0] * 4,
+                        options=dict(verify="check"))
     assert r.converged
     assert r.history[0]["max_deviation_m"] > 1e-3                   # infeasible start
     np.testing.assert_allclose(r.design, [52.60, 37.85, 33.23, 24.76], rtol=0.02)

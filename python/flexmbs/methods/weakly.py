@@ -783,9 +783,10 @@ def optimize_weakly(problem, x0=None, *, options=None, history=None, progress=No
         normalised g of the final design), feasible, paper_test_cycle (the cycle at which
         eq. (25) first held), static_optimizations, oscillation_period, esl_change,
         esl_bodies, frames, frame_kinds (the kind each ESL beam got), damping, esl_blend,
-        design_tol, options (the WeaklyOptions used, as plain data), static_to_simulated ({constrained deviation: the largest static value over
-        steps and chains / the largest simulated value} at the returned design, from its own
-        ESL: `StaticModel.static_to_simulated`; also in every cycle's history record).
+        design_tol, options (the WeaklyOptions used, as plain data), static_to_simulated
+        ({constrained deviation: the largest static value over steps and chains / the largest
+        simulated value} at the returned design, from its own ESL:
+        `StaticModel.static_to_simulated`; also in every cycle's history record).
     """
     t_start = time.perf_counter()
     if keywords:

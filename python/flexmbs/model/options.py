@@ -34,14 +34,8 @@ from flexmbs.errors import ModelError
 
 __all__ = ["FullyOptions", "SQPOptions", "MMAOptions", "SLSQPOptions", "NLoptOptions",
            "WeaklyOptions", "MultistartOptions", "OptimizeSection", "OPTIMIZER_TABLES",
-           "OPTIMIZER_OPTIONS", "build", "check_verify_value", "option_table", "from_keywords", "doc_rows",
-           "markdown_table"]
-
-
-def _not_bool(v):
-    if isinstance(v, bool):
-        raise ValueError("must be a number, not a boolean")
-    return v
+           "OPTIMIZER_OPTIONS", "build", "check_verify_value", "from_keywords",
+           "doc_rows", "markdown_table"]
 
 
 def _plain(v):
@@ -49,11 +43,10 @@ def _plain(v):
     return v.tolist() if hasattr(v, "tolist") else v
 
 
-_NoBool = BeforeValidator(_not_bool)
-Pos = Annotated[float, _NoBool, Field(gt=0, allow_inf_nan=False)]
-Count = Annotated[int, _NoBool, Field(ge=1)]
-Whole = Annotated[int, _NoBool, Field(ge=0)]
-Fraction = Annotated[float, _NoBool, Field(ge=0, le=1, allow_inf_nan=False)]
+Pos = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+Count = Annotated[int, Field(ge=1)]
+Whole = Annotated[int, Field(ge=0)]
+Fraction = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
 FrameKind = Literal["auto", "tangent", "chord"]
 #: `verify`: True, False, 'check' or a relative accuracy in (0, 0.1]
 Verify = Union[bool, Literal["check"], Annotated[float, Field(gt=0, le=0.1)]]
@@ -76,7 +69,8 @@ def check_verify_value(verify):
 
 
 class _Options(BaseModel):
-    """Frozen, strict (no '5' for 5, no true for 1), no unknown keys."""
+    """Frozen, strict (no '5' for 5, no true for 1 or 1.0: pydantic's strict mode), no
+    unknown keys."""
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
 
     def as_dict(self):
@@ -132,7 +126,7 @@ class MMAOptions(_Options):
     asydecr: Pos = 0.7
     albefa: Pos = 0.1
     c: Pos = 1000.0
-    check_below: Annotated[float, _NoBool, Field(le=0, allow_inf_nan=False)] = -0.05
+    check_below: Annotated[float, Field(le=0, allow_inf_nan=False)] = -0.05
     max_inner: Count = 20
 
     def mma_keywords(self):
@@ -173,11 +167,11 @@ class NLoptOptions(_Options):
                                  value until a design is feasible
     =================  ========  ==================================================================
     """
-    screen: Annotated[float, _NoBool, Field(le=0, allow_inf_nan=False)] | None = -0.3
+    screen: Annotated[float, Field(le=0, allow_inf_nan=False)] | None = -0.3
     log_scale: bool = True
-    initial_step: Annotated[float, _NoBool, Field(gt=0, le=1)] | None = None
+    initial_step: Annotated[float, Field(gt=0, le=1)] | None = None
     max_restarts: Whole = 20
-    params: dict[str, Annotated[float, _NoBool]] = {}
+    params: dict[str, float] = {}
     feasibility_phase: bool = True
 
 
@@ -192,9 +186,9 @@ OPTIMIZER_OPTIONS = {"mma": "mma", "sqp": "sqp", "slsqp": "slsqp", "nlopt-mma": 
 class FullyOptions(_Options):
     """The fully coupled method (flexmbs.methods.fully.optimize_fully).
 
-    ====================  ================  ==========================================================
+    ====================  ================  ========================================================
     option                default           meaning
-    ====================  ================  ==========================================================
+    ====================  ================  ========================================================
     max_iterations        100               optimizer iterations at most (NLopt: every new design
                                             simulated counts as one)
     max_simulations       1000              simulations at most
@@ -217,7 +211,7 @@ class FullyOptions(_Options):
     mma                   MMAOptions()      the hand-written MMA's options
     slsqp                 SLSQPOptions()    scipy SLSQP's options
     nlopt                 NLoptOptions()    NLopt's optimizers' options
-    ====================  ================  ==========================================================
+    ====================  ================  ========================================================
 
     Only the table of the optimizer run may differ from its defaults (`check_optimizer`).
     """
@@ -326,8 +320,8 @@ class WeaklyOptions(_Options):
     max_inner: Count = 200
     active_tol: Pos = 1e-3
     stop_on_oscillation: bool = True
-    damping: Annotated[float, _NoBool, Field(gt=0, le=1, allow_inf_nan=False)] = 1.0
-    esl_blend: Annotated[float, _NoBool, Field(ge=0, lt=1, allow_inf_nan=False)] = 0.0
+    damping: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 1.0
+    esl_blend: Annotated[float, Field(ge=0, lt=1, allow_inf_nan=False)] = 0.0
     design_tol: Pos | None = None
     verify: Annotated[Verify, BeforeValidator(_verify_field)] = True
 
@@ -401,11 +395,6 @@ class OptimizeSection(FullyOptions):
     def fully(self):
         """The FullyOptions of the table."""
         return FullyOptions(**{k: getattr(self, k) for k in FullyOptions.model_fields})
-
-
-def option_table(kind):
-    """[(option, default)] of an options class, in its order."""
-    return [(n, f.default) for n, f in kind.model_fields.items()]
 
 
 def _message(exc, kind, where):
