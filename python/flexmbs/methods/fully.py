@@ -43,7 +43,8 @@ from flexmbs.methods.result import OptimizationResult, open_history
 from flexmbs.methods.verified import finish
 from flexmbs.model.description import Mass
 from flexmbs.model.fingerprint import fingerprint, run_options
-from flexmbs.model.options import build, from_keywords, FullyOptions, OPTIMIZER_OPTIONS
+from flexmbs.model.options import (build, from_keywords, FullyOptions, MMAOptions,
+                                   NLoptOptions, OPTIMIZER_OPTIONS, SLSQPOptions, SQPOptions)
 from flexmbs.optimizers.library import _choose, run_nlopt
 from flexmbs.optimizers.loops import _Monitor, _run_mma, _run_slsqp, _run_sqp
 from flexmbs.optimizers.mma import MMA
@@ -86,12 +87,14 @@ def _nlopt(P, mon, x0, o, name):
                      params=dict(o.params), feasibility_phase=o.feasibility_phase)[1]
 
 
-#: optimizer -> run(P, monitor, x0, its options table, optimizer) -> details; the options
-#: table of an optimizer is FullyOptions' field OPTIMIZER_OPTIONS[optimizer]
-#: (flexmbs.model.options: SQPOptions, MMAOptions, SLSQPOptions, NLoptOptions)
-RUNS = {"mma": _mma, "sqp": _sqp, "slsqp": _slsqp, "nlopt-mma": _nlopt,
-        "nlopt-ccsaq": _nlopt, "nlopt-slsqp": _nlopt}
+#: optimizer -> (its options class, run(P, monitor, x0, its options, optimizer) -> details);
+#: its options are FullyOptions' field OPTIMIZER_OPTIONS[optimizer] (flexmbs.model.options)
+RUNS = {"mma": (MMAOptions, _mma), "sqp": (SQPOptions, _sqp), "slsqp": (SLSQPOptions, _slsqp),
+        "nlopt-mma": (NLoptOptions, _nlopt), "nlopt-ccsaq": (NLoptOptions, _nlopt),
+        "nlopt-slsqp": (NLoptOptions, _nlopt)}
 assert set(RUNS) == set(OPTIMIZERS) == set(OPTIMIZER_OPTIONS)
+assert all(FullyOptions.model_fields[OPTIMIZER_OPTIONS[name]].annotation is kind
+           for name, (kind, _) in RUNS.items())
 
 
 def choose_optimizer(optimizer, nv):
@@ -537,7 +540,7 @@ def optimize_fully(problem, x0=None, *, optimizer=None, options=None, history=No
                    active_tol=opts.active_tol, max_iterations=opts.max_iterations,
                    max_simulations=opts.max_simulations, t0=t0)
     try:
-        lib_details = RUNS[optimizer](P, mon, P.to_x(p0), table, optimizer)
+        lib_details = RUNS[optimizer][1](P, mon, P.to_x(p0), table, optimizer)
     finally:
         if own_writer:
             writer.close()
