@@ -14,7 +14,10 @@ Usage::
                  [--workers N | --dask ADDRESS] [--store FOLDER]]
 
 CASE is the name of a shipped case or a case file (docs/case-format.md); it is optimized on
-its own objective and constraints (flexmbs.optimize.optimize_weakly / optimize_fully).
+its own objective and constraints (flexmbs.optimize.optimize_weakly / optimize_fully). The
+method, the optimizer and every option not given on the command line come from the case's
+``[optimize]`` table (flexmbs.model.options; e.g. ``--set optimize.max_iterations=50``,
+``--set optimize.sqp.trust_radius=0.1``), else from the options' defaults.
 
 Methods are looked up in `METHODS` (name -> "module:function", the function takes the parsed
 arguments and the Problem and returns an OptimizationResult); method-specific options are
