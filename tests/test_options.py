@@ -199,3 +199,14 @@ def test_options_recorded_in_history_and_resume_refuses_another(tmp_path):
                          options=dict(max_iterations=2, verify=False))
     assert res.iterations == 2 and len(read_history(h)) == 3
     assert np.isfinite(res.objective)
+
+
+def test_case_weakly_table_is_used_and_validated():
+    """The case's [optimize.weakly] table sets the weakly coupled method's options of a call
+    that gives none (one cycle here, recorded in details['options']); a bad value in it is a
+    CaseError naming optimize.weakly.damping."""
+    prob = _robot(**{"optimize.weakly.max_cycles": 1, "optimize.weakly.verify": False})
+    res = optimize_weakly(prob)
+    assert res.iterations == 1 and res.details["options"]["max_cycles"] == 1
+    with pytest.raises(CaseError, match=r"optimize.weakly.damping"):
+        _robot(**{"optimize.weakly.damping": 1.5})
