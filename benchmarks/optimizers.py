@@ -88,8 +88,9 @@ def run_one(spec, optimizer, max_simulations):
         x0 = np.broadcast_to(np.asarray(x0), problem.start.shape).copy()
     t = time.perf_counter()
     try:
-        r = optimize_fully(problem, x0, optimizer=optimizer, max_iterations=max_simulations,
-                             max_simulations=max_simulations)
+        r = optimize_fully(problem, x0, optimizer=optimizer,
+                           options=dict(max_iterations=max_simulations,
+                                        max_simulations=max_simulations))
     except Exception as exc:     # noqa: BLE001 - a benchmark reports, it does not stop
         return dict(case=case, optimizer=optimizer, error=f"{type(exc).__name__}: {exc}",
                     wall_time_s=time.perf_counter() - t)
@@ -104,9 +105,9 @@ def run_multi(spec, optimizer, starts, workers, max_simulations):
     from flexmbs.problem import Problem
 
     case, overrides, _ = parse_run(spec)
-    r = multistart(Problem(case, overrides=overrides), starts, optimizer=optimizer, workers=workers,
-                   progress=False, max_iterations=max_simulations,
-                   max_simulations=max_simulations)
+    r = multistart(Problem(case, overrides=overrides), starts, workers=workers, progress=False,
+                   options=dict(optimizer=optimizer),
+                   fully=dict(max_iterations=max_simulations, max_simulations=max_simulations))
     feas = [o for o in r.optima if o["feasible"]]
     return dict(case=case, optimizer=optimizer, starts=starts, wall_time_s=r.wall_time_s,
                 simulations=r.simulations,

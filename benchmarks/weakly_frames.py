@@ -62,7 +62,7 @@ def run_one(case, kind, move_limit=None):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         t0 = time.perf_counter()
-        r = optimize_weakly(prob, frame_kind=FRAME_KIND[kind], move_limit=move_limit)
+        r = optimize_weakly(prob, options=dict(frame_kind=FRAME_KIND[kind], move_limit=move_limit))
         wall = time.perf_counter() - t0
         g_h = _max_g(case, r.design)
         g_h4 = _max_g(case, r.design, {"time.h": h / 4})

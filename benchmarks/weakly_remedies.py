@@ -86,7 +86,7 @@ def run_one(table, options):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         t0 = time.perf_counter()
-        r = optimize_weakly(Problem(case, overrides=overrides), start, **opts)
+        r = optimize_weakly(Problem(case, overrides=overrides), start, options=opts)
         wall = time.perf_counter() - t0
         ev = Problem(case, overrides=overrides).evaluate(r.design, gradient=False)
     g = np.asarray(ev.constraints, float)

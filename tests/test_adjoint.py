@@ -293,7 +293,7 @@ def test_optimization_with_the_adjoint():
     for gm in ("direct", "adjoint"):
         p = Problem("robot_2dof", ov, gradient_method=gm)
         assert p.evaluate(p.start).gradient_method == gm
-        runs[gm] = optimize_fully(p, p.start, max_iterations=8)
+        runs[gm] = optimize_fully(p, p.start, options=dict(max_iterations=8))
     assert runs["adjoint"].iterations == runs["direct"].iterations == 8
     np.testing.assert_allclose(runs["adjoint"].design, runs["direct"].design, rtol=1e-6)
     with pytest.raises(ModelError, match="gradient_method must be one of .*got 'adj'"):

@@ -504,34 +504,36 @@ def test_optimizers_accept_a_case_name_and_progress_false():
     """optimize_fully("robot_2dof") and optimize_weakly("robot_2dof", progress=False) load the
     case by name and run; progress=False used to fail after the first cycle (False was called).
     The first history record is the robot's start design [50]*4 mm with its analytic mass."""
-    w = optimize_weakly("robot_2dof", progress=False, max_cycles=1)
+    w = optimize_weakly("robot_2dof", progress=False, options=dict(max_cycles=1))
     assert w.case == "robot_2dof" and w.iterations == 1
     assert w.history[0]["design"] == [50.0] * 4
     assert w.history[0]["mass_kg"] == pytest.approx(_tube_mass([50.0] * 4), rel=1e-12)
-    f = optimize_fully("robot_2dof", progress=False, max_iterations=1)
+    f = optimize_fully("robot_2dof", progress=False, options=dict(max_iterations=1))
     assert f.case == "robot_2dof" and f.iterations == 1
     assert f.history[0]["design"] == [50.0] * 4
     assert f.history[0]["mass_kg"] == pytest.approx(_tube_mass([50.0] * 4), rel=1e-12)
 
 
 @pytest.mark.parametrize("kw, text", [
-    (dict(max_iterations="5"), "max_iterations must be an integer >= 1, got '5'"),
-    (dict(max_iterations=2.5), "max_iterations must be an integer >= 1, got 2.5"),
-    (dict(max_simulations=0), "max_simulations must be an integer >= 1, got 0"),
-    (dict(kkt_tol="small"), "kkt_tol must be a positive finite number, got 'small'"),
-    (dict(trust_radius=-1), "trust_radius must be a positive finite number, got -1"),
-    (dict(design_rel_change="a"), "design_rel_change (or None) must be a positive finite number, got 'a'"),
+    (dict(options=dict(max_iterations="5")), "options: option max_iterations = '5': Input should be a valid integer"),
+    (dict(options=dict(max_iterations=2.5)), "options: option max_iterations = 2.5: Input should be a valid integer"),
+    (dict(options=dict(max_simulations=0)), "options: option max_simulations = 0: Input should be greater than or equal to 1"),
+    (dict(options=dict(kkt_tol="small")), "options: option kkt_tol = 'small': Input should be a valid number"),
+    (dict(options=dict(trust_radius=-1)), "options: option sqp.trust_radius = -1: Input should be greater than 0"),
+    (dict(options=dict(design_rel_change="a")), "options: option design_rel_change = 'a'"),
     (dict(optimizer="bfgs"), "optimizer must be 'auto' or one of mma, sqp, slsqp, nlopt-mma, nlopt-ccsaq, nlopt-slsqp, got 'bfgs'"),
     (dict(progress=3), "progress must be a callable taking one history record, or None/False, got 3"),
-    (dict(mma_options=3), "mma_options must be a dict or None, got 3"),
+    (dict(options=dict(mma=3)), "options: option mma = 3"),
+    (dict(options=3), "options must be a FullyOptions or a dict of its options, got 3"),
     (dict(x0="40,30,35,25"), "design must be 4 numbers (p1, p2, p3, p4), got '40,30,35,25'"),
     (dict(x0=[[40, 30], [35, 25]]), "design must be 4 finite numbers (p1, p2, p3, p4), got [[40, 30], [35, 25]]"),
     (dict(x0=[10, 30, 35, 25]), "x0: p1 = 10.0 lies outside its bounds [20, 60]"),
     (dict(problem=None), "a problem needs a case file path, a case name, a dict or a Description, got NoneType"),
 ], ids=lambda v: v if isinstance(v, str) else "")
 def test_optimize_fully_arguments(robot, kw, text):
-    """optimize_fully's arguments: typed errors (ModelError, CaseError for the problem) naming
-    the argument and the value, before the first simulation."""
+    """optimize_fully's arguments and options (flexmbs.model.options.FullyOptions): typed
+    errors (ModelError, CaseError for the problem) naming the argument or option and the
+    value, before the first simulation."""
     kw = dict(kw)
     problem = kw.pop("problem", robot)
     with pytest.raises(fx.ModelError) as err:
@@ -546,26 +548,26 @@ def test_optimize_fully_history_must_be_a_path(robot):
 
 
 @pytest.mark.parametrize("kw, text", [
-    (dict(max_cycles="5"), "max_cycles must be an integer >= 1, got '5'"),
-    (dict(max_cycles=2.5), "max_cycles must be an integer >= 1, got 2.5"),
-    (dict(confirm_cycles=-1), "confirm_cycles must be an integer >= 0, got -1"),
-    (dict(eps="0.01"), "eps must be a positive finite number, got '0.01'"),
-    (dict(screen=None), "screen must be a finite number, got None"),
-    (dict(screen=2), "screen must lie in [0, 1], got 2"),
-    (dict(move_limit=-1), "move_limit (or None) must be a positive finite number, got -1"),
-    (dict(max_inner=0), "max_inner must be an integer >= 1, got 0"),
-    (dict(frame_kind="polar"), "frame_kind must be 'auto', 'tangent', 'chord', got 'polar'"),
-    (dict(frames=3), "frames must be a dict beam -> point or None, got 3"),
-    (dict(frames={"arm9": "A"}), "frames: 'arm9' is not a beam (beams: arm1, arm2)"),
-    (dict(frames={"arm1": "Z"}), "frames: beam 'arm1' has no end point 'Z' (its ends: O, A)"),
+    (dict(options=dict(max_cycles="5")), "options: option max_cycles = '5': Input should be a valid integer"),
+    (dict(options=dict(max_cycles=2.5)), "options: option max_cycles = 2.5: Input should be a valid integer"),
+    (dict(options=dict(confirm_cycles=-1)), "options: option confirm_cycles = -1: Input should be greater than or equal to 0"),
+    (dict(options=dict(eps="0.01")), "options: option eps = '0.01': Input should be a valid number"),
+    (dict(options=dict(screen=None)), "options: option screen = None: Input should be a valid number"),
+    (dict(options=dict(screen=2)), "options: option screen = 2: Input should be less than or equal to 1"),
+    (dict(options=dict(move_limit=-1)), "options: option move_limit = -1: Input should be greater than 0"),
+    (dict(options=dict(max_inner=0)), "options: option max_inner = 0: Input should be greater than or equal to 1"),
+    (dict(options=dict(frame_kind="polar")), "options: option frame_kind = 'polar': Input should be 'auto', 'tangent' or 'chord'"),
+    (dict(options=dict(frames=3)), "options: option frames = 3: Input should be a valid dictionary"),
+    (dict(options=dict(frames={"arm9": "A"})), "frames: 'arm9' is not a beam (beams: arm1, arm2)"),
+    (dict(options=dict(frames={"arm1": "Z"})), "frames: beam 'arm1' has no end point 'Z' (its ends: O, A)"),
     (dict(progress="yes"), "progress must be a callable taking one history record, or None/False, got 'yes'"),
     (dict(x0=[-40, 30, 35, 25]), "design values must be positive (section sizes), got [-40, 30, 35, 25]"),
     (dict(x0=[100, 30, 35, 25]), "x0 = [100.0, 30.0, 35.0, 25.0] lies outside the bounds"),
     (dict(problem=42), "a problem needs a case file path, a case name, a dict or a Description, got int"),
 ], ids=lambda v: v if isinstance(v, str) else "")
 def test_optimize_weakly_arguments(robot, kw, text):
-    """optimize_weakly's arguments: typed errors naming the argument and the value, before the
-    first simulation."""
+    """optimize_weakly's arguments and options (flexmbs.model.options.WeaklyOptions): typed
+    errors naming the argument or option and the value, before the first simulation."""
     kw = dict(kw)
     problem = kw.pop("problem", robot)
     with pytest.raises(fx.ModelError) as err:

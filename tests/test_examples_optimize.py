@@ -69,7 +69,7 @@ def robot_fully():
 def fourbar_fully():
     # at the case's step: the comparisons below are of the methods, not of the resolution
     # (the verification and its continuation: tests/test_accuracy.py)
-    return optimize_fully(Problem(FOURBAR), FOURBAR_X0, verify=False)
+    return optimize_fully(Problem(FOURBAR), FOURBAR_X0, options=dict(verify=False))
 
 
 @pytest.mark.parametrize("which", ["robot", "fourbar"])
@@ -157,7 +157,7 @@ def test_fourbar_weakly_is_heavier_than_fully(fourbar_fully):
     feasible design seen. Its design is heavier than the fully coupled optimum (the paper's
     Table 3 finding on the four-bar): measured 4.477 kg (cycle 4), 4.7 times 0.953 kg, asserted
     > +4.8 %. The feasibility it reports is the fresh simulation's."""
-    res = optimize_weakly(Problem(FOURBAR), max_cycles=8, verify=False)
+    res = optimize_weakly(Problem(FOURBAR), options=dict(max_cycles=8, verify=False))
     assert res.reason
     assert res.mass_kg > 1.048 * fourbar_fully.objective
     ev = Problem(FOURBAR).evaluate(res.design, gradient=False)

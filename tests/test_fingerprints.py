@@ -61,7 +61,7 @@ def test_multistart_store_of_another_t_end_is_computed_again(tmp_path):
     warning)."""
     from flexmbs.methods.multistart import multistart
     store = tmp_path / "store"
-    kw = dict(starts=2, workers=1, store=store, max_iterations=1)
+    kw = dict(starts=2, workers=1, store=store, fully=dict(max_iterations=1))
     multistart(Problem("robot_2dof", overrides={"time.t_end": 0.1}), **kw)
     prob = Problem("robot_2dof", overrides={"time.t_end": 0.05})
     with pytest.warns(UserWarning, match=r"2 stored result\(s\) answer another question") as rec:

@@ -281,6 +281,8 @@ def test_bad_input(robot):
         optimize_fully(robot, [50, 50, 50])
     with pytest.raises(TypeError):
         optimize_fully(robot, sensitivity="fd")     # finite differences are not an option
+    with pytest.raises(ModelError, match=r"unknown option 'sensitivity'; allowed: max_iterations"):
+        optimize_fully(robot, options=dict(sensitivity="fd"))
 
 
 # ----------------------------------------------------------------------------- the press

@@ -103,7 +103,7 @@ def test_candidates_beyond_memory_are_refused(monkeypatch, capsys):
     assert "ResourceError" in line and "--candidates" in line and "1000000000" in line
     from flexmbs.methods.multistart import multistart
     with pytest.raises(ResourceError, match="candidates = 1000000000"):
-        multistart("robot_2dof", 2, candidates=10 ** 9)
+        multistart("robot_2dof", 2, options=dict(candidates=10 ** 9))
 
 
 # ----------------------------------------------------------------------------- deep nesting
@@ -351,14 +351,16 @@ def test_stored_multistart_start_of_the_wrong_content(tmp_path):
     from flexmbs.problem import Problem
 
     prob = Problem("robot_2dof", overrides={"time.t_end": 0.05})
-    first = multistart(prob, 1, store=tmp_path, max_iterations=2, verify=False)
+    first = multistart(prob, 1, store=tmp_path, options=dict(verify=False),
+                       fully=dict(max_iterations=2))
     f = tmp_path / "start000.json"
     good = json.loads(f.read_text())
     for bad in ({"fingerprint": good["fingerprint"], "foo": 1},
                 dict(good, objective=str(good["objective"]), simulations="3")):
         f.write_text(json.dumps(bad))
         with pytest.warns(UserWarning, match=r"start000\.json.*key '"):
-            again = multistart(prob, 1, store=tmp_path, max_iterations=2, verify=False)
+            again = multistart(prob, 1, store=tmp_path, options=dict(verify=False),
+                               fully=dict(max_iterations=2))
         assert again.optima[0]["objective"] == pytest.approx(first.optima[0]["objective"],
                                                              rel=1e-12)
 
@@ -487,22 +489,26 @@ def test_complex_initial_state_is_refused(which):
 
 
 def test_unknown_mma_option_lists_the_valid_keys():
-    """mma_options={'bogus': 1} was a TypeError of MMA.__init__: a ModelError naming the key
-    and listing the allowed ones (as nlopt_options does), before any simulation."""
+    """An unknown key of the MMA's options (once a TypeError of MMA.__init__) is a ModelError
+    naming the key and listing the allowed ones (flexmbs.model.options.MMAOptions), before any
+    simulation."""
     from flexmbs.optimize import optimize_fully
 
-    with pytest.raises(ModelError, match=r"mma_options: unknown key\(s\) 'bogus'; allowed: "
+    with pytest.raises(ModelError, match=r"unknown option 'mma.bogus'; allowed: "
                                          r"conservative, move.*max_inner"):
-        optimize_fully("robot_2dof", optimizer="mma", mma_options={"bogus": 1})
+        optimize_fully("robot_2dof", optimizer="mma", options=dict(mma={"bogus": 1}))
 
 
 @pytest.mark.parametrize("scale", [-1.0, [50.0, 50.0, -1.0, 50.0], [1.0, 2.0]])
 def test_bad_scale_is_named(scale):
-    """optimize_fully(scale=-1.0) was reported as a bad design: the error names `scale`."""
+    """A bad design scale (once reported as a bad design): the error names `scale` (a
+    negative value: FullyOptions' validation; a wrong length: the problem's)."""
     from flexmbs.optimize import optimize_fully
 
-    with pytest.raises(ModelError, match=r"^scale must be 4 positive finite numbers"):
-        optimize_fully("robot_2dof", scale=scale, max_iterations=1)
+    with pytest.raises(ModelError, match=r"^(options: option scale\.\d = -1\.0: Input should be "
+                                         r"greater than 0|scale must be 4 positive finite "
+                                         r"numbers)"):
+        optimize_fully("robot_2dof", options=dict(scale=scale, max_iterations=1))
 
 
 def test_history_that_is_a_folder(tmp_path):
@@ -511,7 +517,7 @@ def test_history_that_is_a_folder(tmp_path):
     from flexmbs.optimize import optimize_fully
 
     with pytest.raises(ModelError, match=r"history .* is a folder"):
-        optimize_fully("robot_2dof", history=tmp_path, max_iterations=1)
+        optimize_fully("robot_2dof", history=tmp_path, options=dict(max_iterations=1))
 
 
 def test_store_that_is_a_file(tmp_path):

@@ -124,9 +124,8 @@ def test_summary_digits_and_one_feasibility_tolerance(capsys):
     every verdict is 'infeasible'."""
     from flexmbs.cli.common import print_evaluation
     from flexmbs.methods.cycles import CycleControl
-    from flexmbs.methods.fully import optimize_fully
-    from flexmbs.methods.multistart import multistart
     from flexmbs.methods.result import OptimizationResult
+    from flexmbs.model.options import FullyOptions, MultistartOptions
 
     t = np.linspace(0.0, 0.5, 1001)
     v = 1.0000009644e-3 * np.sin(np.pi * t / 0.5)
@@ -137,8 +136,8 @@ def test_summary_digits_and_one_feasibility_tolerance(capsys):
     assert "(step 500 of 1000)" in text
     assert FEASIBILITY_TOL == 1e-6
     assert inspect.signature(CycleControl).parameters["feasibility_tol"].default == 1e-6
-    assert inspect.signature(optimize_fully).parameters["constraint_violation"].default == 1e-6
-    assert inspect.signature(multistart).parameters["feasibility_tol"].default == 1e-6
+    assert FullyOptions().constraint_violation == 1e-6       # optimize_fully's
+    assert MultistartOptions().feasibility_tol == 1e-6       # multistart's
     fields = {f: None for f in inspect.signature(OptimizationResult).parameters}
     for g, feasible in ((9.644e-7, True), (1.1e-6, False)):
         assert _synthetic({"deviation_A": v}, g, t).feasible is feasible

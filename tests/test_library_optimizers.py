@@ -69,7 +69,7 @@ def test_library_optimizer_reaches_the_lagrange_optimum(optimizer, screen):
     `_two_bar`: objective within 1 % (10x the 0.1 % stopping test), design within 3 %, and
     the final design, re-evaluated on all 101 rows, feasible (violation < 1e-6)."""
     prob = _two_bar()
-    res = optimize_fully(prob, optimizer=optimizer, screen=screen)
+    res = optimize_fully(prob, optimizer=optimizer, options=dict(screen=screen))
     assert res.objective == pytest.approx(9.0, rel=0.01)
     np.testing.assert_allclose(res.design, [3.0, 6.0], rtol=0.03)
     assert res.max_violation < 1e-6
@@ -118,10 +118,12 @@ def test_bad_optimizer_name_is_named_with_the_allowed_values():
     assert "'ipopt'" in str(exc.value)
     for name in OPTIMIZERS:
         assert name in str(exc.value)
-    with pytest.raises(ModelError, match="screen must be a number <= 0"):
-        optimize_fully(_two_bar(), optimizer="nlopt-mma", screen=0.5)
-    with pytest.raises(ModelError, match="optimizer must be .auto. or one of"):
-        multistart(_two_bar(), 2, optimizer="newton", workers=1)
+    with pytest.raises(ModelError, match=r"option nlopt.screen = 0.5: Input should be less "
+                                         r"than or equal to 0"):
+        optimize_fully(_two_bar(), optimizer="nlopt-mma", options=dict(screen=0.5))
+    with pytest.raises(ModelError, match="option optimizer = 'newton': Input should be 'auto', "
+                                         "'mma'"):
+        multistart(_two_bar(), 2, workers=1, options=dict(optimizer="newton"))
     with pytest.raises(ModelError, match="sampler must be one of sobol, lhs"):
         start_designs([1.0], [2.0], 4, sampler="grid")
 
@@ -170,7 +172,7 @@ def test_multistart_returns_the_best_feasible_local_optimum():
     global optimum x = 0.5 (within 1 %), every converged start ended at one of the two
     analytic local optima (0.5 or 3, within 1 %), re-checked feasible, and reached_best
     counts the feasible starts that ended within 0.3 % of the best."""
-    res = multistart(_two_basins(), 8, optimizer="nlopt-ccsaq", workers=1, seed=3)
+    res = multistart(_two_basins(), 8, workers=1, options=dict(optimizer="nlopt-ccsaq", seed=3))
     assert res.best is not None
     assert res.best["objective"] == pytest.approx(0.5, rel=0.01)
     feas = [o for o in res.optima if o["feasible"]]
@@ -258,10 +260,11 @@ def test_multistart_candidates_start_from_feasible_light_designs():
     feasible ones of lowest objective kept. The feasible set [0.5, 1] and [3, 10] is 41 % of
     the log range of [0.1, 10] (6.6 of 16 stratified points), so every start must be a
     feasible design (outside the gap (1, 3)), and the best is the global optimum x = 0.5."""
-    res = multistart(_two_basins(), 3, candidates=16, optimizer="nlopt-ccsaq", workers=1)
+    res = multistart(_two_basins(), 3, workers=1,
+                     options=dict(candidates=16, optimizer="nlopt-ccsaq"))
     for o in res.optima:
         x = o["start"][0]
         assert 0.5 <= x <= 1.0 or 3.0 <= x <= 10.0
     assert res.best["objective"] == pytest.approx(0.5, rel=0.01)
     with pytest.raises(ModelError, match="candidates must be an integer >= starts"):
-        multistart(_two_basins(), 3, candidates=2, workers=1)
+        multistart(_two_basins(), 3, workers=1, options=dict(candidates=2))

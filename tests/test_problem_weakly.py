@@ -110,7 +110,7 @@ def test_press_converges_and_meets_the_static_constraints(frame_kind):
     """cases/slider_crank_press.toml (one variable, rod stress <= 25 MPa, ram x-error
     <= 20 um at every step): the cycles converge by eq. (25) and the final design satisfies the
     static model's constraints (largest normalised g <= 1e-6 at the last static optimum)."""
-    r = optimize_weakly(GENERAL / "slider_crank_press.toml", frame_kind=frame_kind)
+    r = optimize_weakly(GENERAL / "slider_crank_press.toml", options=dict(frame_kind=frame_kind))
     assert r.converged, r.reason
     assert r.details["predicted_max_violation"] <= 1e-6
     assert r.details["esl_bodies"] == ["rod"]
@@ -123,7 +123,7 @@ def test_press_chord_frame_lands_on_the_dynamic_constraint():
     rod's angle beta: the final design's largest dynamic constraint value lies within 6 % of
     its limit, |g| < 0.06 (twice that bound; measured 0.006), re-simulated by a fresh Problem
     (the result's max_violation is clipped at 0)."""
-    r = optimize_weakly(GENERAL / "slider_crank_press.toml", frame_kind="chord")
+    r = optimize_weakly(GENERAL / "slider_crank_press.toml", options=dict(frame_kind="chord"))
     ev = Problem(GENERAL / "slider_crank_press.toml").evaluate(r.design, gradient=False)
     assert abs(ev.max_violation) < 0.06
     assert r.max_violation == pytest.approx(max(0.0, ev.max_violation), rel=1e-9, abs=1e-12)
@@ -164,11 +164,12 @@ def test_bad_arguments_are_typed_errors():
     case = GENERAL / "slider_crank_press.toml"
     with pytest.raises(ModelError, match=r"x0 = \[70.0\] lies outside the bounds"):
         optimize_weakly(case, [70.0])
-    with pytest.raises(ModelError, match="frames must be a dict"):
-        optimize_weakly(case, frames=["rod"])
-    with pytest.raises(ModelError, match="frame_kind must be 'auto', 'tangent', 'chord', "
-                                         "got 'arc'"):
-        optimize_weakly(case, frame_kind="arc")
+    with pytest.raises(ModelError, match=r"option frames = \['rod'\]: Input should be a valid "
+                                         r"dictionary"):
+        optimize_weakly(case, options=dict(frames=["rod"]))
+    with pytest.raises(ModelError, match="option frame_kind = 'arc': Input should be 'auto', "
+                                         "'tangent' or 'chord'"):
+        optimize_weakly(case, options=dict(frame_kind="arc"))
 
 
 def test_frame_kind_per_beam():

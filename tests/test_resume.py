@@ -94,7 +94,7 @@ def test_fully_resume_with_more_iterations_after_a_killed_job(tmp_path):
     (1e-12 relative); the cut line is dropped from the file with a warning."""
     ref = optimize_fully(_robot())
     h = tmp_path / "h.jsonl"
-    optimize_fully(_robot(), history=h, max_iterations=2)
+    optimize_fully(_robot(), history=h, options=dict(max_iterations=2))
     with open(h, "a", encoding="utf-8") as fh:
         fh.write('{"iteration": 3, "design": [37.5')
     with pytest.warns(UserWarning, match="cut short"):
@@ -107,7 +107,7 @@ def test_fully_resume_with_other_start_is_refused(tmp_path):
     """Resuming a history with another start: ModelError naming the file and the start (the
     option x0) that differs from the history's fingerprint."""
     h = tmp_path / "h.jsonl"
-    optimize_fully(_robot(), history=h, max_iterations=1)
+    optimize_fully(_robot(), history=h, options=dict(max_iterations=1))
     with pytest.raises(ModelError, match=r"h\.jsonl' does not answer this run.*option x0: "
                                          r"\[50\.0, 50\.0, 50\.0, 50\.0\] -> \[45\.0"):
         optimize_fully(_robot(), [45.0, 45.0, 45.0, 45.0], history=h, resume=True)
@@ -131,14 +131,14 @@ def test_weakly_interrupted_run_resumes_to_the_same_design(tmp_path):
     cycle) instead of 4, so 2 fewer simulations in all."""
     ref_problem = _robot()
     # verify=False: the counts below are the cycles' simulations alone
-    ref = optimize_weakly(ref_problem, verify=False)
+    ref = optimize_weakly(ref_problem, options=dict(verify=False))
     assert ref.iterations > 4
     h = tmp_path / "w.jsonl"
     with pytest.raises(_Interrupt):
-        optimize_weakly(_robot(), history=h, progress=_stop_at(4), verify=False)
+        optimize_weakly(_robot(), history=h, progress=_stop_at(4), options=dict(verify=False))
     assert [r["iteration"] for r in read_history(h)] == [1, 2, 3, 4]
     again = _robot()
-    res = optimize_weakly(again, history=h, resume=True, verify=False)
+    res = optimize_weakly(again, history=h, resume=True, options=dict(verify=False))
     np.testing.assert_allclose(res.design, ref.design, rtol=1e-12, atol=0)
     assert res.iterations == ref.iterations and res.converged == ref.converged
     assert [r["design"] for r in res.history] == [r["design"] for r in ref.history]
@@ -150,7 +150,7 @@ def test_weakly_resume_with_other_start_is_refused(tmp_path):
     """Resuming a weakly coupled history from another start: ModelError naming the file, the
     file's start (the case's, 50 mm) and this run's (option x0 of the fingerprint)."""
     h = tmp_path / "w.jsonl"
-    optimize_weakly(_robot(), history=h, max_cycles=1)
+    optimize_weakly(_robot(), history=h, options=dict(max_cycles=1))
     with pytest.raises(ModelError, match=r"w\.jsonl' does not answer this run.*option x0: "
                                          r"\[50\.0, 50\.0, 50\.0, 50\.0\] -> "
                                          r"\[45\.0, 45\.0, 45\.0, 45\.0\]"):
@@ -161,18 +161,18 @@ def test_weakly_resume_with_other_start_is_refused(tmp_path):
 def test_progress_shown_only_when_asked(capsys):
     """progress=None prints nothing on stdout or stderr; progress=True draws the tqdm bar on
     stderr (label, count, simulations, mass); a text stream receives the bar instead."""
-    optimize_fully(_robot(), max_iterations=2)
-    optimize_weakly(_robot(), max_cycles=2)
+    optimize_fully(_robot(), options=dict(max_iterations=2))
+    optimize_weakly(_robot(), options=dict(max_cycles=2))
     out, err = capsys.readouterr()
     assert out == "" and err == ""
 
-    optimize_fully(_robot(), max_iterations=2, progress=True)
+    optimize_fully(_robot(), progress=True, options=dict(max_iterations=2))
     out, err = capsys.readouterr()
     assert out == ""
     assert "iterations:" in err and "2/2" in err and "sims" in err and "kg" in err
 
     stream = io.StringIO()
-    optimize_weakly(_robot(), max_cycles=2, progress=stream)
+    optimize_weakly(_robot(), progress=stream, options=dict(max_cycles=2))
     out, err = capsys.readouterr()
     assert out == "" and err == ""
     text = stream.getvalue()
@@ -184,12 +184,13 @@ def test_multistart_progress_and_batch(capsys):
     objective on stderr; a callable receives each start's summary; nothing without progress."""
     from flexmbs.optimize import multistart
     seen = []
-    multistart(_robot(), 2, optimizer="mma", workers=1, max_iterations=2,
-               progress=lambda rec: seen.append(rec["name"]))
+    multistart(_robot(), 2, workers=1, progress=lambda rec: seen.append(rec["name"]),
+               options=dict(optimizer="mma"), fully=dict(max_iterations=2))
     assert sorted(seen) == ["start000", "start001"]
     out, err = capsys.readouterr()
     assert out == "" and err == ""
-    multistart(_robot(), 2, optimizer="mma", workers=1, max_iterations=2, progress=True)
+    multistart(_robot(), 2, workers=1, progress=True, options=dict(optimizer="mma"),
+               fully=dict(max_iterations=2))
     out, err = capsys.readouterr()
     assert "starts:" in err and "2/2" in err and ("best feasible" in err or "no feasible" in err)
 

@@ -100,7 +100,8 @@ def test_table5_weakly_oscillates():
     """Paper 8.1 / Table 5 (0.66 s): the weakly coupled method does not converge, the objective
     oscillates between cycles (docs/paper-cases.md prototype: between about 1.076 and 1.133 kg). The run
     must stop as not converged and the masses must keep swinging by several per cent."""
-    r = optimize_weakly(Problem("robot_2dof", overrides={"time.t_end": 0.66}), max_cycles=15)
+    r = optimize_weakly(Problem("robot_2dof", overrides={"time.t_end": 0.66}),
+                        options=dict(max_cycles=15))
     assert not r.converged
     masses = np.array([h["mass_kg"] for h in r.history[3:]])
     assert masses.max() / masses.min() - 1 > 0.03
@@ -116,7 +117,7 @@ def test_table7_weakly_infeasible_start():
     design within 2 %."""
     # verify='check': the paper's method at the paper's step (its verification is reported)
     r = optimize_weakly(Problem("robot_2dof", overrides={"time.t_end": 0.6685}), [45.0] * 4,
-                        verify="check")
+                        options=dict(verify="check"))
     assert r.converged
     assert r.history[0]["max_deviation_m"] > 1e-3                   # infeasible start
     np.testing.assert_allclose(r.design, [52.60, 37.85, 33.23, 24.76], rtol=0.02)
@@ -127,7 +128,7 @@ def test_table7_weakly_infeasible_start():
 
 def test_move_limits_bound_each_cycle():
     """With move limits f the design of each cycle stays within (1 -+ f) of the previous one."""
-    r = optimize_weakly(Problem("robot_2dof"), move_limit=0.1, max_cycles=4)
+    r = optimize_weakly(Problem("robot_2dof"), options=dict(move_limit=0.1, max_cycles=4))
     d = np.array([h["design"] for h in r.history])
     ratio = d[1:] / d[:-1]
     assert np.all(ratio >= 0.9 - 1e-9) and np.all(ratio <= 1.1 + 1e-9)
@@ -137,7 +138,7 @@ def test_move_limits_bound_each_cycle():
 def test_paper_stopping_test_without_confirmation(table1):
     """confirm_cycles=0 is the paper's test (25) alone: it stops at the first cycle where the
     relative ESL change is below eps, one cycle before the confirmed run."""
-    r = optimize_weakly(Problem("robot_2dof"), confirm_cycles=0)
+    r = optimize_weakly(Problem("robot_2dof"), options=dict(confirm_cycles=0))
     assert r.converged
     assert r.iterations == table1.details["paper_test_cycle"]
     assert r.history[-1]["esl_change"] < 1e-2 <= r.history[-2]["esl_change"]

@@ -8,11 +8,16 @@ file or the name of a shipped case):
     OptimizationResult     result of either method (result.py)
     HistoryWriter          per-cycle/iteration JSON-lines history written as the run goes
     read_history           read such a file back
+    FullyOptions, SQPOptions, MMAOptions, SLSQPOptions, NLoptOptions, WeaklyOptions,
+    MultistartOptions      the options of the methods and optimizers (flexmbs.model.options)
 """
 from flexmbs.methods.fully import optimize_fully
 from flexmbs.methods.multistart import multistart
 from flexmbs.methods.result import HistoryWriter, OptimizationResult, read_history
 from flexmbs.methods.weakly import optimize_weakly
+from flexmbs.model.options import (FullyOptions, MMAOptions, MultistartOptions, NLoptOptions,
+                                   SLSQPOptions, SQPOptions, WeaklyOptions)
 
 __all__ = ["optimize_weakly", "optimize_fully", "multistart", "OptimizationResult",
-           "HistoryWriter", "read_history"]
+           "HistoryWriter", "read_history", "FullyOptions", "SQPOptions", "MMAOptions",
+           "SLSQPOptions", "NLoptOptions", "WeaklyOptions", "MultistartOptions"]

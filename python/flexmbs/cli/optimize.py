@@ -14,7 +14,10 @@ Usage::
                  [--workers N | --dask ADDRESS] [--store FOLDER]]
 
 CASE is the name of a shipped case or a case file (docs/case-format.md); it is optimized on
-its own objective and constraints (flexmbs.optimize.optimize_weakly / optimize_fully).
+its own objective and constraints (flexmbs.optimize.optimize_weakly / optimize_fully). The
+method, the optimizer and every option not given on the command line come from the case's
+``[optimize]`` table (flexmbs.model.options; e.g. ``--set optimize.max_iterations=50``,
+``--set optimize.sqp.trust_radius=0.1``), else from the options' defaults.
 
 Methods are looked up in `METHODS` (name -> "module:function", the function takes the parsed
 arguments and the Problem and returns an OptimizationResult); method-specific options are
@@ -45,6 +48,8 @@ from flexmbs.methods.fully import optimize_fully, OPTIMIZERS
 from flexmbs.methods.multistart import multistart
 from flexmbs.methods.result import HistoryWriter
 from flexmbs.methods.weakly import optimize_weakly
+from flexmbs.model.options import (build, FullyOptions, MultistartOptions, OptimizeSection,
+                                   WeaklyOptions)
 from flexmbs.optimizers.library import preload
 from flexmbs.progress import Bar, describe_cycle, describe_iteration
 
@@ -74,8 +79,9 @@ def register(subparsers):
                     "the fully coupled one (optimization on the time responses with exact "
                     "sensitivities, paper 5.4).")
     add_case_arguments(p)
-    p.add_argument("--method", choices=sorted(METHODS), default="weakly",
-                   help="optimization method (default: weakly)")
+    p.add_argument("--method", choices=sorted(METHODS), default=None,
+                   help="optimization method (default: the case's [optimize] method, else "
+                        "weakly)")
     p.add_argument("--start", metavar="X1,X2,...",
                    help="starting design in the variables' units (one value: all variables); "
                         "default: the case's")
@@ -93,11 +99,11 @@ def register(subparsers):
                    help="show a progress bar on stderr (default: when stderr is a terminal)")
     p.add_argument("--plot", type=path_text, metavar="FILE.png",
                    help="save the objective history and the final design's deviation history")
-    p.add_argument("--verify-rtol", type=float, default=1e-3, metavar="R",
+    p.add_argument("--verify-rtol", type=float, default=None, metavar="R",
                    help="verify the final design at the step (h/2, h/4, ...) that resolves "
                         "its objective and constraints to R (relative to the limits; default "
-                        "1e-3); when infeasible there, the optimization continues at that "
-                        "step from the design")
+                        "1e-3, or the case's [optimize] verify); when infeasible there, the "
+                        "optimization continues at that step from the design")
     p.add_argument("--no-verify", dest="verify", action="store_false",
                    help="leave the final design unverified (its values at the case's h only)")
     for spec in METHOD_OPTIONS:
@@ -107,23 +113,23 @@ def register(subparsers):
 
 def add_weakly_options(p):
     g = p.add_argument_group("weakly coupled method")
-    g.add_argument("--eps", type=float, default=1e-2, metavar="E",
+    g.add_argument("--eps", type=float, default=None, metavar="E",
                    help="tolerance of the relative ESL change, eq. (25), default 1e-2")
-    g.add_argument("--max-cycles", type=int, default=30, metavar="N",
+    g.add_argument("--max-cycles", type=int, default=None, metavar="N",
                    help="maximum number of cycles (MBS analyses), default 30")
-    g.add_argument("--confirm-cycles", type=int, default=1, metavar="N",
+    g.add_argument("--confirm-cycles", type=int, default=None, metavar="N",
                    help="eq. (25) must also hold in N more cycles (0: the paper's test), default 1")
     g.add_argument("--move-limit", type=float, default=None, metavar="F",
                    help="relative move limit of the design per cycle (e.g. 0.1); default none")
-    g.add_argument("--damping", type=float, default=1.0, metavar="W",
+    g.add_argument("--damping", type=float, default=None, metavar="W",
                    help="damped design update x + W (x* - x), 0 < W <= 1; default 1 (the paper)")
-    g.add_argument("--esl-blend", type=float, default=0.0, metavar="B",
+    g.add_argument("--esl-blend", type=float, default=None, metavar="B",
                    help="static problem on (1-B) ESL of this cycle + B ESL of the previous one; "
                         "default 0 (the paper)")
     g.add_argument("--design-tol", type=float, default=None, metavar="TOL",
                    help="also converged when the design changes by less than TOL (relative) "
                         "between cycles with the design feasible; default none")
-    g.add_argument("--frame", default="auto", metavar="KIND|BEAM=KIND,...",
+    g.add_argument("--frame", default=None, metavar="KIND|BEAM=KIND,...",
                    help="corotational frame of the beams: auto (default: from each beam's "
                         "joints, tangent where its rotation is held, chord between free "
                         "hinges), tangent (the paper's) or chord; or per beam, e.g. "
@@ -132,7 +138,7 @@ def add_weakly_options(p):
 
 def _frame_option(text):
     """--frame: 'auto', 'tangent', 'chord' or 'BEAM=KIND,...' -> optimize_weakly's frame_kind."""
-    if "=" not in text:
+    if text is None or "=" not in text:
         return text
     kinds = {}
     for item in text.split(","):
@@ -145,19 +151,32 @@ def _frame_option(text):
 
 def run_weakly(args, problem):
 
-    with _Reporter(args, args.max_cycles, "cycles", describe_cycle, _cycle_line) as report:
+    opts = _options(WeaklyOptions, _section(problem).weakly, args, dict(
+        eps=args.eps, max_cycles=args.max_cycles, confirm_cycles=args.confirm_cycles,
+        move_limit=args.move_limit, damping=args.damping, esl_blend=args.esl_blend,
+        design_tol=args.design_tol, frame_kind=_frame_option(args.frame)))
+    with _Reporter(args, opts.max_cycles, "cycles", describe_cycle, _cycle_line) as report:
         return optimize_weakly(problem, design_from_text(args.start, problem, "--start"),
-                               eps=args.eps, max_cycles=args.max_cycles,
-                               confirm_cycles=args.confirm_cycles, move_limit=args.move_limit,
-                               damping=args.damping, esl_blend=args.esl_blend,
-                               design_tol=args.design_tol, frame_kind=_frame_option(args.frame),
-                               history=args.history, progress=report, resume=args.resume,
-                               verify=_verify(args))
+                               options=opts, history=args.history, progress=report,
+                               resume=args.resume)
 
 
-def _verify(args):
-    """The methods' verify option from --verify-rtol / --no-verify."""
-    return args.verify_rtol if args.verify else False
+def _section(problem):
+    """The case's [optimize] table (its defaults when the case has none)."""
+    return getattr(problem.description, "optimize", None) or OptimizeSection()
+
+
+def _options(kind, base, args, given):
+    """The options of a run: the case's (`base`) with the command line's options that were
+    given (not None) and its verification (--verify-rtol, --no-verify) over them."""
+    data = base.as_dict() if not isinstance(base, FullyOptions) else {
+        k: getattr(base, k) for k in FullyOptions.model_fields}
+    data.update({k: v for k, v in given.items() if v is not None})
+    if not args.verify:
+        data["verify"] = False
+    elif args.verify_rtol is not None:
+        data["verify"] = args.verify_rtol
+    return build(kind, data, "the command line's options")
 
 
 class _Reporter:
@@ -233,6 +252,8 @@ def _interrupted(args, writer):
 def run_optimize(args):
     preload()      # a Ctrl-C mid-run must not land in a first import (library.preload)
     problem = problem_from_args(args, gradient_method="auto")
+    if args.method is None:
+        args.method = _section(problem).method
     if getattr(args, "starts", None) is not None and args.method != "fully":
         raise CaseError(f"--starts {args.starts}: multi-start runs the fully coupled method; "
                         f"add --method fully (got --method {args.method})")
@@ -290,15 +311,17 @@ def add_fully_options(parser):
     """Options of ``flexmbs optimize CASE --method fully``."""
     g = parser.add_argument_group("fully coupled method")
     g.add_argument("--optimizer", choices=("auto",) + OPTIMIZERS, default=None,
-                   help="auto (default; with --starts: nlopt-mma): sqp below 32 design "
+                   help="default: the case's [optimize] optimizer (with --starts: its "
+                        "[optimize.multistart] optimizer), else auto (with --starts: "
+                        "nlopt-mma); auto: sqp below 32 design "
                         "variables, mma from 32; sqp: trust-region SQP; "
                         "nlopt-ccsaq, nlopt-mma, nlopt-slsqp: NLopt's; mma: Svanberg's "
                         "globally convergent MMA, hand-written (the paper's; `flexmbs "
                         "reproduce` uses it); slsqp: plain scipy SLSQP (no move limits, fails "
                         "from some starts). docs/optimizers.md compares them")
-    g.add_argument("--kkt-tol", type=float, default=1e-3, metavar="TOL",
+    g.add_argument("--kkt-tol", type=float, default=None, metavar="TOL",
                    help="first-order test added to the paper's stopping test, default 1e-3")
-    g.add_argument("--max-iterations", type=int, default=100, metavar="N",
+    g.add_argument("--max-iterations", type=int, default=None, metavar="N",
                    help="maximum optimizer iterations, default 100")
     g.add_argument("--design-rel-change", type=float, default=None, metavar="TOL",
                    help="also require the relative design change below TOL to stop (the "
@@ -308,12 +331,12 @@ def add_fully_options(parser):
                    help="run the fully coupled method from N quasi-random starting designs "
                         "(log-scaled where the bounds span a decade) and report the best "
                         "feasible design, re-simulated, and the spread of the local optima")
-    m.add_argument("--sampler", choices=("sobol", "lhs"), default="sobol",
+    m.add_argument("--sampler", choices=("sobol", "lhs"), default=None,
                    help="sampler of the starts: scrambled Sobol (default) or Latin hypercube")
     m.add_argument("--candidates", type=int, default=None, metavar="M",
                    help="draw M >= N designs, simulate each once, and start from the N "
                         "feasible ones of lowest objective")
-    m.add_argument("--seed", type=nonnegative_int, default=0, metavar="S",
+    m.add_argument("--seed", type=nonnegative_int, default=None, metavar="S",
                    help="seed of the sampler (default 0: the same starts every run)")
     m.add_argument("--workers", type=int, default=None, metavar="N",
                    help="local worker processes for the starts (default: the number of cores)")
@@ -326,16 +349,23 @@ def add_fully_options(parser):
 def run_fully(args, problem):
     """Handler of ``flexmbs optimize CASE --method fully``: returns an OptimizationResult."""
 
+    section = _section(problem)
     if args.starts is not None:
         return _run_multistart(args, problem)
 
-    with _Reporter(args, args.max_iterations, "iterations", describe_iteration,
+    opts = _fully_options(args, section)
+    with _Reporter(args, opts.max_iterations, "iterations", describe_iteration,
                    _iteration_line) as report:
         return optimize_fully(problem, design_from_text(args.start, problem, "--start"),
-                              optimizer=args.optimizer or "auto", kkt_tol=args.kkt_tol,
-                              max_iterations=args.max_iterations,
-                              design_rel_change=args.design_rel_change, history=args.history,
-                              progress=report, resume=args.resume, verify=_verify(args))
+                              optimizer=args.optimizer or section.optimizer, options=opts,
+                              history=args.history, progress=report, resume=args.resume)
+
+
+def _fully_options(args, section):
+    """The fully coupled method's options: the case's [optimize] table and the command line's."""
+    return _options(FullyOptions, section.fully(), args, dict(
+        kkt_tol=args.kkt_tol, max_iterations=args.max_iterations,
+        design_rel_change=args.design_rel_change))
 
 
 def _iteration_line(rec):
@@ -359,9 +389,10 @@ def _run_multistart(args, problem):
     if args.resume and args.store is None:
         raise CaseError("--resume with --starts continues from the --store FOLDER of the "
                         "interrupted run: give --store")
-    return multistart(problem, args.starts, optimizer=args.optimizer or "nlopt-mma",
-                      sampler=args.sampler, seed=args.seed, candidates=args.candidates,
-                      workers=args.workers, dask=args.dask, store=args.store,
-                      progress=bool(args.progress), resume=args.resume, kkt_tol=args.kkt_tol,
-                      max_iterations=args.max_iterations,
-                      design_rel_change=args.design_rel_change, verify=_verify(args))
+    section = _section(problem)
+    ms = _options(MultistartOptions, section.multistart, args, dict(
+        starts=args.starts, optimizer=args.optimizer, sampler=args.sampler, seed=args.seed,
+        candidates=args.candidates))
+    fully = _fully_options(args, section)
+    return multistart(problem, options=ms, fully=fully, workers=args.workers, dask=args.dask,
+                      store=args.store, progress=bool(args.progress), resume=args.resume)

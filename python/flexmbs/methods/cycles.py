@@ -32,10 +32,10 @@ import numpy as np
 from types import SimpleNamespace
 
 from flexmbs.errors import ModelError
-from flexmbs.model.sections import real_number, whole_number
+from flexmbs.model.sections import real_number
 from flexmbs.problem import FEASIBILITY_TOL
 
-__all__ = ["CycleControl", "check_cycle_options", "check_remedies", "move_limited_bounds",
+__all__ = ["CycleControl", "check_remedies", "move_limited_bounds",
            "damped_update", "DIAGNOSES", "DIVERGING_CYCLES"]
 
 #: the diagnoses a run of cycles ends with
@@ -103,22 +103,6 @@ def damped_update(x, x_star, damping):
     whenever x and x_star are)."""
     x = np.asarray(x, float)
     return x + damping * (np.asarray(x_star, float) - x)
-
-
-def check_cycle_options(eps, max_cycles, confirm_cycles, max_inner, ftol, active_tol,
-                        move_limit, screen):
-    """The weakly coupled method's numeric options, checked (ModelError naming the option)."""
-    eps = real_number("eps", eps, positive=True)
-    max_cycles = whole_number("max_cycles", max_cycles, 1)
-    confirm_cycles = whole_number("confirm_cycles", confirm_cycles, 0)
-    max_inner = whole_number("max_inner", max_inner, 1)
-    ftol = real_number("ftol", ftol, positive=True)
-    active_tol = real_number("active_tol", active_tol, positive=True)
-    if move_limit is not None:
-        move_limit = real_number("move_limit (or None)", move_limit, positive=True)
-    if not (real_number("screen", screen) >= 0.0 and screen <= 1.0):
-        raise ModelError(f"screen must lie in [0, 1], got {screen!r}")
-    return eps, max_cycles, confirm_cycles, max_inner, ftol, active_tol, move_limit, screen
 
 
 def move_limited_bounds(x, lower, upper, move_limit):

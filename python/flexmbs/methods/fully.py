@@ -40,18 +40,19 @@ import numpy as np
 
 from flexmbs.errors import ModelError
 from flexmbs.methods.result import OptimizationResult, open_history
-from flexmbs.methods.verified import check_verify, continuation_options, finish
+from flexmbs.methods.verified import finish
 from flexmbs.model.description import Mass
 from flexmbs.model.fingerprint import fingerprint, run_options
-from flexmbs.model.sections import real_number
+from flexmbs.model.options import (build, from_keywords, FullyOptions, MMAOptions,
+                                   NLoptOptions, OPTIMIZER_OPTIONS, SLSQPOptions, SQPOptions)
 from flexmbs.optimizers.library import _choose, run_nlopt
-from flexmbs.optimizers.loops import (_check_stopping, _mma_settings, _Monitor, _run_mma,
-                                    _run_slsqp, _run_sqp)
+from flexmbs.optimizers.loops import _Monitor, _run_mma, _run_slsqp, _run_sqp
 from flexmbs.optimizers.mma import MMA
-from flexmbs.problem import Evaluation, FEASIBILITY_TOL, is_feasible, load_problem
+from flexmbs.problem import Evaluation, is_feasible, load_problem
 from flexmbs.progress import check_progress, describe_iteration, reporter
 
-__all__ = ["optimize_fully", "ScaledProblem", "OPTIMIZERS", "choose_optimizer", "MANY_VARIABLES"]
+__all__ = ["optimize_fully", "ScaledProblem", "OPTIMIZERS", "RUNS", "choose_optimizer",
+           "MANY_VARIABLES"]
 
 #: Optimizers: GCMMA (hand-written, default), the trust-region SQP and plain scipy SLSQP
 #: (`loops`), and NLopt's MMA, CCSAQ and SLSQP (flexmbs.optimizers.library, docs/optimizers.md).
@@ -62,6 +63,38 @@ OPTIMIZERS = ("mma", "sqp", "slsqp", "nlopt-mma", "nlopt-ccsaq", "nlopt-slsqp")
 #: iterations where MMA reached 0.2689 kg; with 128, MMA 0.2674 kg feasible at every
 #: iteration, NLopt's CCSAQ 0.3007 kg at 150 iterations, KKT residual 1.0)
 MANY_VARIABLES = 32
+
+
+def _mma(P, mon, x0, o, name):
+    _run_mma(P, mon, x0, MMA(P.lower, P.upper, **o.mma_keywords()), max_inner=o.max_inner)
+    return {}
+
+
+def _sqp(P, mon, x0, o, name):
+    _run_sqp(P, mon, x0, radius0=o.trust_radius, radius_max=o.max_trust_radius,
+             fidelity=o.model_fidelity)
+    return {}
+
+
+def _slsqp(P, mon, x0, o, name):
+    _run_slsqp(P, mon, x0, ftol=o.ftol)
+    return {}
+
+
+def _nlopt(P, mon, x0, o, name):
+    return run_nlopt(P, mon, x0, name, screen=o.screen, log_scale=o.log_scale,
+                     initial_step=o.initial_step, max_restarts=o.max_restarts,
+                     params=dict(o.params), feasibility_phase=o.feasibility_phase)[1]
+
+
+#: optimizer -> (its options class, run(P, monitor, x0, its options, optimizer) -> details);
+#: its options are FullyOptions' field OPTIMIZER_OPTIONS[optimizer] (flexmbs.model.options)
+RUNS = {"mma": (MMAOptions, _mma), "sqp": (SQPOptions, _sqp), "slsqp": (SLSQPOptions, _slsqp),
+        "nlopt-mma": (NLoptOptions, _nlopt), "nlopt-ccsaq": (NLoptOptions, _nlopt),
+        "nlopt-slsqp": (NLoptOptions, _nlopt)}
+assert set(RUNS) == set(OPTIMIZERS) == set(OPTIMIZER_OPTIONS)
+assert all(FullyOptions.model_fields[OPTIMIZER_OPTIONS[name]].annotation is kind
+           for name, (kind, _) in RUNS.items())
 
 
 def choose_optimizer(optimizer, nv):
@@ -370,36 +403,8 @@ def _evaluation_from_log(entry, design):
                       stats={"replayed": True})
 
 
-_NLOPT_KEYS = ("log_scale", "initial_step", "max_restarts", "params", "feasibility_phase")
-
-
-def _nlopt_settings(options):
-    """Keyword arguments of library.run_nlopt from `nlopt_options` (ModelError naming a bad
-    key)."""
-    if options is None:
-        options = {}
-    if not isinstance(options, dict):
-        raise ModelError(f"nlopt_options must be a dict or None, got {options!r}")
-    bad = [k for k in options if k not in _NLOPT_KEYS]
-    if bad:
-        raise ModelError(f"nlopt_options: unknown key(s) {', '.join(map(repr, bad))}; allowed: "
-                         f"{', '.join(_NLOPT_KEYS)}")
-    kw = dict(log_scale=True)
-    kw.update(options)
-    step = kw.get("initial_step")
-    if step is not None and (isinstance(step, bool) or not isinstance(step, (int, float))
-                             or not 0 < step <= 1):
-        raise ModelError(f"nlopt_options initial_step must be in (0, 1], got {step!r}")
-    return kw
-
-
-def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
-                   max_simulations=1000, objective_rel_change=1e-3,
-                   constraint_violation=FEASIBILITY_TOL,
-                   design_rel_change=None, kkt_tol=1e-3, active_tol=1e-3, scale=None,
-                   mma_options=None, trust_radius=0.2, max_trust_radius=0.5,
-                   model_fidelity=0.1, screen=-0.3, nlopt_options=None, history=None,
-                   progress=None, resume=False, verify=True):
+def optimize_fully(problem, x0=None, *, optimizer=None, options=None, history=None,
+                   progress=None, resume=False, **keywords):
     """Minimize a problem's objective under its constraints with the fully coupled method.
 
     Parameters
@@ -408,7 +413,8 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
         a Description (then loaded with flexmbs.problem.load_problem).
     x0 : array, optional
         Starting design (the variables' units, within the bounds); default the case's start.
-    optimizer : {'auto', 'mma', 'sqp', 'slsqp', 'nlopt-mma', 'nlopt-ccsaq', 'nlopt-slsqp'}, default 'auto'
+    optimizer : {'auto', 'mma', 'sqp', 'slsqp', 'nlopt-mma', 'nlopt-ccsaq', 'nlopt-slsqp'}, optional
+        Default: the case's ``[optimize] optimizer``, else 'auto'.
         'auto' (`choose_optimizer`) takes the trust-region SQP below MANY_VARIABLES (32)
         design variables: over Tables 1, 2, 5, 6, 7, the four-bar, the three new examples
         and the robot at 0.1 and 0.3 s it met the paper's stopping test in every run, as
@@ -419,43 +425,24 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
         the trust-region SQP, or plain scipy SLSQP (no move limits), see
         `flexmbs.optimizers.loops`; or NLopt's MMA, CCSAQ or SLSQP on the design mapped to
         [0, 1] with the constraints as one vector constraint (`flexmbs.optimizers.library`;
-        docs/optimizers.md compares them).
-    max_iterations : int, default 100
-        (NLopt: every new design simulated counts as an iteration.)
-    max_simulations : int, default 1000
-    objective_rel_change : float, default 1e-3
-        The paper's test: relative objective change between two iterations below this ...
-    constraint_violation : float, default flexmbs.problem.FEASIBILITY_TOL (1e-6)
-        ... and constraint violation max(0, max g) at most this (g relative to the limits).
-    design_rel_change : float, optional
-        If given, the relative change of the (scaled) design must be below it too (the
-        paper's four-bar: 1e-3).
-    kkt_tol : float, default 1e-3
-        First-order test that must hold as well (relative KKT residual, loops.kkt_residual).
-    active_tol : float, default 1e-3
-        Constraints with g >= -active_tol are active (KKT test, history's active_steps).
-    scale : array, optional
-        Design scale, x = p / scale; default the start.
-    mma_options : dict, optional
-        Keyword arguments of `flexmbs.optimizers.mma.MMA` and max_inner (default 20); an
-        unknown key is a ModelError listing the allowed ones.
-    trust_radius, max_trust_radius : float, default 0.2, 0.5
-        'sqp': initial and largest relative trust-region radius.
-    model_fidelity : float or None, default 0.1
-        'sqp': a step is rejected when a constraint near its limit differs from its
-        linearization by more than this (None: no such test).
-    screen : float or None, default -0.3
-        NLopt optimizers only: the rows given to the optimizer are those with g > screen and
-        the local maxima of each constraint's history, enlarged (with a restart) whenever the
-        most violated row of a simulated design was left out; None gives every row.
-        Every design is still checked on all rows.
-    nlopt_options : dict, optional
-        NLopt optimizers only: log_scale (bool, default True: variables whose bounds span a
-        decade or more are mapped to [0, 1] logarithmically), initial_step (in [0, 1] units,
-        default NLopt's), max_restarts (screening restarts, default 20), params (NLopt
-        algorithm parameters, e.g. {"dual_maxeval": 1000}), feasibility_phase (bool, default
-        True: from an infeasible start, first minimize the largest constraint value until a
-        design is feasible).
+        docs/optimizers.md compares them). The dispatch is the table `RUNS`.
+    options : flexmbs.model.options.FullyOptions or dict, optional
+        The stopping rules (max_iterations, max_simulations, objective_rel_change,
+        constraint_violation, design_rel_change, kkt_tol, active_tol), the design scale,
+        `verify`, and the optimizers' tables (sqp, mma, slsqp, nlopt); a dict may give an
+        optimizer's option flat ({"trust_radius": 0.1}). One table each in
+        `flexmbs.model.options` and docs/optimizers.md. An option of another optimizer than
+        the one run is a ModelError naming the optimizer it belongs to. Default: the case's
+        ``[optimize]`` table, else the defaults. `verify` (default True) verifies the final
+        design at converged resolution (`flexmbs.methods.verified`,
+        `flexmbs.analysis.accuracy.verify`): re-simulated at h/2, h/4, ... until the
+        objective and the constraints are known to 1e-3 (or the accuracy given); when it is
+        infeasible there, the optimization continues at that step from the design (no
+        history file) and the new design is verified in turn.
+    **keywords
+        Deprecated: the options as keywords (max_iterations=..., trust_radius=...,
+        mma_options={...}, nlopt_options={...}, screen=..., verify=...), with a
+        DeprecationWarning naming the options= spelling.
     history : str, path or HistoryWriter, optional
         One JSON line per iteration written as the run goes (iteration 0: the start); keys
         iteration, design, objective, mass_kg, max_violation, responses (largest value of
@@ -478,19 +465,13 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
         missing file starts afresh. Run it with the same problem, start and options (a
         record that differs from the file's raises ModelError). details replayed_simulations
         counts the replayed analyses; `simulations` counts only those run.
-    verify : bool, float or 'check', default True
-        Verify the final design at converged resolution (`flexmbs.methods.verified`,
-        `flexmbs.analysis.accuracy.verify`): re-simulated at h/2, h/4, ... until the objective and the
-        constraints are known to 1e-3 (or the accuracy given, relative to the limits); when
-        it is infeasible there, the optimization continues at that step from the design (no
-        history file) and the new design is verified in turn. False: no verification.
 
     Returns
     -------
     flexmbs.optimize.OptimizationResult
         method 'fully'; verification (details['verification']; after a continuation,
         details['continued_from']: the coarse run); inner_iterations None; details:
-        optimizer, kkt_residual,
+        optimizer, options (the options used, `FullyOptions.record`), kkt_residual,
         paper_test_iteration, gradient_evaluations, scale, stopping (the settings),
         evaluate_time_s (inside Problem.evaluate), optimizer_share (1 - evaluate_time_s /
         wall_time_s); NLopt: nlopt_result, restarts, failed_simulations,
@@ -503,34 +484,31 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
     flexmbs.errors.SimulationError
         If the simulation of the start fails.
     """
-    arguments = dict(locals())
-    options = run_options(arguments)      # the arguments: what a history answers
-    # the options of a continuation on a finer step (flexmbs.methods.verified)
-    again = continuation_options(arguments)
-
     t0 = time.perf_counter()
-    verify = check_verify(verify)
-    if not isinstance(optimizer, str) or optimizer not in OPTIMIZERS + ("auto",):
+    if keywords:
+        options = from_keywords("optimize_fully", FullyOptions, options, keywords,
+                                tables={"mma_options": "mma", "nlopt_options": "nlopt"})
+    if optimizer is not None and (not isinstance(optimizer, str)
+                                  or optimizer not in OPTIMIZERS + ("auto",)):
         raise ModelError(f"optimizer must be 'auto' or one of {', '.join(OPTIMIZERS)}, got "
                          f"{optimizer!r}")
-    if screen is not None and (isinstance(screen, bool) or not isinstance(screen, (int, float))
-                               or not -np.inf < screen <= 0):
-        raise ModelError(f"screen must be a number <= 0 (e.g. -0.3) or None, got {screen!r}")
-    real_number("trust_radius", trust_radius, positive=True)
-    real_number("max_trust_radius", max_trust_radius, positive=True)
-    if model_fidelity is not None:
-        real_number("model_fidelity (or None)", model_fidelity, positive=True)
-    max_iterations, max_simulations = _check_stopping(
-        objective_rel_change, constraint_violation, design_rel_change, kkt_tol, active_tol,
-        max_iterations, max_simulations)
-    mma_kw, max_inner = _mma_settings(mma_options)
-    nlopt_kw = _nlopt_settings(nlopt_options)
+    opts = None if options is None else build(FullyOptions, options)
     check_progress(progress)
     if not isinstance(resume, bool):
         raise ModelError(f"resume must be True or False, got {resume!r}")
     problem = load_problem(problem)
     mech = problem.mechanism
+    # the case's [optimize] table when the call gives none
+    section = getattr(getattr(problem, "description", None), "optimize", None)
+    if opts is None:
+        opts = FullyOptions() if section is None else section.fully()
+    if optimizer is None:
+        optimizer = "auto" if section is None else section.optimizer
     optimizer, optimizer_reason = choose_optimizer(optimizer, len(problem.variables))
+    opts.check_optimizer(optimizer, optimizer_reason)
+    verify = opts.verify
+    table = getattr(opts, OPTIMIZER_OPTIONS[optimizer])
+    used = opts.record(optimizer)
     p0 = problem.start if x0 is None else mech.design_values(x0)
     lo, hi = problem.lower, problem.upper
     bad = np.flatnonzero((p0 < lo * (1 - 1e-12)) | (p0 > hi * (1 + 1e-12)))
@@ -539,37 +517,30 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
         raise ModelError(f"x0: {problem.variables[i]} = {float(p0[i])!r} lies outside its "
                          f"bounds [{lo[i]:g}, {hi[i]:g}]")
     writer, own_writer = open_history(history, resume)
-    writer.check_fingerprint(fingerprint(problem.description, "fully", dict(options, x0=p0)))
+    # what a history answers: the options used (but the limits), the optimizer, the start
+    writer.check_fingerprint(fingerprint(problem.description, "fully",
+                                         run_options(dict(used, optimizer=optimizer, x0=p0))),
+                             options=dict(used, optimizer=optimizer))
     replay = []
     for rec in writer.previous:
         replay += rec.pop("evaluations", None) or []
     try:
-        P = ScaledProblem(problem, p0 if scale is None else scale, replay=replay,
+        P = ScaledProblem(problem, p0 if opts.scale is None else opts.scale, replay=replay,
                           log=writer.path is not None)
     except BaseException:
         if own_writer:
             writer.close()
         raise
     del replay
-    opt = MMA(P.lower, P.upper, **mma_kw) if optimizer == "mma" else None
-    progress = reporter(progress, total=max_iterations, label="iterations",
+    progress = reporter(progress, total=opts.max_iterations, label="iterations",
                         describe=describe_iteration, position=lambda r: r["iteration"])
-    mon = _Monitor(P, writer, progress, objective_rel_change=objective_rel_change,
-                   constraint_violation=constraint_violation,
-                   design_rel_change=design_rel_change, kkt_tol=kkt_tol, active_tol=active_tol,
-                   max_iterations=max_iterations, max_simulations=max_simulations, t0=t0)
-    lib_details = {}
+    mon = _Monitor(P, writer, progress, objective_rel_change=opts.objective_rel_change,
+                   constraint_violation=opts.constraint_violation,
+                   design_rel_change=opts.design_rel_change, kkt_tol=opts.kkt_tol,
+                   active_tol=opts.active_tol, max_iterations=opts.max_iterations,
+                   max_simulations=opts.max_simulations, t0=t0)
     try:
-        if optimizer == "mma":
-            _run_mma(P, mon, P.to_x(p0), opt, max_inner=max_inner)
-        elif optimizer == "sqp":
-            _run_sqp(P, mon, P.to_x(p0), radius0=trust_radius, radius_max=max_trust_radius,
-                     fidelity=model_fidelity)
-        elif optimizer == "slsqp":
-            _run_slsqp(P, mon, P.to_x(p0))
-        else:
-            _, lib_details = run_nlopt(P, mon, P.to_x(p0), optimizer, screen=screen,
-                                       **nlopt_kw)
+        lib_details = RUNS[optimizer][1](P, mon, P.to_x(p0), table, optimizer)
     finally:
         if own_writer:
             writer.close()
@@ -587,7 +558,7 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
     P.evaluate_time_s += time.perf_counter() - t_fresh
     P.simulations += 1
     desc = problem.description
-    details = dict(optimizer=optimizer, optimizer_reason=optimizer_reason,
+    details = dict(optimizer=optimizer, optimizer_reason=optimizer_reason, options=used,
                    kkt_residual=mon.last_kkt,
                    paper_test_iteration=mon.paper_test_iteration,
                    gradient_evaluations=P.gradient_evaluations, scale=P.scale,
@@ -596,13 +567,13 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
                    gradient_method_reason=(problem.gradient_method_reason()
                                            if hasattr(problem, "gradient_method_reason")
                                            else None),
-                   stopping=dict(objective_rel_change=objective_rel_change,
-                                 constraint_violation=constraint_violation,
-                                 design_rel_change=design_rel_change, kkt_tol=kkt_tol,
-                                 active_tol=active_tol))
+                   stopping=dict(objective_rel_change=opts.objective_rel_change,
+                                 constraint_violation=opts.constraint_violation,
+                                 design_rel_change=opts.design_rel_change,
+                                 kkt_tol=opts.kkt_tol, active_tol=opts.active_tol))
     if optimizer == "sqp":
-        details.update(trust_radius=trust_radius, max_trust_radius=max_trust_radius,
-                       model_fidelity=model_fidelity)
+        details.update(trust_radius=table.trust_radius, max_trust_radius=table.max_trust_radius,
+                       model_fidelity=table.model_fidelity)
     details.update(lib_details)
     if optimizer == "mma":
         details["mma_inner_iterations"] = sum(r.get("mma_inner_iterations") or 0
@@ -614,7 +585,7 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
     if resume:
         details["replayed_simulations"] = P.replayed
     details["optimizer_share"] = max(0.0, 1.0 - P.evaluate_time_s / wall) if wall > 0 else 0.0
-    converged = mon.converged and is_feasible(viol, constraint_violation)
+    converged = mon.converged and is_feasible(viol, opts.constraint_violation)
     reason = mon.reason or "stopped"
     if mon.converged and not converged:
         reason += f"; but the re-simulated final design violates a constraint by {viol:.1e}"
@@ -628,6 +599,8 @@ def optimize_fully(problem, x0=None, *, optimizer="auto", max_iterations=100,
         simulations=P.simulations - P.replayed, converged=converged, reason=reason,
         history=list(writer.records), wall_time_s=wall, details=details,
         t=None if dev is None else np.asarray(fresh.t), deviation=dev, evaluation=fresh)
-    return finish(problem, result, lambda fine, x: optimize_fully(fine, x, verify=False,
-                                                                  **again),
+    # a continuation on a finer step (flexmbs.methods.verified): the same options, unverified
+    again = opts.model_copy(update=dict(verify=False))
+    return finish(problem, result, lambda fine, x: optimize_fully(fine, x, optimizer=optimizer,
+                                                                  options=again),
                   verify, coarse=fresh)

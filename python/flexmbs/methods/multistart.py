@@ -30,11 +30,12 @@ from flexmbs.analysis.accuracy import describe_verification
 from flexmbs.batch import check_dask, run_batch, StoredResult
 from flexmbs.errors import ModelError, ResourceError, SimulationError
 from flexmbs.files import jsonable, save_figure
-from flexmbs.methods.fully import optimize_fully, OPTIMIZERS
+from flexmbs.methods.fully import optimize_fully
 from flexmbs.methods.result import OptimizationResult
 from flexmbs.methods.verified import check_verify, finish
 from flexmbs.model.fingerprint import fingerprint
-from flexmbs.problem import FEASIBILITY_TOL, load_problem
+from flexmbs.model.options import build, from_keywords, FullyOptions, MultistartOptions
+from flexmbs.problem import load_problem
 from flexmbs.progress import check_progress, describe_start
 from flexmbs.resources import format_bytes, limit_source, memory_limit
 
@@ -125,10 +126,11 @@ class StartResult(StoredResult):
 
 def start_job(case, start, optimizer, options):
     """One start (a batch job: plain data in, JSON out): `optimize_fully(case, start,
-    optimizer=optimizer, **options)` summarised."""
+    optimizer=optimizer, options=options)` summarised (options: FullyOptions as plain data)."""
     try:
         # each start's local optimum is not verified: multistart verifies the best one
-        res = optimize_fully(case, start, optimizer=optimizer, verify=False, **(options or {}))
+        res = optimize_fully(case, start, optimizer=optimizer,
+                             options=dict(options or {}, verify=False))
     except SimulationError as exc:
         # a start whose own simulation fails (e.g. a very flexible design): no local optimum
         return dict(start=[float(v) for v in start], design=None, objective=None,
@@ -256,29 +258,35 @@ class MultistartResult:
             plt.close(fig)
 
 
-def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0,
-               start_range=None, candidates=None, workers=None, dask=None, store=None, progress=None,
-               best_tolerance=0.003, feasibility_tol=FEASIBILITY_TOL, resume=False, verify=True,
-               **options):
+def multistart(case, starts=None, *, options=None, fully=None, workers=None, dask=None,
+               store=None, progress=None, resume=False, **keywords):
     """Run the fully coupled optimization from `starts` quasi-random starting designs.
 
     Parameters
     ----------
     case : a general-format case path or name, a dict or a Description (plain data, sent to
         the workers), or a Problem (its description is sent).
-    starts : int, default 8
-    optimizer : str, default 'nlopt-mma'
-        Any of `flexmbs.methods.fully.OPTIMIZERS` (docs/optimizers.md: the most
-        four-bar starts reached the light design with nlopt-mma, at a small optimizer share).
-    sampler : {'sobol', 'lhs'}, default 'sobol'
-    seed : int, default 0
-        Seed of the sampler (the same seed gives the same starts).
-    start_range : (lower, upper), optional
-        Box the starts are drawn from (user units, inside the bounds); default the bounds.
-    candidates : int, optional
-        Draw this many designs (>= starts), simulate each once without gradients, and start
-        from the `starts` feasible ones of lowest objective (then the least violated): no
-        start in an infeasible basin that the optimizer cannot leave.
+    starts : int, optional
+        The number of starts (options.starts, default 8).
+    options : flexmbs.model.options.MultistartOptions or dict, optional
+        The multi-start's options (one table in `flexmbs.model.options.MultistartOptions` and
+        docs/optimizers.md; default: the case's ``[optimize.multistart]`` table, else the
+        defaults): starts, optimizer ('nlopt-mma': docs/optimizers.md, the most four-bar
+        starts reached the light design with it, at a small optimizer share), sampler
+        ('sobol' or 'lhs'), seed (the same seed gives the same starts), start_range ((lower,
+        upper): the box the starts are drawn from, inside the bounds), candidates (draw this
+        many designs, >= starts, simulate each once without gradients, and start from the
+        `starts` feasible ones of lowest objective, then the least violated: no start in an
+        infeasible basin that the optimizer cannot leave), best_tolerance (0.003: a start
+        reached the best when it ended feasible within this relative objective),
+        feasibility_tol (1e-6: largest re-checked violation of a feasible design), verify
+        (verify the best design at converged resolution, as `optimize_fully`'s: when it is
+        infeasible at the step that resolves it, the optimization continues from it at that
+        step, in this process, and its result replaces the best: best['verification'],
+        best['continued_from']; details['verification']).
+    fully : flexmbs.model.options.FullyOptions or dict, optional
+        The options of every start's `optimize_fully` (its verify is not used: multistart
+        verifies the best design only); default: the case's ``[optimize]`` table.
     workers, dask, store : as `flexmbs.batch.run_batch` (store: one JSON file per start, so
         an interrupted multi-start resumes where it stopped: starts already in the store are
         not run again, unless their fingerprint (flexmbs.model.fingerprint: the case as resolved,
@@ -292,16 +300,9 @@ def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0
         Continue an interrupted multi-start from `store` (required): the starts found there
         are taken as they are. (A rerun with the same store does so anyway; resume=True
         only checks that a store is given.)
-    best_tolerance : float, default 0.003
-        A start reached the best when it ended feasible within this relative objective.
-    feasibility_tol : float, default flexmbs.problem.FEASIBILITY_TOL (1e-6)
-        Largest re-checked violation max(0, max g) of a feasible design.
-    verify : bool, float or 'check', default True
-        Verify the best design at converged resolution (as `optimize_fully`'s verify): when
-        it is infeasible at the step that resolves it, the optimization continues from it at
-        that step (in this process) and its result replaces the best (best['verification'],
-        best['continued_from']; details['verification']).
-    **options : keyword arguments of `optimize_fully` (max_iterations, screen, ...).
+    **keywords
+        Deprecated: multistart's and optimize_fully's options as keywords (optimizer=...,
+        seed=..., max_iterations=...), with a DeprecationWarning naming the new spelling.
 
     Returns
     -------
@@ -309,10 +310,10 @@ def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0
     """
 
     t0 = time.perf_counter()
-    if not isinstance(optimizer, str) or optimizer not in OPTIMIZERS + ("auto",):
-        raise ModelError(f"optimizer must be 'auto' or one of {', '.join(OPTIMIZERS)}, got "
-                         f"{optimizer!r}")
-
+    if keywords:
+        options, fully = _from_keywords(options, fully, keywords)
+    opts = None if options is None else build(MultistartOptions, options, "options")
+    run = None if fully is None else build(FullyOptions, fully, "fully")
     check_progress(progress)
     check_dask(dask)
     if not isinstance(resume, bool):
@@ -320,11 +321,19 @@ def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0
     if resume and store is None:
         raise ModelError("multistart: resume=True needs the store folder of the interrupted "
                          "run (store=FOLDER; command line: --store FOLDER)")
-    for bad in ("history", "progress"):
-        if bad in options:
-            raise ModelError(f"multistart: option {bad!r} is per run; give store=FOLDER to keep "
-                             "each start's result")
     problem = load_problem(case)
+    section = getattr(getattr(problem, "description", None), "optimize", None)
+    if opts is None:        # the case's [optimize.multistart] table when the call gives none
+        opts = MultistartOptions() if section is None else section.multistart
+    if run is None:
+        run = FullyOptions() if section is None else section.fully()
+    if starts is not None:
+        opts = build(MultistartOptions, dict(opts.as_dict(), starts=starts), "starts")
+    optimizer, starts, sampler, seed = opts.optimizer, opts.starts, opts.sampler, opts.seed
+    start_range, candidates, verify = opts.start_range, opts.candidates, opts.verify
+    best_tolerance, feasibility_tol = opts.best_tolerance, opts.feasibility_tol
+    # every start's options, as plain data for the workers (unverified: the best is verified)
+    options = run.model_copy(update=dict(verify=False)).as_dict()
     lo, hi = problem.lower, problem.upper
     if start_range is not None:
         try:
@@ -339,7 +348,7 @@ def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0
     if candidates is None:
         x0 = start_designs(lo, hi, starts, sampler, seed)
     else:
-        if isinstance(candidates, bool) or not isinstance(candidates, int) or candidates < starts:
+        if candidates < starts:
             raise ModelError(f"candidates must be an integer >= starts ({starts}), got "
                              f"{candidates!r}")
         check_sample_memory(candidates, lo.size, "candidates")
@@ -420,7 +429,24 @@ def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0
                                        verification=verification,
                                        start_lower=np.asarray(lo).tolist(),
                                        start_upper=np.asarray(hi).tolist(),
-                                       options={k: v for k, v in options.items()}))
+                                       options=options, multistart=opts.as_dict()))
+
+
+def _from_keywords(options, fully, keywords):
+    """(options, fully) of a call that gave them as keywords (deprecated): multistart's own
+    (MultistartOptions' fields) and optimize_fully's."""
+    own = {k: keywords.pop(k) for k in list(keywords) if k in MultistartOptions.model_fields}
+    for bad in ("history", "progress"):
+        if bad in keywords:
+            raise ModelError(f"multistart: option {bad!r} is per run; give store=FOLDER to keep "
+                             "each start's result")
+    if own:
+        options = from_keywords("multistart", MultistartOptions, options, own, stacklevel=4)
+    if keywords:
+        fully = from_keywords("multistart", FullyOptions, fully, keywords,
+                              tables={"mma_options": "mma", "nlopt_options": "nlopt"},
+                              stacklevel=4)
+    return options, fully
 
 
 def _verified_best(problem, best, optimizer, options, verify):
@@ -440,7 +466,7 @@ def _verified_best(problem, best, optimizer, options, verify):
         simulations=0, converged=bool(best["converged"]), reason=str(best["reason"]),
         history=[], wall_time_s=0.0)
     res = finish(problem, stub, lambda fine, x: optimize_fully(
-        fine, x, optimizer=optimizer, verify=False, **options), verify)
+        fine, x, optimizer=optimizer, options=dict(options, verify=False)), verify)
     if res.verification is None:
         return best, None, 0
     best = dict(best, verification=res.details["verification"])

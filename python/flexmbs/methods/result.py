@@ -31,7 +31,8 @@ against them instead of being written twice, and the run appends the rest.
 
 Fingerprint: the first record's line carries, in the file only, the fingerprint of what the
 history answers (flexmbs.model.fingerprint: the case description as resolved, the method and its
-options, the flexmbs version; `HistoryWriter.check_fingerprint`); a resume whose fingerprint
+options, the flexmbs version; `HistoryWriter.check_fingerprint`) and the run's options whole
+(key ``options``: flexmbs.model.options, as plain data); a resume whose fingerprint
 differs, or from a file without one, is refused (ModelError naming what differs).
 """
 from __future__ import annotations
@@ -128,6 +129,7 @@ class HistoryWriter:
         self.records = []
         self.previous = []
         self.fingerprint = None
+        self.options = None
         self.resume = bool(resume)
         self._fh = None
         if self.path is None:
@@ -147,11 +149,13 @@ class HistoryWriter:
             self.close()
             raise
 
-    def check_fingerprint(self, fp):
+    def check_fingerprint(self, fp, options=None):
         """Set the fingerprint (flexmbs.model.fingerprint.fingerprint) of what this history answers:
         written with the first record; when resuming from records, the file's must be the
         same, else ModelError naming the file and what differs (a history of another case,
-        overrides, method, options or flexmbs version is never replayed)."""
+        overrides, method, options or flexmbs version is never replayed). `options`: the
+        run's options whole (plain data, flexmbs.model.options), written with the first
+        record too (key ``options``, file only)."""
         if self.previous:
             diff = differences(self.previous[0].get("fingerprint"), fp)
             if diff:
@@ -162,6 +166,7 @@ class HistoryWriter:
                     "method and options, or start afresh without resume (or with another "
                     "history file)")
         self.fingerprint = fp
+        self.options = options
 
     def write(self, record, file_extra=None):
         """Store a record (dict) and append it to the file as one JSON line; `file_extra`
@@ -187,6 +192,8 @@ class HistoryWriter:
             line = rec if not file_extra else dict(rec, **jsonable(file_extra))
             if k == 0 and self.fingerprint is not None:
                 line = dict(line, fingerprint=jsonable(self.fingerprint))
+            if k == 0 and self.options is not None:
+                line = dict(line, options=jsonable(self.options))
             self._fh.write(json.dumps(line) + "\n")
             self._fh.flush()
             os.fsync(self._fh.fileno())

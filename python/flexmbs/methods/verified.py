@@ -17,11 +17,10 @@ from __future__ import annotations
 import numpy as np
 
 from flexmbs.analysis.accuracy import VERIFY_RTOL, verify as verify_design
-from flexmbs.errors import ModelError
+from flexmbs.model.options import check_verify_value
 from flexmbs.responses.kinds import kind_of
 
-__all__ = ["finish", "check_verify", "verify_rtol", "continuation_options",
-           "MAX_CONTINUATIONS"]
+__all__ = ["finish", "check_verify", "verify_rtol", "MAX_CONTINUATIONS"]
 
 #: continuations on finer steps at most (each on a finer step than the one before)
 MAX_CONTINUATIONS = 2
@@ -31,20 +30,8 @@ def check_verify(verify):
     """A `verify` option: True (verify to VERIFY_RTOL, continue on the finer step when the
     design is infeasible there), a relative accuracy in (0, 0.1] (the same to that accuracy),
     'check' (verify to VERIFY_RTOL and report, never continue: what a reproduction of
-    published results runs) or False."""
-    if isinstance(verify, bool) or (isinstance(verify, str) and verify == "check"):
-        return verify
-    if isinstance(verify, (int, float, np.floating)) and 0 < float(verify) <= 0.1:
-        return float(verify)
-    raise ModelError(f"verify must be True, False, 'check' or a relative accuracy in (0, 0.1] "
-                     f"(e.g. 1e-3), got {verify!r}")
-
-
-def continuation_options(arguments):
-    """The keyword arguments of a method's call (its `locals()` on entry) that a continuation
-    on a finer step repeats: all but the problem, the start, the history, resume and verify."""
-    return {k: v for k, v in arguments.items()
-            if k not in ("problem", "x0", "history", "resume", "verify")}
+    published results runs) or False (flexmbs.model.options.check_verify_value)."""
+    return check_verify_value(verify)
 
 
 def verify_rtol(verify):

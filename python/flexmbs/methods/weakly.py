@@ -66,15 +66,16 @@ from types import SimpleNamespace
 import numpy as np
 
 from flexmbs.errors import CaseError, ModelError
-from flexmbs.methods.cycles import (CycleControl, check_cycle_options, check_remedies,
-                                     damped_update, move_limited_bounds)
+from flexmbs.methods.cycles import (CycleControl, check_remedies, damped_update,
+                                     move_limited_bounds)
 from flexmbs.methods.esl import (BodyStiffness, ChordFrame, EquivalentStaticLoads, TangentFrame,
                          equivalent_static_loads, esl_change, solve_static)
 from flexmbs.methods.result import OptimizationResult, open_history
-from flexmbs.methods.verified import check_verify, continuation_options, finish
+from flexmbs.methods.verified import finish
 from flexmbs.model.description import (Beam, Deviation, Mass, PointMass, Station, Stress,
                                  body_points)
 from flexmbs.model.fingerprint import fingerprint, run_options
+from flexmbs.model.options import build, from_keywords, WeaklyOptions
 from flexmbs.problem import FEASIBILITY_TOL, _scalar, constraint_rows, is_feasible, load_problem
 from flexmbs.progress import check_progress, describe_cycle, reporter
 from flexmbs.responses.strain import raw_strain_derivatives, raw_strains, shape, gauss_points
@@ -696,11 +697,8 @@ def _active_rows(g, names, active_tol):
     return {n: (np.flatnonzero(g[idx] >= -active_tol) + 1).tolist() for n, idx in rows.items()}
 
 
-def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles=1,
-                    move_limit=None, frames=None, frame_kind="auto", screen=0.3,
-                    ftol=1e-8, max_inner=200, active_tol=1e-3, stop_on_oscillation=True,
-                    damping=1.0, esl_blend=0.0, design_tol=None, history=None, progress=None,
-                    resume=False, verify=True):
+def optimize_weakly(problem, x0=None, *, options=None, history=None, progress=None,
+                    resume=False, **keywords):
     """Optimize a problem with the weakly coupled method (paper 5.3).
 
     Parameters
@@ -709,50 +707,58 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         Description
     x0 : array, optional
         Starting design in the variables' units; default the problem's start.
-    eps : float, default 1e-2
-        Tolerance of the relative ESL change, eq. (25) (the largest over the ESL bodies).
-    max_cycles : int, default 30
-        Maximum number of cycles (MBS analyses).
-    confirm_cycles : int, default 1
-        Eq. (25) must hold in 1 + confirm_cycles consecutive cycles (0: the paper's test).
-    move_limit : float, optional
-        Relative move limit per cycle (bounds clipped to x (1 -+ move_limit)); a remedy
-        against oscillation.
-    frames : dict beam -> point, optional
-        Frame point of a beam (default: where the chains enter it; stress-only beams: `from`).
-    frame_kind : {'auto', 'tangent', 'chord'} or dict beam -> kind, default 'auto'
-        Corotational frame of every ESL beam at its frame point: 'tangent' to the beam there
-        (static load cases clamped at that point; the paper's eqs. 16-19), 'chord', from that
-        point to the beam's other end (simply supported), or 'auto': chosen per beam from its
-        joints by `frame_by_joints` (tangent where the beam's rotation at its frame point is
-        held: clamp, weld, driven rotation; chord for a beam pinned or hinged at both ends,
-        as the four-bar's coupler and follower and the press's rod). A dict sets it per beam
-        (beams not named: 'auto'). docs/optimizers.md, "Corotational frames".
-    screen : float in [0, 1], default 0.3
-        The static problem starts with the rows (time steps) whose value is at least
-        `screen` times the current maximum of its constraint (0: all rows); rows found
-        violated at its solution are added and the problem solved again.
-    ftol : float, default 1e-8
-        SLSQP's tolerance (objective normalized by the cycle's starting value).
-    max_inner : int, default 200
-        SLSQP iterations per static problem.
-    active_tol : float, default 1e-3
-        A row counts as active when g >= -active_tol (history's active_steps).
-    stop_on_oscillation : bool, default True
-        Stop when the designs repeat with a period of 2 to 6 cycles (diagnosis
-        'oscillating') or the ESL change grows cycle after cycle ('diverging').
-    damping : float in (0, 1], default 1
-        Damped design update x_next = x + damping (x_static_optimum - x) (1: the paper's
-        update); a remedy against oscillation.
-    esl_blend : float in [0, 1), default 0
-        The static problem (23) takes the ESL of the last two cycles averaged,
-        (1 - esl_blend) g_k + esl_blend g_(k-1) (0: the paper's, the current ESL only); a
-        remedy against oscillation. Test (25) always compares the cycles' own ESL.
-    design_tol : float, optional
-        Also converged when the largest relative change of a design variable that the static
-        optimization proposed (x* - x, before damping) is below design_tol and the cycle's
-        design is feasible (simulated), in 1 + confirm_cycles consecutive cycles (a criterion
-        of the kind of OptiStruct's ESLM outer loop: design change and constraint violation).
+    options : flexmbs.model.options.WeaklyOptions or dict, optional
+        The method's options (one table in `flexmbs.model.options.WeaklyOptions` and
+        docs/optimizers.md; default: the case's ``[optimize.weakly]`` table, else the
+        defaults):
+        eps : float, default 1e-2
+            Tolerance of the relative ESL change, eq. (25) (the largest over the ESL bodies).
+        max_cycles : int, default 30
+            Maximum number of cycles (MBS analyses).
+        confirm_cycles : int, default 1
+            Eq. (25) must hold in 1 + confirm_cycles consecutive cycles (0: the paper's test).
+        move_limit : float, optional
+            Relative move limit per cycle (bounds clipped to x (1 -+ move_limit)); a remedy
+            against oscillation.
+        frames : dict beam -> point, optional
+            Frame point of a beam (default: where the chains enter it; stress-only beams: `from`).
+        frame_kind : {'auto', 'tangent', 'chord'} or dict beam -> kind, default 'auto'
+            Corotational frame of every ESL beam at its frame point: 'tangent' to the beam there
+            (static load cases clamped at that point; the paper's eqs. 16-19), 'chord', from that
+            point to the beam's other end (simply supported), or 'auto': chosen per beam from its
+            joints by `frame_by_joints` (tangent where the beam's rotation at its frame point is
+            held: clamp, weld, driven rotation; chord for a beam pinned or hinged at both ends,
+            as the four-bar's coupler and follower and the press's rod). A dict sets it per beam
+            (beams not named: 'auto'). docs/optimizers.md, "Corotational frames".
+        screen : float in [0, 1], default 0.3
+            The static problem starts with the rows (time steps) whose value is at least
+            `screen` times the current maximum of its constraint (0: all rows); rows found
+            violated at its solution are added and the problem solved again.
+        ftol : float, default 1e-8
+            SLSQP's tolerance (objective normalized by the cycle's starting value).
+        max_inner : int, default 200
+            SLSQP iterations per static problem.
+        active_tol : float, default 1e-3
+            A row counts as active when g >= -active_tol (history's active_steps).
+        stop_on_oscillation : bool, default True
+            Stop when the designs repeat with a period of 2 to 6 cycles (diagnosis
+            'oscillating') or the ESL change grows cycle after cycle ('diverging').
+        damping : float in (0, 1], default 1
+            Damped design update x_next = x + damping (x_static_optimum - x) (1: the paper's
+            update); a remedy against oscillation.
+        esl_blend : float in [0, 1), default 0
+            The static problem (23) takes the ESL of the last two cycles averaged,
+            (1 - esl_blend) g_k + esl_blend g_(k-1) (0: the paper's, the current ESL only); a
+            remedy against oscillation. Test (25) always compares the cycles' own ESL.
+        design_tol : float, optional
+            Also converged when the largest relative change of a design variable that the static
+            optimization proposed (x* - x, before damping) is below design_tol and the cycle's
+            design is feasible (simulated), in 1 + confirm_cycles consecutive cycles (a criterion
+            of the kind of OptiStruct's ESLM outer loop: design change and constraint violation).
+        verify : bool, float or 'check', default True
+            Verify the final design at converged resolution (as `optimize_fully`'s verify: when
+            it is infeasible at the step that resolves its responses to 1e-3, the cycles continue
+            at that step from the design, and the new design is verified in turn).
     history : str, path or HistoryWriter, optional
         File receiving one JSON line per cycle as the run goes.
     progress : bool, text stream or callable, optional
@@ -765,10 +771,9 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         two cycles are simulated again (the previous ESL, for eq. (25), and the last cycle's
         own), and the run goes on from there exactly as the interrupted one would have,
         appending to the file. details resumed_cycles: the cycles taken from the file.
-    verify : bool, float or 'check', default True
-        Verify the final design at converged resolution (as `optimize_fully`'s verify: when
-        it is infeasible at the step that resolves its responses to 1e-3, the cycles continue
-        at that step from the design, and the new design is verified in turn).
+    **keywords
+        Deprecated: the options as keywords (eps=..., max_cycles=..., ...), with a
+        DeprecationWarning naming the options= spelling.
 
     Returns
     -------
@@ -783,29 +788,35 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         normalised g of the final design), feasible, paper_test_cycle (the cycle at which
         eq. (25) first held), static_optimizations, oscillation_period, esl_change,
         esl_bodies, frames, frame_kinds (the kind each ESL beam got), damping, esl_blend,
-        design_tol, static_to_simulated ({constrained deviation: the largest static value over
-        steps and chains / the largest simulated value} at the returned design, from its own
-        ESL: `StaticModel.static_to_simulated`; also in every cycle's history record).
+        design_tol, options (the WeaklyOptions used, as plain data), static_to_simulated
+        ({constrained deviation: the largest static value over steps and chains / the largest
+        simulated value} at the returned design, from its own ESL:
+        `StaticModel.static_to_simulated`; also in every cycle's history record).
     """
-    arguments = dict(locals())
-    options = run_options(arguments)      # the arguments: what a history answers
-    # the options of a continuation on a finer step (flexmbs.methods.verified)
-    again = continuation_options(arguments)
     t_start = time.perf_counter()
-    verify = check_verify(verify)
+    if keywords:
+        options = from_keywords("optimize_weakly", WeaklyOptions, options, keywords)
+    opts = None if options is None else build(WeaklyOptions, options)
     problem = load_problem(problem)
+    if opts is None:        # the case's [optimize.weakly] table when the call gives none
+        section = getattr(problem.description, "optimize", None)
+        opts = WeaklyOptions() if section is None else section.weakly
+    verify = opts.verify
+    eps, max_cycles, confirm_cycles = opts.eps, opts.max_cycles, opts.confirm_cycles
+    max_inner, ftol, active_tol = opts.max_inner, opts.ftol, opts.active_tol
+    move_limit, screen = opts.move_limit, opts.screen
+    frames, frame_kind = (None if opts.frames is None else dict(opts.frames)), opts.frame_kind
+    if isinstance(frame_kind, dict):
+        frame_kind = dict(frame_kind)
+    stop_on_oscillation = opts.stop_on_oscillation
+    damping, esl_blend, design_tol = check_remedies(opts.damping, opts.esl_blend,
+                                                    opts.design_tol)
     d = problem.description
     mech = problem.mechanism
     if not mech.variables:
         raise CaseError("the weakly coupled method needs design variables ([[design]])")
     if d.objective is None:
         raise CaseError("the weakly coupled method needs an [objective]")
-    eps, max_cycles, confirm_cycles, max_inner, ftol, active_tol, move_limit, screen = \
-        check_cycle_options(eps, max_cycles, confirm_cycles, max_inner, ftol, active_tol,
-                            move_limit, screen)
-    damping, esl_blend, design_tol = check_remedies(damping, esl_blend, design_tol)
-    if frames is not None and not isinstance(frames, dict):
-        raise ModelError(f"frames must be a dict beam -> point or None, got {frames!r}")
     check_progress(progress)
     if not isinstance(resume, bool):
         raise ModelError(f"resume must be True or False, got {resume!r}")
@@ -821,7 +832,10 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
     mass_resp = [r for r in d.responses if isinstance(r, Mass)]
 
     writer, own_writer = open_history(history, resume)
-    writer.check_fingerprint(fingerprint(problem.description, "weakly", dict(options, x0=x)))
+    used = opts.as_dict()
+    # what a history answers: the options used (but the cycle limit) and the start
+    writer.check_fingerprint(fingerprint(problem.description, "weakly",
+                                         run_options(dict(used, x0=x))), options=used)
     prev_loads, pending, x_prev = None, None, x
     control = CycleControl(eps, confirm_cycles, max_cycles, stop_on_oscillation, design_tol)
     inner_total = n_static = 0
@@ -919,7 +933,7 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         best_feasible_cycle=None if best is None else best.cycle,
         last_design=last_design.tolist(), last_mass_kg=last_record["mass_kg"],
         last_max_violation=last_record["max_violation"],
-        damping=damping, esl_blend=esl_blend, design_tol=design_tol,
+        damping=damping, esl_blend=esl_blend, design_tol=design_tol, options=used,
         constraints_checked_by_simulation=list(dict.fromkeys(unmodelled)),
         max_deviation_responses=[r.name for r in d.responses if isinstance(r, Deviation)
                                  and r.name in {c.response for c in d.constraints}],
@@ -948,8 +962,10 @@ def optimize_weakly(problem, x0=None, *, eps=1e-2, max_cycles=30, confirm_cycles
         converged=control.converged, reason=reason,
         history=list(writer.records), wall_time_s=time.perf_counter() - t_start,
         details=details, t=np.asarray(mech.t), deviation=dev)
-    return finish(problem, result, lambda fine, x: optimize_weakly(fine, x, verify=False,
-                                                                   **again), verify)
+    # a continuation on a finer step (flexmbs.methods.verified): the same options, unverified
+    again = opts.model_copy(update=dict(verify=False))
+    return finish(problem, result, lambda fine, x: optimize_weakly(fine, x, options=again),
+                  verify)
 
 
 def _resume_cycles(problem, static, writer, control, progress, x0, max_cycles):

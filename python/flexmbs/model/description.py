@@ -31,6 +31,8 @@ from typing import Annotated, Literal, Union
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
 
+from flexmbs.model.options import OptimizeSection
+
 __all__ = ["Description", "Law", "Beam", "Rigid", "PointMass", "Joint", "Drive", "Load",
            "SpringDamper", "DesignVariable", "Deviation", "Mass", "Stress", "Torque", "Reaction",
            "Station", "Deflection", "Strain", "Constraint", "TimeSettings", "InitialState",
@@ -764,6 +766,9 @@ class Description(_Strict):
     constraints: list[Constraint] = []
     time: TimeSettings
     initial: InitialState | None = None
+    #: [optimize]: the method, optimizer and options of `flexmbs optimize` and the
+    #: Problem-level entry points when not told otherwise (flexmbs.model.options)
+    optimize: OptimizeSection | None = None
 
     @field_validator("points")
     @classmethod

@@ -45,6 +45,9 @@ def description_digest(description):
         # keys left at their defaults are left out: a key added to the format with a
         # default (the same question) does not change the fingerprint of older results
         data = description.model_dump(mode="json", by_alias=True, exclude_defaults=True)
+        # the [optimize] table is the run's options, fingerprinted as such (a resumed run
+        # may raise its limits)
+        data.pop("optimize", None)
     elif isinstance(description, dict):
         data = description
     else:
@@ -80,14 +83,26 @@ def differences(stored, current):
         out.append(f"flexmbs {stored['flexmbs']} -> {current['flexmbs']}")
     if stored["method"] != current["method"]:
         out.append(f"method {stored['method']} -> {current['method']}")
-    so, co = stored["options"] or {}, current["options"] or {}
-    for k in sorted(set(so) | set(co)):
-        if so.get(k) != co.get(k):
-            out.append(f"option {k}: {_short(so.get(k))} -> {_short(co.get(k))}")
+    out += _option_differences(stored["options"] or {}, current["options"] or {})
     sd, cd = stored["description"] or {}, current["description"] or {}
     changed = sorted(k for k in set(sd) | set(cd) if sd.get(k) != cd.get(k))
     if changed:
         out.append("the case description's " + ", ".join(changed))
+    return out
+
+
+def _option_differences(so, co, prefix=""):
+    """'option a.b: old -> new' for each option that differs; an option table (a dict on both
+    sides, e.g. an optimizer's options) is compared key by key."""
+    out = []
+    for k in sorted(set(so) | set(co)):
+        a, b = so.get(k), co.get(k)
+        if a == b:
+            continue
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += _option_differences(a, b, f"{prefix}{k}.")
+        else:
+            out.append(f"option {prefix}{k}: {_short(a)} -> {_short(b)}")
     return out
 
 

@@ -49,9 +49,7 @@ import time
 
 import numpy as np
 
-from flexmbs.errors import ModelError, SimulationError
-from flexmbs.model.sections import real_number, whole_number
-from flexmbs.optimizers.mma import MMA
+from flexmbs.errors import SimulationError
 
 __all__ = ["kkt_residual", "solve_qp"]
 
@@ -469,33 +467,3 @@ def _run_slsqp(P, mon, x0, ftol=1e-10):
             mon.reason = f"SLSQP stopped: {res.message}"
     except _Stop:
         pass
-
-
-# ============================================================================ driver
-def _check_stopping(obj_tol, viol_tol, des_tol, kkt_tol, active_tol, max_iterations,
-                    max_simulations):
-    """Check the stopping settings (ModelError naming the bad one); return the two limits as
-    integers."""
-    for name, val in (("objective_rel_change", obj_tol), ("constraint_violation", viol_tol),
-                      ("kkt_tol", kkt_tol), ("active_tol", active_tol)):
-        real_number(name, val, positive=True)
-    if des_tol is not None:
-        real_number("design_rel_change (or None)", des_tol, positive=True)
-    return (whole_number("max_iterations", max_iterations, 1),
-            whole_number("max_simulations", max_simulations, 1))
-
-
-def _mma_settings(mma_options):
-    """MMA keyword arguments and the GCMMA inner-iteration limit from `mma_options`."""
-    if mma_options is not None and not isinstance(mma_options, dict):
-        raise ModelError(f"mma_options must be a dict or None, got {mma_options!r}")
-    mma_kw = dict(mma_options or {})
-    import inspect
-    allowed = [name for name, par in inspect.signature(MMA.__init__).parameters.items()
-               if par.kind is inspect.Parameter.KEYWORD_ONLY] + ["max_inner"]
-    bad = [k for k in mma_kw if k not in allowed]
-    if bad:
-        raise ModelError(f"mma_options: unknown key(s) {', '.join(map(repr, bad))}; allowed: "
-                         f"{', '.join(allowed)}")
-    max_inner = whole_number("mma_options max_inner", mma_kw.pop("max_inner", 20), 1)
-    return mma_kw, max_inner

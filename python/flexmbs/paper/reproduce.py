@@ -149,18 +149,22 @@ def optimization_job(case, method, start, overrides=None, options=None):
     overrides : dict, optional
         Case keys to replace (`flexmbs.problem.Problem`), e.g. {'time.t_end': 0.66}.
     options : dict, optional
-        Keyword arguments of `optimize_weakly` / `optimize_fully`.
+        The method's options (flexmbs.model.options: WeaklyOptions / FullyOptions' fields;
+        the fully coupled method's may name its `optimizer`).
     """
 
     prob = Problem(case, overrides=overrides or None)
     if method not in ("weakly", "fully"):
         raise ModelError(f"method must be 'weakly' or 'fully', got {method!r}")
-    run = optimize_weakly if method == "weakly" else optimize_fully
     # the published method as published, its optimum verified at converged resolution and
     # reported (a finding that holds only at the case's step is not reproduced), not continued
     options = dict(options or {})
     options.setdefault("verify", "check")
-    r = run(prob, np.asarray(start, float), **options)
+    if method == "fully":
+        r = optimize_fully(prob, np.asarray(start, float), optimizer=options.pop("optimizer", None),
+                           options=options)
+    else:
+        r = optimize_weakly(prob, np.asarray(start, float), options=options)
     d = r.to_dict()
     d["deviation_m"] = None if r.deviation is None else [float(v) for v in r.deviation]
     d["h_s"] = float(prob.description.time.grid_h)
@@ -178,17 +182,17 @@ def multistart_job(case, overrides=None, options=None, multistart=None, workers=
     verified), ``mass_kg``, ``design``, ``max_deviation_m``, ``t_at_max_s``, ``limit_m`` and
     ``feasible``; ``mass_kg`` None when no start ended feasible.
 
-    multistart : dict of multistart's settings {starts, optimizer, sampler, seed, candidates,
-        best_tolerance}; options : keyword arguments of `optimize_fully` for every start.
+    multistart : dict of multistart's settings (MultistartOptions' fields: starts, optimizer,
+        sampler, seed, candidates, best_tolerance); options : FullyOptions' fields for every
+        start (flexmbs.model.options).
     """
 
     ms = dict(multistart or {})
-    starts = ms.pop("starts", 8)
     prob = Problem(case, overrides=overrides or None)
     options = dict(options or {})
-    options.setdefault("verify", "check")        # as optimization_job's
-    res = run_multistart(prob, starts, workers=workers, dask=dask, store=store,
-                         progress=progress, **ms, **options)
+    ms.setdefault("verify", options.pop("verify", "check"))       # as optimization_job's
+    res = run_multistart(prob, options=ms, fully=options, workers=workers, dask=dask,
+                         store=store, progress=progress)
     d = res.to_dict()
     d.update(mass_kg=None, design=None, max_deviation_m=None, feasible=False,
              case_overrides=dict(overrides or {}), case_name=case)

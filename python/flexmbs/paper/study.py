@@ -17,7 +17,6 @@ a user's study file reproduces any other published results the same way
 from __future__ import annotations
 
 import functools
-import inspect
 import json
 import re
 import tomllib
@@ -31,11 +30,11 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from flexmbs.batch import job_name
 from flexmbs.errors import CaseError, ModelError
 from flexmbs.files import check_regular_file
-from flexmbs.methods.fully import optimize_fully, OPTIMIZERS
-from flexmbs.methods.weakly import optimize_weakly
+from flexmbs.methods.fully import OPTIMIZERS
 from flexmbs.model.casefile import (_loc, case_path, friendly_error, nesting_guard,
                                     read_description, shipped_path)
 from flexmbs.model.description import Finite, Int, NoBool, NonNegative, Positive
+from flexmbs.model.options import build, FullyOptions, OPTIMIZER_TABLES, WeaklyOptions
 
 __all__ = ["load_study", "study_path", "Study", "TableSpec", "MapSpec", "Run", "Variant",
            "METHODS", "ROW_CHECKS", "VARIANT_CHECKS", "DEFAULT_STUDY"]
@@ -511,9 +510,22 @@ def _published_file(name, folder, source):
 
 
 def _optimizer_keywords(method):
-    fn = optimize_weakly if method == "weakly" else optimize_fully
-    return [n for n, p in inspect.signature(fn).parameters.items()
-            if p.kind == p.KEYWORD_ONLY or (p.default is not p.empty)]
+    """The options a study may give a method: WeaklyOptions' fields; the fully coupled
+    method's optimizer and FullyOptions' fields, its optimizers' options flat or as tables
+    (flexmbs.model.options)."""
+    if method == "weakly":
+        return list(WeaklyOptions.model_fields)
+    flat = [n for t in OPTIMIZER_TABLES.values() for n in t.model_fields]
+    return ["optimizer"] + list(FullyOptions.model_fields) + list(dict.fromkeys(flat))
+
+
+def _check_values(method, opts, where, source):
+    """The values of a method's options, validated by its options object."""
+    kind = WeaklyOptions if method == "weakly" else FullyOptions
+    try:
+        build(kind, {k: v for k, v in opts.items() if k != "optimizer"})
+    except ModelError as exc:
+        raise CaseError(f"{source}: key '{where}': {exc}") from None
 
 
 #: optimizer options a study file may not set: where a run writes (a path: no file names a
@@ -532,12 +544,13 @@ def _refuse_run_options(options, where, source):
 def _check_options(options, where, source):
     for method, opts in options.items():
         allowed = _optimizer_keywords(method)
+        _refuse_run_options(opts, f"{where}.{method}", source)
         for k in opts:
             if k not in allowed:
                 raise CaseError(f"{source}: key '{where}.{method}.{k}' is not an option of the "
                                 f"{method} coupled optimizer, got {k!r}; allowed: "
                                 f"{', '.join(allowed)}")
-        _refuse_run_options(opts, f"{where}.{method}", source)
+        _check_values(method, opts, f"{where}.{method}", source)
 
 
 def _resolve_case(case, folder):
@@ -618,12 +631,13 @@ def _variant(n, k, v, t, case, names, source):
     settings."""
     where = f"tables.{n}.variants[{k}]"
     allowed = _optimizer_keywords(v.method)
+    _refuse_run_options(v.options, f"{where}.options", source)
     for k in v.options:
         if k not in allowed:
             raise CaseError(f"{source}: key '{where}.options.{k}' is not an option of the "
                             f"{v.method} coupled optimizer, got {k!r}; allowed: "
                             f"{', '.join(allowed)}")
-    _refuse_run_options(v.options, f"{where}.options", source)
+    _check_values(v.method, v.options, f"{where}.options", source)
     ms = None
     if v.multistart is not None:
         m = v.multistart
