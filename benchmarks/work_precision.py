@@ -76,11 +76,13 @@ def steps_for(h, t_end=T_END):
 
 
 # ----------------------------------------------------------------------------- runs
-def run_flexmbs(model, tip_node, h, solver, newton, repeats=3, budget=2.0):
+def run_flexmbs(model, tip_node, h, solver, newton, repeats=3, budget=2.0, steps=None):
     """One flexmbs configuration: (t, dev (m), Timing, stats). newton: 'full', 'reuse', 'auto',
-    or True/False for 'reuse'/'full'; solver and newton None: simulate's defaults."""
+    or True/False for 'reuse'/'full'; solver and newton None: simulate's defaults. steps: a
+    step grid (times) to integrate on, outputs every h."""
     import flexmbs as fx
-    n = steps_for(h)
+    n = steps_for(h) if steps is None else int(round(steps[-1] / h))
+    kw_steps = {} if steps is None else dict(steps=steps)
     if isinstance(newton, bool):
         newton = "reuse" if newton else "full"
     kw = {}
@@ -92,7 +94,7 @@ def run_flexmbs(model, tip_node, h, solver, newton, repeats=3, budget=2.0):
     model.pattern(solver or "klu")         # one-time structure work, like Exudyn's Assemble
 
     def call():
-        return fx.simulate(model, n * h, h, start="static", store=[tip_node], **kw)
+        return fx.simulate(model, n * h, h, start="static", store=[tip_node], **kw_steps, **kw)
     res, timing = time_call(call, repeats=repeats, budget=budget)
     return res.t, deviation30(res.t, res.position(tip_node)), timing, res.stats
 
@@ -111,25 +113,6 @@ def adaptive_grid(nel, rtol):
     c0 = _time.process_time()
     grid = p.adapt()
     return grid, _time.process_time() - c0
-
-
-def run_flexmbs_grid(model, tip_node, grid, solver, newton, repeats=3, budget=2.0):
-    """flexmbs on the step grid `grid` (times), outputs every OUTPUT s: (t, dev (m), Timing,
-    stats); solver and newton as run_flexmbs."""
-    import flexmbs as fx
-    kw = {}
-    if solver is not None:
-        kw["solver"] = solver
-    if newton is not None:
-        kw["newton"] = newton
-    model.compile()
-    model.pattern(solver or "klu")
-
-    def call():
-        return fx.simulate(model, float(grid[-1]), OUTPUT, start="static", store=[tip_node],
-                           steps=grid, **kw)
-    res, timing = time_call(call, repeats=repeats, budget=budget)
-    return res.t, deviation30(res.t, res.position(tip_node)), timing, res.stats
 
 
 def run_exudyn(nel, h, sparse, modified, rtols, repeats=3, budget=2.0, adaptive=False):
@@ -333,8 +316,8 @@ def run(quick=False, outdir="benchmarks/results", log=print):
         for rtol in (ADAPTIVE_RTOLS_QUICK if quick else ADAPTIVE_RTOLS):
             grid, choice = adaptive_grid(nel, rtol)
             for solver, newton in ADAPTIVE_CONFIGS:
-                t, dev, timing, st = run_flexmbs_grid(m, a2.last, grid, solver, newton,
-                                                      repeats, budget)
+                t, dev, timing, st = run_flexmbs(m, a2.last, OUTPUT, solver, newton,
+                                                 repeats, budget, steps=grid)
                 name = "fx auto" + ("" if solver is None else
                                     f" {solver}{' reuse' if newton == 'reuse' else ''}")
                 err = history_error(t, dev, ref_t, ref_dev)

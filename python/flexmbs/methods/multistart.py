@@ -7,6 +7,12 @@ a Dask cluster), re-checks every local optimum's feasibility by a fresh simulati
 process, and returns the best feasible design, every local optimum (objective, violation) and
 how many starts reached the best (objective within `best_tolerance`, 0.3 %, of it).
 
+An adaptive case (time.h = "auto", flexmbs.analysis.adaptive) is re-adapted between the
+starts: each start's run chooses its step grid at its own start design and keeps it frozen
+while the optimizer differentiates (`start_problem`; the start's record states it, `grid`),
+each local optimum is re-checked on a grid chosen at itself (`recheck_grid`), and the best is
+verified on a grid chosen at it (docs/accuracy.md, "Error-controlled steps").
+
 Starting designs: variable i is drawn in [lower_i, upper_i] (the design bounds, or the narrower
 `start_range`), uniformly, or log-uniformly where upper_i / lower_i > 10 (bounds spanning a
 decade or more, such as 15-500 mm diameters: a uniform draw would put 97 % of the starts above
@@ -195,7 +201,9 @@ class MultistartResult:
         (re-checked), converged, simulations, ...), None when no start ended feasible.
     optima : every start's local optimum, in the order of the starts (same keys; max_violation
         re-checked by a fresh simulation, `feasible` added; a start whose own simulation
-        failed has design None and its `reason`).
+        failed has design None and its `reason`; an adaptive case's start has `grid`, the
+        summary of the grid it ran on, chosen at its start (Problem.grid_summary: steps, tol,
+        rtol, h_min, h_max), and `recheck_grid`, the grid its re-check ran on).
     reached_best : how many starts ended feasible within best_tolerance of the best objective.
     best_tolerance : relative (0.003). wall_time_s. simulations : all starts' simulations and
         the re-checks.
@@ -324,8 +332,9 @@ def multistart(case, starts=8, *, optimizer="nlopt-mma", sampler="sobol", seed=0
     workers, dask, store : as `flexmbs.batch.run_batch` (store: one JSON file per start, so
         an interrupted multi-start resumes where it stopped: starts already in the store are
         not run again, unless their fingerprint (flexmbs.model.fingerprint: the case as resolved,
-        the start, the optimizer and its options, the flexmbs version) differs: those run
-        again, with a warning naming their file).
+        the start, the optimizer and its options, the flexmbs version; for an adaptive case
+        that its grid is chosen at the start) differs: those run again, with a warning naming
+        their file).
     progress : bool, text stream or callable, optional
         True: a tqdm bar on stderr (starts done, best feasible objective so far); a text
         stream: that bar on the stream; a callable: called with each finished start's summary
