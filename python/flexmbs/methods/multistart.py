@@ -45,7 +45,7 @@ from flexmbs.progress import check_progress, describe_start
 from flexmbs.resources import format_bytes, limit_source, memory_limit
 
 __all__ = ["multistart", "start_designs", "sample_memory", "check_sample_memory",
-           "MultistartResult", "SAMPLERS", "start_job"]
+           "MultistartResult", "SAMPLERS", "start_job", "start_problem"]
 
 #: quasi-random samplers of the starting designs
 SAMPLERS = ("sobol", "lhs")
