@@ -218,11 +218,13 @@ def time_at_error(front, err, rtol=EQUAL_ERROR_RTOL):
 
 
 # ----------------------------------------------------------------------------- main
-def run(quick=False, outdir="benchmarks/results", log=print):
-    """Run the work-precision benchmark; prints tables, writes plots and a JSON of all numbers."""
+def run(quick=False, outdir="benchmarks/results", log=print, elements=None, ref_elements=None):
+    """Run the work-precision benchmark; prints tables, writes plots and a JSON of all numbers.
+    elements, ref_elements: the meshes (elements per arm) and the reference's instead of the
+    sweep's (quick: 2, 8 and 32; else 2, 8, 32, 128 and 128)."""
     h_list = H_QUICK if quick else H_FULL
-    nel_list = NEL_QUICK if quick else NEL_FULL
-    ref_nel = 32 if quick else 128
+    nel_list = elements or (NEL_QUICK if quick else NEL_FULL)
+    ref_nel = ref_elements or (32 if quick else 128)
     h_ref = min(h_list) / 8
     repeats, budget = (1, 0.5) if quick else (3, 2.0)
     have_exudyn, exu_info = exudyn_available()
