@@ -1,7 +1,7 @@
 """Run the flexmbs benchmarks: `python benchmarks/run.py [--quick] [--only NAME]`.
 
 NAME is one of: work_precision, where_time_goes, scaling, sensitivity, optimization, newton,
-damping, adaptive
+damping, adaptive, continuation_grids
 (default: all, in that order).
 Tables go to standard output; PNG plots and JSON files of every number to benchmarks/results/
 (or --out DIR). See benchmarks/README.md for what each benchmark measures.
@@ -18,7 +18,7 @@ import sys
 import time
 
 BENCHMARKS = ("work_precision", "where_time_goes", "scaling", "sensitivity", "optimization", "newton",
-              "damping", "adaptive")
+              "damping", "adaptive", "continuation_grids")
 
 
 def main(argv=None):

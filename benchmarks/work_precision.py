@@ -24,6 +24,16 @@ more configuration, "ex sparse modified adaptive", runs under Exudyn's own step 
 the same for its static solver (1e-6 up to 32, 1e-4 at 128 elements per arm). Their effect on
 the answer is visible in "|fx-ex|", the difference of the two codes' deviation histories at
 equal mesh and step.
+
+flexmbs's error-controlled steps (time.h = "auto", flexmbs.analysis.adaptive) are one more
+configuration, "fx auto": per mesh and relative tolerance rtol (ADAPTIVE_RTOLS), the grid that
+choose_steps gives for the case cases/robot_2dof.toml (the same robot, p = 50 mm, its
+deviation responses (28) and (30), outputs every OUTPUT s) with that mesh, then the same model
+as the fixed-step runs integrated on it (simulate's defaults and KLU with modified Newton);
+its CPU time is given without and with the grid choice (the two pilot runs, once per
+optimization run), and its error is read on the OUTPUT grid against the same reference. The
+table "Adaptive steps" sets each of its runs against the fixed-step fronts of both codes at the
+error it reached.
 """
 from __future__ import annotations
 
@@ -52,6 +62,12 @@ FLEXMBS_CONFIGS = [("dense", "full"), ("dense", "reuse"), ("klu", "full"), ("klu
 EXUDYN_CONFIGS = [(False, False, False), (False, True, False), (True, False, False),
                   (True, True, False), (True, True, True)]
 DENSE_LIMIT_ELEMENTS = 32     # no dense runs (either code) above this many elements per arm
+# flexmbs adaptive steps: relative tolerances of the responses, the response grid's spacing (a
+# step of every sweep, so that the reference's grid contains it) and the configurations
+ADAPTIVE_RTOLS = [1e-2, 3e-3, 1e-3, 3e-4, 1e-4]
+ADAPTIVE_RTOLS_QUICK = [1e-2, 1e-3, 1e-4]
+OUTPUT = 5e-4
+ADAPTIVE_CONFIGS = [("klu", "reuse"), (None, None)]
 
 
 def steps_for(h, t_end=T_END):
@@ -60,11 +76,13 @@ def steps_for(h, t_end=T_END):
 
 
 # ----------------------------------------------------------------------------- runs
-def run_flexmbs(model, tip_node, h, solver, newton, repeats=3, budget=2.0):
+def run_flexmbs(model, tip_node, h, solver, newton, repeats=3, budget=2.0, steps=None):
     """One flexmbs configuration: (t, dev (m), Timing, stats). newton: 'full', 'reuse', 'auto',
-    or True/False for 'reuse'/'full'; solver and newton None: simulate's defaults."""
+    or True/False for 'reuse'/'full'; solver and newton None: simulate's defaults. steps: a
+    step grid (times) to integrate on, outputs every h."""
     import flexmbs as fx
-    n = steps_for(h)
+    n = steps_for(h) if steps is None else int(round(steps[-1] / h))
+    kw_steps = {} if steps is None else dict(steps=steps)
     if isinstance(newton, bool):
         newton = "reuse" if newton else "full"
     kw = {}
@@ -76,9 +94,25 @@ def run_flexmbs(model, tip_node, h, solver, newton, repeats=3, budget=2.0):
     model.pattern(solver or "klu")         # one-time structure work, like Exudyn's Assemble
 
     def call():
-        return fx.simulate(model, n * h, h, start="static", store=[tip_node], **kw)
+        return fx.simulate(model, n * h, h, start="static", store=[tip_node], **kw_steps, **kw)
     res, timing = time_call(call, repeats=repeats, budget=budget)
     return res.t, deviation30(res.t, res.position(tip_node)), timing, res.stats
+
+
+def adaptive_grid(nel, rtol):
+    """(times, CPU s of the choice): the step grid flexmbs.analysis.adaptive.choose_steps gives for
+    the robot case (cases/robot_2dof.toml at its start, p = 50 mm, as robot_flexmbs) with `nel`
+    elements per arm, T_END, outputs every OUTPUT s, at relative tolerance `rtol`; the choice
+    timed warm (the problem's one-time parts built by a first choice)."""
+    import time as _time
+    from flexmbs.problem import Problem
+    p = Problem("robot_2dof", {"time.t_end": T_END, "time.h": "auto", "time.rtol": rtol,
+                               "time.output": OUTPUT, "bodies.arm1.elements": nel,
+                               "bodies.arm2.elements": nel})
+    p.adapt()
+    c0 = _time.process_time()
+    grid = p.adapt()
+    return grid, _time.process_time() - c0
 
 
 def run_exudyn(nel, h, sparse, modified, rtols, repeats=3, budget=2.0, adaptive=False):
@@ -184,11 +218,13 @@ def time_at_error(front, err, rtol=EQUAL_ERROR_RTOL):
 
 
 # ----------------------------------------------------------------------------- main
-def run(quick=False, outdir="benchmarks/results", log=print):
-    """Run the work-precision benchmark; prints tables, writes plots and a JSON of all numbers."""
+def run(quick=False, outdir="benchmarks/results", log=print, elements=None, ref_elements=None):
+    """Run the work-precision benchmark; prints tables, writes plots and a JSON of all numbers.
+    elements, ref_elements: the meshes (elements per arm) and the reference's instead of the
+    sweep's (quick: 2, 8 and 32; else 2, 8, 32, 128 and 128)."""
     h_list = H_QUICK if quick else H_FULL
-    nel_list = NEL_QUICK if quick else NEL_FULL
-    ref_nel = 32 if quick else 128
+    nel_list = elements or (NEL_QUICK if quick else NEL_FULL)
+    ref_nel = ref_elements or (32 if quick else 128)
     h_ref = min(h_list) / 8
     repeats, budget = (1, 0.5) if quick else (3, 2.0)
     have_exudyn, exu_info = exudyn_available()
@@ -278,6 +314,26 @@ def run(quick=False, outdir="benchmarks/results", log=print):
                 rows_all.append(row)
             log(f"  {nel:4d} el/arm  h = {h:<8g} done: " + ", ".join(
                 f"{k} {v[2].best * 1e3:.1f} ms" for k, v in results.items()))
+        # --- flexmbs with error-controlled steps
+        for rtol in (ADAPTIVE_RTOLS_QUICK if quick else ADAPTIVE_RTOLS):
+            grid, choice = adaptive_grid(nel, rtol)
+            for solver, newton in ADAPTIVE_CONFIGS:
+                t, dev, timing, st = run_flexmbs(m, a2.last, OUTPUT, solver, newton,
+                                                 repeats, budget, steps=grid)
+                name = "fx auto" + ("" if solver is None else
+                                    f" {solver}{' reuse' if newton == 'reuse' else ''}")
+                err = history_error(t, dev, ref_t, ref_dev)
+                st_t, st_dev = same_mesh[nel]
+                out["runs"].append(dict(
+                    elements=nel, h=None, rtol=rtol, config=name, code="fa",
+                    err_mm=err * 1e3,
+                    err_same_mesh_mm=history_error(t, dev, st_t, st_dev) * 1e3,
+                    cpu=timing.cpu_min, cpu_median=timing.cpu_median, wall=timing.wall_min,
+                    repeats=timing.runs, choice_cpu=choice, steps=int(grid.size - 1),
+                    iterations=st["newton_iterations"], factorizations=st["factorizations"],
+                    unknowns=st["unknowns"]))
+            log(f"  {nel:4d} el/arm  rtol = {rtol:<8g} done: {grid.size - 1} steps, "
+                f"choice {choice * 1e3:.0f} ms")
 
     report(out, log)
     _save(out, outdir, log)
@@ -292,7 +348,8 @@ def _best(runs, code, nel, h):
 
 def report(out, log=print):
     """Print the tables of a finished (or loaded) work-precision run."""
-    runs = out["runs"]
+    adaptive_runs = [r for r in out["runs"] if r["code"] == "fa"]
+    runs = [r for r in out["runs"] if r["code"] != "fa"]
     # all configurations
     rows = []
     for r in runs:
@@ -349,6 +406,47 @@ def report(out, log=print):
                      title="\nSummary of ex/fx time ratios at equal error (target: >= 10 "
                            "everywhere; 'N default': flexmbs with simulate's defaults alone)"))
     out["ratio_summary"] = summary
+    if adaptive_runs:
+        report_adaptive(out, adaptive_runs, runs, log)
+
+
+def report_adaptive(out, adaptive_runs, runs, log=print):
+    """The table of flexmbs's adaptive runs against both codes' fixed-step fronts (the same
+    mesh) at the error each reached."""
+    rows, table = [], []
+    for r in adaptive_runs:
+        same = [q for q in runs if q["elements"] == r["elements"]]
+        fixed = pareto_front([(q["err_mm"], q["cpu"]) for q in same if q["code"] == "fx"])
+        exu = pareto_front([(q["err_mm"], q["cpu"]) for q in same if q["code"] == "ex"])
+        t_fx, t_ex = time_at_error(fixed, r["err_mm"]), time_at_error(exu, r["err_mm"])
+        # the steps of flexmbs's fixed-step runs that reach this error (log-log in h)
+        pts = sorted({(q["h"], q["err_mm"]) for q in same if q["config"] == "fx default"})
+        n_fx = None
+        for (h0, e0), (h1, e1) in zip(pts[:-1], pts[1:]):
+            if min(e0, e1) <= r["err_mm"] <= max(e0, e1) and e0 != e1:
+                u = (math.log(r["err_mm"]) - math.log(e0)) / (math.log(e1) - math.log(e0))
+                n_fx = T_END / math.exp(math.log(h0) + u * (math.log(h1) - math.log(h0)))
+        row = dict(elements=r["elements"], rtol=r["rtol"], config=r["config"],
+                   steps=r["steps"], err_mm=r["err_mm"], cpu=r["cpu"],
+                   choice_cpu=r["choice_cpu"], fixed_steps=n_fx, fixed_cpu=t_fx, exudyn_cpu=t_ex)
+        table.append(row)
+        rows.append([r["elements"], r["rtol"], r["config"], r["steps"],
+                     None if n_fx is None else round(n_fx), r["err_mm"], r["cpu"] * 1e3,
+                     r["choice_cpu"] * 1e3,
+                     None if t_fx is None else t_fx * 1e3,
+                     None if t_ex is None else t_ex * 1e3,
+                     None if t_fx is None else t_fx / r["cpu"],
+                     None if t_fx is None else t_fx / (r["cpu"] + r["choice_cpu"]),
+                     None if t_ex is None else t_ex / r["cpu"]])
+    log(format_table(["el/arm", "rtol", "config", "steps", "fx fixed steps at that err",
+                      "err (mm)", "cpu (ms)", "choice cpu (ms)", "fx fixed cpu at that err (ms)",
+                      "ex cpu at that err (ms)", "fixed/auto", "fixed/(auto+choice)",
+                      "ex/auto"], rows,
+                     title="\nAdaptive steps (flexmbs time.h = \"auto\") against the fixed-step "
+                           "fronts of the same mesh at the error reached (log-log "
+                           "interpolation; '-' = that front never that accurate or not that "
+                           "coarse)"))
+    out["adaptive"] = table
 
 
 def _save(out, outdir, log):
@@ -380,6 +478,12 @@ def plot(out, outdir, log=print):
             ax[1].loglog([p["h"] for p in pts], [p["err_same_mesh_mm"] for p in pts], mk + ls,
                          color=colors[nel], mfc="none" if code == "ex" else None,
                          label=f"{'flexmbs' if code == 'fx' else 'Exudyn'} {nel} el/arm")
+    for nel in out["elements"]:
+        pts = sorted((r for r in runs if r["code"] == "fa" and r["elements"] == nel
+                      and r["config"] == "fx auto"), key=lambda r: r["rtol"])
+        if pts:
+            ax[0].loglog([p["err_mm"] for p in pts], [p["cpu"] for p in pts], "^:",
+                         color=colors[nel], label=f"flexmbs auto steps {nel} el/arm")
     hh = np.array(out["h"])
     some = [r["err_same_mesh_mm"] for r in runs if r["h"] == hh.min()]
     if some:

@@ -330,6 +330,16 @@ class Problem:
             self._refined[factor] = fine
         return self._refined[factor]
 
+    def grid_summary(self):
+        """What an adaptive case's frozen grid is (a record's `grid`): steps (its number),
+        tol, rtol, h_min and h_max (s, its shortest and longest step); None for a fixed step."""
+        steps = self.steps()
+        if steps is None:
+            return None
+        ts, dh = self.description.time, np.diff(steps)
+        return dict(steps=int(dh.size), tol=ts.tol, rtol=ts.rtol, h_min=float(dh.min()),
+                    h_max=float(dh.max()))
+
     def refined_mesh(self):
         """(the same problem with twice the elements of every beam, None), or (None, why
         not): element-wise design variables are tied to the elements (flexmbs.analysis.accuracy's

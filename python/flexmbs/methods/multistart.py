@@ -7,6 +7,12 @@ a Dask cluster), re-checks every local optimum's feasibility by a fresh simulati
 process, and returns the best feasible design, every local optimum (objective, violation) and
 how many starts reached the best (objective within `best_tolerance`, 0.3 %, of it).
 
+An adaptive case (time.h = "auto", flexmbs.analysis.adaptive) is re-adapted between the
+starts: each start's run chooses its step grid at its own start design and keeps it frozen
+while the optimizer differentiates (`start_problem`; the start's record states it, `grid`),
+each local optimum is re-checked on a grid chosen at itself (`recheck_grid`), and the best is
+verified on a grid chosen at it (docs/accuracy.md, "Error-controlled steps").
+
 Starting designs: variable i is drawn in [lower_i, upper_i] (the design bounds, or the narrower
 `start_range`), uniformly, or log-uniformly where upper_i / lower_i > 10 (bounds spanning a
 decade or more, such as 15-500 mm diameters: a uniform draw would put 97 % of the starts above
@@ -40,7 +46,7 @@ from flexmbs.progress import check_progress, describe_start
 from flexmbs.resources import format_bytes, limit_source, memory_limit
 
 __all__ = ["multistart", "start_designs", "sample_memory", "check_sample_memory",
-           "MultistartResult", "SAMPLERS", "start_job"]
+           "MultistartResult", "SAMPLERS", "start_job", "start_problem"]
 
 #: quasi-random samplers of the starting designs
 SAMPLERS = ("sobol", "lhs")
@@ -122,26 +128,64 @@ class StartResult(StoredResult):
     simulations: int
     wall_time_s: float
     reason: str | None = None
+    grid: dict | None = None
+
+
+#: simulations one choice of an adaptive grid runs (its two pilots, flexmbs.analysis.adaptive)
+PILOT_SIMULATIONS = 2
+
+
+def adaptive(problem):
+    """True when `problem` (a Problem) has error-controlled steps (time.h = "auto")."""
+    return hasattr(problem, "adapt") and bool(
+        getattr(getattr(problem.description, "time", None), "adaptive", False))
+
+
+def _own(problem, case):
+    """`problem`, or a copy of it when it is the caller's `case` (its grid is left alone)."""
+    if problem is not case:
+        return problem
+    return type(problem)(problem.description, gradient_method=problem.default_gradient_method,
+                         checkpoints=problem.adjoint_checkpoints)
+
+
+def start_problem(case, start):
+    """(problem, grid) a start runs on: the case loaded (flexmbs.problem.load_problem); for an
+    adaptive case (time.h = "auto") a problem of its own whose step grid is chosen at the start
+    design `start` and frozen for the start's run (Problem.adapt; the grid is a deterministic
+    function of the description and the start), and grid its summary (Problem.grid_summary:
+    steps, tol, rtol, h_min, h_max); grid None for a fixed step."""
+    problem = load_problem(case)
+    if not adaptive(problem):
+        return problem, None
+    problem = _own(problem, case)
+    problem.adapt(start)
+    return problem, problem.grid_summary()
 
 
 def start_job(case, start, optimizer, options):
     """One start (a batch job: plain data in, JSON out): `optimize_fully(case, start,
-    optimizer=optimizer, options=options)` summarised (options: FullyOptions as plain data)."""
+    optimizer=optimizer, options=options)` summarised (options: FullyOptions as plain data); an
+    adaptive case runs on a grid chosen at the start (`start_problem`, the record's `grid`)."""
+    grid = None
     try:
+        problem, grid = start_problem(case, start)
         # each start's local optimum is not verified: multistart verifies the best one
-        res = optimize_fully(case, start, optimizer=optimizer,
+        res = optimize_fully(problem, start, optimizer=optimizer,
                              options=dict(options or {}, verify=False))
     except SimulationError as exc:
         # a start whose own simulation fails (e.g. a very flexible design): no local optimum
         return dict(start=[float(v) for v in start], design=None, objective=None,
                     max_violation=None, converged=False, simulations=1, wall_time_s=0.0,
-                    optimizer_share=float("nan"),
+                    optimizer_share=float("nan"), grid=grid,
                     reason=f"the start's simulation failed: {exc}", error=str(exc))
+    pilots = 0 if grid is None else PILOT_SIMULATIONS
     return dict(start=[float(v) for v in start], design=[float(v) for v in res.design],
                 objective=float(res.objective), max_violation=float(res.max_violation),
                 converged=bool(res.converged), reason=res.reason,
-                simulations=int(res.simulations), wall_time_s=float(res.wall_time_s),
-                optimizer_share=float(res.details.get("optimizer_share", float("nan"))))
+                simulations=int(res.simulations) + pilots, wall_time_s=float(res.wall_time_s),
+                optimizer_share=float(res.details.get("optimizer_share", float("nan"))),
+                grid=grid)
 
 
 start_job.result_schema = StartResult
@@ -158,7 +202,9 @@ class MultistartResult:
         (re-checked), converged, simulations, ...), None when no start ended feasible.
     optima : every start's local optimum, in the order of the starts (same keys; max_violation
         re-checked by a fresh simulation, `feasible` added; a start whose own simulation
-        failed has design None and its `reason`).
+        failed has design None and its `reason`; an adaptive case's start has `grid`, the
+        summary of the grid it ran on, chosen at its start (Problem.grid_summary: steps, tol,
+        rtol, h_min, h_max), and `recheck_grid`, the grid its re-check ran on).
     reached_best : how many starts ended feasible within best_tolerance of the best objective.
     best_tolerance : relative (0.003). wall_time_s. simulations : all starts' simulations and
         the re-checks.
@@ -229,8 +275,11 @@ class MultistartResult:
             if o.get("design") is None:
                 lines.append(f"  start {k}: {o['reason']}")
                 continue
+            grid = o.get("grid")
             lines.append(f"  start {k}: objective {o['objective']:.6g}, violation "
                          f"{o['max_violation']:.1e}, {o['simulations']} simulations"
+                         + ("" if grid is None else f", {grid['steps']} steps (grid chosen at "
+                            f"the start, {_tolerance(grid)})")
                          + ("" if o["feasible"] else "  INFEASIBLE"))
         lines.append(f"  {self.simulations} simulations, {self.wall_time_s:.1f} s")
         return "\n".join(lines)
@@ -290,8 +339,9 @@ def multistart(case, starts=None, *, options=None, fully=None, workers=None, das
     workers, dask, store : as `flexmbs.batch.run_batch` (store: one JSON file per start, so
         an interrupted multi-start resumes where it stopped: starts already in the store are
         not run again, unless their fingerprint (flexmbs.model.fingerprint: the case as resolved,
-        the start, the optimizer and its options, the flexmbs version) differs: those run
-        again, with a warning naming their file).
+        the start, the optimizer and its options, the flexmbs version; for an adaptive case
+        that its grid is chosen at the start) differs: those run again, with a warning naming
+        their file).
     progress : bool, text stream or callable, optional
         True: a tqdm bar on stderr (starts done, best feasible objective so far); a text
         stream: that bar on the stream; a callable: called with each finished start's summary
@@ -334,6 +384,8 @@ def multistart(case, starts=None, *, options=None, fully=None, workers=None, das
     best_tolerance, feasibility_tol = opts.best_tolerance, opts.feasibility_tol
     # every start's options, as plain data for the workers (unverified: the best is verified)
     options = run.model_copy(update=dict(verify=False)).as_dict()
+    if adaptive(problem):           # its grid is re-chosen at each optimum: not the caller's
+        problem = _own(problem, case)
     lo, hi = problem.lower, problem.upper
     if start_range is not None:
         try:
@@ -389,8 +441,12 @@ def multistart(case, starts=None, *, options=None, fully=None, workers=None, das
         show = progress
     # what each stored start answers: the description as resolved (overrides applied), the
     # start, the optimizer and its options; a stored start that differs is run again
+    # (an adaptive case's start runs on the grid chosen at the start: said in the fingerprint,
+    # so that a start stored with another grid runs again)
+    grid_at = dict(grid="chosen at the start") if adaptive(problem) else {}
     fps = {name: fingerprint(problem.description, "multistart start",
-                             dict(start=job["start"], optimizer=optimizer, options=options))
+                             dict(start=job["start"], optimizer=optimizer, options=options,
+                                  **grid_at))
            for name, job in jobs.items()}
     out = run_batch(start_job, jobs, workers=workers, dask=dask, store=store,
                     progress=show, label="starts", describe=best_so_far, fingerprints=fps)
@@ -403,8 +459,13 @@ def multistart(case, starts=None, *, options=None, fully=None, workers=None, das
             o["feasible"] = False
             optima.append(o)
             continue
-        # feasibility re-checked by a fresh simulation, here
+        # feasibility re-checked by a fresh simulation, here; an adaptive case's on a grid
+        # chosen at the local optimum (so that every optimum is judged at its tolerance)
         sims += 1
+        if adaptive(problem):
+            problem.adapt(o["design"])
+            o["recheck_grid"] = problem.grid_summary()
+            sims += PILOT_SIMULATIONS
         ev = problem.evaluate(o["design"], gradient=False)
         g = np.asarray(ev.constraints, float)
         o["max_violation"] = float(max(0.0, g.max())) if g.size else 0.0
@@ -417,6 +478,9 @@ def multistart(case, starts=None, *, options=None, fully=None, workers=None, das
         o["objective"] <= best["objective"] * (1 + best_tolerance) for o in feas)
     verification = None
     if best is not None:
+        if adaptive(problem):            # verified on the grid chosen at the best design
+            problem.adapt(best["design"])
+            sims += PILOT_SIMULATIONS
         best, verification, extra = _verified_best(problem, best, optimizer, options, verify)
         sims += extra
     desc = problem.description
@@ -447,6 +511,11 @@ def _from_keywords(options, fully, keywords):
                               tables={"mma_options": "mma", "nlopt_options": "nlopt"},
                               stacklevel=4)
     return options, fully
+
+
+def _tolerance(grid):
+    """'rtol 0.01' / 'tol 1e-05' / both, of a grid summary."""
+    return ", ".join(f"{k} {grid[k]:g}" for k in ("tol", "rtol") if grid.get(k) is not None)
 
 
 def _verified_best(problem, best, optimizer, options, verify):
