@@ -25,7 +25,8 @@ def test_each_start_runs_on_the_grid_chosen_at_its_start():
     steps, shortest and longest step, rtol), the two grids differ, and each local optimum's
     re-check states the grid choose_steps gives at that optimum."""
     p = _robot()
-    res = multistart(p, 2, optimizer="mma", workers=1, max_iterations=2, verify=False)
+    res = multistart(p, 2, options=dict(optimizer="mma", verify=False),
+                     fully=dict(max_iterations=2), workers=1)
     grids = []
     for o in res.optima:
         g = choose_steps(Problem(p.description), o["start"])
@@ -71,7 +72,8 @@ def test_a_resumed_multistart_takes_its_stored_starts(tmp_path):
     start (their fingerprints match: the grid is a function of the description and the start)
     and gives the same optima and grids."""
     p = _robot()
-    kw = dict(optimizer="mma", workers=1, max_iterations=1, verify=False, store=tmp_path)
+    kw = dict(options=dict(optimizer="mma", verify=False), fully=dict(max_iterations=1),
+              workers=1, store=tmp_path)
     first = multistart(p, 2, **kw)
     stamps = {f: f.stat().st_mtime_ns for f in tmp_path.glob("*.json")}
     again = multistart(p, 2, resume=True, **kw)
