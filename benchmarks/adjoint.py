@@ -18,6 +18,7 @@ import numpy as np
 from flexmbs.analysis.adjoint import adjoint_gradient, simulate_for_adjoint
 from flexmbs.analysis.simulate import simulate
 from flexmbs.problem import Problem
+from flexmbs.analysis.settings import DesignDerivatives
 
 
 def best(f, repeat=3):
@@ -53,8 +54,10 @@ def main(nvs):
     rng = np.random.default_rng(0)
     for nv in nvs:
         dprop = np.einsum("kev,vw->kew", base, rng.standard_normal((base.shape[2], nv)))
-        t_dir, _ = best(lambda: simulate(model, mech.t_end, ts.h, design_derivatives=dprop,
-                                         sensitivity_dofs=np.arange(model.ndof), **kw),
+        t_dir, _ = best(lambda: simulate(model, mech.t_end, ts.h,
+                                         derivatives=DesignDerivatives(properties=dprop,
+                                                                       dofs=np.arange(model.ndof)),
+                                         **kw),
                         3 if nv <= 128 else 1)
         t_back, _ = best(lambda: adjoint_gradient(model, fwd, dprop, gq))
         t_adj = t_fwd + t_back

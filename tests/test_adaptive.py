@@ -15,6 +15,7 @@ from flexmbs.analysis.adaptive import subdivide
 from flexmbs.analysis.simulate import interpolation_matrix, simulate
 from flexmbs.errors import CaseError
 from flexmbs.problem import Problem
+from flexmbs.analysis.settings import DesignDerivatives, InitialConditions, SimulationSettings
 
 
 def _runs(case, over):
@@ -185,18 +186,18 @@ def test_solvers_newton_modes_and_step_cuts_on_a_varying_grid(start):
     s = np.linspace(0, 1, 51)
     g = 0.05 * (s + 0.3 * np.sin(2 * np.pi * s) / (2 * np.pi))
     q0, qd0 = mech.initial_state()
-    kw = dict(start=start, q0=q0, qd0=None if start == "static" else qd0, store="all",
-              steps=g, tol=1e-12)
-    ref = simulate(model, 0.05, 5e-4, solver="dense", newton="full", **kw)
+    settings = SimulationSettings(start=start, store="all", tol=1e-12)
+    kw = dict(initial=InitialConditions(q0=q0, qd0=None if start == "static" else qd0), steps=g)
+    ref = simulate(model, 0.05, 5e-4, settings.replace(solver="dense", newton="full"), **kw)
     for solver in ("dense", "klu"):
         for newton in ("full", "auto", "reuse"):
-            r = simulate(model, 0.05, 5e-4, solver=solver, newton=newton, **kw)
+            r = simulate(model, 0.05, 5e-4, settings.replace(solver=solver, newton=newton), **kw)
             assert np.abs(r.q - ref.q).max() < 1e-8, (solver, newton)
     dprop = mech.element_property_derivatives(mech.start)
-    kw.pop("store")
-    direct = simulate(model, 0.05, 5e-4, newton="full", max_iter=2, validity="off",
-                      store="all", design_derivatives=dprop, **kw)
-    run = simulate_for_adjoint(model, 0.05, 5e-4, newton="full", max_iter=2, validity="off", **kw)
+    settings = settings.replace(newton="full", max_iter=2, validity="off")
+    direct = simulate(model, 0.05, 5e-4, settings, derivatives=DesignDerivatives(properties=dprop),
+                      **kw)
+    run = simulate_for_adjoint(model, 0.05, 5e-4, settings, **kw)
     assert run.stats["step_cuts"] > 20 and run.tape["h"].size > g.size + 20
     gq = np.random.default_rng(7).standard_normal(run.q.shape)
     adj = adjoint_gradient(model, run, dprop, gq)[:, 0]

@@ -4,11 +4,14 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
-from flexmbs.analysis.validity import ValidityLimits, apply_validity, check_result, diagnose_failure
+from flexmbs.analysis.settings import (DesignDerivatives, InitialConditions, RunSettings,
+                                       SimulationSettings)
+from flexmbs.analysis.settings import check_flag as _check_flag
+from flexmbs.analysis.validity import apply_validity, check_result, diagnose_failure
 from flexmbs.core import (SolverStatus, Status, core_model_args, klu_analysis, simulate_arrays,
                           system_matrices)
 from flexmbs.errors import ModelError, ResourceError, SettingWarning, SimulationError
@@ -151,7 +154,11 @@ class Result:
     dofs: np.ndarray
     stats: dict
     wall_time: float
-    settings: dict = field(default_factory=dict)
+    #: the RunSettings that ran (flexmbs.analysis.settings: the SimulationSettings with solver
+    #: and newton resolved, and the run's h and t_end)
+    settings: object = None
+    #: the InitialConditions the run started from (q0, qd0: arrays of every coordinate)
+    initial: object = None
     sens_dofs: np.ndarray | None = None
     dq: np.ndarray | None = None
     validity: object = None
@@ -314,25 +321,6 @@ def _numeric_array(name, value, kind=float):
         raise ModelError(f"{name} must be an array of numbers, got {value!r}") from None
 
 
-def _check_newton_settings(rho_inf, tol, max_iter, max_cuts):
-    """simulate's numeric settings: typed ModelErrors naming the argument, value and range."""
-    def real(v):
-        return isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, (bool, np.bool_))
-
-    if not (real(rho_inf) and 0.0 <= rho_inf <= 1.0):
-        raise ModelError(f"rho_inf must lie in [0, 1], got {rho_inf!r}")
-    if not (real(tol) and math.isfinite(tol) and tol > 0):
-        raise ModelError(f"tol must be > 0 and finite, got {tol!r}")
-    for name, v, least in (("max_iter", max_iter, 1), ("max_cuts", max_cuts, 0)):
-        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < least:
-            raise ModelError(f"{name} must be an integer >= {least}, got {v!r}")
-
-
-def _check_flag(name, value):
-    if not isinstance(value, (bool, np.bool_)):
-        raise ModelError(f"{name} must be True or False, got {value!r}")
-
-
 def newton_mode(newton="auto", reuse_jacobian=None):
     """The Newton strategy of `simulate` from its `newton` and deprecated `reuse_jacobian`
     arguments: 'auto', 'full' or 'reuse'. reuse_jacobian=True means 'reuse', False 'full'
@@ -454,18 +442,23 @@ def _estimate(model, nsteps, out, solver, design_derivatives, sensitivity_dofs, 
                            nlaw=len(model.laws()), nv=nv, nsens=nsens, dmu=bool(want_dmu))
 
 
-def memory_estimate(model: Model, t_end, h=5e-4, *, store="all", solver="auto",
-                    design_derivatives=None, sensitivity_dofs=None,
-                    constraint_force_derivatives=False, tape=False, checkpoints=None, steps=None,
-                    **settings):
-    """The memory `simulate(model, t_end, h, ...)` with these arguments would need, without
-    running it (flexmbs.resources.MemoryEstimate: `total` bytes and its `parts`; with
+def memory_estimate(model: Model, t_end, h=5e-4, settings=None, *, initial=None,
+                    derivatives=None, tape=False, checkpoints=None, steps=None, **deprecated):
+    """The memory `simulate(model, t_end, h, settings, ...)` with these arguments would need,
+    without running it (flexmbs.resources.MemoryEstimate: `total` bytes and its `parts`; with
     tape=True the part TAPE_PART, as first allocated: a run cutting more steps than a quarter
     of them needs more; with checkpoints=K the part CHECKPOINT_PART, `checkpoint_bytes`).
-    Only the arguments that change it are read; `settings` (simulate's other keywords) are
-    accepted and ignored, so that the same keywords can be passed to both."""
+    Takes simulate's arguments (and its deprecated keywords, with the same warnings); only
+    those that change the estimate are read (settings.store and settings.solver, the
+    derivatives, tape, checkpoints and steps)."""
     if not isinstance(model, Model):
         raise ModelError(f"memory_estimate expects a flexmbs Model, got {type(model).__name__}")
+    settings, _, derivatives, _ = _arguments("memory_estimate", settings, initial, derivatives,
+                                             deprecated)
+    store, solver = settings.store, settings.solver
+    design_derivatives, sensitivity_dofs, constraint_force_derivatives = (
+        (None, None, False) if derivatives is None else
+        (derivatives.properties, derivatives.dofs, derivatives.constraint_forces))
     nsteps = time_steps(t_end, h, math.inf)
     if steps is not None:     # a non-uniform step grid: its steps (outputs on the j h grid)
         nsteps = max(nsteps, step_grid(steps, nsteps * h).size - 1)
@@ -484,12 +477,79 @@ def memory_estimate(model: Model, t_end, h=5e-4, *, store="all", solver="auto",
     return est
 
 
-def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="all",
-             solver="auto", newton="auto", reuse_jacobian=None, tol=1e-10, max_iter=20, max_cuts=6,
-             kscale=None, penalty=None, q0=None, qd0=None, design_derivatives=None,
-             sensitivity_dofs=None, constraint_force_derivatives=False, memory_limit=None,
-             validity="warn", polish=False, tape=False, checkpoints=None, steps=None):
+#: simulate's former keywords that are settings (SimulationSettings fields), of the initial
+#: state (InitialConditions) and of the design derivatives (DesignDerivatives): still taken,
+#: with a DeprecationWarning naming the new spelling
+_SETTING_KEYWORDS = ("rho_inf", "start", "store", "solver", "newton", "tol", "max_iter",
+                     "max_cuts", "kscale", "penalty", "memory_limit", "validity", "polish")
+_INITIAL_KEYWORDS = {"q0": "q0", "qd0": "qd0"}
+_DERIVATIVE_KEYWORDS = {"design_derivatives": "properties", "sensitivity_dofs": "dofs",
+                        "constraint_force_derivatives": "constraint_forces"}
+
+
+def _arguments(where, settings, initial, derivatives, old):
+    """(SimulationSettings, InitialConditions, DesignDerivatives or None, reuse_jacobian) of
+    `where`'s arguments; `old`: its deprecated keywords (each a DeprecationWarning naming the
+    new spelling; TypeError for a keyword it never took)."""
+    unknown = sorted(set(old) - set(_SETTING_KEYWORDS) - set(_INITIAL_KEYWORDS)
+                     - set(_DERIVATIVE_KEYWORDS) - {"reuse_jacobian"})
+    if unknown:
+        raise TypeError(f"{where}() got an unexpected keyword argument {unknown[0]!r}")
+    settings = SimulationSettings.coerce(settings)
+    changes = {k: old[k] for k in _SETTING_KEYWORDS if k in old}
+    if changes:
+        spelled = ", ".join(f"{k}=..." for k in changes)
+        warnings.warn(f"{where}({spelled}) is deprecated: use {where}(..., "
+                      f"settings=SimulationSettings({spelled}))", DeprecationWarning,
+                      stacklevel=3)
+        settings = settings.replace(**changes)
+    init = {v: old[k] for k, v in _INITIAL_KEYWORDS.items() if k in old}
+    if init:
+        if initial is not None:
+            raise ModelError(f"{where}: give the initial state once, initial= (not with "
+                             f"{', '.join(init)}=)")
+        spelled = ", ".join(f"{k}=..." for k in init)
+        warnings.warn(f"{where}({spelled}) is deprecated: use {where}(..., "
+                      f"initial=InitialConditions({spelled}))", DeprecationWarning, stacklevel=3)
+        initial = InitialConditions(**init)
+    if initial is None:
+        initial = InitialConditions()
+    if not isinstance(initial, InitialConditions):
+        raise ModelError(f"initial must be an InitialConditions(q0=..., qd0=...) or None, got "
+                         f"{type(initial).__name__}")
+    der = {v: old[k] for k, v in _DERIVATIVE_KEYWORDS.items() if k in old}
+    if der:
+        if derivatives is not None:
+            raise ModelError(f"{where}: give the design derivatives once, derivatives= (not "
+                             f"with {', '.join(k for k in _DERIVATIVE_KEYWORDS if k in old)}=)")
+        given = ", ".join(f"{k}=..." for k in _DERIVATIVE_KEYWORDS if k in old)
+        spelled = ", ".join(f"{k}=..." for k in der)
+        warnings.warn(f"{where}({given}) is deprecated: use {where}(..., "
+                      f"derivatives=DesignDerivatives({spelled}))", DeprecationWarning,
+                      stacklevel=3)
+        cf = der.get("constraint_forces", False)
+        if not isinstance(cf, (bool, np.bool_)):
+            raise ModelError(f"constraint_force_derivatives must be True or False, got {cf!r}")
+        if der.get("properties") is None:
+            if cf:
+                raise ModelError("constraint_force_derivatives=True needs design_derivatives=...")
+        else:
+            derivatives = DesignDerivatives(**der)
+    derivatives = DesignDerivatives.coerce(derivatives)
+    return settings, initial, derivatives, old.get("reuse_jacobian")
+
+
+def simulate(model: Model, t_end, h=5e-4, settings=None, *, initial=None, derivatives=None,
+             tape=False, checkpoints=None, steps=None, **deprecated):
     """Simulate a model with generalized-alpha (eqs. 3-6) and Newton-Raphson (eq. 7).
+
+    ``simulate(model, t_end, h, SimulationSettings(tol=1e-12, newton="full"))``: how the run
+    integrates, iterates, solves and checks is one `settings` object
+    (flexmbs.analysis.settings.SimulationSettings, whose docstring is the table of its fields
+    and defaults); the other arguments are what this run computes. simulate's former keywords
+    (rho_inf=, tol=, store=, ... q0=, qd0=, design_derivatives=, sensitivity_dofs=,
+    constraint_force_derivatives=) are still taken, each with a DeprecationWarning naming the
+    new spelling.
 
     Parameters
     ----------
@@ -498,6 +558,8 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         End time (s); a whole number of steps.
     h : float, default 5e-4
         Time step (s).
+    settings : SimulationSettings, dict of its fields, or None (the defaults)
+        The settings of the run; its fields are explained here:
     rho_inf : float in [0, 1], default 0.5
         Spectral radius at infinite frequency (1: no numerical damping).
     start : {'rest', 'static'}, default 'rest'
@@ -529,24 +591,26 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         iteration: the derivative solve needs that factorization (the tangent within `tol` of
         the converged state) anyway, and it serves the next step's first iteration too.
     reuse_jacobian : bool, optional
-        Deprecated alias: True is newton='reuse', False newton='full'.
+        Deprecated keyword: True is newton='reuse', False newton='full'.
     tol : float, default 1e-10
         Newton tolerance on max|dq| / max(1, max|q_ref|, element length).
     max_iter, max_cuts : int
         Newton iterations per step, step halvings before failing.
     kscale, penalty : float or None
         k and p of eq. (1); None: the mean diagonal of the iteration matrix.
-    q0, qd0 : arrays, optional
-        Initial coordinates (default: reference) and velocities (default: zero;
-        projected onto the velocity constraints).
-    design_derivatives : array (5, nel, nv), optional
+    initial : InitialConditions(q0, qd0), optional
+        Initial coordinates q0 (default: reference) and velocities qd0 (default: the
+        start's, see `start`).
+    derivatives : DesignDerivatives(properties, dofs, constraint_forces), or the properties
+        array alone, optional; its fields:
+    design_derivatives (DesignDerivatives.properties) : array (5, nel, nv)
         d[EA, kGA, EI, rhoA, rhoI]/dp of every element for nv design variables p.
         When given, the discrete generalized-alpha equations (and the static start
         and initial accelerations) are differentiated directly, in Fortran, after
         every converged step, and `Result.dq` holds dq/dp.
-    sensitivity_dofs : array of int, optional
+    sensitivity_dofs (DesignDerivatives.dofs) : array of int, optional
         Coordinates (0-based) whose derivatives are kept (default: the stored ones).
-    constraint_force_derivatives : bool, default False
+    constraint_force_derivatives (DesignDerivatives.constraint_forces) : bool, default False
         With design_derivatives: also return d(mu)/dp of every constraint row (the physical
         multipliers of eq. 1, as in Result.mu) in `Result.dmu` (nt, nc, nv). The same
         solve gives them (no extra factorization); off by default, as they take
@@ -589,7 +653,8 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         tape (flexmbs.analysis.adjoint, checkpointing). Not with tape or design_derivatives.
     Returns
     -------
-    Result
+    Result, its `settings` the RunSettings that ran (solver and newton resolved, h and
+    t_end), its `initial` the InitialConditions it started from (arrays).
 
     Raises
     ------
@@ -604,10 +669,20 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     # the step count alone here (one reading of the available memory per call, below:
     # check_memory's estimate contains the grid and stored outputs time_steps would check)
     nsteps = time_steps(t_end, h, math.inf)
-    limits = ValidityLimits.coerce(validity)
-    _check_newton_settings(rho_inf, tol, max_iter, max_cuts)
-    newton = newton_mode(newton, reuse_jacobian)
-    _check_flag("polish", polish)
+    settings, initial, derivatives, reuse_jacobian = _arguments(
+        "simulate", settings, initial, derivatives, deprecated)
+    rho_inf, start, store, solver, tol, max_iter, max_cuts, kscale, penalty, memory_limit, \
+        polish = (getattr(settings, k) for k in (
+            "rho_inf", "start", "store", "solver", "tol", "max_iter", "max_cuts", "kscale",
+            "penalty", "memory_limit", "polish"))
+    limits = settings.validity
+    newton = newton_mode(settings.newton, reuse_jacobian)
+    q0, qd0 = initial.q0, initial.qd0
+    design_derivatives, sensitivity_dofs, constraint_force_derivatives = (
+        (None, None, False) if derivatives is None else
+        (derivatives.properties, derivatives.dofs, derivatives.constraint_forces))
+    if design_derivatives is None:
+        sensitivity_dofs = None
     _check_flag("tape", tape)
     tg = None if steps is None else step_grid(steps, nsteps * h)
     ncore = nsteps if tg is None else tg.size - 1
@@ -620,12 +695,6 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
             raise ModelError("checkpoints= is not allowed with tape=True or design_derivatives "
                              "(a checkpointed run replaces the tape of the adjoint)")
         checkpoints = int(checkpoints)
-    if not isinstance(start, str) or start not in ("rest", "static"):
-        raise ModelError(f"start must be 'rest' or 'static', got {start!r}")
-    for name, v in (("kscale", kscale), ("penalty", penalty)):
-        if v is not None and not (isinstance(v, (int, float, np.floating)) and not isinstance(v, bool)
-                                  and math.isfinite(v) and v > 0):
-            raise ModelError(f"{name} must be a positive finite number or None (automatic), got {v!r}")
     if not model._nodes:
         raise ModelError("the model has no nodes")
     n_unknowns = model.ndof + len(model._rows)
@@ -760,11 +829,11 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
             dmu_t = (w @ dmu_t.reshape(tg.size, -1)).reshape(t.size, *dmu_t.shape[1:])
     res = Result(t=t, q=q_out, qd=qd_out, qdd=qdd_out, mu=mu_out, dofs=out,
                   stats=st, wall_time=time.perf_counter() - t_start,
-                  settings=dict(h=h, t_end=t_end, rho_inf=rho_inf, start=start, solver=solver,
-                                newton=newton, tol=float(tol), max_iter=int(max_iter),
-                                max_cuts=int(max_cuts), kscale=float(kscale or 0.0),
-                                penalty=float(penalty or 0.0), q0=q_init, qd0=qd_init,
-                                polish=bool(polish), steps=tg),
+                  settings=RunSettings(**{**{k: getattr(settings, k) for k in
+                                             settings.__dataclass_fields__},
+                                          "solver": solver, "newton": newton, "h": h,
+                                          "t_end": t_end}),
+                  initial=InitialConditions(q0=q_init, qd0=qd_init),
                   sens_dofs=sdofs if nv else None, dq=dq_t, dmu=dmu_t,
                   steps=None if tg is None else dict(t=tg, matrix=w))
     if tape:
