@@ -132,7 +132,9 @@ def test_case_solver_table_is_validated():
     with pytest.raises(CaseError, match=r"solver\.linear_solver"):
         Problem("fourbar", {"solver.linear_solver": "lu"})
     with pytest.raises(CaseError, match="strain_warn = 0.2 is above strain_fail = 0.1"):
-        Problem("fourbar", {"solver.strain_warn": 0.2})
+        Problem("fourbar", {"solver.strain_warn": 0.2, "solver.strain_fail": 0.1})
+    with pytest.raises(CaseError, match=r"\[solver\].*strain_warn = 0.2 is above strain_fail"):
+        Problem("fourbar", {"solver.strain_warn": 0.2})      # against the default 10 %
     p = Problem("fourbar", {"solver.tol": 1e-12, "solver.linear_solver": "dense",
                             "solver.validity": "error", "solver.drift_warn": 1e-7})
     assert (p.settings.tol, p.settings.solver, p.settings.validity.mode,

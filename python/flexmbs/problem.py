@@ -1201,14 +1201,20 @@ def _scalar(v, dv, how, parameter, t):
 def simulation_settings(description):
     """The SimulationSettings of a case description: [time]'s rho_inf, start and newton (its
     deprecated reuse_jacobian as the newton it names) and [solver]'s fields (linear_solver
-    is the settings' solver; validity with its limits)."""
+    is the settings' solver; validity with the limits it sets, ValidityLimits's others).
+    A limit set against the other's default (a warning limit above the default failure
+    limit) is a CaseError naming it."""
     ts, so = description.time, description.solver
     newton = ts.newton
     if ts.reuse_jacobian is not None and newton == "auto":    # the deprecated spelling
         newton = "reuse" if ts.reuse_jacobian else "full"
-    limits = ValidityLimits(mode=so.validity, **{
-        f"{k}_{w}": getattr(so, f"{k}_{w}") for k in ("strain", "drift", "energy")
-        for w in ("warn", "fail")})
+    given = {f"{k}_{w}": getattr(so, f"{k}_{w}") for k in ("strain", "drift", "energy")
+             for w in ("warn", "fail")}
+    try:
+        limits = ValidityLimits(mode=so.validity,
+                                **{k: v for k, v in given.items() if v is not None})
+    except ModelError as exc:
+        raise CaseError(f"[solver]: {exc}") from None
     return SimulationSettings(rho_inf=ts.rho_inf, start=ts.start, newton=newton, tol=so.tol,
                               max_iter=so.max_iter, max_cuts=so.max_cuts,
                               solver=so.linear_solver, kscale=so.kscale, penalty=so.penalty,

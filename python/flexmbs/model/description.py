@@ -689,7 +689,7 @@ class SolverSettings(_Strict):
     Newton tolerance tol, iterations max_iter, step halvings max_cuts, linear_solver ('auto',
     'dense', 'klu'), the scalings kscale and penalty of eq. (1) (default: automatic), polish,
     memory_limit (bytes; default: FLEXMBS_MEMORY_LIMIT, else the memory available), the
-    validity checks' mode and limits."""
+    validity checks' mode and limits (unset: flexmbs.analysis.validity.ValidityLimits's)."""
     tol: Positive = 1e-10
     max_iter: Annotated[int, NoBool, Field(ge=1)] = 20
     max_cuts: Annotated[int, NoBool, Field(ge=0)] = 6
@@ -699,18 +699,18 @@ class SolverSettings(_Strict):
     polish: bool = False
     memory_limit: Positive | None = None
     validity: Literal["warn", "error", "off"] = "warn"
-    strain_warn: Positive = 0.01
-    strain_fail: Positive = 0.10
-    drift_warn: Positive = 1e-6
-    drift_fail: Positive = 1e-3
-    energy_warn: Positive = 0.01
-    energy_fail: Positive = 0.10
+    strain_warn: Positive | None = None
+    strain_fail: Positive | None = None
+    drift_warn: Positive | None = None
+    drift_fail: Positive | None = None
+    energy_warn: Positive | None = None
+    energy_fail: Positive | None = None
 
     @model_validator(mode="after")
     def _limits_ordered(self):
         for kind in ("strain", "drift", "energy"):
             warn, fail = getattr(self, f"{kind}_warn"), getattr(self, f"{kind}_fail")
-            if warn > fail:
+            if warn is not None and fail is not None and warn > fail:
                 raise ValueError(f"{kind}_warn = {warn:g} is above {kind}_fail = {fail:g}: "
                                  "the warning limit must not exceed the failure limit")
         return self

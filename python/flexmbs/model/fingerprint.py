@@ -10,7 +10,8 @@ fingerprint is a JSON dict of
     description  {top-level key of the case description: SHA-256 of its JSON}, of the
                  description as resolved (case file read, overrides applied, validated)
     settings     the simulation settings of the case, whole (readable; its [time]'s
-                 rho_inf, start, newton and its [solver] table, every key with its value:
+                 rho_inf, start, newton and its [solver] table, every key (null: the
+                 default of SimulationSettings or ValidityLimits):
                  flexmbs.analysis.settings.SimulationSettings); compared through the
                  description's digests, which cover them
 
