@@ -128,7 +128,7 @@ class Result:
         (bytes: the estimate checked against the memory limit before the run).
     wall_time : seconds spent in the simulation (including the set-up in Python).
     validity : flexmbs.analysis.validity.Validity, the checks run after the simulation (strains of the
-        beams, constraint drift, energy of a free system); see simulate(validity=...).
+        beams, constraint drift, energy of a free system); see SimulationSettings.validity.
     sens_dofs, dq : with design_derivatives: the coordinates and their dq/dp (nt, nsens, nv).
     dmu : with constraint_force_derivatives=True: d(mu)/dp (nt, nc, nv) of every constraint row.
     tape : with tape=True: every converged (sub-)step's state for the discrete adjoint, a dict
