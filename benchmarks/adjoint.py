@@ -18,7 +18,7 @@ import numpy as np
 from flexmbs.analysis.adjoint import adjoint_gradient, simulate_for_adjoint
 from flexmbs.analysis.simulate import simulate
 from flexmbs.problem import Problem
-from flexmbs.analysis.settings import DesignDerivatives
+from flexmbs.analysis.settings import DesignDerivatives, InitialConditions
 
 
 def best(f, repeat=3):
@@ -38,8 +38,8 @@ def main(nvs):
     model = mech.set_design(x)
     ts = p.description.time
     q0, qd0 = mech.initial_state()
-    kw = dict(rho_inf=ts.rho_inf, start=ts.start, newton=ts.newton, q0=q0,
-              qd0=None if ts.start == "static" else qd0)
+    kw = dict(settings=p.settings,
+              initial=InitialConditions(q0=q0, qd0=None if ts.start == "static" else qd0))
     base = mech.element_property_derivatives(x)
     t_sim, run = best(lambda: simulate(model, mech.t_end, ts.h, **kw))
     t_fwd, fwd = best(lambda: simulate_for_adjoint(model, mech.t_end, ts.h, **kw))
