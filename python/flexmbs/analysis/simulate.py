@@ -559,87 +559,12 @@ def simulate(model: Model, t_end, h=5e-4, settings=None, *, initial=None, deriva
     h : float, default 5e-4
         Time step (s).
     settings : SimulationSettings, dict of its fields, or None (the defaults)
-        The settings of the run; its fields are explained here:
-    rho_inf : float in [0, 1], default 0.5
-        Spectral radius at infinite frequency (1: no numerical damping).
-    start : {'rest', 'static'}, default 'rest'
-        'rest': the reference configuration (or q0) moving with the rigid-body velocity
-        field the drives impose at t = 0 (flexmbs.model.kinematics.drive_velocities: every body
-        moves rigidly; zero when no drive moves at t = 0), unless qd0 is given;
-        'static': static equilibrium under the loads at the drives' initial positions.
-    store : 'all', or a list of node ids / Body objects, default 'all'
-        Which coordinates to keep at every step (memory for long runs).
-    solver : {'auto', 'dense', 'klu'}, default 'auto'
-        Dense LAPACK LU up to DENSE_MAX_UNKNOWNS unknowns (currently none: KLU was faster at
-        every size measured), SuiteSparse KLU above.
-    newton : {'auto', 'full', 'reuse'}, default 'auto'
-        Newton strategy. 'full': the iteration matrix of eq. (7) assembled and factored at
-        every iteration. 'auto': the factorization is kept across iterations and steps while
-        the scaled increment contracts by at least 0.3 per iteration, and refreshed when it does
-        not, when a step needs a 4th iteration, when the observed contraction would need more
-        further iterations than a refresh costs (a cost model: generalized_alpha.f90,
-        auto_refresh_cost), or after a step that needed 3 or had to refresh; an increment
-        below `tol` (full Newton's test) is accepted once the estimated remaining error
-        (contraction / (1 - contraction) x increment) is at the level full Newton's quadratic
-        convergence leaves (tol^2, or the rounding of the coordinates), because modified
-        Newton's errors have the same sign from step to step and the velocities integrate them;
-        a step it cannot converge is retried with full Newton before being cut. Same responses
-        as 'full' (tests/test_newton.py: 1e-11 m on the robot), 2x faster on the robot.
-        'reuse': the former modified Newton, fewest factorizations, accepted at `tol` (its
-        responses differ from full Newton's by ~250 tol qscale on the robot). With
-        design_derivatives, 'auto' and 'reuse' take full Newton steps from a step's second
-        iteration: the derivative solve needs that factorization (the tangent within `tol` of
-        the converged state) anyway, and it serves the next step's first iteration too.
-    reuse_jacobian : bool, optional
-        Deprecated keyword: True is newton='reuse', False newton='full'.
-    tol : float, default 1e-10
-        Newton tolerance on max|dq| / max(1, max|q_ref|, element length).
-    max_iter, max_cuts : int
-        Newton iterations per step, step halvings before failing.
-    kscale, penalty : float or None
-        k and p of eq. (1); None: the mean diagonal of the iteration matrix.
+        How the run integrates, iterates, solves and checks (its fields: Notes).
     initial : InitialConditions(q0, qd0), optional
         Initial coordinates q0 (default: reference) and velocities qd0 (default: the
         start's, see `start`).
-    derivatives : DesignDerivatives(properties, dofs, constraint_forces), or the properties
-        array alone, optional; its fields:
-    design_derivatives (DesignDerivatives.properties) : array (5, nel, nv)
-        d[EA, kGA, EI, rhoA, rhoI]/dp of every element for nv design variables p.
-        When given, the discrete generalized-alpha equations (and the static start
-        and initial accelerations) are differentiated directly, in Fortran, after
-        every converged step, and `Result.dq` holds dq/dp.
-    sensitivity_dofs (DesignDerivatives.dofs) : array of int, optional
-        Coordinates (0-based) whose derivatives are kept (default: the stored ones).
-    constraint_force_derivatives (DesignDerivatives.constraint_forces) : bool, default False
-        With design_derivatives: also return d(mu)/dp of every constraint row (the physical
-        multipliers of eq. 1, as in Result.mu) in `Result.dmu` (nt, nc, nv). The same
-        solve gives them (no extra factorization); off by default, as they take
-        nt * nc * nv numbers.
-    memory_limit : float (bytes), None or math.inf, default None
-        Before the run, the memory it needs is estimated (flexmbs.resources.estimate_memory:
-        stored outputs over the time grid, constraint forces, design derivatives, the dense
-        n x n matrix and LU factors or the KLU ones, the model's arrays) and compared with this
-        limit; a run that does not fit raises ResourceError with the estimate, the limit and
-        what to change. None: the environment variable FLEXMBS_MEMORY_LIMIT (bytes, e.g. "8G";
-        "none" disables the check) if set, else the memory available now (MemAvailable,
-        bounded by RLIMIT_AS). math.inf: no check (an allocation that then fails in the core
-        still raises ResourceError naming what was allocated and its size).
-    validity : {'warn', 'error', 'off'} or flexmbs.analysis.validity.ValidityLimits, default 'warn'
-        Checks of the converged result (Result.validity): largest axial and bending strain of
-        every beam element against the linear-elastic range (warning above 1 %, error above
-        10 %), constraint drift, energy growth of a free system. 'warn': ValidityWarning above
-        the warning limits, InvalidResultError above the failure limits; 'error': both raise;
-        'off': no checks. Only stored coordinates are checked.
-
-    polish : bool, default False
-        With newton 'auto' or 'reuse' (which then takes 'auto''s refresh rules): every step
-        converged to the rounding level, as full Newton's states are (the discrete adjoint,
-        flexmbs.analysis.adjoint, linearizes about them):
-        a step is accepted when its increment is at the rounding level *and* the observed
-        contraction bounds the remaining error below it ('auto' accepts on either). With
-        'auto''s states, 8e-12 m off, the robot's KS gradient was 2e-6 off; polished, 5e-10.
-        The extra work is held iterations (a residual and a solve each): on the robot 0.47
-        factorizations and 2.6 solves per step, against 0.35 and 2.5 unpolished.
+    derivatives : DesignDerivatives, or the properties array alone, optional
+        The design derivatives asked for (its fields: Notes).
     tape : bool, default False
         Keep every converged state, of every sub-step of a cut step too, in Result.tape (what
         the discrete adjoint runs backwards over: flexmbs.analysis.adjoint): 3 ndof + nc numbers per
@@ -651,6 +576,14 @@ def simulate(model: Model, t_end, h=5e-4, settings=None, *, initial=None, deriva
         in Result.checkpoints, `checkpoint_rows` numbers each (counted in the memory
         estimate): what the discrete adjoint restarts segments of the run from instead of a
         tape (flexmbs.analysis.adjoint, checkpointing). Not with tape or design_derivatives.
+    steps : array of times, optional
+        A non-uniform step grid from 0 to t_end (`step_grid`); outputs on t_j = j h.
+    **deprecated
+        simulate's former keywords: each a SimulationSettings field, q0/qd0 or
+        design_derivatives/sensitivity_dofs/constraint_force_derivatives, taken with a
+        DeprecationWarning naming the new spelling; reuse_jacobian (True: newton='reuse',
+        False: 'full').
+
     Returns
     -------
     Result, its `settings` the RunSettings that ran (solver and newton resolved, h and
@@ -662,6 +595,84 @@ def simulate(model: Model, t_end, h=5e-4, settings=None, *, initial=None, deriva
     tells redundant constraints, a body not held and an overflowing input apart),
     ResourceError when the run does not fit in memory (before the run, or when an allocation
     fails), InvalidResultError when the result converged outside the model's validity.
+
+    Notes
+    -----
+    The fields of `settings` (SimulationSettings) and of `derivatives` (DesignDerivatives):
+
+    - `rho_inf` (float in [0, 1], default 0.5):
+      Spectral radius at infinite frequency (1: no numerical damping).
+    - `start` ({'rest', 'static'}, default 'rest'):
+      'rest': the reference configuration (or q0) moving with the rigid-body velocity
+      field the drives impose at t = 0 (flexmbs.model.kinematics.drive_velocities: every body
+      moves rigidly; zero when no drive moves at t = 0), unless qd0 is given;
+      'static': static equilibrium under the loads at the drives' initial positions.
+    - `store` ('all', or a list of node ids / Body objects, default 'all'):
+      Which coordinates to keep at every step (memory for long runs).
+    - `solver` ({'auto', 'dense', 'klu'}, default 'auto'):
+      Dense LAPACK LU up to DENSE_MAX_UNKNOWNS unknowns (currently none: KLU was faster at
+      every size measured), SuiteSparse KLU above.
+    - `newton` ({'auto', 'full', 'reuse'}, default 'auto'):
+      Newton strategy. 'full': the iteration matrix of eq. (7) assembled and factored at
+      every iteration. 'auto': the factorization is kept across iterations and steps while
+      the scaled increment contracts by at least 0.3 per iteration, and refreshed when it does
+      not, when a step needs a 4th iteration, when the observed contraction would need more
+      further iterations than a refresh costs (a cost model: generalized_alpha.f90,
+      auto_refresh_cost), or after a step that needed 3 or had to refresh; an increment
+      below `tol` (full Newton's test) is accepted once the estimated remaining error
+      (contraction / (1 - contraction) x increment) is at the level full Newton's quadratic
+      convergence leaves (tol^2, or the rounding of the coordinates), because modified
+      Newton's errors have the same sign from step to step and the velocities integrate them;
+      a step it cannot converge is retried with full Newton before being cut. Same responses
+      as 'full' (tests/test_newton.py: 1e-11 m on the robot), 2x faster on the robot.
+      'reuse': the former modified Newton, fewest factorizations, accepted at `tol` (its
+      responses differ from full Newton's by ~250 tol qscale on the robot). With
+      design_derivatives, 'auto' and 'reuse' take full Newton steps from a step's second
+      iteration: the derivative solve needs that factorization (the tangent within `tol` of
+      the converged state) anyway, and it serves the next step's first iteration too.
+    - `tol` (float, default 1e-10):
+      Newton tolerance on max|dq| / max(1, max|q_ref|, element length).
+    - `max_iter`, `max_cuts` (int, default 20 and 6):
+      Newton iterations per step, step halvings before failing.
+    - `kscale`, `penalty` (float or None):
+      k and p of eq. (1); None: the mean diagonal of the iteration matrix.
+    - `properties` of DesignDerivatives (array (5, nel, nv); formerly design_derivatives=):
+      d[EA, kGA, EI, rhoA, rhoI]/dp of every element for nv design variables p.
+      When given, the discrete generalized-alpha equations (and the static start
+      and initial accelerations) are differentiated directly, in Fortran, after
+      every converged step, and `Result.dq` holds dq/dp.
+    - `dofs` of DesignDerivatives (array of int, optional; formerly sensitivity_dofs=):
+      Coordinates (0-based) whose derivatives are kept (default: the stored ones).
+    - `constraint_forces` of DesignDerivatives (bool, default False; formerly
+      constraint_force_derivatives=): with the properties: also return d(mu)/dp of every constraint row (the physical
+      multipliers of eq. 1, as in Result.mu) in `Result.dmu` (nt, nc, nv). The same
+      solve gives them (no extra factorization); off by default, as they take
+      nt * nc * nv numbers.
+    - `memory_limit` (float (bytes), None or math.inf, default None):
+      Before the run, the memory it needs is estimated (flexmbs.resources.estimate_memory:
+      stored outputs over the time grid, constraint forces, design derivatives, the dense
+      n x n matrix and LU factors or the KLU ones, the model's arrays) and compared with this
+      limit; a run that does not fit raises ResourceError with the estimate, the limit and
+      what to change. None: the environment variable FLEXMBS_MEMORY_LIMIT (bytes, e.g. "8G";
+      "none" disables the check) if set, else the memory available now (MemAvailable,
+      bounded by RLIMIT_AS). math.inf: no check (an allocation that then fails in the core
+      still raises ResourceError naming what was allocated and its size).
+    - `validity` ({'warn', 'error', 'off'} or flexmbs.analysis.validity.ValidityLimits,
+      default 'warn'):
+      Checks of the converged result (Result.validity): largest axial and bending strain of
+      every beam element against the linear-elastic range (warning above 1 %, error above
+      10 %), constraint drift, energy growth of a free system. 'warn': ValidityWarning above
+      the warning limits, InvalidResultError above the failure limits; 'error': both raise;
+      'off': no checks. Only stored coordinates are checked.
+    - `polish` (bool, default False):
+      With newton 'auto' or 'reuse' (which then takes 'auto''s refresh rules): every step
+      converged to the rounding level, as full Newton's states are (the discrete adjoint,
+      flexmbs.analysis.adjoint, linearizes about them):
+      a step is accepted when its increment is at the rounding level *and* the observed
+      contraction bounds the remaining error below it ('auto' accepts on either). With
+      'auto''s states, 8e-12 m off, the robot's KS gradient was 2e-6 off; polished, 5e-10.
+      The extra work is held iterations (a residual and a solve each): on the robot 0.47
+      factorizations and 2.6 solves per step, against 0.35 and 2.5 unpolished.
     """
     t_start = time.perf_counter()
     if not isinstance(model, Model):
