@@ -249,8 +249,9 @@ sys.path.insert(0, cfg["bench_dir"])
 import flexmbs as fx
 from common import robot_flexmbs
 m, a1, a2 = robot_flexmbs(cfg["nel"])
-run = lambda: fx.simulate(m, cfg["t_end"], cfg["h"], start="static", store=[a2.last],
-                          solver=cfg["solver"], newton=cfg["newton"])
+run = lambda: fx.simulate(m, cfg["t_end"], cfg["h"],
+                          fx.SimulationSettings(start="static", store=[a2.last],
+                                                solver=cfg["solver"], newton=cfg["newton"]))
 run()
 ctl = open(cfg["ctl"], "w"); ack = open(cfg["ack"], "r")
 ctl.write("enable\n"); ctl.flush(); ack.readline()

@@ -39,10 +39,11 @@ contains
     !! qt, qdt, qddt (ndof, ncol) and mut (>= nc, ncol): every coordinate, velocity,
     !! acceleration and physical multiplier of every converged (sub-)step of the forward run
     !! (its tape, ga_simulate), run with the settings s from q0, qd0; th(c): the step that led
-    !! to column c; grid(j + 1): the column of grid point j. gq (ndof, nf, nsteps + 1), gmu
-    !! (>= nc, nf, nsteps + 1): dG_f/dq_j and dG_f/dmu_j on the grid. Out: grad(v, f) =
-    !! dG_f/dp_v and gprop(:, e, f) = dG_f/dprop_e. status: GA_* codes; info = [time, 0, 0,
-    !! extra] on failure.
+    !! to column c (th(1): the step before the first state, 0 at the run's start, a
+    !! segment's checkpoint h_prev); grid(j + 1): the column of grid point j. gq (ndof, nf,
+    !! nsteps + 1), gmu (>= nc, nf, nsteps + 1): dG_f/dq_j and dG_f/dmu_j on the grid. Out:
+    !! grad(v, f) = dG_f/dp_v and gprop(:, e, f) = dG_f/dprop_e. status: GA_* codes; info =
+    !! [time, 0, 0, extra] on failure.
     !!
     !! Segments (checkpointing, flexmbs/adjoint.py): with j_start, the tape is that of the
     !! s%nsteps steps from grid point j_start on (a run restarted from a checkpoint,
@@ -226,6 +227,13 @@ contains
             apb = apb + h**2 * beta * qhb + h * gamma * vhb
             qddb = alpha_f / (1 - alpha_m) * apb
             ab = ab - alpha_m / (1 - alpha_m) * apb
+            ! the step-change rescaling of a_n at its start (ga_step): a_n <- qdd_n +
+            ! r (a_n - qdd_n), r = h / th(j - 1) when the step before (th(1): the one before
+            ! the first state, 0 at the run's start) was another length; its transpose
+            if (th(j - 1) > 0 .and. h /= th(j - 1)) then
+                qddb = qddb + (1 - h / th(j - 1)) * ab
+                ab = (h / th(j - 1)) * ab
+            end if
             t = t - h
         end do
         if (present(adj_out)) then

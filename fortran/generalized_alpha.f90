@@ -278,7 +278,8 @@ contains
     !! Tape (for the discrete adjoint, adjoint.f90): when tape_h holds at least nsteps + 1
     !! columns, every converged state, of every sub-step of a cut step too, in order:
     !! tape_q, tape_qd, tape_qdd (ndof, :), tape_mu (>= nc, :), tape_h (the step that led
-    !! to the column; 0 for the initial state), tape_grid(j+1) = column of grid point j,
+    !! to the column; for the first state the step before it: 0 at the run's start, h_prev
+    !! of x_start on a restart), tape_grid(j+1) = column of grid point j,
     !! ntape = columns used. GA_TAPE_FULL when the sub-steps need more columns.
     !!
     !! Checkpoints (the adjoint's segments, flexmbs/adjoint.py): with ckpt_every = K > 0,
@@ -459,7 +460,9 @@ contains
 100     continue
         call store(0)
         if (taping) then
-            call tape_store(0.0_wp, st)
+            ! the step before the first state (0 at the run's start): the adjoint's
+            ! transpose of the step-change rescaling of a (ga_step) needs it
+            call tape_store(x%h_prev, st)
             tape_grid(1) = ptr
         end if
 
@@ -647,6 +650,19 @@ contains
             betap = (1 - alpha_m) / (beta * hh**2 * (1 - alpha_f))
             gammap = gamma / (beta * hh)
             tnew = tn + hh
+            ! variable steps: a_n approximates qdd(t_n + (alpha_m - alpha_f) h) to second order
+            ! (Arnold & Bruls 2007, Multibody Syst Dyn 18:185-202; from eq. (3) with qdd smooth:
+            ! a_n - qdd_n = (alpha_m - alpha_f) h qddd + O(h^2)), h the step that ended at t_n.
+            ! When this step's length hh differs from that one's (h_prev), a_n is moved to the
+            ! point the step of length hh needs: a_n <- qdd_n + (hh / h_prev) (a_n - qdd_n),
+            ! the same linear map on the design derivatives (da, dqdd). Nothing at the run's
+            ! first step (h_prev = 0) or on an unchanged step; a cut step's sub-steps are
+            ! steps of their own (the first one rescales by 1/2^k, the next grid step back).
+            if (x%h_prev > 0 .and. hh /= x%h_prev) then
+                hratio = hh / x%h_prev
+                x%a = x%qdd + hratio * (x%a - x%qdd)
+                if (nv > 0) x%da = x%dqdd + hratio * (x%da - x%dqdd)
+            end if
             ! predictor, eqs. (3)-(5), with qdd_{n+1} = qdd_n; in modified Newton,
             ! qdd_{n+1} extrapolated linearly from the last two steps instead: a
             ! closer start for the slower (linear) convergence of a reused Jacobian

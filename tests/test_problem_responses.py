@@ -226,11 +226,15 @@ def test_torque_of_an_unknown_drive_is_a_case_error():
 
 def test_every_response_type_has_a_kind():
     """Every response type a case may declare (flexmbs.model.description.Response) has its
-    entry in flexmbs.problem.RESPONSE_KINDS (how a Problem evaluates it, the nodes it reads,
-    its adjoint partials): a new type without one would fail only when a case uses it."""
+    kind in flexmbs.responses.kinds.KINDS (how a Problem evaluates it, the nodes it reads,
+    its unit, its adjoint partials), registered by its schema class and overriding `value`:
+    a new type without one would fail only when a case uses it."""
     import typing
     from flexmbs.model.description import Response
-    from flexmbs.problem import RESPONSE_KINDS
+    from flexmbs.responses.kinds import KINDS, ResponseKind
     union = typing.get_args(Response)[0]
-    assert set(typing.get_args(union)) == set(RESPONSE_KINDS)
+    assert set(typing.get_args(union)) == set(KINDS)
+    for schema, kind in KINDS.items():
+        assert kind.schema is schema
+        assert type(kind).value is not ResponseKind.value, schema.__name__
 

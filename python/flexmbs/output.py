@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 from flexmbs.responses.forces import constraint_force
+from flexmbs.responses.kinds import drive_unit, kind_of
 
 __all__ = ["units", "response_unit", "resolution", "run_statistics", "competing_peak",
            "max_gradient_warning", "motion_summary", "PEAK_TIE_REL", "NO_RESPONSES"]
@@ -40,32 +41,13 @@ _RUN_KEYS = ("steps", "newton_iterations", "factorizations", "step_cuts",
              "symbolic_analyses", "solver", "unknowns", "newton", "adjoint_checkpoints")
 
 
-def _drive_unit(drive):
-    """The unit of a drive's force: a torque (N m) of a rotation drive, else a force (N)."""
-    return "N m" if drive.type == "rotation" else "N"
-
-
 def response_unit(response, description):
-    """The unit of a response's values (SI), or None when its type has no known one.
-
-    deviation: 'm' ('rad' when every term is a rotation, 'm, rad' when both mix); mass 'kg';
-    stress 'Pa'; torque 'N m' of a rotation drive, 'N' of a translation drive; reaction 'N';
-    deflection 'm'; strain '1' (axial, shear) or '1/m' (curvature).
-    A response type that declares a `unit` attribute gives it."""
-    kind = getattr(response, "type", None)
-    if kind == "deviation":
-        angles = {t.component == "angle" for t in response.terms}
-        return {frozenset({True}): "rad", frozenset({False}): "m"}.get(frozenset(angles),
-                                                                        "m, rad")
-    if kind == "torque":
-        for d in description.drives:
-            if d.name == response.drive:
-                return _drive_unit(d)
-        return None
-    if kind == "strain":
-        return "1/m" if response.component == "curvature" else "1"
-    fixed = {"mass": "kg", "stress": "Pa", "reaction": "N", "deflection": "m"}
-    return fixed.get(kind, getattr(response, "unit", None))
+    """The unit of a response's values (SI), or None when its type has no known one: its
+    kind's (flexmbs.responses.kinds; deviation 'm', 'rad' or 'm, rad'; mass 'kg'; stress 'Pa';
+    torque 'N m' of a rotation drive, 'N' of a translation drive; reaction 'N'; deflection
+    'm'; strain '1' or '1/m')."""
+    kind = kind_of(response)
+    return None if kind is None else kind.unit(response, description)
 
 
 def _per(unit, var_unit):
@@ -216,5 +198,5 @@ def motion_summary(problem, result):
         j = int(np.argmax(np.abs(f)))
         out["drives"][d.name or f"drive {k + 1}"] = {
             "max_abs": float(abs(f[j])), "t": float(t[j]),
-            "unit": _drive_unit(d)}
+            "unit": drive_unit(d)}
     return out

@@ -21,10 +21,9 @@ from __future__ import annotations
 
 import time as _time
 import warnings
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 
@@ -37,17 +36,14 @@ from flexmbs.analysis.settings import DesignDerivatives, InitialConditions, Simu
 from flexmbs.analysis.validity import ValidityLimits
 from flexmbs.errors import CaseError, ModelError, ResourceError, SettingWarning
 from flexmbs.model.casefile import description_from_dict, read_description
-from flexmbs.model.description import (GROUND, Beam, Deflection, Deviation, Description, Mass,
-                                 Reaction, Station, Strain, Stress, Torque)
+from flexmbs.model.description import Beam, Deviation, Description, Mass, Station
 from flexmbs.model.mechanism import Mechanism
 from flexmbs.output import max_gradient_warning, resolution, run_statistics
 from flexmbs.output import units as unit_table
 from flexmbs.resources import format_bytes, limit_source, memory_limit
 from flexmbs.responses.aggregate import aggregate, aggregate_weights
-from flexmbs.responses.deviation import deviation, deviation_terms
-from flexmbs.responses.forces import constraint_force, joint_reaction
-from flexmbs.responses.station import chord_deflection, locate, station_strain
-from flexmbs.responses.stress import beam_stress, normal_partials
+from flexmbs.responses.kinds import kind_of
+from flexmbs.responses.station import locate
 
 __all__ = ["Problem", "Evaluation", "load_problem", "simulation_settings", "constraint_rows",
            "GRADIENT_METHODS", "FEASIBILITY_TOL", "is_feasible"]
@@ -73,19 +69,6 @@ GRADIENT_METHODS = ("direct", "adjoint", "auto")
 #: with every state stored and its factorization per step
 ADJOINT_MARGIN = 4
 ADJOINT_MIN_VARIABLES = 16     # docs/adjoint.md 4e: direct is faster below 8-16 variables
-
-
-class Partials(NamedTuple):
-    """The per-step partial derivatives of a history response (nt steps) for the adjoint's
-    right-hand sides (`Problem._partials`): dofs, the coordinates it reads ((m,), the same at
-    every step, or (nt, m), distinct within a step); dq (nt, m), with respect to them; dmu
-    (nt, nc) or None, with respect to the constraint multipliers; design (nt, nv) or None,
-    with respect to the design variables directly (a stress through its section depth; the
-    rest of its dependence on the design goes through the motion)."""
-    dofs: np.ndarray
-    dq: np.ndarray
-    dmu: np.ndarray | None
-    design: np.ndarray | None
 
 
 #: The part of an adjoint's MemoryEstimate (Problem.memory_estimate) holding the per-step
@@ -386,23 +369,20 @@ class Problem:
         return self.mechanism.start.copy()
 
     # ------------------------------------------------------------------ simulation
-    def _point(self, body, at):
-        """A body's named point as its node id, or a station {body, s} as a
-        flexmbs.responses.station.StationPoint."""
+    def point(self, body, at):
+        """A body's named point as its node id, or a station {body, s}
+        (flexmbs.model.description.Station) as a flexmbs.responses.station.StationPoint: the
+        points the response kinds read (flexmbs.responses.kinds)."""
         if isinstance(at, Station):
             return locate(self.mechanism.model, at.body, at.s)
         return self.mechanism.node[(body, at)]
 
-    @staticmethod
-    def _point_nodes(p):
-        return list(p.nodes) if hasattr(p, "nodes") else [p]
-
     def _kind(self, r):
-        """The ResponseKind of response r (`RESPONSE_KINDS`, by its description class)."""
-        for cls in type(r).__mro__:
-            if cls in RESPONSE_KINDS:
-                return RESPONSE_KINDS[cls]
-        raise ModelError(f"response {r.name!r}: type {r.type!r} cannot be evaluated")
+        """The ResponseKind of response r (flexmbs.responses.kinds, by its description class)."""
+        kind = kind_of(r)
+        if kind is None:
+            raise ModelError(f"response {r.name!r}: type {r.type!r} cannot be evaluated")
+        return kind
 
     def _timed(self):
         """The names of the responses that are histories of a simulation (not a mass)."""
@@ -412,27 +392,8 @@ class Problem:
         nodes = set()
         for n in names:
             r = self._resp[n]
-            kind = self._kind(r)
-            if kind.nodes is not None:
-                nodes.update(kind.nodes(self, r))
+            nodes.update(self._kind(r).nodes(self, r))
         return sorted(nodes)
-
-    def _deviation_nodes(self, r):
-        for t in r.terms:
-            yield from self._point_nodes(self._point(t.body, t.at))
-            if t.relative_to is not None:
-                yield from self._point_nodes(self._point(t.relative_to.body, t.relative_to.at))
-
-    def _stress_nodes(self, r):
-        for b in r.beams:
-            yield from self.mechanism.model.body(b).nodes
-
-    def _station_nodes(self, r):
-        return self._point_nodes(self._point(r.at.body, r.at))
-
-    def _deflection_nodes(self, r):
-        p = self._point(r.at.body, r.at)
-        return self._point_nodes(p) + [p.first, p.last]
 
     def _needs_forces(self, names):
         return any(self._kind(self._resp[n]).forces for n in names)
@@ -555,167 +516,12 @@ class Problem:
             model = self.mechanism.design_model(x)
         return kind.value(self, r, x, result, gradient, model, dprop)
 
-    def _mass_value(self, r, x, result, gradient, model, dprop):
-        mech = self.mechanism
-        bodies = r.bodies if r.bodies is not None else mech.beams
-        if gradient and dprop is None:
-            dprop = mech.element_property_derivatives(x)
-        props = model.element_properties()
-        value, grad = 0.0, np.zeros(len(mech.variables))
-        for b in bodies:
-            for e in model.body(b).elements:
-                length = model._elements[e][1]
-                value += length * props[3, e]
-                if gradient:
-                    grad += length * dprop[3, e]
-        return value, (grad if gradient else None)
-
-    def _deviation_value(self, r, x, result, gradient, model, dprop):
-        mech = self.mechanism
-        ref = mech.reference          # the reference coordinates of these nodes only
-        parts = []
-        for t in r.terms:
-            node = self._point(t.body, t.at)
-            rel = self._point(t.relative_to.body, t.relative_to.at) \
-                if t.relative_to is not None else None
-            frame = mech.model.body(t.frame).first if t.frame != "ground" else None
-            parts.append(deviation_terms(node, ref, result, t, frame, rel, gradient))
-        return deviation(parts, gradient)
-
-    def _stress_value(self, r, x, result, gradient, model, dprop):
-        # the largest normal stress over the beams' elements and stations, step by step
-        vals, grads = [], []
-        for b, stations, k in self._stress_places(r):
-            c, dc = self.mechanism.half_depths(x, b)
-            bs = beam_stress(model, result, b, stations=stations,
-                             dc=dc if gradient else None)
-            nt = bs.normal.shape[0]
-            vals.append(bs.normal[:, k].reshape(nt, -1))
-            if gradient:
-                grads.append(bs.d_normal[:, k].reshape(nt, vals[-1].shape[1], -1))
-        v = np.concatenate(vals, axis=1)
-        j = np.argmax(v, axis=1)
-        rows = np.arange(v.shape[0])
-        return v[rows, j], (np.concatenate(grads, axis=1)[rows, j] if gradient else None)
-
-    def _deflection_value(self, r, x, result, gradient, model, dprop):
-        return chord_deflection(result, self._point(r.at.body, r.at), gradient)
-
-    def _strain_value(self, r, x, result, gradient, model, dprop):
-        return station_strain(model or self.mechanism.model, result,
-                              self._point(r.at.body, r.at), r.component, gradient)
-
-    def _torque_value(self, r, x, result, gradient, model, dprop):
-        # the force of the drive's row: the torque on its body (the module's convention)
-        k = [dr.name for dr in self.description.drives].index(r.drive)
-        rows = self.mechanism.drive_rows[k]
-        return constraint_force(self.mechanism.model, result, rows[0],
-                                result.dmu if gradient else None)
-
-    def _reaction_value(self, r, x, result, gradient, model, dprop):
-        k = [j.name for j in self.description.joints].index(r.joint)
-        return self._reaction(self.description.joints[k], self.mechanism.joint_rows[k],
-                              r.component, result, gradient)
-
-    def _stress_places(self, r):
-        """(beam, stations of beam_stress, element slice) of a Stress response: every element
-        at its Gauss points, or the element of its station at the station's xi."""
-        if r.at is None:
-            return [(b, "gauss", slice(None)) for b in r.bodies]
-        p = self._point(r.at.body, r.at)
-        return [(p.body, [p.xi], slice(p.index, p.index + 1))]
-
     def _partials(self, r, x, result, model, nc):
         """Value (nt,) of a history response r on the adjoint's forward run and its partials
         at every step, all steps at once, as `Partials`: with respect to the coordinates it
         reads, the constraint multipliers and (a stress, through its section depth) the
         design variables (its kind's `partials`)."""
         return self._kind(r).partials(self, r, x, result, model, nc)
-
-    def _identity_partials(self, r, x, result, model, nc):
-        """`_partials` of a response that reads the coordinates of a few nodes
-        (`_nodes_needed`) and the multipliers, and the design through the motion only: it is
-        evaluated once with identity derivatives of those columns (len(dofs) + nc per
-        step)."""
-        nt = result.q.shape[0]
-        dofs = np.array([3 * n + k for n in self._nodes_needed([r.name]) for k in range(3)],
-                        dtype=int)
-        m = dofs.size
-        eye = np.eye(m + nc)
-        vres = replace(result, sens_dofs=dofs,
-                       dq=np.broadcast_to(eye[:m], (nt, m, m + nc)),
-                       dmu=np.broadcast_to(eye[m:], (nt, nc, m + nc)))
-        value, g = self._response(r, x, vres, True, model=model)
-        g = np.asarray(g, float).reshape(nt, m + nc)
-        return value, Partials(dofs, g[:, :m], g[:, m:], None)
-
-    def _stress_partials(self, r, x, result, model, nc):
-        """`_partials` of a Stress: its value at each step is its largest station's, so its
-        partials are that station's, with respect to its element's coordinates and half
-        depth (`_stress_local`)."""
-        v, j, dloc, ddc, dofs, dcs = self._stress_local(r, x, result, model)
-        return v[np.arange(v.shape[0]), j], Partials(dofs, dloc, None, ddc[:, None] * dcs)
-
-    def _stress_local(self, r, x, result, model):
-        """(values (nt, stations), station index j (nt,), its partials on its element's
-        coordinates (nt, 3 nen) and half depth (nt,), those coordinates (nt, 3 nen), dc/dp of
-        its element (nt, nv)) at each step of a Stress response: the partials of the largest
-        station of each step only (flexmbs.responses.stress.normal_partials)."""
-        mech = self.mechanism
-        places, vals = [], []
-        for b, stations, k in self._stress_places(r):
-            c, dc = mech.half_depths(x, b)
-            bs = beam_stress(model, result, b, stations=stations)
-            normal = bs.normal[:, k]
-            nt, nel, nst = normal.shape
-            places.append((b, bs, np.arange(bs.normal.shape[1])[k], nst, dc))
-            vals.append(normal.reshape(nt, -1))
-        offsets = np.cumsum([0] + [v.shape[1] for v in vals])
-        v = np.concatenate(vals, axis=1)
-        j = np.argmax(v, axis=1)
-        owner = np.searchsorted(offsets, j, side="right") - 1
-        chunks = []
-        for i, (b, bs, elems, nst, dc) in enumerate(places):
-            steps = np.flatnonzero(owner == i)
-            if steps.size == 0:
-                continue
-            local = j[steps] - offsets[i]
-            el = elems[local // nst]
-            chunks.append((steps, *normal_partials(model, result, b, bs, steps, el, local % nst),
-                           dc[el]))
-        # beams of 2- and 3-node elements in one response: rows as wide as the widest element,
-        # the narrower ones padded with zero partials on their own first coordinate (the seeds
-        # are summed with np.add.at, so a repeated coordinate adds nothing)
-        width = max(c[2].shape[1] for c in chunks)
-        dloc, dofs = np.zeros((nt, width)), np.zeros((nt, width), int)
-        ddc, dcs = np.zeros(nt), np.zeros((nt, chunks[0][4].shape[1]))
-        for steps, d_dofs, d, d_dc, dc_el in chunks:
-            n = d.shape[1]
-            dloc[steps, :n], dofs[steps, :n], ddc[steps], dcs[steps] = d, d_dofs, d_dc, dc_el
-            dofs[steps, n:] = d_dofs[:, :1]
-        return v, j, dloc, ddc, dofs, dcs
-
-    def _reaction(self, joint, rows, component, result, gradient):
-        """Reaction of a joint on its first body's node, ground frame (see Reaction)."""
-        m = self.mechanism.model
-        dmu = result.dmu if gradient else None
-        if joint.type == "prismatic" and GROUND not in joint.bodies:
-            # row 0: n(phi_a) . (x_b - x_a) = c0: the normal force F (F = -mu, forces.py) on
-            # b's node, -F n on a's (n turns with a: only the magnitude, description.Reaction)
-            f, df = constraint_force(m, result, rows[0], dmu)
-            return np.abs(f), None if df is None else np.sign(f)[:, None] * df
-        if joint.type in ("slider", "prismatic"):
-            # row 0: n . x = c, so the force on the node is F n (F = -mu, forces.py)
-            f, df = constraint_force(m, result, rows[0], dmu)
-            row = m._rows[rows[0]]
-            nx, ny = row.coef
-            parts = {"x": (nx * f, None if df is None else nx * df),
-                     "y": (ny * f, None if df is None else ny * df),
-                     "magnitude": (np.abs(f), None if df is None else np.sign(f)[:, None] * df)}
-            return parts[component]
-        rc = joint_reaction(m, result, (rows[0], rows[1]), dmu)   # rows x, y of the joint
-        return {"x": (rc.x, rc.dx), "y": (rc.y, rc.dy),
-                "magnitude": (rc.magnitude, rc.dmagnitude)}[component]
 
     def used_responses(self):
         """Names of the responses the objective and the constraints use."""
@@ -1050,38 +856,6 @@ class Problem:
         return min(limits) if limits else None
 
 
-
-class ResponseKind(NamedTuple):
-    """How a Problem evaluates one type of response (`RESPONSE_KINDS`): a new response type
-    is a description class (flexmbs.model.description) and one entry here.
-
-    value(problem, r, x, result, gradient, model, dprop): its value and gradient (or None);
-    nodes(problem, r): the nodes whose coordinates it reads (None: none); forces: it reads the
-    constraint multipliers (motor torques, joint reactions); timed: a history of the
-    simulation (False: a function of the design alone, a mass); design_model: its value needs
-    the design's model (sections); partials(problem, r, x, result, model, nc): its value and
-    `Partials` at every step for the adjoint (default: identity derivatives of the
-    coordinates it reads and of the multipliers, right for a response that depends on the
-    design through the motion only)."""
-    value: object
-    nodes: object = None
-    forces: bool = False
-    timed: bool = True
-    design_model: bool = False
-    partials: object = Problem._identity_partials
-
-
-#: the response types a Problem evaluates, by description class
-RESPONSE_KINDS = {
-    Mass: ResponseKind(Problem._mass_value, timed=False, design_model=True),
-    Deviation: ResponseKind(Problem._deviation_value, Problem._deviation_nodes),
-    Stress: ResponseKind(Problem._stress_value, Problem._stress_nodes, design_model=True,
-                         partials=Problem._stress_partials),
-    Deflection: ResponseKind(Problem._deflection_value, Problem._deflection_nodes),
-    Strain: ResponseKind(Problem._strain_value, Problem._station_nodes),
-    Torque: ResponseKind(Problem._torque_value, forces=True),
-    Reaction: ResponseKind(Problem._reaction_value, forces=True),
-}
 
 def _stats(result):
     """An Evaluation's stats: the simulation's (Result.stats) with its wall_time (s); {}

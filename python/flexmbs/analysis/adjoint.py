@@ -22,10 +22,11 @@ and one segment's tape (`checkpoint_memory`), ~sqrt(N) for N steps with K ~ sqrt
 
 >>> import numpy as np
 >>> from flexmbs.analysis.adjoint import adjoint_gradient, simulate_for_adjoint
+>>> from flexmbs.analysis.settings import SimulationSettings
 >>> from flexmbs.problem import Problem
 >>> mech = Problem("robot_2dof").mechanism
 >>> model = mech.set_design(mech.start)
->>> r = simulate_for_adjoint(model, 0.05, 5e-4, start="static")   # the tape of every state
+>>> r = simulate_for_adjoint(model, 0.05, 5e-4, SimulationSettings(start="static"))  # the tape
 >>> gq = np.zeros((r.t.size, model.ndof))
 >>> gq[-1, 0] = 1.0                                           # G = q_0(t_end)
 >>> adjoint_gradient(model, r, mech.element_property_derivatives(mech.start), gq).shape

@@ -132,8 +132,8 @@ class Result:
     sens_dofs, dq : with design_derivatives: the coordinates and their dq/dp (nt, nsens, nv).
     dmu : with constraint_force_derivatives=True: d(mu)/dp (nt, nc, nv) of every constraint row.
     tape : with tape=True: every converged (sub-)step's state for the discrete adjoint, a dict
-        of q, qd, qdd (ndof, ncol), mu (nc, ncol), h (ncol,) (the step that led to the column)
-        and grid (nt,) (the 1-based column of every time point).
+        of q, qd, qdd (ndof, ncol), mu (nc, ncol), h (ncol,) (the step that led to the column; 0
+        for the initial state) and grid (nt,) (the 1-based column of every time point).
     error : with flexmbs.analysis.accuracy.simulate_with_error: the estimated time-discretisation
         error of q (ErrorEstimate; its pointwise errors have q's shape).
     checkpoints : with checkpoints=K: the full integration state at every K-th time point,

@@ -18,7 +18,7 @@ import numpy as np
 
 from flexmbs.analysis.accuracy import VERIFY_RTOL, verify as verify_design
 from flexmbs.errors import ModelError
-from flexmbs.model.description import Mass
+from flexmbs.responses.kinds import kind_of
 
 __all__ = ["finish", "check_verify", "verify_rtol", "continuation_options",
            "MAX_CONTINUATIONS"]
@@ -58,7 +58,7 @@ def _can_verify(problem):
     """A Problem with a time step and at least one simulated response."""
     if not hasattr(problem, "refined") or not hasattr(problem, "used_responses"):
         return False
-    return any(not isinstance(r, Mass) for r in problem.description.responses)
+    return any(kind_of(r).timed for r in problem.description.responses)
 
 
 def finish(problem, result, rerun, verify, coarse=None):

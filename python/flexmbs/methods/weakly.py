@@ -265,6 +265,11 @@ def _frame_kinds(frame_kind, beams):
     return {n: frame_kind.get(n, "auto") for n in beams}
 
 
+#: the response types with a static form here, and the StaticModel method evaluating it
+#: (value and gradient at a design from the static solutions under the ESL)
+STATIC_FORMS = {Mass: "_mass", Deviation: "_deviation", Stress: "_stress"}
+
+
 class StaticModel:
     """The static responses of a problem for one set of ESL (see the module docstring).
 
@@ -296,7 +301,7 @@ class StaticModel:
             used.add(d.objective.response)
         used.update(c.response for c in d.constraints)
         resp = {r.name: r for r in d.responses}
-        static_types = (Mass, Deviation, Stress)
+        static_types = tuple(STATIC_FORMS)
         if d.objective is not None and not isinstance(resp[d.objective.response], static_types):
             r = resp[d.objective.response]
             raise CaseError(f"weakly coupled method: the objective {r.name!r} (type {r.type!r}) "
@@ -427,7 +432,11 @@ class StaticModel:
             dw = np.stack([c * dl[:, 0] - s * dl[:, 1], s * dl[:, 0] + c * dl[:, 1]], axis=1)
         return w, dw
 
-    def _deviation(self, r, sol, nv, gradient):
+    def _mass(self, r, x, sol, nv, gradient):
+        """A mass is a function of the design alone: its value and gradient as simulated."""
+        return self.problem._response(r, x, None, gradient)
+
+    def _deviation(self, r, x, sol, nv, gradient):
         """(nvar, nt) values and (nvar, nt, nv) gradients of a deviation's chain variants."""
         ref = self.mech.reference.q
         vals, grads = [], []
@@ -521,12 +530,8 @@ class StaticModel:
         sol = self._solutions(x, gradient)     # also sets the design (mass below)
         values, grads = {}, {}
         for r in self.responses:
-            if isinstance(r, Mass):
-                values[r.name], grads[r.name] = self.problem._response(r, x, None, gradient)
-            elif isinstance(r, Deviation):
-                values[r.name], grads[r.name] = self._deviation(r, sol, nv, gradient)
-            else:
-                values[r.name], grads[r.name] = self._stress(r, x, sol, nv, gradient)
+            form = getattr(self, STATIC_FORMS[type(r)])
+            values[r.name], grads[r.name] = form(r, x, sol, nv, gradient)
         return values, grads
 
     def static_to_simulated(self, x, loads, values):

@@ -21,7 +21,7 @@ from pydantic import BaseModel, ValidationError
 
 from flexmbs.errors import CaseError
 from flexmbs.files import check_regular_file
-from flexmbs.model.description import Description
+from flexmbs.model.description import Body, Description, Response
 
 __all__ = ["read_description", "description_from_dict", "is_general_format", "apply_overrides",
            "parse_override", "case_path", "case_folders", "available_cases", "nesting_guard"]
@@ -113,8 +113,20 @@ def friendly_error(err, model=None, doc="docs/case-format.md", tags=None):
 
 
 
-_TAGS = ("beam", "rigid", "mass", "deviation", "stress", "torque", "reaction", "deflection",
-         "strain")
+def _union_tags(*unions):
+    """The `type` words of the members of discriminated unions of the description."""
+    tags = []
+    for u in unions:
+        for member in typing.get_args(typing.get_args(u)[0]):
+            for word in typing.get_args(member.model_fields["type"].annotation):
+                if word not in tags:
+                    tags.append(word)
+    return tuple(tags)
+
+
+#: the tags pydantic puts in an error's location for a union member (every body and
+#: response type of the description)
+_TAGS = _union_tags(Body, Response)
 
 
 @contextlib.contextmanager
