@@ -142,7 +142,8 @@ def test_bad_settings(kw, text):
     (lambda m, b: m.set_section("arm3", fx.Circle(0.01)), "unknown body 'arm3'"),
     (lambda m, b: m.set_element_sections("arm3", [fx.Circle(0.01)]), "unknown body 'arm3'"),
     (lambda m, b: m.add_beam("arm", (0, 0), (1, 0), 2, material=ALU, section=fx.Circle(0.01)), "'arm' already exists"),
-    (lambda m, b: fx.simulate(m, 0.01, 1e-3, settings=SimulationSettings(store=[99])), "store: unknown node 99"),
+    (lambda m, b: fx.simulate(m, 0.01, 1e-3, SimulationSettings(store=[99])),
+     "store: unknown node 99"),
 ])
 def test_unknown_names(call, text):
     m, b = driven_arm()

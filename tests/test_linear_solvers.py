@@ -440,8 +440,8 @@ def test_klu_analysis_is_shared_by_threads_and_remade_by_copies():
     m = swinging_beam(0.04, 5)
     alone = fx.simulate(m, 0.1, 1e-3, settings=SimulationSettings(solver="klu", start="static")).q
     results = in_two_threads(
-        lambda k: [fx.simulate(m, 0.1, 1e-3,
-                               settings=SimulationSettings(solver="klu", start="static")) for _ in range(3)])
+        lambda k: [fx.simulate(m, 0.1, 1e-3, SimulationSettings(solver="klu", start="static"))
+                   for _ in range(3)])
     for k in range(2):
         for r in results[k]:
             assert r.stats["symbolic_analyses"] == 0

@@ -117,7 +117,8 @@ def test_cantilever_root_stress_at_the_nodes():
     for order, elements, tol in ((2, 4, 5e-4), (1, 4, 5e-4)):
         m, b = cantilever(section, elements, order)
         m.add_load(b.last, fy=-P)
-        st = beam_stress(m, fx.simulate(m, 2e-3, 1e-3, settings=SimulationSettings(start="static")), b, stations="nodes")
+        st = beam_stress(m, fx.simulate(m, 2e-3, 1e-3, SimulationSettings(start="static")), b,
+                         stations="nodes")
         arm = L if order == 2 else L - 0.5 * L / elements
         assert st.xi[0] == -1.0 and st.s[0, 0] == 0.0
         assert abs(st.normal[-1, 0, 0] / (P * arm * c / I) - 1) < tol

@@ -167,9 +167,8 @@ def test_1000x_softer_large_deflection():
     few %: the validity check must see that (above its 1 % warning limit), and its limits are
     raised for this deliberately nonlinear run."""
     m, a1, a2, th1, th12 = robot(stiffness_factor=1e-3)
-    res = fx.simulate(m, 0.65, 5e-4,
-                      settings=SimulationSettings(start="static",
-                                                  validity=ValidityLimits(strain_warn=0.5, strain_fail=1.0)))
+    res = fx.simulate(m, 0.65, 5e-4, SimulationSettings(
+        start="static", validity=ValidityLimits(strain_warn=0.5, strain_fail=1.0)))
     assert res.validity["bending strain"].value > 0.01
     assert_robot_ok(res, a1, a2, th1, th12)
     o, a, tip = res.position(a1.first), res.position(a1.last), res.position(a2.last)
