@@ -18,6 +18,7 @@ import numpy as np
 from flexmbs.analysis.adjoint import adjoint_gradient, simulate_for_adjoint
 from flexmbs.analysis.simulate import simulate
 from flexmbs.problem import Problem
+from flexmbs.analysis.settings import DesignDerivatives, InitialConditions
 
 
 def best(f, repeat=3):
@@ -37,8 +38,8 @@ def main(nvs):
     model = mech.set_design(x)
     ts = p.description.time
     q0, qd0 = mech.initial_state()
-    kw = dict(rho_inf=ts.rho_inf, start=ts.start, newton=ts.newton, q0=q0,
-              qd0=None if ts.start == "static" else qd0)
+    kw = dict(settings=p.settings,
+              initial=InitialConditions(q0=q0, qd0=None if ts.start == "static" else qd0))
     base = mech.element_property_derivatives(x)
     t_sim, run = best(lambda: simulate(model, mech.t_end, ts.h, **kw))
     t_fwd, fwd = best(lambda: simulate_for_adjoint(model, mech.t_end, ts.h, **kw))
@@ -53,8 +54,10 @@ def main(nvs):
     rng = np.random.default_rng(0)
     for nv in nvs:
         dprop = np.einsum("kev,vw->kew", base, rng.standard_normal((base.shape[2], nv)))
-        t_dir, _ = best(lambda: simulate(model, mech.t_end, ts.h, design_derivatives=dprop,
-                                         sensitivity_dofs=np.arange(model.ndof), **kw),
+        t_dir, _ = best(lambda: simulate(model, mech.t_end, ts.h,
+                                         derivatives=DesignDerivatives(properties=dprop,
+                                                                       dofs=np.arange(model.ndof)),
+                                         **kw),
                         3 if nv <= 128 else 1)
         t_back, _ = best(lambda: adjoint_gradient(model, fwd, dprop, gq))
         t_adj = t_fwd + t_back

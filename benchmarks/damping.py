@@ -26,6 +26,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from common import format_table, machine_summary, time_call  # noqa: E402
+from flexmbs.analysis.settings import InitialConditions, SimulationSettings  # noqa: E402
 
 CASES = ("slider_crank_press", "slider_crank_press_damped")
 H0 = 5e-4
@@ -67,8 +68,10 @@ def cost(repeats, log):
         p = Problem(case)
         mech = p.mechanism
         q0, qd0 = mech.initial_state()
-        res, t_sim = time_call(lambda: simulate(mech.model, 0.3, H0, rho_inf=0.5, q0=q0, qd0=qd0,
-                                                validity="off"), repeats=repeats, budget=10.0)
+        settings = SimulationSettings(rho_inf=0.5, validity="off")
+        initial = InitialConditions(q0=q0, qd0=qd0)
+        res, t_sim = time_call(lambda: simulate(mech.model, 0.3, H0, settings, initial=initial),
+                               repeats=repeats, budget=10.0)
         st = res.stats
         grads = {}
         for method in ("direct", "adjoint"):

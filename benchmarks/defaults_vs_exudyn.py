@@ -32,6 +32,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from common import (ExudynFailed, ExudynRobot, deviation30, format_table,  # noqa: E402
                     machine_summary, robot_flexmbs)
+from flexmbs.analysis.settings import SimulationSettings  # noqa: E402
 from where_time_goes import iteration_matrix, klu_costs  # noqa: E402
 from work_precision import EXUDYN_RTOLS, _static_rtol, steps_for  # noqa: E402
 
@@ -44,7 +45,8 @@ def fx_run(model, tip, h, kw):
     import flexmbs as fx
     n = steps_for(h, T_END)
     c0 = time.process_time()
-    res = fx.simulate(model, n * h, h, start="static", store=[tip], **kw)
+    res = fx.simulate(model, n * h, h, settings=SimulationSettings(start="static", store=[tip]),
+                      **kw)
     return time.process_time() - c0, res
 
 

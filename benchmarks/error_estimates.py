@@ -25,6 +25,7 @@ import numpy as np
 
 from flexmbs import GivenSection, Model, Problem, TimeLaw, simulate
 from flexmbs.analysis.accuracy import estimate_errors, peak_sampling, richardson
+from flexmbs.analysis.settings import SimulationSettings
 
 CASES = [
     ("robot_2dof", None, {}),
@@ -87,7 +88,7 @@ def spin_up(elements=8, t_end=20.0):
                        section=GivenSection(EA, GA, EI, rhoA, rhoI))
         m.pin(b.first)
         m.drive_rotation(b.first, law)
-        r = simulate(m, t_end=t_end, h=h, rho_inf=0.5)
+        r = simulate(m, settings=SimulationSettings(rho_inf=0.5), t_end=t_end, h=h)
         d = r.position(b.last) - r.position(b.first)
         a = law.value(r.t)
         return -d[:, 0] * np.sin(a) + d[:, 1] * np.cos(a)

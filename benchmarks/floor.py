@@ -39,6 +39,7 @@ import numpy as np
 BENCH = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, BENCH)
 from common import format_table, machine_summary  # noqa: E402
+from flexmbs.analysis.settings import SimulationSettings  # noqa: E402
 
 H = 5e-4
 STEPS = 1300
@@ -55,13 +56,15 @@ def measure(nels, repeats):
         model.compile()
         model.pattern("klu")
         klu = klu_costs(model, iteration_matrix(model, h=H))
-        fx.simulate(model, STEPS * H, H, start="static", store=[a2.last])      # warm-up
+        fx.simulate(model, STEPS * H, H,
+                    settings=SimulationSettings(start="static", store=[a2.last]))      # warm-up
         cpus, pys = [], []
         with core_timer() as ct:
             for _ in range(repeats):
                 n0 = len(ct.calls)
                 c0 = time.process_time()
-                res = fx.simulate(model, STEPS * H, H, start="static", store=[a2.last])
+                res = fx.simulate(model, STEPS * H, H,
+                                  settings=SimulationSettings(start="static", store=[a2.last]))
                 cpu = time.process_time() - c0
                 cpus.append(cpu)
                 pys.append(cpu - sum(c for _, c in ct.calls[n0:]))

@@ -32,6 +32,7 @@ import sys
 import numpy as np
 
 from common import format_table, pyplot
+from flexmbs.analysis.settings import SimulationSettings
 
 ELEMENTS_FULL = [2, 4, 8, 16, 32, 64, 125, 250, 500, 1000, 2000, 4000]
 ELEMENTS_QUICK = [2, 8, 32, 125, 500]
@@ -99,8 +100,9 @@ def _child(cfg):
         best, res = float("inf"), None
         for _ in range(cfg["repeats"]):
             c0 = time.process_time()
-            res = fx.simulate(m, steps * h, h, start="static", store=[arm.last],
-                              solver=cfg["solver"], newton=newton)
+            res = fx.simulate(m, steps * h, h,
+                              settings=SimulationSettings(start="static", store=[arm.last],
+                                                          solver=cfg["solver"], newton=newton))
             best = min(best, time.process_time() - c0)
             if best * cfg["repeats"] > 4 * cfg["budget"]:
                 break
@@ -114,7 +116,8 @@ def _child(cfg):
     rss1 = _peak_rss()
     it = (r2.stats["newton_iterations"] - r1.stats["newton_iterations"]) / (n2 - n1)
     fa = (r2.stats["factorizations"] - r1.stats["factorizations"]) / (n2 - n1)
-    est = memory_estimate(m, n2 * h, h, store=[arm.last], solver=cfg["solver"])
+    est = memory_estimate(m, n2 * h, h,
+                          settings=SimulationSettings(store=[arm.last], solver=cfg["solver"]))
     return dict(elements=cfg["elements"], unknowns=n, solver=cfg["solver"], reuse=cfg["reuse"],
                 newton=newton, per_step=(t2 - t1) / (n2 - n1), n1=n1, n2=n2, t1=t1, t2=t2,
                 iterations_per_step=it, factorizations_per_step=fa,

@@ -39,6 +39,7 @@ import time
 import numpy as np
 
 from common import format_table, pyplot, robot_flexmbs
+from flexmbs.analysis.settings import SimulationSettings
 
 H = 5e-4
 T_END = 0.65
@@ -90,8 +91,10 @@ def measure(model, tip, solver, reuse, repeats=5, budget=3.0, h=H, t_end=T_END):
         for _ in range(repeats):
             n0 = len(ct.calls)
             c0, w0 = time.process_time(), time.perf_counter()
-            res = fx.simulate(model, t_end, h, start="static", store=[tip], solver=solver,
-                              newton="reuse" if reuse else "full")
+            res = fx.simulate(model, t_end, h,
+                              settings=SimulationSettings(start="static", store=[tip],
+                                                          solver=solver,
+                                                          newton="reuse" if reuse else "full"))
             cpu = time.process_time() - c0
             spent += time.perf_counter() - w0
             core = sum(c for _, c in ct.calls[n0:])
@@ -246,8 +249,9 @@ sys.path.insert(0, cfg["bench_dir"])
 import flexmbs as fx
 from common import robot_flexmbs
 m, a1, a2 = robot_flexmbs(cfg["nel"])
-run = lambda: fx.simulate(m, cfg["t_end"], cfg["h"], start="static", store=[a2.last],
-                          solver=cfg["solver"], newton=cfg["newton"])
+run = lambda: fx.simulate(m, cfg["t_end"], cfg["h"],
+                          fx.SimulationSettings(start="static", store=[a2.last],
+                                                solver=cfg["solver"], newton=cfg["newton"]))
 run()
 ctl = open(cfg["ctl"], "w"); ack = open(cfg["ack"], "r")
 ctl.write("enable\n"); ctl.flush(); ack.readline()

@@ -45,6 +45,7 @@ import numpy as np
 
 from common import (ExudynFailed, ExudynRobot, deviation30, exudyn_available, format_table,
                     pyplot, robot_flexmbs, time_call)
+from flexmbs.analysis.settings import SimulationSettings
 
 T_END = 0.65
 H_FULL = [4e-3, 2e-3, 1e-3, 5e-4, 2.5e-4, 1.25e-4]
@@ -94,7 +95,9 @@ def run_flexmbs(model, tip_node, h, solver, newton, repeats=3, budget=2.0, steps
     model.pattern(solver or "klu")         # one-time structure work, like Exudyn's Assemble
 
     def call():
-        return fx.simulate(model, n * h, h, start="static", store=[tip_node], **kw_steps, **kw)
+        return fx.simulate(model, n * h, h,
+                           settings=SimulationSettings(start="static", store=[tip_node], **kw),
+                           **kw_steps)
     res, timing = time_call(call, repeats=repeats, budget=budget)
     return res.t, deviation30(res.t, res.position(tip_node)), timing, res.stats
 

@@ -16,6 +16,7 @@ from scipy.linalg import eigh
 
 import flexmbs as fx
 from flexmbs.analysis.adaptive import subdivide
+from flexmbs.analysis.settings import DesignDerivatives, InitialConditions, SimulationSettings
 from flexmbs.analysis.simulate import interpolation_matrix, simulate, system_matrices
 from flexmbs.errors import CaseError
 from flexmbs.problem import Problem
@@ -109,8 +110,9 @@ def test_second_order_when_the_step_alternates():
     for n in (50, 100, 200, 400, 800):
         steps = np.tile([1.0, 1.5], n) * 2 * period / (2.5 * n)
         g = np.concatenate([[0.0], np.cumsum(steps)])
-        r = fx.simulate(m, g[-1], g[-1] / (2 * n), qd0=qd0, steps=g, tape=True, tol=1e-14,
-                        validity="off")
+        r = fx.simulate(m, g[-1], g[-1] / (2 * n),
+                        settings=SimulationSettings(tol=1e-14, validity="off"),
+                        initial=InitialConditions(qd0=qd0), steps=g, tape=True)
         cols = np.asarray(r.tape["grid"])[: g.size] - 1
         eta = [(r.tape[k][free][:, cols] - (ref[free, None] if k == "q" else 0)).T @ mm @ mode
                for k in ("q", "qd", "qdd")]
@@ -240,18 +242,18 @@ def test_solvers_newton_modes_and_step_cuts_on_a_varying_grid(start):
     s = np.linspace(0, 1, 51)
     g = 0.05 * (s + 0.3 * np.sin(2 * np.pi * s) / (2 * np.pi))
     q0, qd0 = mech.initial_state()
-    kw = dict(start=start, q0=q0, qd0=None if start == "static" else qd0, store="all",
-              steps=g, tol=1e-12)
-    ref = simulate(model, 0.05, 5e-4, solver="dense", newton="full", **kw)
+    settings = SimulationSettings(start=start, store="all", tol=1e-12)
+    kw = dict(initial=InitialConditions(q0=q0, qd0=None if start == "static" else qd0), steps=g)
+    ref = simulate(model, 0.05, 5e-4, settings.replace(solver="dense", newton="full"), **kw)
     for solver in ("dense", "klu"):
         for newton in ("full", "auto", "reuse"):
-            r = simulate(model, 0.05, 5e-4, solver=solver, newton=newton, **kw)
+            r = simulate(model, 0.05, 5e-4, settings.replace(solver=solver, newton=newton), **kw)
             assert np.abs(r.q - ref.q).max() < 1e-8, (solver, newton)
     dprop = mech.element_property_derivatives(mech.start)
-    kw.pop("store")
-    direct = simulate(model, 0.05, 5e-4, newton="full", max_iter=2, validity="off",
-                      store="all", design_derivatives=dprop, **kw)
-    run = simulate_for_adjoint(model, 0.05, 5e-4, newton="full", max_iter=2, validity="off", **kw)
+    settings = settings.replace(newton="full", max_iter=2, validity="off")
+    direct = simulate(model, 0.05, 5e-4, settings, derivatives=DesignDerivatives(properties=dprop),
+                      **kw)
+    run = simulate_for_adjoint(model, 0.05, 5e-4, settings, **kw)
     assert run.stats["step_cuts"] > 20 and run.tape["h"].size > g.size + 20
     gq = np.random.default_rng(7).standard_normal(run.q.shape)
     adj = adjoint_gradient(model, run, dprop, gq)[:, 0]

@@ -7,7 +7,6 @@ the step's last Newton iteration, the adjoint the tangent at the converged state
 relative (measured 1e-13 to 2e-10 on these runs), and a central finite difference converges to
 it at second order (Taylor test).
 """
-import functools
 
 import numpy as np
 import pytest
@@ -17,6 +16,7 @@ from flexmbs.analysis.adjoint import adjoint_gradient, simulate_for_adjoint
 from flexmbs.analysis.simulate import simulate
 from flexmbs.errors import ModelError, ResourceError
 from flexmbs.problem import Problem
+from flexmbs.analysis.settings import DesignDerivatives, InitialConditions, SimulationSettings
 
 REL = 1e-8
 
@@ -67,12 +67,12 @@ def _robot_runs(start):
     model = mech.set_design(mech.start)
     ts = p.description.time
     q0, qd0 = mech.initial_state()
-    kw = dict(rho_inf=ts.rho_inf, start=start, newton="full", q0=q0,
-              qd0=None if start == "static" else qd0)
+    settings = SimulationSettings(rho_inf=ts.rho_inf, start=start, newton="full")
+    initial = InitialConditions(q0=q0, qd0=None if start == "static" else qd0)
     dprop = mech.element_property_derivatives(mech.start)
-    direct = simulate(model, mech.t_end, ts.h, store="all", design_derivatives=dprop,
-                      constraint_force_derivatives=True, **kw)
-    run = simulate_for_adjoint(model, mech.t_end, ts.h, **kw)
+    direct = simulate(model, mech.t_end, ts.h, settings.replace(store="all"), initial=initial,
+                      derivatives=DesignDerivatives(properties=dprop, constraint_forces=True))
+    run = simulate_for_adjoint(model, mech.t_end, ts.h, settings, initial=initial)
     return model, dprop, direct, run
 
 
@@ -142,7 +142,7 @@ def test_bad_input():
     mech = p.mechanism
     model = mech.set_design(mech.start)
     dprop = mech.element_property_derivatives(mech.start)
-    part = simulate(model, 0.01, 5e-4, store=[0])
+    part = simulate(model, 0.01, 5e-4, settings=SimulationSettings(store=[0]))
     with pytest.raises(ModelError, match="has no tape of its states"):
         adjoint_gradient(model, part, dprop, np.zeros((part.t.size, model.ndof)))
     run = simulate_for_adjoint(model, 0.01, 5e-4)
@@ -152,9 +152,9 @@ def test_bad_input():
         adjoint_gradient(model, run, dprop, np.zeros((run.t.size, model.ndof)), memory_limit=100)
 
 
-def _all_over(case, t_end, over):
+def _all_over(case, t_end, over, **overrides):
     d = Problem(case, {"time.t_end": t_end}).description
-    ov = {"time.t_end": t_end, "time.newton": "full"}
+    ov = {"time.t_end": t_end, "time.newton": "full", **overrides}
     ov.update({f"constraints.{i}.over": over for i in range(len(d.constraints))})
     return Problem(case, ov)
 
@@ -182,15 +182,14 @@ def test_torques_and_reactions_three_arm_robot():
 @pytest.mark.parametrize("case,t_end,over", [("slider_crank_press", 0.02, "pnorm"),
                                              ("slider_crank_press", 0.02, "ks"),
                                              ("fourbar_tubes", 0.01, "every_step")])
-def test_stress_responses(case, t_end, over, monkeypatch):
+def test_stress_responses(case, t_end, over):
     """Stresses (explicit dependence on the section depth) and spring-dampers (the press):
     adjoint against direct differentiation, 1e-8 relative, with the Newton tolerance at 1e-12
     for both runs (at the default 1e-10 the direct method's tangent, taken one Newton
     iteration before convergence, is 3e-8 off the converged one on the press stress; the
     adjoint's is within 1e-9). 'every_step': one adjoint functional per step (the per-step
     partials seeded into every row at once)."""
-    monkeypatch.setattr(problem_module, "simulate", functools.partial(simulate, tol=1e-12))
-    p = _all_over(case, t_end, over)
+    p = _all_over(case, t_end, over, **{"solver.tol": 1e-12})
     direct = p.evaluate(p.start, method="direct")
     adj = p.evaluate(p.start, method="adjoint")
     assert max(_rel_by_response(adj, direct).values()) < REL
@@ -208,9 +207,10 @@ def test_step_cuts():
     mech = p.mechanism
     model = mech.set_design(mech.start)
     dprop = mech.element_property_derivatives(mech.start)
-    kw = dict(newton="full", max_iter=2, validity="off", tol=1e-12)
-    direct = simulate(model, 0.05, 5e-4, store="all", design_derivatives=dprop, **kw)
-    run = simulate_for_adjoint(model, 0.05, 5e-4, **kw)
+    settings = SimulationSettings(newton="full", max_iter=2, validity="off", tol=1e-12)
+    direct = simulate(model, 0.05, 5e-4, settings.replace(store="all"),
+                      derivatives=DesignDerivatives(properties=dprop))
+    run = simulate_for_adjoint(model, 0.05, 5e-4, settings)
     assert run.stats["step_cuts"] > 100 and run.tape["h"].size > run.t.size + 100
     nt, ndof = run.q.shape
     rng = np.random.default_rng(7)
@@ -224,7 +224,7 @@ def test_step_cuts():
 
 
 @pytest.mark.parametrize("newton", ["auto", "reuse"])
-def test_automatic_newton_paper_horizon(monkeypatch, newton):
+def test_automatic_newton_paper_horizon(newton):
     """Robot of Table 1 at its full horizon (0.65 s, 1300 steps) with the default automatic
     Newton and with 'reuse': the adjoint gradient of the KS deviation (its forward run
     polished: every step converged to the rounding level, by 'auto''s rules in both) is
@@ -234,14 +234,12 @@ def test_automatic_newton_paper_horizon(monkeypatch, newton):
     (8e-12 m off) made it 2e-6 off: adjoint_gradient refuses such runs."""
     p = Problem("robot_2dof", {"constraints.0.over": "ks", "time.newton": newton})
     adj = p.evaluate(p.start, method="adjoint")
-    with monkeypatch.context() as mp:
-        mp.setattr(problem_module, "simulate", functools.partial(simulate, tol=1e-12))
-        exact = Problem("robot_2dof", {"constraints.0.over": "ks", "time.newton": "full"}) \
-            .evaluate(p.start, method="direct")
+    exact = Problem("robot_2dof", {"constraints.0.over": "ks", "time.newton": "full",
+                                   "solver.tol": 1e-12}).evaluate(p.start, method="direct")
     assert _rel(adj.jacobian, exact.jacobian) < REL
     mech = p.mechanism
     model = mech.set_design(mech.start)
-    run = simulate(model, 0.01, 5e-4, tape=True, newton="auto")
+    run = simulate(model, 0.01, 5e-4, settings=SimulationSettings(newton="auto"), tape=True)
     with pytest.raises(ModelError, match="newton='auto' without polish=True"):
         adjoint_gradient(model, run, mech.element_property_derivatives(mech.start),
                          np.zeros((run.t.size, model.ndof)))
@@ -258,8 +256,9 @@ def test_polish_converges_states_to_rounding_with_held_matrices():
     p = Problem("robot_2dof", {"time.newton": "auto"})
     model, t_end, h, kw = p._run(p.start, False, None, None, tape=True)
     pol = simulate(model, t_end, h, **kw)
-    assert pol.settings["polish"]
-    ref = simulate(model, t_end, h, **{**kw, "polish": False, "newton": "full"})
+    assert pol.settings.polish
+    ref = simulate(model, t_end, h, **{**kw, "settings": kw["settings"].replace(polish=False,
+                                                                               newton="full")})
     assert np.abs(pol.tape["q"] - ref.tape["q"]).max() < 1e-12
     qdd = np.abs(ref.tape["qdd"]).max()
     assert np.abs(pol.tape["qdd"] - ref.tape["qdd"]).max() < 1e-7 * qdd
@@ -300,15 +299,14 @@ def test_optimization_with_the_adjoint():
         Problem("robot_2dof", ov, gradient_method="adj")
 
 
-def test_elementwise_tubes_64_variables(monkeypatch):
+def test_elementwise_tubes_64_variables():
     """cases/robot_2dof_tapered_tubes.toml (16 elements per arm, diameter and wall per element:
     64 variables; KS deviation and KS stress of both arms; the max_step rows): the adjoint's
     Jacobian equals direct differentiation to 1e-8 relative per row (Newton tolerance 1e-12
     for both, as in test_stress_responses), on a design with a different size per element so
     that the largest stress moves between elements; 'auto' takes the adjoint (64 variables,
     2 aggregated rows)."""
-    monkeypatch.setattr(problem_module, "simulate", functools.partial(simulate, tol=1e-12))
-    p = Problem("robot_2dof_tapered_tubes", overrides={"time.t_end": 0.05})
+    p = Problem("robot_2dof_tapered_tubes", overrides={"time.t_end": 0.05, "solver.tol": 1e-12})
     rng = np.random.default_rng(7)
     x = p.start * (0.8 + 0.2 * rng.random(p.start.size))
     direct = p.evaluate(x, method="direct")

@@ -10,6 +10,7 @@ import pytest
 
 from flexmbs.analysis.adjoint import (adjoint_gradient, checkpoint_interval, checkpoint_memory,
                              simulate_for_adjoint)
+from flexmbs.analysis.settings import DesignDerivatives, InitialConditions, SimulationSettings
 from flexmbs.analysis.simulate import CHECKPOINT_PART, TAPE_PART, simulate
 from flexmbs.errors import ModelError, ResourceError
 from flexmbs.problem import ADJOINT_PART, SEGMENT_PART, Problem
@@ -25,8 +26,9 @@ def _robot(start, t_end=0.1):
     mech = p.mechanism
     model = mech.set_design(mech.start)
     q0, qd0 = mech.initial_state()
-    kw = dict(rho_inf=p.description.time.rho_inf, start=start, newton="full", q0=q0,
-              qd0=None if start == "static" else qd0)
+    kw = dict(settings=SimulationSettings(rho_inf=p.description.time.rho_inf, start=start,
+                                          newton="full"),
+              initial=InitialConditions(q0=q0, qd0=None if start == "static" else qd0))
     return model, mech.element_property_derivatives(mech.start), kw
 
 
@@ -74,7 +76,7 @@ def test_checkpointed_gradient_with_step_cuts():
     mech = p.mechanism
     model = mech.set_design(mech.start)
     dprop = mech.element_property_derivatives(mech.start)
-    kw = dict(newton="full", max_iter=2, validity="off", tol=1e-12)
+    kw = dict(settings=SimulationSettings(newton="full", max_iter=2, validity="off", tol=1e-12))
     full = simulate_for_adjoint(model, 0.05, 5e-4, **kw)
     assert full.stats["step_cuts"] > 100
     gq, gmu = _seeds(full, model, 7)
@@ -189,7 +191,7 @@ def test_checkpoint_bad_input():
     with pytest.raises(ModelError, match="checkpoints= is not allowed with tape=True"):
         simulate(model, 0.01, 5e-4, checkpoints=4, tape=True)
     with pytest.raises(ModelError, match="checkpoints= is not allowed .*design_derivatives"):
-        simulate(model, 0.01, 5e-4, checkpoints=4, design_derivatives=dprop)
+        simulate(model, 0.01, 5e-4, derivatives=DesignDerivatives(properties=dprop), checkpoints=4)
 
 
 def test_checkpoint_interval_fits_the_memory_given():

@@ -18,6 +18,7 @@ import pytest
 import flexmbs as fx
 from flexmbs.optimize import optimize_fully, optimize_weakly
 from flexmbs.problem import Problem
+from flexmbs.analysis.settings import DesignDerivatives, InitialConditions, SimulationSettings
 
 ALU = fx.Material(E=72e9, nu=0.3, rho=2700)
 NAN, INF = float("nan"), float("inf")
@@ -100,7 +101,22 @@ def test_end_time_not_whole_steps():
 def test_rho_inf_outside_unit_interval(rho_inf):
     m, _ = driven_arm()
     with pytest.raises(fx.ModelError, match=r"rho_inf must lie in \[0, 1\]"):
-        fx.simulate(m, 0.01, 1e-3, rho_inf=rho_inf)
+        fx.simulate(m, 0.01, 1e-3, settings=SimulationSettings(rho_inf=rho_inf))
+
+
+def _new_spelling(kw):
+    """simulate's arguments for the former keywords in kw: settings=, initial=, derivatives=
+    (reuse_jacobian, itself deprecated, as it is)."""
+    settings = {k: v for k, v in kw.items() if k in SimulationSettings.__dataclass_fields__}
+    initial = {k: v for k, v in kw.items() if k in ("q0", "qd0")}
+    out = {k: v for k, v in kw.items() if k not in settings and k not in initial
+           and k != "design_derivatives"}
+    out["settings"] = SimulationSettings(**settings)
+    if initial:
+        out["initial"] = InitialConditions(**initial)
+    if "design_derivatives" in kw:
+        out["derivatives"] = DesignDerivatives(properties=kw["design_derivatives"])
+    return out
 
 
 @pytest.mark.parametrize("kw, text", [(dict(solver="lu"), "solver must be"), (dict(start="still"), "start must be"),
@@ -111,7 +127,7 @@ def test_rho_inf_outside_unit_interval(rho_inf):
 def test_bad_settings(kw, text):
     m, _ = driven_arm()
     with pytest.raises(fx.ModelError, match=text):
-        fx.simulate(m, 0.01, 1e-3, **kw)
+        fx.simulate(m, 0.01, 1e-3, **_new_spelling(kw))
 
 
 # --------------------------------------------------------------------------- names
@@ -126,7 +142,8 @@ def test_bad_settings(kw, text):
     (lambda m, b: m.set_section("arm3", fx.Circle(0.01)), "unknown body 'arm3'"),
     (lambda m, b: m.set_element_sections("arm3", [fx.Circle(0.01)]), "unknown body 'arm3'"),
     (lambda m, b: m.add_beam("arm", (0, 0), (1, 0), 2, material=ALU, section=fx.Circle(0.01)), "'arm' already exists"),
-    (lambda m, b: fx.simulate(m, 0.01, 1e-3, store=[99]), "store: unknown node 99"),
+    (lambda m, b: fx.simulate(m, 0.01, 1e-3, SimulationSettings(store=[99])),
+     "store: unknown node 99"),
 ])
 def test_unknown_names(call, text):
     m, b = driven_arm()
@@ -139,7 +156,7 @@ def test_store_body_of_another_model():
     big = fx.Model("other")
     other = big.add_beam("other", (0, 0), (1, 0), 20, material=ALU, section=fx.Circle(0.02))
     with pytest.raises(fx.ModelError, match="store"):
-        fx.simulate(m, 0.01, 1e-3, store=[other])
+        fx.simulate(m, 0.01, 1e-3, settings=SimulationSettings(store=[other]))
 
 
 # --------------------------------------------------------------------------- not held, singular
@@ -149,7 +166,7 @@ def test_not_held_static_start():
     m.add_beam("free", (0, 0), (1, 0), 2, material=ALU, section=fx.Circle(0.02))
     m.set_gravity(0, -9.81)
     with pytest.raises(fx.SimulationError, match="not held") as err:
-        fx.simulate(m, 0.01, 1e-3, start="static")
+        fx.simulate(m, 0.01, 1e-3, settings=SimulationSettings(start="static"))
     assert err.value.time == 0.0 and err.value.iterations == 1
 
 
@@ -160,7 +177,7 @@ def test_free_rotation_static_start():
     m.pin(b.first)
     m.set_gravity(0, -9.81)
     with pytest.raises(fx.SimulationError, match="not held"):
-        fx.simulate(m, 0.01, 1e-3, start="static")
+        fx.simulate(m, 0.01, 1e-3, settings=SimulationSettings(start="static"))
 
 
 def test_not_connected_static_start():
@@ -171,7 +188,7 @@ def test_not_connected_static_start():
     m.clamp(a.first)
     m.set_gravity(0, -9.81)
     with pytest.raises(fx.SimulationError, match="not held"):
-        fx.simulate(m, 0.01, 1e-3, start="static")
+        fx.simulate(m, 0.01, 1e-3, settings=SimulationSettings(start="static"))
 
 
 @pytest.mark.parametrize("solver", ["dense", "klu"])
@@ -180,7 +197,7 @@ def test_massless_free_node_singular(solver):
     m, _ = driven_arm()
     m.add_node(3.0, 3.0)
     with pytest.raises(fx.SimulationError, match="singular") as err:
-        fx.simulate(m, 0.01, 1e-3, solver=solver)
+        fx.simulate(m, 0.01, 1e-3, settings=SimulationSettings(solver=solver))
     assert err.value.code == 4 and err.value.time == 0.0
 
 
@@ -189,13 +206,13 @@ def test_redundant_constraints_singular(solver):
     m, b = driven_arm()
     m.pin(b.first)               # the same pin twice
     with pytest.raises(fx.SimulationError, match="redundant"):
-        fx.simulate(m, 0.01, 1e-3, solver=solver)
+        fx.simulate(m, 0.01, 1e-3, settings=SimulationSettings(solver=solver))
 
 
 def test_inconsistent_initial_configuration_names_constraint():
     m, _ = driven_arm()
     with pytest.raises(fx.SimulationError, match="violates constraint 'pin node 0 x' by 0.1"):
-        fx.simulate(m, 0.01, 1e-3, q0=m.reference_coordinates() + 0.1)
+        fx.simulate(m, 0.01, 1e-3, initial=InitialConditions(q0=m.reference_coordinates() + 0.1))
 
 
 # --------------------------------------------------------------------------- laws
@@ -240,7 +257,7 @@ def test_newton_failure_after_cuts_reports_time_residual_iterations():
     sub-step (h / 4) fails and the error carries time, residual and iteration count."""
     m, _ = driven_arm()
     with pytest.raises(fx.SimulationError) as err:
-        fx.simulate(m, 0.01, 1e-3, max_iter=1, max_cuts=2)
+        fx.simulate(m, 0.01, 1e-3, settings=SimulationSettings(max_iter=1, max_cuts=2))
     e = err.value
     assert e.code == 1
     assert math.isclose(e.time, 2.5e-4, rel_tol=1e-12)
@@ -254,7 +271,7 @@ def test_static_equilibrium_failure_reports():
     m, b = driven_arm()
     m.add_load(b.last, fy=-1e9)
     with pytest.raises(fx.SimulationError, match="static equilibrium at t = 0") as err:
-        fx.simulate(m, 0.01, 1e-3, start="static")
+        fx.simulate(m, 0.01, 1e-3, settings=SimulationSettings(start="static"))
     assert err.value.time == 0.0 and err.value.residual > 0
 
 
@@ -402,7 +419,7 @@ def test_simulate_setting_types(kw, text):
     kw = dict(kw)
     h = kw.pop("h", 1e-3)
     with pytest.raises(fx.ModelError) as err:
-        fx.simulate(m, 0.01, h, **kw)
+        fx.simulate(m, 0.01, h, **_new_spelling(kw))
     assert text in str(err.value)
 
 
@@ -592,8 +609,9 @@ def test_result_and_model_accessors():
     with pytest.raises(fx.ModelError, match=r"row_label: expected a constraint row index \(int\), got None"):
         m.row_label(None)
     with pytest.raises(fx.ModelError, match=r"sensitivity_dofs must be an array of numbers, got \[1\.5\]"):
-        fx.simulate(m, 0.003, 1e-3, design_derivatives=np.zeros((5, 2, 1)), sensitivity_dofs=[1.5])
+        fx.simulate(m, 0.003, 1e-3,
+                    derivatives=DesignDerivatives(properties=np.zeros((5, 2, 1)), dofs=[1.5]))
     with pytest.raises(fx.ModelError, match=r"store must be 'all' or a list of nodes/bodies, got None"):
-        fx.simulate(m, 0.002, 1e-3, store=None)
+        fx.simulate(m, 0.002, 1e-3, settings=SimulationSettings(store=None))
 
 

@@ -19,6 +19,7 @@ from flexmbs.errors import ModelError
 from flexmbs.model.description import Description, Law
 from flexmbs.model.laws import TimeLaw
 from flexmbs.model.mechanism import Mechanism, make_law
+from flexmbs.analysis.settings import InitialConditions, SimulationSettings
 
 
 def _spin_up_case_law(w, T):
@@ -123,7 +124,9 @@ def test_given_section_needs_no_material():
     geometric nonlinearity (about (w/L)^2 = 1e-5 relative) are within the 1e-3 tolerance)."""
     mech = Mechanism(Description.model_validate(_cantilever(load=-1.0)))
     q0, _ = mech.initial_state()
-    r = simulate(mech.model, 0.002, 0.001, start="static", q0=q0, store="all")
+    r = simulate(mech.model, 0.002, 0.001,
+                 settings=SimulationSettings(start="static", store="all"),
+                 initial=InitialConditions(q0=q0))
     tip = mech.node[("rod", "B")]
     assert abs(r.q[0, r.dofs.tolist().index(3 * tip + 1)] + 1 / 300) < 1e-3 / 300
 

@@ -17,6 +17,7 @@ from flexmbs.core import system_matrices
 from flexmbs.errors import CaseError, ModelError
 from flexmbs.model.casefile import read_description
 from flexmbs.problem import Problem
+from flexmbs.analysis.settings import InitialConditions, SimulationSettings
 
 E, NU, RHO, L, D = 210e9, 0.3, 7850.0, 1.0, 0.02
 #: first bending frequency of a clamped-free Euler-Bernoulli beam, beta_1 L = 1.8751040687
@@ -101,7 +102,9 @@ def test_first_mode_decays_with_the_kelvin_voigt_damping_ratio(zeta):
             qd0 = phi / np.abs(phi[1::3]).max() * 1e-4 * w1
         period = 2 * np.pi / w1
         h = period / 200
-        r = simulate(m, 2000 * h, h, rho_inf=1.0, qd0=qd0, store=[b.last], validity="off")
+        r = simulate(m, 2000 * h, h,
+                     settings=SimulationSettings(rho_inf=1.0, store=[b.last], validity="off"),
+                     initial=InitialConditions(qd0=qd0))
         y = r.q[:, 1]
 
         def fit(t, a, c, s, wd):
@@ -125,7 +128,8 @@ def test_energy_check_of_a_damped_free_system():
                                 damping_frequency=OMEGA_EB / (2 * np.pi)))
     qd0 = np.zeros(m.ndof)
     qd0[1::3] = 0.01 * (m.reference_coordinates()[0::3] / L) ** 2
-    r = simulate(m, 0.2, 5e-4, rho_inf=1.0, qd0=qd0)
+    r = simulate(m, 0.2, 5e-4, settings=SimulationSettings(rho_inf=1.0),
+                 initial=InitialConditions(qd0=qd0))
     energy = [c for c in r.validity.checks if c.name == "energy"][0]
     assert energy.status == "ok" and energy.value < 1e-12, energy
 

@@ -6,6 +6,7 @@ import pytest
 import flexmbs as fx
 from flexmbs.analysis.validity import free_directions, redundant_constraints
 from flexmbs.errors import SimulationError
+from flexmbs.analysis.settings import SimulationSettings
 
 ALU = fx.Material(E=72e9, nu=0.3, rho=2700)
 
@@ -28,7 +29,7 @@ def test_two_identical_pins_are_reported_as_redundant_not_as_unheld():
     m.drive_rotation(b.first, 0.0)
     m.set_gravity(0.0, -9.81)
     with pytest.raises(SimulationError) as e:
-        fx.simulate(m, 1e-3, 1e-3, start="static")
+        fx.simulate(m, 1e-3, 1e-3, settings=SimulationSettings(start="static"))
     msg = str(e.value)
     assert "over-constrained" in msg and "redundant" in msg
     assert "rank 3 for 5 rows" in msg
@@ -61,7 +62,7 @@ def test_unheld_body_is_reported_as_not_held_with_its_free_motion():
     m.set_gravity(0.0, -9.81)
     assert redundant_constraints(m) == []
     with pytest.raises(SimulationError) as e:
-        fx.simulate(m, 1e-3, 1e-3, start="static")
+        fx.simulate(m, 1e-3, 1e-3, settings=SimulationSettings(start="static"))
     msg = str(e.value)
     assert "under-constrained" in msg and "not held" in msg
     assert "1 free motion(s)" in msg and "body 'arm'" in msg
@@ -83,7 +84,7 @@ def test_huge_load_is_reported_as_overflow_naming_the_load():
     m.clamp(b.first)
     m.add_load(b.last, fy=-1e300)
     with pytest.raises(SimulationError) as e:
-        fx.simulate(m, 1e-3, 1e-3, start="static")
+        fx.simulate(m, 1e-3, 1e-3, settings=SimulationSettings(start="static"))
     msg = str(e.value)
     assert "overflow" in msg
     assert f"load fy at node {b.last} = -1e+300" in msg
@@ -98,7 +99,7 @@ def test_held_structure_with_too_large_load_blames_the_load():
     m.clamp(b.first)
     m.add_load(b.last, fy=-1e9)
     with pytest.raises(SimulationError) as e:
-        fx.simulate(m, 1e-3, 1e-3, start="static")
+        fx.simulate(m, 1e-3, 1e-3, settings=SimulationSettings(start="static"))
     msg = str(e.value)
     assert "structure is held" in msg and f"largest load 1e+09 at node {b.last}" in msg
     assert "may not be held" not in msg

@@ -14,6 +14,7 @@ from flexmbs.methods.esl import (BodyStiffness, ChordFrame, TangentFrame, equiva
                          static_response)
 from flexmbs.methods.weakly import StaticModel
 from flexmbs.problem import Problem
+from flexmbs.analysis.settings import SimulationSettings
 
 TABLE1_WEAKLY = [39.29, 28.33, 34.94, 25.19]   # paper Table 1, weakly coupled optimum (mm)
 #: the paper's ESL frames of the robot (section 6.3): arm 1 at O, arm 2 at A
@@ -104,7 +105,7 @@ def _stiff_arm(scale):
 
 def _esl_vs_dynamic_loads(scale):
     m, b = _stiff_arm(scale)
-    r = fx.simulate(m, 0.5, 1e-3, start="static", tol=1e-12)
+    r = fx.simulate(m, 0.5, 1e-3, settings=SimulationSettings(start="static", tol=1e-12))
     loads = equivalent_static_loads(m, r, [("arm", TangentFrame(b.first))])["arm"]
     inertia_only = m.element_properties().copy()
     inertia_only[:3] = 0.0                     # f_int = 0: r = M qdd - f_ext
@@ -257,6 +258,7 @@ def test_bad_input_errors(robot):
         BodyStiffness(model, "arm1", TangentFrame(model.body("arm2").last))
     with pytest.raises(ModelError, match="unknown body"):
         equivalent_static_loads(model, res, [("arm3", "tangent")])
-    store = fx.simulate(model, 0.01, start="static", store=[model.body("arm1")])
+    store = fx.simulate(model, 0.01,
+                        settings=SimulationSettings(start="static", store=[model.body("arm1")]))
     with pytest.raises(ModelError, match="arm2"):
         equivalent_static_loads(model, store, [("arm2", "tangent")])

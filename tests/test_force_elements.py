@@ -16,6 +16,7 @@ import pytest
 import flexmbs as fx
 from flexmbs.analysis.checks import check_iteration_matrix, taylor_test
 from flexmbs.errors import ModelError
+from flexmbs.analysis.settings import DesignDerivatives, SimulationSettings
 
 MASS, K, G, L = 2.0, 800.0, 9.81, 1.0
 STEEL = fx.Material(E=210e9, nu=0.3, rho=7800)
@@ -46,7 +47,7 @@ def test_static_deflection_is_m_g_over_k():
     """start='static': the mass hangs m g / k = 2 * 9.81 / 800 = 0.0245 m below the free
     length (exact: the spring is linear along its line), to 1e-9 relative; no motion after."""
     m, bob = hanging_mass(c=3.0)
-    r = fx.simulate(m, 0.05, 1e-3, start="static")
+    r = fx.simulate(m, 0.05, 1e-3, settings=SimulationSettings(start="static"))
     y = r.position(bob)[:, 1]
     np.testing.assert_allclose(y, -L - MASS * G / K, rtol=1e-9)
 
@@ -61,7 +62,7 @@ def test_preload_and_free_length_shift_the_equilibrium():
     m.slider(bob, axis=(0.0, 1.0))
     m.add_spring_damper(top, bob, K, free_length=0.9, preload=4.0)
     m.set_gravity(0.0, -G)
-    r = fx.simulate(m, 0.01, 1e-3, start="static")
+    r = fx.simulate(m, 0.01, 1e-3, settings=SimulationSettings(start="static"))
     np.testing.assert_allclose(r.position(bob)[0, 1], -(0.9 + (MASS * G - 4.0) / K), rtol=1e-9)
 
 
@@ -76,7 +77,7 @@ def test_free_vibration_matches_the_analytic_oscillator_to_second_order(c):
     hs = [2e-3, 1e-3, 5e-4]
     for h in hs:
         m, bob = hanging_mass(c)
-        r = fx.simulate(m, 0.5, h, rho_inf=0.5)
+        r = fx.simulate(m, 0.5, h, settings=SimulationSettings(rho_inf=0.5))
         y = r.position(bob)[:, 1] + L
         errs.append(np.max(np.abs(y - analytic_drop(r.t, c))) / (MASS * G / K))
     orders = np.log2(np.array(errs[:-1]) / np.array(errs[1:]))
@@ -153,9 +154,10 @@ def test_design_derivatives_with_a_spring_damper_pass_the_taylor_test():
 
     def run(x):
         m, arm = spring_beam_model(tuple(x))
-        r = fx.simulate(m, nsteps * h, h, start="static", store=[arm.last],
-                        design_derivatives=_element_derivatives(m, arm),
-                        sensitivity_dofs=[3 * arm.last, 3 * arm.last + 1])
+        r = fx.simulate(m, nsteps * h, h,
+                        settings=SimulationSettings(start="static", store=[arm.last]),
+                        derivatives=DesignDerivatives(properties=_element_derivatives(m, arm),
+                                                      dofs=[3 * arm.last, 3 * arm.last + 1]))
         return r.position(arm.last), r.position_derivative(arm.last)
 
     v, J = run(p)

@@ -476,7 +476,8 @@ def test_complex_design_is_refused(design):
 
 @pytest.mark.parametrize("which", ["q0", "qd0"])
 def test_complex_initial_state_is_refused(which):
-    """simulate(q0=complex) or qd0: a ModelError naming the argument and 'complex'."""
+    """simulate(initial=InitialConditions(q0=complex)) or qd0: a ModelError naming the
+    argument and 'complex'."""
     import flexmbs as fx
     from flexmbs.problem import Problem
 
@@ -485,7 +486,7 @@ def test_complex_initial_state_is_refused(which):
     if which == "qd0":
         state = np.zeros_like(state)
     with pytest.raises(ModelError, match=rf"{which} must be an array of real numbers.*complex"):
-        fx.simulate(model, 0.01, **{which: state})
+        fx.simulate(model, 0.01, initial=fx.InitialConditions(**{which: state}))
 
 
 def test_unknown_mma_option_lists_the_valid_keys():

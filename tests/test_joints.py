@@ -7,6 +7,7 @@ import pytest
 
 import flexmbs as fx
 from flexmbs.errors import ModelError
+from flexmbs.analysis.settings import SimulationSettings
 
 STEEL = fx.Material(E=210e9, nu=0.3, rho=7800)
 G = 9.81
@@ -118,12 +119,12 @@ def test_welded_beams_bend_as_one_cantilever():
         return m, b
 
     m, b = build()
-    r = fx.simulate(m, 1e-3, 1e-3, start="static")
+    r = fx.simulate(m, 1e-3, 1e-3, settings=SimulationSettings(start="static"))
     expected = P * L ** 3 / (3 * ei) + P * L / kga
     np.testing.assert_allclose(-r.position(b.last)[0, 1], expected, rtol=1e-3)
     m2, _ = build(weld=False)
     with pytest.raises(fx.SimulationError):
-        fx.simulate(m2, 1e-3, 1e-3, start="static")
+        fx.simulate(m2, 1e-3, 1e-3, settings=SimulationSettings(start="static"))
 
 
 def test_joint_builders_bad_input():

@@ -192,7 +192,7 @@ def test_static_start_with_a_moving_drive_says_what_to_do():
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", SettingWarning)
             with pytest.raises(SimulationError) as err:
-                simulate(model, t_end, h, **dict(kw, max_cuts=0))
+                simulate(model, t_end, h, **dict(kw, settings=kw["settings"].replace(max_cuts=0)))
         assert ("assumes the mechanism at rest" in str(err.value)) is hint
     with warnings.catch_warnings():
         warnings.simplefilter("error", SettingWarning)

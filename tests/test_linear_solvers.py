@@ -25,6 +25,7 @@ import scipy.sparse as sp
 import flexmbs as fx
 from flexmbs import _core
 from flexmbs.errors import SimulationError
+from flexmbs.analysis.settings import SimulationSettings
 
 U = np.finfo(float).eps / 2
 
@@ -286,7 +287,8 @@ def test_unheld_mechanism_static_start_raises(build, solver):
     """A static start of a mechanism that is not held (singular tangent stiffness) raises
     SimulationError at t = 0 instead of crashing or returning garbage."""
     with pytest.raises(SimulationError) as err:
-        fx.simulate(build(), 0.01, 1e-3, start="static", solver=solver)
+        fx.simulate(build(), 0.01, 1e-3,
+                    settings=SimulationSettings(start="static", solver=solver))
     assert err.value.time == 0.0
     assert "static equilibrium" in str(err.value)
 
@@ -295,7 +297,7 @@ def test_unheld_mechanism_static_start_message_says_not_held():
     """The static start of a free beam fails on a singular iteration matrix (the core
     returns info(4) = 11); the message diagnoses why: the beam is not held."""
     with pytest.raises(SimulationError, match="not held"):
-        fx.simulate(free_beam_model(), 0.01, 1e-3, start="static")
+        fx.simulate(free_beam_model(), 0.01, 1e-3, settings=SimulationSettings(start="static"))
 
 
 @pytest.mark.parametrize("solver", ["dense", "klu"])
@@ -308,13 +310,13 @@ def test_redundant_or_massless_system_raises_singular(solver):
     m.clamp(b.first)
     m.clamp(b.first)
     with pytest.raises(SimulationError, match="singular"):
-        fx.simulate(m, 0.01, 1e-3, solver=solver)
+        fx.simulate(m, 0.01, 1e-3, settings=SimulationSettings(solver=solver))
     m = fx.Model()
     m.add_node(2.0, 0.0)
     b = m.add_beam("b", (0, 0), (1, 0), 2, material=STEEL, section=fx.Circle(0.02))
     m.clamp(b.first)
     with pytest.raises(SimulationError, match="singular"):
-        fx.simulate(m, 0.01, 1e-3, solver=solver)
+        fx.simulate(m, 0.01, 1e-3, settings=SimulationSettings(solver=solver))
 
 
 # ------------------------------------------------------------------ no hidden global state
@@ -357,7 +359,8 @@ def test_two_models_alternately_and_in_threads_match_running_alone(solver):
     models = [swinging_beam(0.03, 3), swinging_beam(0.05, 5)]
 
     def run(m):
-        return fx.simulate(m, 0.1, 1e-3, solver=solver, start="static").q
+        return fx.simulate(m, 0.1, 1e-3,
+                           settings=SimulationSettings(solver=solver, start="static")).q
 
     alone = [run(m) for m in models]
     alternate = [run(models[k % 2]) for k in range(4)]
@@ -386,15 +389,16 @@ def test_klu_analysis_is_made_once_per_model_and_borrowed_by_every_run(monkeypat
     runs = []
     for d in (0.03, 0.04, 0.05):
         m.bodies["arm"].section = fx.Tube.with_wall_ratio(d, 0.1)
-        r = fx.simulate(m, 0.1, 1e-3, solver="klu", start="static")
+        r = fx.simulate(m, 0.1, 1e-3, settings=SimulationSettings(solver="klu", start="static"))
         assert r.stats["symbolic_analyses"] == 0
-        dense = fx.simulate(m, 0.1, 1e-3, solver="dense", start="static")
+        dense = fx.simulate(m, 0.1, 1e-3,
+                            settings=SimulationSettings(solver="dense", start="static"))
         assert np.abs(r.q - dense.q).max() < 1e-9
         runs.append(r)
     analysis = m.pattern("klu")["analysis"]
     assert isinstance(analysis, KluAnalysis) and analysis.analyses == 1
     monkeypatch.setattr(simulate_module, "klu_analysis", lambda model, storage: 0)
-    own = fx.simulate(m, 0.1, 1e-3, solver="klu", start="static")
+    own = fx.simulate(m, 0.1, 1e-3, settings=SimulationSettings(solver="klu", start="static"))
     assert own.stats["symbolic_analyses"] == 1
     assert np.array_equal(own.q, runs[-1].q) and np.array_equal(own.mu, runs[-1].mu)
 
@@ -409,12 +413,14 @@ def test_klu_analysis_of_another_pattern_is_refused(monkeypatch):
     simulate_module = importlib.import_module("flexmbs.analysis.simulate")
 
     m, other = swinging_beam(0.03, 4), swinging_beam(0.03, 6)
-    good = fx.simulate(m, 0.05, 1e-3, solver="klu", start="static", tape=True, polish=True)
+    good = fx.simulate(m, 0.05, 1e-3,
+                       settings=SimulationSettings(solver="klu", start="static", polish=True),
+                       tape=True)
     wrong = klu_analysis(other, "klu")
     monkeypatch.setattr(simulate_module, "klu_analysis", lambda model, storage: wrong)
     with pytest.raises(SimulationError, match="sparse linear solver could not be set up.*"
                                               "another pattern"):
-        fx.simulate(m, 0.05, 1e-3, solver="klu", start="static")
+        fx.simulate(m, 0.05, 1e-3, settings=SimulationSettings(solver="klu", start="static"))
     monkeypatch.setattr(adjoint_module, "klu_analysis", lambda model, storage: wrong)
     gq = np.zeros((good.t.size, m.ndof))
     gq[-1, 0] = 1.0
@@ -432,9 +438,10 @@ def test_klu_analysis_is_shared_by_threads_and_remade_by_copies():
     from flexmbs.problem import Problem
 
     m = swinging_beam(0.04, 5)
-    alone = fx.simulate(m, 0.1, 1e-3, solver="klu", start="static").q
+    alone = fx.simulate(m, 0.1, 1e-3, settings=SimulationSettings(solver="klu", start="static")).q
     results = in_two_threads(
-        lambda k: [fx.simulate(m, 0.1, 1e-3, solver="klu", start="static") for _ in range(3)])
+        lambda k: [fx.simulate(m, 0.1, 1e-3, SimulationSettings(solver="klu", start="static"))
+                   for _ in range(3)])
     for k in range(2):
         for r in results[k]:
             assert r.stats["symbolic_analyses"] == 0

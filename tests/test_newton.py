@@ -17,6 +17,7 @@ import flexmbs as fx
 from flexmbs.analysis.simulate import NEWTON_MODES
 from flexmbs.errors import ModelError
 from flexmbs.problem import Problem
+from flexmbs.analysis.settings import InitialConditions, SimulationSettings
 
 CASES = Path(__file__).resolve().parents[1] / "cases"
 TOL = 1e-10                       # simulate's default Newton tolerance
@@ -114,13 +115,14 @@ def test_auto_is_the_default_and_reuses_the_factorization():
     prob = _problem("robot_2dof", "auto")
     model = prob.mechanism.set_design(prob.start)
     q0, _ = prob.mechanism.initial_state()
-    kw = dict(start="static", q0=q0, store=[0])
+    settings = SimulationSettings(start="static", store=[0])
+    initial = InitialConditions(q0=q0)
     with warnings.catch_warnings():
         warnings.simplefilter("error")            # the default path warns about nothing
-        r = fx.simulate(model, 0.65, 5e-4, **kw)
-    rf = fx.simulate(model, 0.65, 5e-4, newton="full", **kw)
-    rr = fx.simulate(model, 0.65, 5e-4, newton="reuse", **kw)
-    assert r.stats["newton"] == "auto" and r.settings["newton"] == "auto"
+        r = fx.simulate(model, 0.65, 5e-4, settings, initial=initial)
+    rf = fx.simulate(model, 0.65, 5e-4, settings.replace(newton="full"), initial=initial)
+    rr = fx.simulate(model, 0.65, 5e-4, settings.replace(newton="reuse"), initial=initial)
+    assert r.stats["newton"] == "auto" and r.settings.newton == "auto"
     assert rf.stats["factorizations"] >= rf.stats["newton_iterations"]      # one per iteration
     assert r.stats["factorizations"] < 0.25 * rf.stats["factorizations"]
     assert rr.stats["factorizations"] < 0.05 * rf.stats["factorizations"]
@@ -135,7 +137,7 @@ def test_bad_newton_value_is_a_model_error_naming_the_argument(value):
                    section=fx.Circle(0.02))
     m.clamp(b.first)
     with pytest.raises(ModelError) as err:
-        fx.simulate(m, 1e-3, 1e-3, newton=value)
+        fx.simulate(m, 1e-3, 1e-3, settings=SimulationSettings(newton=value))
     msg = str(err.value)
     assert "newton must be one of 'full', 'reuse', 'auto'" in msg and repr(value) in msg
 
@@ -152,7 +154,7 @@ def test_reuse_jacobian_is_a_deprecated_alias():
             r = fx.simulate(m, 2e-3, 1e-3, reuse_jacobian=flag)
         assert r.stats["newton"] == mode
     with pytest.raises(ModelError, match="reuse_jacobian=True .* contradicts newton='full'"):
-        fx.simulate(m, 2e-3, 1e-3, reuse_jacobian=True, newton="full")
+        fx.simulate(m, 2e-3, 1e-3, settings=SimulationSettings(newton="full"), reuse_jacobian=True)
     assert set(NEWTON_MODES) == {"auto", "full", "reuse"}
 
 

@@ -12,6 +12,7 @@ from flexmbs.errors import CaseError, ModelError
 from flexmbs.model.constraints import (acceleration_rhs, constraint_jacobian, constraint_values,
                                  law_tables)
 from flexmbs.problem import Problem
+from flexmbs.analysis.settings import DesignDerivatives, InitialConditions, SimulationSettings
 
 STEEL = fx.Material(E=210e9, nu=0.3, rho=7800)
 
@@ -31,7 +32,7 @@ def _bead(h, w=2.0, r0=0.1, t_end=1.0):
     m.drive_rotation(rod.first, fx.TimeLaw(lambda t: w * t, lambda t: w + 0 * t,
                                            lambda t: 0 * t))
     m.prismatic(rod.first, bead, axis=(1.0, 0.0))
-    r = fx.simulate(m, t_end, h, rho_inf=0.8, start="rest")
+    r = fx.simulate(m, t_end, h, settings=SimulationSettings(rho_inf=0.8, start="rest"))
     p = r.position(bead)
     th = w * r.t
     radial = p[:, 0] * np.cos(th) + p[:, 1] * np.sin(th)
@@ -210,11 +211,12 @@ def test_sensitivities_through_a_prismatic_joint_pass_the_taylor_test():
 
     def block(x, gradient):
         model = mech.set_design(mech.design_values(x))
-        kw = dict(rho_inf=ts.rho_inf, start="static", q0=q0)
-        if gradient:
-            kw.update(design_derivatives=mech.element_property_derivatives(x),
-                      sensitivity_dofs=np.array([3 * node, 3 * node + 1, 3 * node + 2]))
-        return fx.simulate(model, mech.t_end, ts.h, store=[node], **kw)
+        derivatives = DesignDerivatives(
+            properties=mech.element_property_derivatives(x),
+            dofs=np.array([3 * node, 3 * node + 1, 3 * node + 2])) if gradient else None
+        return fx.simulate(model, mech.t_end, ts.h,
+                           SimulationSettings(rho_inf=ts.rho_inf, start="static", store=[node]),
+                           initial=InitialConditions(q0=q0), derivatives=derivatives)
 
     x = prob.start
     ev = prob.evaluate(x)

@@ -24,6 +24,7 @@ from flexmbs.errors import ResourceError
 from flexmbs.model.casefile import case_path
 from flexmbs.problem import Problem
 from flexmbs.resources import estimate_memory
+from flexmbs.analysis.settings import SimulationSettings
 
 ALU = fx.Material(E=72e9, nu=0.3, rho=2700)
 SIM = sys.modules["flexmbs.analysis.simulate"]
@@ -123,7 +124,7 @@ def test_many_elements_refused_with_the_estimate():
     t0 = time.perf_counter()
     mech = Problem(data).mechanism
     with pytest.raises(ResourceError, match=r"240012 unknowns.*store fewer outputs") as ei:
-        fx.simulate(mech.model, mech.t_end, mech.h, memory_limit=2e9)
+        fx.simulate(mech.model, mech.t_end, mech.h, settings=SimulationSettings(memory_limit=2e9))
     assert time.perf_counter() - t0 < 10.0   # the model's sections in Python, not the run
     assert ei.value.required >= 3 * 8.0 * 240006 * 1301
     assert ei.value.available == 2e9
@@ -133,7 +134,7 @@ def test_memory_limit_is_validated():
     """memory_limit must be a positive number of bytes; FLEXMBS_MEMORY_LIMIT likewise."""
     model, _ = clamped_beam(2)
     with pytest.raises(fx.ModelError, match="memory_limit must be a positive number.*-1"):
-        fx.simulate(model, 1e-3, 5e-4, memory_limit=-1)
+        fx.simulate(model, 1e-3, 5e-4, settings=SimulationSettings(memory_limit=-1))
 
 
 def test_estimate_within_factor_two_of_measured_peak(monkeypatch):
@@ -152,7 +153,7 @@ def test_estimate_within_factor_two_of_measured_peak(monkeypatch):
     tracemalloc.start()
     try:
         base = tracemalloc.get_traced_memory()[0]
-        r = fx.simulate(model, 0.65, 5e-4, start="static")
+        r = fx.simulate(model, 0.65, 5e-4, settings=SimulationSettings(start="static"))
         peak = tracemalloc.get_traced_memory()[1] - base
     finally:
         tracemalloc.stop()

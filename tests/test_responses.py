@@ -13,6 +13,7 @@ import flexmbs as fx
 from flexmbs.analysis.checks import taylor_test
 from flexmbs.errors import ModelError
 from flexmbs.responses import aggregate, beam_stress, joint_reaction, ks, motor_torque, pnorm
+from flexmbs.analysis.settings import DesignDerivatives, SimulationSettings
 
 STEEL = fx.Material(E=210e9, nu=0.3, rho=7800)
 G = 9.81
@@ -46,7 +47,7 @@ def test_cantilever_bending_stress_at_the_gauss_stations(section, order):
     A, I = EA / STEEL.E, EI / STEEL.E
     P = 1e-4 * EI
     m.add_load(b.last, fy=-P)
-    r = fx.simulate(m, 2e-3, 1e-3, start="static")
+    r = fx.simulate(m, 2e-3, 1e-3, settings=SimulationSettings(start="static"))
     st = beam_stress(m, r, b, shear=True)
     c = st.half_depth
     assert c == pytest.approx(0.5 * (section.h if isinstance(section, fx.Rectangle) else section.d))
@@ -77,7 +78,7 @@ def test_normal_stress_partials_at_chosen_stations(order):
     m, b = cantilever(section, 4, order)
     EA, _, EI, _, _ = section.properties(STEEL)
     m.add_load(b.last, fx=1e-3 * EA, fy=-1e-3 * EI)        # eps 1e-3, kappa up to 1e-3 / m
-    r = fx.simulate(m, 2e-3, 1e-3, start="static", store="all")
+    r = fx.simulate(m, 2e-3, 1e-3, settings=SimulationSettings(start="static", store="all"))
     st = beam_stress(m, r, b, local=True)
     nt, nel, nst = st.normal.shape
     steps = np.array([0, nt - 1, nt - 1, 1])
@@ -116,7 +117,8 @@ def test_cantilever_root_stress_at_the_nodes():
     for order, elements, tol in ((2, 4, 5e-4), (1, 4, 5e-4)):
         m, b = cantilever(section, elements, order)
         m.add_load(b.last, fy=-P)
-        st = beam_stress(m, fx.simulate(m, 2e-3, 1e-3, start="static"), b, stations="nodes")
+        st = beam_stress(m, fx.simulate(m, 2e-3, 1e-3, SimulationSettings(start="static")), b,
+                         stations="nodes")
         arm = L if order == 2 else L - 0.5 * L / elements
         assert st.xi[0] == -1.0 and st.s[0, 0] == 0.0
         assert abs(st.normal[-1, 0, 0] / (P * arm * c / I) - 1) < tol
@@ -130,7 +132,7 @@ def test_axial_bar_stress_is_n_over_a():
     EA = section.properties(STEEL)[0]
     N = 1e-4 * EA
     m.add_load(b.last, fx=N)
-    st = beam_stress(m, fx.simulate(m, 2e-3, 1e-3, start="static"), b)
+    st = beam_stress(m, fx.simulate(m, 2e-3, 1e-3, settings=SimulationSettings(start="static")), b)
     A = math.pi / 4 * 0.05 ** 2
     assert np.abs(st.normal / (N / A) - 1).max() < 1e-8
     assert np.abs(st.axial / (N / A) - 1).max() < 1e-8
@@ -201,7 +203,7 @@ def test_motor_torque_of_a_stiff_arm_under_gravity():
                                          lambda t: a * np.asarray(t) ** 2 / 2,
                                          lambda t: a * np.asarray(t)))
     m.set_gravity(0, -G)
-    r = fx.simulate(m, 1.0, 1e-3, start="static")
+    r = fx.simulate(m, 1.0, 1e-3, settings=SimulationSettings(start="static"))
     torque, grad = motor_torque(m, r, b.first)
     assert grad is None
     _, _, _, rhoA, rhoI = section.properties(stiff)
@@ -387,12 +389,13 @@ def _stress_run(d, with_gradient, dynamic, elements=3):
         m.add_load(b.last, fx=0.3 * P, fy=-P, law=law)
     else:
         m.add_load(b.last, fx=0.3 * P, fy=-P)
-    kw = {}
+    derivatives = None
     if with_gradient:
         dprop = np.repeat(section.property_derivatives(STEEL)[:, None, :], elements, axis=1)
-        kw = dict(design_derivatives=dprop, sensitivity_dofs=b.dofs)
-    r = fx.simulate(m, 0.02 if dynamic else 2e-3, 1e-3, start="rest" if dynamic else "static",
-                    **kw)
+        derivatives = DesignDerivatives(properties=dprop, dofs=b.dofs)
+    r = fx.simulate(m, 0.02 if dynamic else 2e-3, 1e-3,
+                    SimulationSettings(start="rest" if dynamic else "static"),
+                    derivatives=derivatives)
     dc = np.full((elements, 1), 0.5) if with_gradient else None       # c = d / 2
     return beam_stress(m, r, b, shear=True, dc=dc)
 
@@ -436,11 +439,11 @@ def test_stress_rejects_bad_input():
     m.clamp(g.first)
     b = m.add_beam("steel", (0, 1), (1, 1), 2, material=STEEL, section=fx.Circle(0.05))
     m.clamp(b.first)
-    r = fx.simulate(m, 0.002, 1e-3, store=[b])
+    r = fx.simulate(m, 0.002, 1e-3, settings=SimulationSettings(store=[b]))
     with pytest.raises(ModelError, match="beam 'given' has no material"):
         beam_stress(m, r, "given")
     m2, b2 = cantilever(fx.Circle(0.05), 2)
-    r2 = fx.simulate(m2, 0.002, 1e-3, store=[b2.last])
+    r2 = fx.simulate(m2, 0.002, 1e-3, settings=SimulationSettings(store=[b2.last]))
     with pytest.raises(ModelError, match="coordinates of beam 'beam' were not stored"):
         beam_stress(m2, r2, b2)
     with pytest.raises(ModelError, match=r"dc must be a finite \(2, nv\) array"):

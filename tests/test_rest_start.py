@@ -10,6 +10,7 @@ import math
 import numpy as np
 
 import flexmbs as fx
+from flexmbs.analysis.settings import InitialConditions, SimulationSettings
 
 
 def _spinning_beam(law=None):
@@ -37,12 +38,13 @@ def test_rest_start_turns_the_beam_rigidly():
     0.5 ms). With zero velocities at the nodes the drive does not hold (the old 'rest') the
     beam whips: more than 1e-2 m (measured 0.126 m)."""
     m, beam, w = _spinning_beam()
-    r = fx.simulate(m, 0.2, 1e-3, start="rest")
+    r = fx.simulate(m, 0.2, 1e-3, settings=SimulationSettings(start="rest"))
     assert _transverse(r, beam, w).max() < 1e-4
     # the initial velocities are the rigid field w x r
     x = r.position(beam.last)[0]
     np.testing.assert_allclose(r.velocity(beam.last)[0], [-w * x[1], w * x[0], w], atol=1e-12)
-    r0 = fx.simulate(m, 0.2, 1e-3, start="rest", qd0=np.zeros(m.ndof))
+    r0 = fx.simulate(m, 0.2, 1e-3, settings=SimulationSettings(start="rest"),
+                     initial=InitialConditions(qd0=np.zeros(m.ndof)))
     assert _transverse(r0, beam, w).max() > 1e-2
     assert math.isclose(r.t[-1], 0.2)
 

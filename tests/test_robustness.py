@@ -22,6 +22,7 @@ import flexmbs as fx
 from flexmbs.analysis.simulate import system_matrices
 from flexmbs.analysis.validity import ValidityLimits
 from robot_kinematics import planar_2r_inverse, robot_joint_laws, robot_tip_path
+from flexmbs.analysis.settings import InitialConditions, SimulationSettings
 
 CONSTRAINT_TOL = 1e-9
 ARM = 0.6
@@ -91,7 +92,7 @@ def test_rho_inf_second_order(rho_inf):
     m, a1, a2, th1, th12 = robot()
     devs = []
     for h in (2.5e-4, 1.25e-4, 6.25e-5):
-        res = fx.simulate(m, 0.64, h, rho_inf=rho_inf, start="static")
+        res = fx.simulate(m, 0.64, h, settings=SimulationSettings(rho_inf=rho_inf, start="static"))
         assert_robot_ok(res, a1, a2, th1, th12)
         devs.append(deviation30(res, a2))
     e1 = np.abs(devs[0] - devs[1][::2]).max()
@@ -112,7 +113,7 @@ def test_time_step_range():
     m, a1, a2, th1, th12 = robot()
     devs = {}
     for h in H_CONVERGING:
-        res = fx.simulate(m, 0.64, h, start="static", max_cuts=0)
+        res = fx.simulate(m, 0.64, h, settings=SimulationSettings(start="static", max_cuts=0))
         assert res.stats["step_cuts"] == 0
         assert_robot_ok(res, a1, a2, th1, th12)
         devs[h] = (res.t, deviation30(res, a2))
@@ -131,13 +132,13 @@ def test_step_beyond_newton_range_is_cut_or_reported():
     carrying time, residual and iterations; with the default step cuts it must complete."""
     m, a1, a2, th1, th12 = robot()
     try:
-        res = fx.simulate(m, 0.64, 0.128, start="static", max_cuts=0)
+        res = fx.simulate(m, 0.64, 0.128, settings=SimulationSettings(start="static", max_cuts=0))
     except fx.SimulationError as e:
         assert 0 < e.time <= 0.64 and e.iterations >= 1 and e.residual > 1e-10
         assert f"{e.time:.6g}" in str(e) and "did not converge" in str(e)
     else:
         assert_robot_ok(res, a1, a2, th1, th12)
-    res = fx.simulate(m, 0.64, 0.128, start="static")
+    res = fx.simulate(m, 0.64, 0.128, settings=SimulationSettings(start="static"))
     assert res.stats["step_cuts"] >= 1
     assert_robot_ok(res, a1, a2, th1, th12)
 
@@ -152,7 +153,7 @@ def test_1000x_stiffer_is_rigid_limit():
     scaled = []
     for factor in (1e3, 1e4):
         m, a1, a2, th1, th12 = robot(stiffness_factor=factor)
-        res = fx.simulate(m, 0.65, 5e-4, start="static")
+        res = fx.simulate(m, 0.65, 5e-4, settings=SimulationSettings(start="static"))
         assert_robot_ok(res, a1, a2, th1, th12)
         scaled.append(deviation30(res, a2).max() * factor)
     assert scaled[0] == pytest.approx(scaled[1], rel=1e-3)
@@ -166,8 +167,8 @@ def test_1000x_softer_large_deflection():
     few %: the validity check must see that (above its 1 % warning limit), and its limits are
     raised for this deliberately nonlinear run."""
     m, a1, a2, th1, th12 = robot(stiffness_factor=1e-3)
-    res = fx.simulate(m, 0.65, 5e-4, start="static",
-                      validity=ValidityLimits(strain_warn=0.5, strain_fail=1.0))
+    res = fx.simulate(m, 0.65, 5e-4, SimulationSettings(
+        start="static", validity=ValidityLimits(strain_warn=0.5, strain_fail=1.0)))
     assert res.validity["bending strain"].value > 0.01
     assert_robot_ok(res, a1, a2, th1, th12)
     o, a, tip = res.position(a1.first), res.position(a1.last), res.position(a2.last)
@@ -209,7 +210,7 @@ def test_ten_seconds_of_repeated_motion():
     of rho_inf = 0.5 acts on the free vibration, which must neither grow nor vanish)."""
     th1, th12, path = _there_and_back_laws()
     m, a1, a2, _, _ = robot(laws=(th1, th12))
-    res = fx.simulate(m, 10.0, 5e-4, start="static", store=[a1, a2])
+    res = fx.simulate(m, 10.0, 5e-4, settings=SimulationSettings(start="static", store=[a1, a2]))
     assert res.t.size == 20001
     assert_robot_ok(res, a1, a2, th1, th12)
     dev = deviation30(res, a2, path)
@@ -224,7 +225,7 @@ def test_towards_singular_posture(t_end):
     up to 0.686 s (theta2 = -2.7 deg, joint accelerations growing without bound) the run must
     complete, finite, with the constraints held and the deviation still a few mm at most."""
     m, a1, a2, th1, th12 = robot()
-    res = fx.simulate(m, t_end, 5e-4, start="static")
+    res = fx.simulate(m, t_end, 5e-4, settings=SimulationSettings(start="static"))
     assert_robot_ok(res, a1, a2, th1, th12)
     assert deviation30(res, a2).max() < 0.05
 
@@ -234,14 +235,14 @@ def test_beyond_singular_posture_is_refused():
     simulate must refuse with a ModelError before any time step (the drive laws fail)."""
     m, *_ = robot()
     with pytest.raises(fx.ModelError, match="out of reach"):
-        fx.simulate(m, 0.70, 5e-4, start="static")
+        fx.simulate(m, 0.70, 5e-4, settings=SimulationSettings(start="static"))
 
 
 def test_beyond_singular_posture_message_names_law_and_time():
     """The error past the singular posture should say which law failed and when (~0.686 s)."""
     m, *_ = robot()
     with pytest.raises(fx.ModelError) as err:
-        fx.simulate(m, 0.70, 5e-4, start="static")
+        fx.simulate(m, 0.70, 5e-4, settings=SimulationSettings(start="static"))
     assert "theta1" in str(err.value) and "0.686" in str(err.value)
 
 
@@ -255,11 +256,11 @@ def test_random_designs_within_bounds(p_mm):
     deviation below 50 mm (the notes report 6-8 mm at the 20 mm bounds), and the dense LU and
     KLU paths give the same trajectory (to 1e-9 m: both solve the same Newton systems)."""
     m, a1, a2, th1, th12 = robot(p_mm)
-    res = fx.simulate(m, 0.65, 5e-4, start="static", solver="dense")
+    res = fx.simulate(m, 0.65, 5e-4, settings=SimulationSettings(start="static", solver="dense"))
     assert_robot_ok(res, a1, a2, th1, th12)
     dev = deviation30(res, a2)
     assert dev.max() < 0.05
-    res_klu = fx.simulate(m, 0.65, 5e-4, start="static", solver="klu")
+    res_klu = fx.simulate(m, 0.65, 5e-4, settings=SimulationSettings(start="static", solver="klu"))
     assert np.abs(res_klu.position(a2.last) - res.position(a2.last)).max() < 1e-9
 
 
@@ -303,7 +304,8 @@ def test_free_beam_energy_bounded(rho_inf):
     qd0 = np.zeros(m.ndof)
     qd0[1::3] = 20.0 * (x - 0.5) + 10.0 * np.sin(np.pi * x)     # spin about the centre + bending
     qd0[2::3] = 20.0
-    res = fx.simulate(m, 0.3, 5e-4, rho_inf=rho_inf, qd0=qd0)
+    res = fx.simulate(m, 0.3, 5e-4, settings=SimulationSettings(rho_inf=rho_inf),
+                      initial=InitialConditions(qd0=qd0))
     assert np.all(np.isfinite(res.q))
     energy, strain = _energy_history(m, res)
     e0 = energy[0]

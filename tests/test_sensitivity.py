@@ -41,6 +41,7 @@ from flexmbs.methods.fully import ScaledProblem
 from flexmbs.model.casefile import read_description
 import flexmbs.problem
 from flexmbs.problem import Problem
+from flexmbs.analysis.settings import DesignDerivatives
 
 # (case, design in mm): published optima of Tables 1, 2 and 3, where the deviation is active
 DESIGNS = {
@@ -140,17 +141,20 @@ def test_deviation_history_derivatives_pass_the_taylor_test(name, nsteps, mode):
 
 def test_dense_solver_derivatives_pass_the_taylor_test(monkeypatch):
     """The dense LAPACK path (solver='dense') of the direct derivatives, robot (28), 500
-    steps: Taylor order > 1.8 (and < 1.3 with a 1e-3 gradient error). Problem has no solver
-    setting: its simulate call is given solver='dense' here."""
-    calls = []
+    steps: Taylor order > 1.8 (and < 1.3 with a 1e-3 gradient error). The case's
+    solver.linear_solver = "dense" reaches every run of the problem (the runs' settings are
+    recorded)."""
+    solvers = []
 
-    def dense(*args, **kw):
-        calls.append(1)
-        return simulate(*args, solver="dense", **kw)
+    def recorded(*args, **kw):
+        r = simulate(*args, **kw)
+        solvers.append(r.settings.solver)
+        return r
 
-    monkeypatch.setattr(flexmbs.problem, "simulate", dense)
-    _assert_taylor(_history_taylor("robot_2dof", 500, {}, STEP[("robot_2dof", 500)]))
-    assert calls
+    monkeypatch.setattr(flexmbs.problem, "simulate", recorded)
+    _assert_taylor(_history_taylor("robot_2dof", 500, {"solver.linear_solver": "dense"},
+                                   STEP[("robot_2dof", 500)]))
+    assert solvers and set(solvers) == {"dense"}
 
 
 @pytest.mark.parametrize("var", range(4))
@@ -369,6 +373,7 @@ def test_constraint_force_derivatives_are_only_computed_when_asked():
     r = prob.simulate(p, gradient=True, responses=["deviation_28"])
     assert r.dmu is None and r.dq is not None
     assert prob.simulate(p, gradient=True, responses=["torque_elbow"]).dmu is not None
-    with pytest.raises(ModelError, match="constraint_force_derivatives"):
-        simulate(prob.mechanism.model, 10 * prob.mechanism.h, h=prob.mechanism.h,
-                 constraint_force_derivatives=True)
+    with pytest.raises(ModelError, match="constraint_force_derivatives=True needs "
+                                         "design_derivatives"):
+        simulate(prob.mechanism.model, 10 * prob.mechanism.h,
+                 derivatives=DesignDerivatives(constraint_forces=True), h=prob.mechanism.h)

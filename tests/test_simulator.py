@@ -19,6 +19,7 @@ from flexmbs.analysis.simulate import system_matrices
 from flexmbs.analysis.validity import ValidityLimits
 from flexmbs.errors import ModelError, SimulationError
 from robot_kinematics import planar_2r_inverse, robot_joint_laws, robot_tip_path
+from flexmbs.analysis.settings import InitialConditions, SimulationSettings
 
 STEEL = fx.Material(E=210e9, nu=0.3, rho=7800)
 NEWTON_TOL = 1e-10          # simulate()'s default tolerance on max|dq| / qscale
@@ -52,7 +53,7 @@ def robot(p_mm, stiffness_factor=1.0):
 
 def simulate_robot(p_mm=(50, 50, 50, 50), **kw):
     m, arm1, arm2 = robot(p_mm, kw.pop("stiffness_factor", 1.0))
-    return fx.simulate(m, 0.65, 5e-4, start="static", **kw), m, arm1, arm2
+    return fx.simulate(m, 0.65, 5e-4, SimulationSettings(start="static", **kw)), m, arm1, arm2
 
 
 @pytest.fixture(scope="module")
@@ -72,7 +73,7 @@ def cantilever(section, elements, order=2, length=1.0, material=STEEL):
 
 def static_solution(m):
     """Static equilibrium under the (constant) loads: the t = 0 state of a static start."""
-    return fx.simulate(m, 1e-3, 1e-3, start="static")
+    return fx.simulate(m, 1e-3, 1e-3, settings=SimulationSettings(start="static"))
 
 
 def linear_k_m(m, fixed_dofs):
@@ -246,7 +247,9 @@ def test_cantilever_rolls_into_full_circle_under_tip_moment():
     m, b = cantilever(section, 8, length=L)
     EI = section.properties(STEEL)[2]
     m.add_load(b.last, moment=2 * math.pi * EI / L)
-    r = fx.simulate(m, 1e-3, 1e-3, start="static", validity=ValidityLimits(strain_warn=0.05))
+    r = fx.simulate(m, 1e-3, 1e-3,
+                    settings=SimulationSettings(start="static",
+                                                validity=ValidityLimits(strain_warn=0.05)))
     assert abs(r.validity["bending strain"].value / (math.pi * 0.01 / L) - 1) < 1e-8
     tip = r.position(b.last)[0]
     assert np.hypot(*tip) < 1e-3 * L
@@ -331,11 +334,13 @@ def test_generalized_alpha_second_order_on_flexible_pendulum(rho_inf):
     m, b = soft_pendulum()
     T = 0.5
     levels = [8, 9, 10, 11]
-    ref = fx.simulate(m, T, T / 2 ** 14, rho_inf=rho_inf, store=[b.last])
+    ref = fx.simulate(m, T, T / 2 ** 14,
+                      settings=SimulationSettings(rho_inf=rho_inf, store=[b.last]))
     ref_tip = ref.position(b.last)[::2 ** (14 - levels[0])]
     errors = []
     for k in levels:
-        r = fx.simulate(m, T, T / 2 ** k, rho_inf=rho_inf, store=[b.last])
+        r = fx.simulate(m, T, T / 2 ** k,
+                        settings=SimulationSettings(rho_inf=rho_inf, store=[b.last]))
         errors.append(np.abs(r.position(b.last)[::2 ** (k - levels[0])] - ref_tip).max())
     assert np.abs(ref_tip).max() > 1.05          # the pendulum stretches: nonlinear, flexible
     orders = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
@@ -362,7 +367,7 @@ def test_energy_of_free_flexible_pendulum_conserved_with_rho_inf_1():
                      for d in np.eye(m.ndof)])
     assert np.abs(grad - fint).max() <= 1e-6 * np.abs(fint).max()
 
-    res = fx.simulate(m, 1.0, 1e-3, rho_inf=1.0)
+    res = fx.simulate(m, 1.0, 1e-3, settings=SimulationSettings(rho_inf=1.0))
     _, mass = system_matrices(m, res.q[0], cm=1.0, ck=0.0)
     mass = mass[:m.ndof, :m.ndof]
     kinetic = 0.5 * np.einsum("ti,ij,tj->t", res.qd, mass, res.qd)
@@ -396,7 +401,8 @@ def test_modal_response_of_cantilever_matches_scalar_generalized_alpha(rho_inf):
         amp = 1e-5 / np.abs(vecs[:, mode]).max()       # largest coordinate moves 1e-5
         qd0 = np.zeros(m.ndof)
         qd0[free] = amp * omega[mode] * vecs[:, mode]
-        r = fx.simulate(m, steps * h, h, rho_inf=rho_inf, qd0=qd0)
+        r = fx.simulate(m, steps * h, h, settings=SimulationSettings(rho_inf=rho_inf),
+                        initial=InitialConditions(qd0=qd0))
         eta = (r.q[:, free] - m.reference_coordinates()[free]) @ mm @ vecs[:, mode]
         etad = r.qd[:, free] @ mm @ vecs[:, mode]
         expected = generalized_alpha_sdof(omega[mode], h, rho_inf, 0.0, amp * omega[mode], steps)
@@ -468,7 +474,7 @@ def test_rigid_link_constraints_hold_at_every_step():
                                          name="swing"))
     body = m.add_rigid_body("payload", [b.last], mass=3.0, inertia=0.05, center=(0.75, 0.1))
     m.set_gravity(0, -9.81)
-    r = fx.simulate(m, 0.5, 1e-3, start="static")
+    r = fx.simulate(m, 0.5, 1e-3, settings=SimulationSettings(start="static"))
     c, j = body.first, b.last
     ref = m.reference_coordinates()
     d = ref[3 * j:3 * j + 2] - ref[3 * c:3 * c + 2]
@@ -674,7 +680,8 @@ def test_newton_failure_reports_time_residual_and_iterations():
     increment and the iteration count (= max_iter)."""
     m, _, _ = robot((50, 50, 50, 50))
     with pytest.raises(SimulationError) as err:
-        fx.simulate(m, 0.65, 0.65, start="static", max_cuts=0, max_iter=20)
+        fx.simulate(m, 0.65, 0.65,
+                    settings=SimulationSettings(start="static", max_cuts=0, max_iter=20))
     e = err.value
     assert e.time == pytest.approx(0.65)
     assert e.iterations == 20
@@ -717,8 +724,8 @@ def test_motor_law_returning_nan_raises_model_error_naming_the_law():
     (lambda m: fx.simulate(m, 0.1, 0.0), "h must be"),
     (lambda m: fx.simulate(m, 0.1, -1e-3), "h must be"),
     (lambda m: fx.simulate(m, 0.1, 3e-2), "whole number of steps"),
-    (lambda m: fx.simulate(m, 0.1, 1e-3, rho_inf=1.5), "rho_inf"),
-    (lambda m: fx.simulate(m, 0.1, 1e-3, rho_inf=-0.1), "rho_inf"),
+    (lambda m: fx.simulate(m, 0.1, 1e-3, settings=SimulationSettings(rho_inf=1.5)), "rho_inf"),
+    (lambda m: fx.simulate(m, 0.1, 1e-3, settings=SimulationSettings(rho_inf=-0.1)), "rho_inf"),
     (lambda m: fx.Circle(-0.01), "diameter"),
     (lambda m: fx.Tube(0.02, 0.015), "thickness"),
     (lambda m: m.set_section("no such arm", fx.Circle(0.02)), "no such arm"),

@@ -41,6 +41,7 @@ from scipy.special import ellipk
 
 from flexmbs import Circle, Material, Model, TimeLaw, simulate
 from flexmbs.model.sections import GivenSection, section_properties
+from flexmbs.analysis.settings import SimulationSettings
 
 # ----------------------------------------------------------------------------- helpers
 
@@ -86,7 +87,7 @@ def _spin_up_flexmbs(omega_s, elements=8, h=0.01, t_end=20.0):
                       section=GivenSection(p["EA"], p["GA"], p["EI"], p["rhoA"], p["rhoI"]))
     m.pin(beam.first)
     m.drive_rotation(beam.first, law)     # the root section is clamped to the driven hub
-    r = simulate(m, t_end=t_end, h=h, rho_inf=0.5)
+    r = simulate(m, settings=SimulationSettings(rho_inf=0.5), t_end=t_end, h=h)
     d = r.position(beam.last) - r.position(beam.first)
     th = law.value(r.t)
     return r.t, -d[:, 0] * np.sin(th) + d[:, 1] * np.cos(th)
@@ -187,7 +188,7 @@ def _slider_crank_flexmbs(material, omega, t_s, t_end, h, elements=4, slider_mas
     m.hinge(a, rod.first)
     m.prescribe_position(rod.last, y=0.0)
     m.add_point_mass(rod.last, slider_mass)
-    r = simulate(m, t_end=t_end, h=h, rho_inf=0.5)
+    r = simulate(m, settings=SimulationSettings(rho_inf=0.5), t_end=t_end, h=h)
     pa, pb = r.position(rod.first), r.position(rod.last)
     pm = r.position(rod.nodes[len(rod.nodes) // 2])
     chord = (pb - pa) / np.linalg.norm(pb - pa, axis=1)[:, None]
@@ -323,7 +324,7 @@ def test_compound_pendulum_period(amplitude):
     m.set_gravity(0.0, -g)
     h = 5e-4
     t_end = round(3.2 * period / h) * h
-    r = simulate(m, t_end=t_end, h=h, rho_inf=0.5)
+    r = simulate(m, settings=SimulationSettings(rho_inf=0.5), t_end=t_end, h=h)
     c = r.position(body.first)
     angle = np.arctan2(c[:, 0], -c[:, 1])
     k = np.flatnonzero((angle[:-1] < 0) & (angle[1:] >= 0))          # upward zero crossings

@@ -9,6 +9,7 @@ import pytest
 import flexmbs as fx
 from flexmbs.analysis.validity import ValidityLimits, check_result
 from flexmbs.errors import InvalidResultError, ModelError, ValidityWarning
+from flexmbs.analysis.settings import InitialConditions, SimulationSettings
 
 ALU = fx.Material(E=72e9, nu=0.3, rho=2700)
 TUBE = fx.Tube.with_wall_ratio(0.05, 0.1)
@@ -31,7 +32,7 @@ def test_1e9_newton_cantilever_fails_naming_strain_and_element():
     end node) confirms the magnitude independently of the check."""
     m, b = cantilever(1e9)
     with pytest.raises(InvalidResultError) as e:
-        fx.simulate(m, 1e-3, 1e-3, start="static")
+        fx.simulate(m, 1e-3, 1e-3, settings=SimulationSettings(start="static"))
     msg = str(e.value)
     assert "axial strain" in msg and "element 0 (element 0 of beam 'tube')" in msg
     res = e.value.result
@@ -55,7 +56,7 @@ def test_small_tip_load_bending_strain_matches_beam_theory(elements, order):
     m, b = cantilever(1.0, elements, order)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        res = fx.simulate(m, 1e-3, 1e-3, start="static")
+        res = fx.simulate(m, 1e-3, 1e-3, settings=SimulationSettings(start="static"))
     EI = TUBE.properties(ALU)[2]
     arm = L - (L / elements / 2 if order == 1 else 0.0)
     expected = 1.0 * arm * (TUBE.d / 2) / EI
@@ -100,7 +101,8 @@ def test_energy_of_a_free_beam_does_not_grow_and_injected_energy_is_caught():
     the second half of the stored history quadruples the kinetic energy there: the check
     must fail."""
     m, qd0 = _free_beam()
-    res = fx.simulate(m, 0.05, 5e-4, rho_inf=1.0, qd0=qd0)
+    res = fx.simulate(m, 0.05, 5e-4, settings=SimulationSettings(rho_inf=1.0),
+                      initial=InitialConditions(qd0=qd0))
     energy = res.validity["energy"]
     assert energy.status == "ok" and energy.value < 1e-3
     bad = dataclasses.replace(res, qd=res.qd.copy())
@@ -112,7 +114,7 @@ def test_checks_of_unstored_coordinates_are_skipped_and_say_so():
     """With store= a subset, elements whose nodes are not stored are not checked and the
     check's note says so; a driven system has no energy check (the drive does work)."""
     m, b = cantilever(1.0)
-    res = fx.simulate(m, 1e-3, 1e-3, start="static", store=[b.last])
+    res = fx.simulate(m, 1e-3, 1e-3, settings=SimulationSettings(start="static", store=[b.last]))
     assert res.validity["axial strain"].status == "skipped"
     assert "not stored" in res.validity["axial strain"].note
     assert res.validity["energy"].status == "skipped"
@@ -125,15 +127,18 @@ def test_validity_settings_warn_error_off_and_bad_value():
     EI = TUBE.properties(ALU)[2]
     m, b = cantilever(0.02 * EI / (L * TUBE.d / 2))
     with pytest.warns(ValidityWarning, match="bending strain"):
-        fx.simulate(m, 1e-3, 1e-3, start="static")
+        fx.simulate(m, 1e-3, 1e-3, settings=SimulationSettings(start="static"))
     with pytest.raises(InvalidResultError, match="bending strain"):
-        fx.simulate(m, 1e-3, 1e-3, start="static", validity="error")
+        fx.simulate(m, 1e-3, 1e-3, settings=SimulationSettings(start="static", validity="error"))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        res = fx.simulate(m, 1e-3, 1e-3, start="static", validity="off")
-        fx.simulate(m, 1e-3, 1e-3, start="static", validity=ValidityLimits(strain_warn=0.05))
+        res = fx.simulate(m, 1e-3, 1e-3,
+                          settings=SimulationSettings(start="static", validity="off"))
+        fx.simulate(m, 1e-3, 1e-3,
+                    settings=SimulationSettings(start="static",
+                                                validity=ValidityLimits(strain_warn=0.05)))
     assert res.validity.checks == []
     with pytest.raises(ModelError, match="validity must be"):
-        fx.simulate(m, 1e-3, 1e-3, validity="loud")
+        fx.simulate(m, 1e-3, 1e-3, settings=SimulationSettings(validity="loud"))
     with pytest.raises(ModelError, match="strain_warn"):
         ValidityLimits(strain_warn=0.2, strain_fail=0.1)

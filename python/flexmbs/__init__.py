@@ -9,6 +9,8 @@ Public API (explicit):
     Material, Circle, Tube, Rectangle, GivenSection   sections (sections.py)
     TimeLaw                      motor and load laws with derivatives (laws.py)
     simulate, Result             generalized-alpha simulation (simulate.py)
+    SimulationSettings, InitialConditions, DesignDerivatives   simulate's settings object and
+                                 the requests of one run (settings.py)
     simulate_with_error, verify, convergence_check   time-discretisation error estimates,
                                  designs verified at converged resolution (accuracy.py)
     check_tangent, check_iteration_matrix, taylor_test   derivative checkers (checks.py)
@@ -18,6 +20,7 @@ Public API (explicit):
 """
 from flexmbs.analysis.accuracy import convergence_check, simulate_with_error, verify
 from flexmbs.analysis.checks import check_iteration_matrix, check_tangent, taylor_test
+from flexmbs.analysis.settings import DesignDerivatives, InitialConditions, SimulationSettings
 from flexmbs.analysis.simulate import Result, simulate
 from flexmbs.errors import (CaseError, FlexmbsError, InvalidResultError, ModelError,
                             ResourceError, SettingWarning, SimulationError, ValidityWarning)
@@ -32,7 +35,8 @@ __all__ = [
     "__version__",
     "Problem", "load_problem", "optimize_weakly", "optimize_fully", "OptimizationResult",
     "Model", "Body", "Material", "Circle", "Tube", "Rectangle", "GivenSection", "TimeLaw",
-    "simulate", "Result", "simulate_with_error", "verify", "convergence_check",
+    "simulate", "Result", "SimulationSettings", "InitialConditions", "DesignDerivatives",
+    "simulate_with_error", "verify", "convergence_check",
     "check_tangent", "check_iteration_matrix", "taylor_test",
     "FlexmbsError", "ModelError", "SimulationError", "CaseError", "ResourceError",
     "InvalidResultError", "ValidityWarning", "SettingWarning", "FEASIBILITY_TOL",

@@ -83,15 +83,21 @@ def units(problem):
 def resolution(problem):
     """The discretisation a Problem's runs use: step h (with error-controlled steps,
     `adaptive`, the spacing of the response grid), end time, steps of the response grid,
-    rho_inf, start and the elements of every beam."""
+    rho_inf, start, the elements of every beam and the whole SimulationSettings of its runs
+    (`settings`, flexmbs.analysis.settings.SimulationSettings.to_dict; each run keeps the
+    coordinates its responses read, and the adjoint's forward run is polished)."""
     d = problem.description
     mech = problem.mechanism
-    return {"h": float(d.time.grid_h), "adaptive": bool(d.time.adaptive),
-            "t_end": float(mech.t_end), "steps": int(mech.t.size - 1),
-            "time_points": int(mech.t.size), "rho_inf": float(d.time.rho_inf),
-            "start": d.time.start,
-            "elements": {b.name: int(b.elements) for b in d.bodies
-                         if getattr(b, "type", None) == "beam"}}
+    out = {"h": float(d.time.grid_h), "adaptive": bool(d.time.adaptive),
+           "t_end": float(mech.t_end), "steps": int(mech.t.size - 1),
+           "time_points": int(mech.t.size), "rho_inf": float(d.time.rho_inf),
+           "start": d.time.start,
+           "elements": {b.name: int(b.elements) for b in d.bodies
+                        if getattr(b, "type", None) == "beam"}}
+    settings = getattr(problem, "settings", None)
+    if settings is not None:
+        out["settings"] = settings.to_dict()
+    return out
 
 
 def run_statistics(stats, wall_time=None, cpu_time=None):

@@ -32,6 +32,8 @@ from flexmbs.analysis.adaptive import choose_steps, subdivide
 from flexmbs.analysis.adjoint import (adjoint_gradient, adjoint_memory, checkpoint_interval,
                                       checkpoint_memory)
 from flexmbs.analysis.simulate import CHECKPOINT_PART, TAPE_PART, memory_estimate, simulate
+from flexmbs.analysis.settings import DesignDerivatives, InitialConditions, SimulationSettings
+from flexmbs.analysis.validity import ValidityLimits
 from flexmbs.errors import CaseError, ModelError, ResourceError, SettingWarning
 from flexmbs.model.casefile import description_from_dict, read_description
 from flexmbs.model.description import Beam, Deviation, Description, Mass, Station
@@ -43,8 +45,8 @@ from flexmbs.responses.aggregate import aggregate, aggregate_weights
 from flexmbs.responses.kinds import kind_of
 from flexmbs.responses.station import locate
 
-__all__ = ["Problem", "Evaluation", "load_problem", "constraint_rows", "GRADIENT_METHODS",
-           "FEASIBILITY_TOL", "is_feasible"]
+__all__ = ["Problem", "Evaluation", "load_problem", "simulation_settings", "constraint_rows",
+           "GRADIENT_METHODS", "FEASIBILITY_TOL", "is_feasible"]
 
 #: The one feasibility tolerance of flexmbs: a design is feasible when its largest normalised
 #: constraint value g (relative to the limits, g <= 0 asked) is <= FEASIBILITY_TOL. Evaluation,
@@ -255,6 +257,9 @@ class Problem:
         self.default_gradient_method = gradient_method
         _check_checkpoints(checkpoints)
         self.adjoint_checkpoints = checkpoints
+        #: the SimulationSettings of every run of the problem, from the case's [time] and
+        #: [solver] (`simulation_settings`); a run sets its store (and the adjoint's polish)
+        self.settings = simulation_settings(self.description)
         self._refined = {}
         # the frozen step grid of an adaptive case (time.h = "auto"): chosen once, under the
         # mechanism's lock of its lazily built parts (re-entrant: the pilots build them too)
@@ -420,21 +425,20 @@ class Problem:
             bool(tape or checkpoints) or (gradient and bool(dnodes or forces)))
         q0, qd0 = mech.start_state(x, gradient=differentiated,
                                      static=partial(_static_state, h=ts.grid_h))    # [initial], if any
-        newton = ts.newton
-        if ts.reuse_jacobian is not None and newton == "auto":    # the deprecated spelling
-            newton = "reuse" if ts.reuse_jacobian else "full"
-        kw = dict(rho_inf=ts.rho_inf, start=ts.start, newton=newton, q0=q0,
-                  qd0=None if ts.start == "static" else qd0)
+        settings = self.settings
+        kw = dict(initial=InitialConditions(q0=q0, qd0=None if ts.start == "static" else qd0))
         if tape:     # the discrete adjoint's forward run: every state kept, converged fully
-            kw.update(tape=True, polish=True)
+            kw.update(tape=True)
+            settings = settings.replace(polish=True)
         elif checkpoints:     # ... or the full state every `checkpoints` time points
-            kw.update(checkpoints=int(checkpoints), polish=True)
+            kw.update(checkpoints=int(checkpoints))
+            settings = settings.replace(polish=True)
         if store is None:
             # only what the responses read: the multipliers (motor torques, joint reactions)
             # are kept at every step anyway, so without a node to read one node's coordinates
             # are enough (the core keeps at least one coordinate)
             store = nodes if nodes else [0]
-        kw["store"] = store
+        kw["settings"] = settings.replace(store=store)
         if steps is None:
             steps = self.steps()
         if steps is not None:
@@ -443,8 +447,9 @@ class Problem:
             # the core needs at least one sensitivity coordinate: node 0's when only the
             # multipliers' derivatives are wanted
             dofs = np.array([3 * n + k for n in (dnodes or [0]) for k in range(3)])
-            kw.update(design_derivatives=mech.element_property_derivatives(x),
-                      sensitivity_dofs=dofs, constraint_force_derivatives=forces)
+            kw["derivatives"] = DesignDerivatives(
+                properties=mech.element_property_derivatives(x), dofs=dofs,
+                constraint_forces=forces)
         return model, mech.t_end, mech.h, kw
 
     def animate(self, result, path, *, evaluation=None, **options):
@@ -977,6 +982,30 @@ def _scalar(v, dv, how, parameter, t):
     return aggregate(v, dv, how, parameter=parameter, t=t)
 
 
+def simulation_settings(description):
+    """The SimulationSettings of a case description: [time]'s rho_inf, start and newton (its
+    deprecated reuse_jacobian as the newton it names) and [solver]'s fields (linear_solver
+    is the settings' solver; validity with the limits it sets, ValidityLimits's others).
+    A limit set against the other's default (a warning limit above the default failure
+    limit) is a CaseError naming it."""
+    ts, so = description.time, description.solver
+    newton = ts.newton
+    if ts.reuse_jacobian is not None and newton == "auto":    # the deprecated spelling
+        newton = "reuse" if ts.reuse_jacobian else "full"
+    given = {f"{k}_{w}": getattr(so, f"{k}_{w}") for k in ("strain", "drift", "energy")
+             for w in ("warn", "fail")}
+    try:
+        limits = ValidityLimits(mode=so.validity,
+                                **{k: v for k, v in given.items() if v is not None})
+    except ModelError as exc:
+        raise CaseError(f"[solver]: {exc}") from None
+    return SimulationSettings(rho_inf=ts.rho_inf, start=ts.start, newton=newton, tol=so.tol,
+                              max_iter=so.max_iter, max_cuts=so.max_cuts,
+                              solver=so.linear_solver, kscale=so.kscale, penalty=so.penalty,
+                              polish=so.polish, validity=limits,
+                              memory_limit=so.memory_limit)
+
+
 def _static_state(model, q0, h):
     """Every coordinate of the static equilibrium at t = 0 of a built model from q0 (the core's
     static start, one step h): the [initial] static_loads deformation (Mechanism.start_state).
@@ -984,5 +1013,6 @@ def _static_state(model, q0, h):
     from 'rest' with this deformation."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", SettingWarning)
-        r = simulate(model, h, h, start="static", q0=q0, store="all", validity="off")
+        r = simulate(model, h, h, SimulationSettings(start="static", validity="off"),
+                     initial=InitialConditions(q0=q0))
     return np.array(r.q[0], float)

@@ -9,9 +9,9 @@ it with `available_memory` (or an explicit limit) and raises ResourceError with 
 what to change. The estimate is meant to be within a factor 2 of the real peak: it decides
 whether a run can fit, not how much it costs to the byte.
 
-The limit: ``simulate(..., memory_limit=...)`` in bytes; None (default) reads the environment
-variable FLEXMBS_MEMORY_LIMIT (bytes, suffixes k, M, G, T allowed, e.g. "8G"; "none" or "inf"
-disables the check), and without it the memory available now (MemAvailable of /proc/meminfo,
+The limit: ``SimulationSettings(memory_limit=...)`` (a case: ``[solver] memory_limit``) in
+bytes; None (default) reads the environment variable FLEXMBS_MEMORY_LIMIT (bytes, suffixes
+k, M, G, T allowed, e.g. "8G"; "none" or "inf" disables the check), and without it the memory available now (MemAvailable of /proc/meminfo,
 else sysconf, bounded by the process's address-space limit, RLIMIT_AS).
 """
 from __future__ import annotations
@@ -276,7 +276,7 @@ def check_memory(est: MemoryEstimate, limit=None, what="this run"):
         f"{what} needs about {format_bytes(total)} ({est.largest()}; and roughly "
         f"{format_seconds(est.seconds)} of computing), more than {src} "
         f"({format_bytes(avail)}): " + "; or ".join(hints)
-        + ". simulate(..., memory_limit=bytes) or FLEXMBS_MEMORY_LIMIT sets the limit "
+        + ". SimulationSettings(memory_limit=bytes) or FLEXMBS_MEMORY_LIMIT sets the limit "
           "(math.inf / 'none': no check)",
         required=total, available=avail)
 

@@ -10,7 +10,7 @@ one backward pass over the stored converged states (Fortran, fortran/adjoint.f90
 factorization and one transposed solve of the step's iteration matrix per step, for all nf
 functionals at once, whatever the number of design variables. The derivation is in
 docs/adjoint.md; the result is the transpose of the direct differentiation that
-`simulate(design_derivatives=...)` carries forward, so both agree to the Newton tolerance.
+`simulate(derivatives=...)` carries forward, so both agree to the Newton tolerance.
 
 Checkpointing (docs/adjoint.md section 3b): `simulate_for_adjoint(..., checkpoints=K)` keeps
 the full integration state at every K-th time point instead of the tape of every state;
@@ -22,10 +22,11 @@ and one segment's tape (`checkpoint_memory`), ~sqrt(N) for N steps with K ~ sqrt
 
 >>> import numpy as np
 >>> from flexmbs.analysis.adjoint import adjoint_gradient, simulate_for_adjoint
+>>> from flexmbs.analysis.settings import SimulationSettings
 >>> from flexmbs.problem import Problem
 >>> mech = Problem("robot_2dof").mechanism
 >>> model = mech.set_design(mech.start)
->>> r = simulate_for_adjoint(model, 0.05, 5e-4, start="static")   # the tape of every state
+>>> r = simulate_for_adjoint(model, 0.05, 5e-4, SimulationSettings(start="static"))  # the tape
 >>> gq = np.zeros((r.t.size, model.ndof))
 >>> gq[-1, 0] = 1.0                                           # G = q_0(t_end)
 >>> adjoint_gradient(model, r, mech.element_property_derivatives(mech.start), gq).shape
@@ -35,8 +36,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from flexmbs.analysis.simulate import (_tape_bytes, checkpoint_bytes, checkpoint_rows, law_times,
-                                       NEWTON_MODES, Result, simulate)
+from flexmbs.analysis.simulate import (_arguments, _tape_bytes, checkpoint_bytes, checkpoint_rows,
+                                       law_times, newton_mode, NEWTON_MODES, Result, simulate)
 from flexmbs.core import (Status, core_model_args, klu_analysis, simulate_adjoint_arrays,
                           simulate_arrays)
 from flexmbs.errors import ModelError, ResourceError, SimulationError
@@ -113,10 +114,11 @@ def checkpoint_interval(model, nsteps, available=None):
     return lo
 
 
-def simulate_for_adjoint(model, t_end, h=5e-4, *, checkpoints=None, **kwargs):
+def simulate_for_adjoint(model, t_end, h=5e-4, settings=None, *, checkpoints=None,
+                         initial=None, steps=None, **deprecated):
     """`simulate` keeping the tape of every converged (sub-)step (tape=True) with the states
-    converged as full Newton's (polish=True: 'auto''s states, 8e-12 m off, made the robot's KS
-    gradient 2e-6 off): the states the backward pass needs.
+    converged as full Newton's (settings.polish set: 'auto''s states, 8e-12 m off, made the
+    robot's KS gradient 2e-6 off): the states the backward pass needs.
 
     checkpoints : None, int or 'auto'
         None: the tape of every state. K (>= 1): only the full state at every K-th time
@@ -124,23 +126,27 @@ def simulate_for_adjoint(model, t_end, h=5e-4, *, checkpoints=None, **kwargs):
         them with the tape (about one more forward run). 'auto': K = `checkpoint_interval`
         (ceil(sqrt(nsteps))).
 
-    kwargs as `simulate` (not tape, polish, design_derivatives)."""
+    settings, initial, steps as `simulate`'s (no design derivatives, no tape=: the adjoint
+    keeps every state and needs no forward derivatives)."""
     for key in ("tape", "polish", "design_derivatives", "sensitivity_dofs",
-                "constraint_force_derivatives"):
-        if key in kwargs:
+                "constraint_force_derivatives", "derivatives"):
+        if key in deprecated:
             raise ModelError(f"simulate_for_adjoint: {key}= is not allowed (the adjoint keeps "
                              "every state, converges every step and needs no forward "
                              "derivatives)")
+    settings, initial, _, reuse = _arguments("simulate_for_adjoint", settings, initial, None,
+                                             deprecated)
+    settings = settings.replace(polish=True)
+    if reuse is not None:
+        settings = settings.replace(newton=newton_mode(settings.newton, reuse))
     if isinstance(checkpoints, str):
         if checkpoints != "auto":
             raise ModelError(f"checkpoints must be None, 'auto' or an integer >= 1, got "
                              f"{checkpoints!r}")
-        steps = kwargs.get("steps")
         n = time_steps(t_end, h, np.inf) if steps is None else len(steps) - 1
         checkpoints = checkpoint_interval(model, n)
-    if checkpoints is None:
-        return simulate(model, t_end, h, tape=True, polish=True, **kwargs)
-    return simulate(model, t_end, h, polish=True, checkpoints=checkpoints, **kwargs)
+    return simulate(model, t_end, h, settings, initial=initial, tape=checkpoints is None,
+                    checkpoints=checkpoints, steps=steps)
 
 
 def _seed(name, value, nt, rows, nf=None):
@@ -167,7 +173,7 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
         The model simulated (same design).
     result : Result
         Its simulation with the tape of every (sub-)step (`simulate_for_adjoint`, or
-        simulate(..., tape=True, polish=True)), or with checkpoints
+        simulate(..., SimulationSettings(polish=True), tape=True)), or with checkpoints
         (simulate_for_adjoint(..., checkpoints=K)): then the backward pass runs over the
         segments between them from the last to the first, each re-run forward from its
         checkpoint with the tape first (one segment's tape in memory at a time).
@@ -206,11 +212,12 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
         tape = None
     if ck is not None and ck["states"].shape[0] != checkpoint_rows(cm.ndof, cm.nc):
         ck = None
-    if (tape is None and ck is None) or "q0" not in st:
+    if (tape is None and ck is None) or result.initial is None:
         raise ModelError("adjoint_gradient: result has no tape of its states: simulate with "
-                         "simulate_for_adjoint (or simulate(..., tape=True, polish=True))")
-    if st.get("newton", "full") != "full" and not st.get("polish", False) and result.dq is None:
-        raise ModelError(f"adjoint_gradient: result was simulated with newton={st['newton']!r} "
+                         "simulate_for_adjoint (or simulate(..., SimulationSettings(polish=True), "
+                         "tape=True))")
+    if st.newton != "full" and not st.polish and result.dq is None:
+        raise ModelError(f"adjoint_gradient: result was simulated with newton={st.newton!r} "
                          "without polish=True: its states are modified Newton's, not converged "
                          "enough for the adjoint (use simulate_for_adjoint, or polish=True)")
     nt = result.t.size
@@ -237,9 +244,9 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
         nt = wt.shape[0]
         gq_f = np.asfortranarray(np.stack([(wt @ gq_f[:, f, :].T).T for f in range(nf)], 1))
         gmu_f = np.asfortranarray(np.stack([(wt @ gmu_f[:, f, :].T).T for f in range(nf)], 1))
-    solver = st["solver"]
+    solver = st.solver
     pat = model.pattern(solver)
-    law_t, _ = law_times(float(st["h"]), result.t.size - 1, st.get("steps"))
+    law_t, _ = law_times(float(st.h), result.t.size - 1, _step_times(result))
     margs = core_model_args(model, solver, law_t, model.element_properties())
     nel = cm.el_dofs.shape[1]
     # the core accumulates dG/d[EA, kGA, EI, rhoA, rhoI] of every element (gprop); their
@@ -260,9 +267,9 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
         mut = np.zeros((nca, ncol), order="F")
         mut[:cm.nc] = tp["mu"]
         _, gp, status, info, adj_out = simulate_adjoint_arrays(
-            **margs, nsteps=nseg, q0=np.asarray(st["q0"], float),
-            qd0=np.asarray(st["qd0"], float), ap=pat["ap"], ai=pat["ai"],
-            **_integrator_args(st), static_start=int(st["start"] == "static"),
+            **margs, nsteps=nseg, q0=np.asarray(result.initial.q0, float),
+            qd0=np.asarray(result.initial.qd0, float), ap=pat["ap"], ai=pat["ai"],
+            **_integrator_args(result), static_start=int(st.start == "static"),
             kscale=float(kscale), penalty=float(penalty),
             ncol=ncol, qt=np.asfortranarray(tp["q"]), qdt=np.asfortranarray(tp["qd"]),
             qddt=np.asfortranarray(tp["qdd"]), mut=mut, th=np.asarray(tp["h"], float),
@@ -276,7 +283,7 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
         return gp, adj_out
 
     if tape is not None:
-        gprop, _ = backward(tape, 0, nt - 1, False, st["kscale"], st["penalty"])
+        gprop, _ = backward(tape, 0, nt - 1, False, st.kscale or 0.0, st.penalty or 0.0)
     else:
         every, states = int(ck["every"]), np.asarray(ck["states"], float)
         nsteps = nt - 1
@@ -288,7 +295,7 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
             tp = _segment_tape(model, result, margs, pat, xs, j0, n_k)
             # the run's scalings k, p; the first segment recomputes them (and the static
             # start's, from the settings) as the first run did
-            kp = (st["kscale"], st["penalty"]) if j0 == 0 else (xs[-2], xs[-1])
+            kp = (st.kscale or 0.0, st.penalty or 0.0) if j0 == 0 else (xs[-2], xs[-1])
             gprop, adj = backward(tp, j0, n_k, k < nseg - 1, *kp)
             adj = np.asfortranarray(adj)
             gprop = np.asfortranarray(gprop)
@@ -298,13 +305,18 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
     return grad
 
 
-def _integrator_args(st):
+def _step_times(result):
+    """The times of a run's non-uniform step grid (Result.steps), None on the uniform one."""
+    return None if result.steps is None else result.steps["t"]
+
+
+def _integrator_args(result):
     """The core's integrator settings of a run from its Result.settings: what the backward
     pass and a segment's re-run must share with the forward run."""
-    tg = st.get("steps")
-    return dict(h=float(st["h"]), rho_inf=float(st["rho_inf"]), tol=float(st["tol"]),
-                max_iter=int(st["max_iter"]), max_cuts=int(st["max_cuts"]),
-                solver=_SOLVERS[st["solver"]], tg=np.zeros(1) if tg is None else tg)
+    st, tg = result.settings, _step_times(result)
+    return dict(h=float(st.h), rho_inf=float(st.rho_inf), tol=float(st.tol),
+                max_iter=int(st.max_iter), max_cuts=int(st.max_cuts),
+                solver=_SOLVERS[st.solver], tg=np.zeros(1) if tg is None else tg)
 
 
 def _core_failure(status, info, where, failure):
@@ -331,24 +343,24 @@ def _segment_tape(model, result, margs, pat, x_start, j0, nseg):
     for attempt in range(2):
         out = call_with_stack(
             simulate_arrays, STACK_BYTES_PER_UNKNOWN * cm.n, **margs, nsteps=nseg,
-            q0=np.asarray(st["q0"], float), qd0=np.asarray(st["qd0"], float),
-            ap=pat["ap"], ai=pat["ai"], **_integrator_args(st),
-            newton=NEWTON_MODES[st["newton"]], static_start=0,
+            q0=np.asarray(result.initial.q0, float), qd0=np.asarray(result.initial.qd0, float),
+            ap=pat["ap"], ai=pat["ai"], **_integrator_args(result),
+            newton=NEWTON_MODES[st.newton], static_start=0,
             kscale=float(x_start[-2]), penalty=float(x_start[-1]),
             out_dofs=np.ones(1, np.int32), nv=0, dprop=np.zeros((5, nel, 1), order="F"),
             sens_dofs=np.ones(1, np.int32), want_dmu=0, ndmu=1,
-            polish=int(st.get("polish", False)), ntape=ncol, nckr=x_start.size, nck=1,
+            polish=int(st.polish), ntape=ncol, nckr=x_start.size, nck=1,
             ckpt_every=0, restart=1, x_start=x_start, j_start=int(j0),
-            klu_analysis=klu_analysis(model, st["solver"]))
+            klu_analysis=klu_analysis(model, st.solver))
         status, info = int(out[5]), out[6]
         if status == Status.TAPE_FULL and attempt == 0:
-            ncol = nseg * 2 ** int(st["max_cuts"]) + 1
+            ncol = nseg * 2 ** int(st.max_cuts) + 1
             continue
         break
     if status != 0:
         _core_failure(status, info, f" while re-running the segment from t = "
-                      f"{j0 * st['h']:.6g} s", f"the re-run of the segment from its checkpoint "
-                      f"at t = {j0 * st['h']:.6g} s failed at t = {info[0]:.6g} s (core status "
+                      f"{j0 * st.h:.6g} s", f"the re-run of the segment from its checkpoint "
+                      f"at t = {j0 * st.h:.6g} s failed at t = {info[0]:.6g} s (core status "
                       f"{status}), although the first run converged")
     tq, tqd, tqdd, tmu, th, tgrid, nused = out[9:16]
     nused = int(nused)

@@ -4,11 +4,14 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
-from flexmbs.analysis.validity import ValidityLimits, apply_validity, check_result, diagnose_failure
+from flexmbs.analysis.settings import (DesignDerivatives, InitialConditions, RunSettings,
+                                       SimulationSettings)
+from flexmbs.analysis.settings import check_flag as _check_flag
+from flexmbs.analysis.validity import apply_validity, check_result, diagnose_failure
 from flexmbs.core import (SolverStatus, Status, core_model_args, klu_analysis, simulate_arrays,
                           system_matrices)
 from flexmbs.errors import ModelError, ResourceError, SettingWarning, SimulationError
@@ -125,7 +128,7 @@ class Result:
         (bytes: the estimate checked against the memory limit before the run).
     wall_time : seconds spent in the simulation (including the set-up in Python).
     validity : flexmbs.analysis.validity.Validity, the checks run after the simulation (strains of the
-        beams, constraint drift, energy of a free system); see simulate(validity=...).
+        beams, constraint drift, energy of a free system); see SimulationSettings.validity.
     sens_dofs, dq : with design_derivatives: the coordinates and their dq/dp (nt, nsens, nv).
     dmu : with constraint_force_derivatives=True: d(mu)/dp (nt, nc, nv) of every constraint row.
     tape : with tape=True: every converged (sub-)step's state for the discrete adjoint, a dict
@@ -151,7 +154,11 @@ class Result:
     dofs: np.ndarray
     stats: dict
     wall_time: float
-    settings: dict = field(default_factory=dict)
+    #: the RunSettings that ran (flexmbs.analysis.settings: the SimulationSettings with solver
+    #: and newton resolved, and the run's h and t_end)
+    settings: object = None
+    #: the InitialConditions the run started from (q0, qd0: arrays of every coordinate)
+    initial: object = None
     sens_dofs: np.ndarray | None = None
     dq: np.ndarray | None = None
     validity: object = None
@@ -314,25 +321,6 @@ def _numeric_array(name, value, kind=float):
         raise ModelError(f"{name} must be an array of numbers, got {value!r}") from None
 
 
-def _check_newton_settings(rho_inf, tol, max_iter, max_cuts):
-    """simulate's numeric settings: typed ModelErrors naming the argument, value and range."""
-    def real(v):
-        return isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, (bool, np.bool_))
-
-    if not (real(rho_inf) and 0.0 <= rho_inf <= 1.0):
-        raise ModelError(f"rho_inf must lie in [0, 1], got {rho_inf!r}")
-    if not (real(tol) and math.isfinite(tol) and tol > 0):
-        raise ModelError(f"tol must be > 0 and finite, got {tol!r}")
-    for name, v, least in (("max_iter", max_iter, 1), ("max_cuts", max_cuts, 0)):
-        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < least:
-            raise ModelError(f"{name} must be an integer >= {least}, got {v!r}")
-
-
-def _check_flag(name, value):
-    if not isinstance(value, (bool, np.bool_)):
-        raise ModelError(f"{name} must be True or False, got {value!r}")
-
-
 def newton_mode(newton="auto", reuse_jacobian=None):
     """The Newton strategy of `simulate` from its `newton` and deprecated `reuse_jacobian`
     arguments: 'auto', 'full' or 'reuse'. reuse_jacobian=True means 'reuse', False 'full'
@@ -454,18 +442,23 @@ def _estimate(model, nsteps, out, solver, design_derivatives, sensitivity_dofs, 
                            nlaw=len(model.laws()), nv=nv, nsens=nsens, dmu=bool(want_dmu))
 
 
-def memory_estimate(model: Model, t_end, h=5e-4, *, store="all", solver="auto",
-                    design_derivatives=None, sensitivity_dofs=None,
-                    constraint_force_derivatives=False, tape=False, checkpoints=None, steps=None,
-                    **settings):
-    """The memory `simulate(model, t_end, h, ...)` with these arguments would need, without
-    running it (flexmbs.resources.MemoryEstimate: `total` bytes and its `parts`; with
+def memory_estimate(model: Model, t_end, h=5e-4, settings=None, *, initial=None,
+                    derivatives=None, tape=False, checkpoints=None, steps=None, **deprecated):
+    """The memory `simulate(model, t_end, h, settings, ...)` with these arguments would need,
+    without running it (flexmbs.resources.MemoryEstimate: `total` bytes and its `parts`; with
     tape=True the part TAPE_PART, as first allocated: a run cutting more steps than a quarter
     of them needs more; with checkpoints=K the part CHECKPOINT_PART, `checkpoint_bytes`).
-    Only the arguments that change it are read; `settings` (simulate's other keywords) are
-    accepted and ignored, so that the same keywords can be passed to both."""
+    Takes simulate's arguments (and its deprecated keywords, with the same warnings); only
+    those that change the estimate are read (settings.store and settings.solver, the
+    derivatives, tape, checkpoints and steps)."""
     if not isinstance(model, Model):
         raise ModelError(f"memory_estimate expects a flexmbs Model, got {type(model).__name__}")
+    settings, _, derivatives, _ = _arguments("memory_estimate", settings, initial, derivatives,
+                                             deprecated)
+    store, solver = settings.store, settings.solver
+    design_derivatives, sensitivity_dofs, constraint_force_derivatives = (
+        (None, None, False) if derivatives is None else
+        (derivatives.properties, derivatives.dofs, derivatives.constraint_forces))
     nsteps = time_steps(t_end, h, math.inf)
     if steps is not None:     # a non-uniform step grid: its steps (outputs on the j h grid)
         nsteps = max(nsteps, step_grid(steps, nsteps * h).size - 1)
@@ -484,12 +477,79 @@ def memory_estimate(model: Model, t_end, h=5e-4, *, store="all", solver="auto",
     return est
 
 
-def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="all",
-             solver="auto", newton="auto", reuse_jacobian=None, tol=1e-10, max_iter=20, max_cuts=6,
-             kscale=None, penalty=None, q0=None, qd0=None, design_derivatives=None,
-             sensitivity_dofs=None, constraint_force_derivatives=False, memory_limit=None,
-             validity="warn", polish=False, tape=False, checkpoints=None, steps=None):
+#: simulate's former keywords that are settings (SimulationSettings fields), of the initial
+#: state (InitialConditions) and of the design derivatives (DesignDerivatives): still taken,
+#: with a DeprecationWarning naming the new spelling
+_SETTING_KEYWORDS = ("rho_inf", "start", "store", "solver", "newton", "tol", "max_iter",
+                     "max_cuts", "kscale", "penalty", "memory_limit", "validity", "polish")
+_INITIAL_KEYWORDS = {"q0": "q0", "qd0": "qd0"}
+_DERIVATIVE_KEYWORDS = {"design_derivatives": "properties", "sensitivity_dofs": "dofs",
+                        "constraint_force_derivatives": "constraint_forces"}
+
+
+def _arguments(where, settings, initial, derivatives, old):
+    """(SimulationSettings, InitialConditions, DesignDerivatives or None, reuse_jacobian) of
+    `where`'s arguments; `old`: its deprecated keywords (each a DeprecationWarning naming the
+    new spelling; TypeError for a keyword it never took)."""
+    unknown = sorted(set(old) - set(_SETTING_KEYWORDS) - set(_INITIAL_KEYWORDS)
+                     - set(_DERIVATIVE_KEYWORDS) - {"reuse_jacobian"})
+    if unknown:
+        raise TypeError(f"{where}() got an unexpected keyword argument {unknown[0]!r}")
+    settings = SimulationSettings.coerce(settings)
+    changes = {k: old[k] for k in _SETTING_KEYWORDS if k in old}
+    if changes:
+        spelled = ", ".join(f"{k}=..." for k in changes)
+        warnings.warn(f"{where}({spelled}) is deprecated: use {where}(..., "
+                      f"settings=SimulationSettings({spelled}))", DeprecationWarning,
+                      stacklevel=3)
+        settings = settings.replace(**changes)
+    init = {v: old[k] for k, v in _INITIAL_KEYWORDS.items() if k in old}
+    if init:
+        if initial is not None:
+            raise ModelError(f"{where}: give the initial state once, initial= (not with "
+                             f"{', '.join(init)}=)")
+        spelled = ", ".join(f"{k}=..." for k in init)
+        warnings.warn(f"{where}({spelled}) is deprecated: use {where}(..., "
+                      f"initial=InitialConditions({spelled}))", DeprecationWarning, stacklevel=3)
+        initial = InitialConditions(**init)
+    if initial is None:
+        initial = InitialConditions()
+    if not isinstance(initial, InitialConditions):
+        raise ModelError(f"initial must be an InitialConditions(q0=..., qd0=...) or None, got "
+                         f"{type(initial).__name__}")
+    der = {v: old[k] for k, v in _DERIVATIVE_KEYWORDS.items() if k in old}
+    if der:
+        if derivatives is not None:
+            raise ModelError(f"{where}: give the design derivatives once, derivatives= (not "
+                             f"with {', '.join(k for k in _DERIVATIVE_KEYWORDS if k in old)}=)")
+        given = ", ".join(f"{k}=..." for k in _DERIVATIVE_KEYWORDS if k in old)
+        spelled = ", ".join(f"{k}=..." for k in der)
+        warnings.warn(f"{where}({given}) is deprecated: use {where}(..., "
+                      f"derivatives=DesignDerivatives({spelled}))", DeprecationWarning,
+                      stacklevel=3)
+        cf = der.get("constraint_forces", False)
+        if not isinstance(cf, (bool, np.bool_)):
+            raise ModelError(f"constraint_force_derivatives must be True or False, got {cf!r}")
+        if der.get("properties") is None:
+            if cf:
+                raise ModelError("constraint_force_derivatives=True needs design_derivatives=...")
+        else:
+            derivatives = DesignDerivatives(**der)
+    derivatives = DesignDerivatives.coerce(derivatives)
+    return settings, initial, derivatives, old.get("reuse_jacobian")
+
+
+def simulate(model: Model, t_end, h=5e-4, settings=None, *, initial=None, derivatives=None,
+             tape=False, checkpoints=None, steps=None, **deprecated):
     """Simulate a model with generalized-alpha (eqs. 3-6) and Newton-Raphson (eq. 7).
+
+    ``simulate(model, t_end, h, SimulationSettings(tol=1e-12, newton="full"))``: how the run
+    integrates, iterates, solves and checks is one `settings` object
+    (flexmbs.analysis.settings.SimulationSettings, whose docstring is the table of its fields
+    and defaults); the other arguments are what this run computes. simulate's former keywords
+    (rho_inf=, tol=, store=, ... q0=, qd0=, design_derivatives=, sensitivity_dofs=,
+    constraint_force_derivatives=) are still taken, each with a DeprecationWarning naming the
+    new spelling.
 
     Parameters
     ----------
@@ -498,84 +558,13 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         End time (s); a whole number of steps.
     h : float, default 5e-4
         Time step (s).
-    rho_inf : float in [0, 1], default 0.5
-        Spectral radius at infinite frequency (1: no numerical damping).
-    start : {'rest', 'static'}, default 'rest'
-        'rest': the reference configuration (or q0) moving with the rigid-body velocity
-        field the drives impose at t = 0 (flexmbs.model.kinematics.drive_velocities: every body
-        moves rigidly; zero when no drive moves at t = 0), unless qd0 is given;
-        'static': static equilibrium under the loads at the drives' initial positions.
-    store : 'all', or a list of node ids / Body objects, default 'all'
-        Which coordinates to keep at every step (memory for long runs).
-    solver : {'auto', 'dense', 'klu'}, default 'auto'
-        Dense LAPACK LU up to DENSE_MAX_UNKNOWNS unknowns (currently none: KLU was faster at
-        every size measured), SuiteSparse KLU above.
-    newton : {'auto', 'full', 'reuse'}, default 'auto'
-        Newton strategy. 'full': the iteration matrix of eq. (7) assembled and factored at
-        every iteration. 'auto': the factorization is kept across iterations and steps while
-        the scaled increment contracts by at least 0.3 per iteration, and refreshed when it does
-        not, when a step needs a 4th iteration, when the observed contraction would need more
-        further iterations than a refresh costs (a cost model: generalized_alpha.f90,
-        auto_refresh_cost), or after a step that needed 3 or had to refresh; an increment
-        below `tol` (full Newton's test) is accepted once the estimated remaining error
-        (contraction / (1 - contraction) x increment) is at the level full Newton's quadratic
-        convergence leaves (tol^2, or the rounding of the coordinates), because modified
-        Newton's errors have the same sign from step to step and the velocities integrate them;
-        a step it cannot converge is retried with full Newton before being cut. Same responses
-        as 'full' (tests/test_newton.py: 1e-11 m on the robot), 2x faster on the robot.
-        'reuse': the former modified Newton, fewest factorizations, accepted at `tol` (its
-        responses differ from full Newton's by ~250 tol qscale on the robot). With
-        design_derivatives, 'auto' and 'reuse' take full Newton steps from a step's second
-        iteration: the derivative solve needs that factorization (the tangent within `tol` of
-        the converged state) anyway, and it serves the next step's first iteration too.
-    reuse_jacobian : bool, optional
-        Deprecated alias: True is newton='reuse', False newton='full'.
-    tol : float, default 1e-10
-        Newton tolerance on max|dq| / max(1, max|q_ref|, element length).
-    max_iter, max_cuts : int
-        Newton iterations per step, step halvings before failing.
-    kscale, penalty : float or None
-        k and p of eq. (1); None: the mean diagonal of the iteration matrix.
-    q0, qd0 : arrays, optional
-        Initial coordinates (default: reference) and velocities (default: zero;
-        projected onto the velocity constraints).
-    design_derivatives : array (5, nel, nv), optional
-        d[EA, kGA, EI, rhoA, rhoI]/dp of every element for nv design variables p.
-        When given, the discrete generalized-alpha equations (and the static start
-        and initial accelerations) are differentiated directly, in Fortran, after
-        every converged step, and `Result.dq` holds dq/dp.
-    sensitivity_dofs : array of int, optional
-        Coordinates (0-based) whose derivatives are kept (default: the stored ones).
-    constraint_force_derivatives : bool, default False
-        With design_derivatives: also return d(mu)/dp of every constraint row (the physical
-        multipliers of eq. 1, as in Result.mu) in `Result.dmu` (nt, nc, nv). The same
-        solve gives them (no extra factorization); off by default, as they take
-        nt * nc * nv numbers.
-    memory_limit : float (bytes), None or math.inf, default None
-        Before the run, the memory it needs is estimated (flexmbs.resources.estimate_memory:
-        stored outputs over the time grid, constraint forces, design derivatives, the dense
-        n x n matrix and LU factors or the KLU ones, the model's arrays) and compared with this
-        limit; a run that does not fit raises ResourceError with the estimate, the limit and
-        what to change. None: the environment variable FLEXMBS_MEMORY_LIMIT (bytes, e.g. "8G";
-        "none" disables the check) if set, else the memory available now (MemAvailable,
-        bounded by RLIMIT_AS). math.inf: no check (an allocation that then fails in the core
-        still raises ResourceError naming what was allocated and its size).
-    validity : {'warn', 'error', 'off'} or flexmbs.analysis.validity.ValidityLimits, default 'warn'
-        Checks of the converged result (Result.validity): largest axial and bending strain of
-        every beam element against the linear-elastic range (warning above 1 %, error above
-        10 %), constraint drift, energy growth of a free system. 'warn': ValidityWarning above
-        the warning limits, InvalidResultError above the failure limits; 'error': both raise;
-        'off': no checks. Only stored coordinates are checked.
-
-    polish : bool, default False
-        With newton 'auto' or 'reuse' (which then takes 'auto''s refresh rules): every step
-        converged to the rounding level, as full Newton's states are (the discrete adjoint,
-        flexmbs.analysis.adjoint, linearizes about them):
-        a step is accepted when its increment is at the rounding level *and* the observed
-        contraction bounds the remaining error below it ('auto' accepts on either). With
-        'auto''s states, 8e-12 m off, the robot's KS gradient was 2e-6 off; polished, 5e-10.
-        The extra work is held iterations (a residual and a solve each): on the robot 0.47
-        factorizations and 2.6 solves per step, against 0.35 and 2.5 unpolished.
+    settings : SimulationSettings, dict of its fields, or None (the defaults)
+        How the run integrates, iterates, solves and checks (its fields: Notes).
+    initial : InitialConditions(q0, qd0), optional
+        Initial coordinates q0 (default: reference) and velocities qd0 (default: the
+        start's, see `start`).
+    derivatives : DesignDerivatives, or the properties array alone, optional
+        The design derivatives asked for (its fields: Notes).
     tape : bool, default False
         Keep every converged state, of every sub-step of a cut step too, in Result.tape (what
         the discrete adjoint runs backwards over: flexmbs.analysis.adjoint): 3 ndof + nc numbers per
@@ -587,9 +576,18 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
         in Result.checkpoints, `checkpoint_rows` numbers each (counted in the memory
         estimate): what the discrete adjoint restarts segments of the run from instead of a
         tape (flexmbs.analysis.adjoint, checkpointing). Not with tape or design_derivatives.
+    steps : array of times, optional
+        A non-uniform step grid from 0 to t_end (`step_grid`); outputs on t_j = j h.
+    **deprecated
+        simulate's former keywords: each a SimulationSettings field, q0/qd0 or
+        design_derivatives/sensitivity_dofs/constraint_force_derivatives, taken with a
+        DeprecationWarning naming the new spelling; reuse_jacobian (True: newton='reuse',
+        False: 'full').
+
     Returns
     -------
-    Result
+    Result, its `settings` the RunSettings that ran (solver and newton resolved, h and
+    t_end), its `initial` the InitialConditions it started from (arrays).
 
     Raises
     ------
@@ -597,6 +595,84 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     tells redundant constraints, a body not held and an overflowing input apart),
     ResourceError when the run does not fit in memory (before the run, or when an allocation
     fails), InvalidResultError when the result converged outside the model's validity.
+
+    Notes
+    -----
+    The fields of `settings` (SimulationSettings) and of `derivatives` (DesignDerivatives):
+
+    - `rho_inf` (float in [0, 1], default 0.5):
+      Spectral radius at infinite frequency (1: no numerical damping).
+    - `start` ({'rest', 'static'}, default 'rest'):
+      'rest': the reference configuration (or q0) moving with the rigid-body velocity
+      field the drives impose at t = 0 (flexmbs.model.kinematics.drive_velocities: every body
+      moves rigidly; zero when no drive moves at t = 0), unless qd0 is given;
+      'static': static equilibrium under the loads at the drives' initial positions.
+    - `store` ('all', or a list of node ids / Body objects, default 'all'):
+      Which coordinates to keep at every step (memory for long runs).
+    - `solver` ({'auto', 'dense', 'klu'}, default 'auto'):
+      Dense LAPACK LU up to DENSE_MAX_UNKNOWNS unknowns (currently none: KLU was faster at
+      every size measured), SuiteSparse KLU above.
+    - `newton` ({'auto', 'full', 'reuse'}, default 'auto'):
+      Newton strategy. 'full': the iteration matrix of eq. (7) assembled and factored at
+      every iteration. 'auto': the factorization is kept across iterations and steps while
+      the scaled increment contracts by at least 0.3 per iteration, and refreshed when it does
+      not, when a step needs a 4th iteration, when the observed contraction would need more
+      further iterations than a refresh costs (a cost model: generalized_alpha.f90,
+      auto_refresh_cost), or after a step that needed 3 or had to refresh; an increment
+      below `tol` (full Newton's test) is accepted once the estimated remaining error
+      (contraction / (1 - contraction) x increment) is at the level full Newton's quadratic
+      convergence leaves (tol^2, or the rounding of the coordinates), because modified
+      Newton's errors have the same sign from step to step and the velocities integrate them;
+      a step it cannot converge is retried with full Newton before being cut. Same responses
+      as 'full' (tests/test_newton.py: 1e-11 m on the robot), 2x faster on the robot.
+      'reuse': the former modified Newton, fewest factorizations, accepted at `tol` (its
+      responses differ from full Newton's by ~250 tol qscale on the robot). With
+      design_derivatives, 'auto' and 'reuse' take full Newton steps from a step's second
+      iteration: the derivative solve needs that factorization (the tangent within `tol` of
+      the converged state) anyway, and it serves the next step's first iteration too.
+    - `tol` (float, default 1e-10):
+      Newton tolerance on max|dq| / max(1, max|q_ref|, element length).
+    - `max_iter`, `max_cuts` (int, default 20 and 6):
+      Newton iterations per step, step halvings before failing.
+    - `kscale`, `penalty` (float or None):
+      k and p of eq. (1); None: the mean diagonal of the iteration matrix.
+    - `properties` of DesignDerivatives (array (5, nel, nv); formerly design_derivatives=):
+      d[EA, kGA, EI, rhoA, rhoI]/dp of every element for nv design variables p.
+      When given, the discrete generalized-alpha equations (and the static start
+      and initial accelerations) are differentiated directly, in Fortran, after
+      every converged step, and `Result.dq` holds dq/dp.
+    - `dofs` of DesignDerivatives (array of int, optional; formerly sensitivity_dofs=):
+      Coordinates (0-based) whose derivatives are kept (default: the stored ones).
+    - `constraint_forces` of DesignDerivatives (bool, default False; formerly
+      constraint_force_derivatives=): with the properties: also return d(mu)/dp of every constraint row (the physical
+      multipliers of eq. 1, as in Result.mu) in `Result.dmu` (nt, nc, nv). The same
+      solve gives them (no extra factorization); off by default, as they take
+      nt * nc * nv numbers.
+    - `memory_limit` (float (bytes), None or math.inf, default None):
+      Before the run, the memory it needs is estimated (flexmbs.resources.estimate_memory:
+      stored outputs over the time grid, constraint forces, design derivatives, the dense
+      n x n matrix and LU factors or the KLU ones, the model's arrays) and compared with this
+      limit; a run that does not fit raises ResourceError with the estimate, the limit and
+      what to change. None: the environment variable FLEXMBS_MEMORY_LIMIT (bytes, e.g. "8G";
+      "none" disables the check) if set, else the memory available now (MemAvailable,
+      bounded by RLIMIT_AS). math.inf: no check (an allocation that then fails in the core
+      still raises ResourceError naming what was allocated and its size).
+    - `validity` ({'warn', 'error', 'off'} or flexmbs.analysis.validity.ValidityLimits,
+      default 'warn'):
+      Checks of the converged result (Result.validity): largest axial and bending strain of
+      every beam element against the linear-elastic range (warning above 1 %, error above
+      10 %), constraint drift, energy growth of a free system. 'warn': ValidityWarning above
+      the warning limits, InvalidResultError above the failure limits; 'error': both raise;
+      'off': no checks. Only stored coordinates are checked.
+    - `polish` (bool, default False):
+      With newton 'auto' or 'reuse' (which then takes 'auto''s refresh rules): every step
+      converged to the rounding level, as full Newton's states are (the discrete adjoint,
+      flexmbs.analysis.adjoint, linearizes about them):
+      a step is accepted when its increment is at the rounding level *and* the observed
+      contraction bounds the remaining error below it ('auto' accepts on either). With
+      'auto''s states, 8e-12 m off, the robot's KS gradient was 2e-6 off; polished, 5e-10.
+      The extra work is held iterations (a residual and a solve each): on the robot 0.47
+      factorizations and 2.6 solves per step, against 0.35 and 2.5 unpolished.
     """
     t_start = time.perf_counter()
     if not isinstance(model, Model):
@@ -604,10 +680,20 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
     # the step count alone here (one reading of the available memory per call, below:
     # check_memory's estimate contains the grid and stored outputs time_steps would check)
     nsteps = time_steps(t_end, h, math.inf)
-    limits = ValidityLimits.coerce(validity)
-    _check_newton_settings(rho_inf, tol, max_iter, max_cuts)
-    newton = newton_mode(newton, reuse_jacobian)
-    _check_flag("polish", polish)
+    settings, initial, derivatives, reuse_jacobian = _arguments(
+        "simulate", settings, initial, derivatives, deprecated)
+    rho_inf, start, store, solver, tol, max_iter, max_cuts, kscale, penalty, memory_limit, \
+        polish = (getattr(settings, k) for k in (
+            "rho_inf", "start", "store", "solver", "tol", "max_iter", "max_cuts", "kscale",
+            "penalty", "memory_limit", "polish"))
+    limits = settings.validity
+    newton = newton_mode(settings.newton, reuse_jacobian)
+    q0, qd0 = initial.q0, initial.qd0
+    design_derivatives, sensitivity_dofs, constraint_force_derivatives = (
+        (None, None, False) if derivatives is None else
+        (derivatives.properties, derivatives.dofs, derivatives.constraint_forces))
+    if design_derivatives is None:
+        sensitivity_dofs = None
     _check_flag("tape", tape)
     tg = None if steps is None else step_grid(steps, nsteps * h)
     ncore = nsteps if tg is None else tg.size - 1
@@ -620,12 +706,6 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
             raise ModelError("checkpoints= is not allowed with tape=True or design_derivatives "
                              "(a checkpointed run replaces the tape of the adjoint)")
         checkpoints = int(checkpoints)
-    if not isinstance(start, str) or start not in ("rest", "static"):
-        raise ModelError(f"start must be 'rest' or 'static', got {start!r}")
-    for name, v in (("kscale", kscale), ("penalty", penalty)):
-        if v is not None and not (isinstance(v, (int, float, np.floating)) and not isinstance(v, bool)
-                                  and math.isfinite(v) and v > 0):
-            raise ModelError(f"{name} must be a positive finite number or None (automatic), got {v!r}")
     if not model._nodes:
         raise ModelError("the model has no nodes")
     n_unknowns = model.ndof + len(model._rows)
@@ -760,11 +840,11 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
             dmu_t = (w @ dmu_t.reshape(tg.size, -1)).reshape(t.size, *dmu_t.shape[1:])
     res = Result(t=t, q=q_out, qd=qd_out, qdd=qdd_out, mu=mu_out, dofs=out,
                   stats=st, wall_time=time.perf_counter() - t_start,
-                  settings=dict(h=h, t_end=t_end, rho_inf=rho_inf, start=start, solver=solver,
-                                newton=newton, tol=float(tol), max_iter=int(max_iter),
-                                max_cuts=int(max_cuts), kscale=float(kscale or 0.0),
-                                penalty=float(penalty or 0.0), q0=q_init, qd0=qd_init,
-                                polish=bool(polish), steps=tg),
+                  settings=RunSettings(**{**{k: getattr(settings, k) for k in
+                                             settings.__dataclass_fields__},
+                                          "solver": solver, "newton": newton, "h": h,
+                                          "t_end": t_end}),
+                  initial=InitialConditions(q0=q_init, qd0=qd_init),
                   sens_dofs=sdofs if nv else None, dq=dq_t, dmu=dmu_t,
                   steps=None if tg is None else dict(t=tg, matrix=w))
     if tape:

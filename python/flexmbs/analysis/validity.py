@@ -67,7 +67,8 @@ _MODES = ("warn", "error", "off")
 
 @dataclass(frozen=True)
 class ValidityLimits:
-    """Settings of the validity checks (simulate(validity=...)).
+    """Settings of the validity checks (SimulationSettings.validity; a case's [solver]
+    validity keys).
 
     mode : 'warn' (default: ValidityWarning above the warning limits, InvalidResultError above
         the failure limits), 'error' (InvalidResultError above the warning limits too) or 'off'.
@@ -390,7 +391,8 @@ def apply_validity(validity, result=None):
         if any(c.name.endswith("strain") for c in bad):
             msg += (" (linear-elastic range; the loads or the section are far outside what this "
                     "model represents)")
-        err = InvalidResultError(msg + "; set simulate(validity=...) to change the limits")
+        err = InvalidResultError(msg + "; set SimulationSettings(validity=...) (a case: "
+                                 "[solver] validity and its limits) to change the limits")
         err.validity = validity
         err.result = result
         raise err

@@ -35,8 +35,8 @@ from flexmbs.model.options import OptimizeSection
 
 __all__ = ["Description", "Law", "Beam", "Rigid", "PointMass", "Joint", "Drive", "Load",
            "SpringDamper", "DesignVariable", "Deviation", "Mass", "Stress", "Torque", "Reaction",
-           "Station", "Deflection", "Strain", "Constraint", "TimeSettings", "InitialState",
-           "InitialBeam", "Section", "MaterialSpec", "Term", "PointRef", "GROUND",
+           "Station", "Deflection", "Strain", "Constraint", "TimeSettings", "SolverSettings",
+           "InitialState", "InitialBeam", "Section", "MaterialSpec", "Term", "PointRef", "GROUND",
            "design_layout"]
 
 
@@ -685,6 +685,39 @@ class TimeSettings(_Strict):
         return self
 
 
+class SolverSettings(_Strict):
+    """Newton's, the linear solver's and the run's settings, [solver] (the fields of
+    flexmbs.analysis.settings.SimulationSettings that [time] does not hold; same defaults):
+    Newton tolerance tol, iterations max_iter, step halvings max_cuts, linear_solver ('auto',
+    'dense', 'klu'), the scalings kscale and penalty of eq. (1) (default: automatic), polish,
+    memory_limit (bytes; default: FLEXMBS_MEMORY_LIMIT, else the memory available), the
+    validity checks' mode and limits (unset: flexmbs.analysis.validity.ValidityLimits's)."""
+    tol: Positive = 1e-10
+    max_iter: Annotated[int, NoBool, Field(ge=1)] = 20
+    max_cuts: Annotated[int, NoBool, Field(ge=0)] = 6
+    linear_solver: Literal["auto", "dense", "klu"] = "auto"
+    kscale: Positive | None = None
+    penalty: Positive | None = None
+    polish: bool = False
+    memory_limit: Positive | None = None
+    validity: Literal["warn", "error", "off"] = "warn"
+    strain_warn: Positive | None = None
+    strain_fail: Positive | None = None
+    drift_warn: Positive | None = None
+    drift_fail: Positive | None = None
+    energy_warn: Positive | None = None
+    energy_fail: Positive | None = None
+
+    @model_validator(mode="after")
+    def _limits_ordered(self):
+        for kind in ("strain", "drift", "energy"):
+            warn, fail = getattr(self, f"{kind}_warn"), getattr(self, f"{kind}_fail")
+            if warn is not None and fail is not None and warn > fail:
+                raise ValueError(f"{kind}_warn = {warn:g} is above {kind}_fail = {fail:g}: "
+                                 "the warning limit must not exceed the failure limit")
+        return self
+
+
 class InitialBeam(_Strict):
     """A beam's initial deflection and its rate, given at stations: `deflection` (m) and
     `deflection_rate` (m/s) normal to the beam's axis (positive on its left, from `from` to
@@ -765,6 +798,7 @@ class Description(_Strict):
     objective: Objective | None = None
     constraints: list[Constraint] = []
     time: TimeSettings
+    solver: SolverSettings = SolverSettings()
     initial: InitialState | None = None
     #: [optimize]: the method, optimizer and options of `flexmbs optimize` and the
     #: Problem-level entry points when not told otherwise (flexmbs.model.options)

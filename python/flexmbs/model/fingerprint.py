@@ -9,6 +9,11 @@ fingerprint is a JSON dict of
     options      the method's options (JSON values; the start design among them)
     description  {top-level key of the case description: SHA-256 of its JSON}, of the
                  description as resolved (case file read, overrides applied, validated)
+    settings     the simulation settings of the case, whole (readable; its [time]'s
+                 rho_inf, start, newton and its [solver] table, every key (null: the
+                 default of SimulationSettings or ValidityLimits):
+                 flexmbs.analysis.settings.SimulationSettings); compared through the
+                 description's digests, which cover them
 
 and `differences(stored, current)` names what differs, for messages: a resumed history that
 differs is refused (flexmbs.methods.result.HistoryWriter.check_fingerprint), a stored
@@ -22,7 +27,8 @@ import json
 from flexmbs.files import jsonable
 from flexmbs.version import __version__
 
-__all__ = ["fingerprint", "description_digest", "differences", "run_options", "canonical"]
+__all__ = ["fingerprint", "description_digest", "differences", "run_options", "canonical",
+           "simulation_settings_record"]
 
 #: arguments of an optimizer that do not change its answer (where it is written, how it is
 #: shown, whether it resumes), that only say how far it goes (a resumed run may go further:
@@ -64,9 +70,23 @@ def run_options(arguments):
 
 def fingerprint(description, method, options=None):
     """The fingerprint (module docstring) of `method` run with `options` on `description`."""
-    return {"flexmbs": __version__, "method": str(method),
-            "options": canonical(dict(options or {})),
-            "description": description_digest(description)}
+    out = {"flexmbs": __version__, "method": str(method),
+           "options": canonical(dict(options or {})),
+           "description": description_digest(description)}
+    settings = simulation_settings_record(description)
+    if settings is not None:
+        out["settings"] = settings
+    return out
+
+
+def simulation_settings_record(description):
+    """The simulation settings of a Description as plain JSON data: [time]'s rho_inf, start
+    and newton and every key of [solver] (defaults included); None for anything else."""
+    time, solver = getattr(description, "time", None), getattr(description, "solver", None)
+    if not hasattr(solver, "model_dump") or time is None:
+        return None
+    return canonical({"rho_inf": time.rho_inf, "start": time.start, "newton": time.newton,
+                      **solver.model_dump(mode="json")})
 
 
 def differences(stored, current):

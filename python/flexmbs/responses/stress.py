@@ -170,8 +170,8 @@ def beam_stress(model, result, body, *, stations="gauss", shear=False, dc=None, 
         nv = dc.shape[1]
         if result.dq is None:
             raise ModelError("beam_stress: dc given but the result has no design derivatives; "
-                             "simulate with design_derivatives=... and sensitivity_dofs including "
-                             f"the coordinates of beam {b.name!r}")
+                             "simulate with derivatives=DesignDerivatives(properties, dofs) with "
+                             f"dofs including the coordinates of beam {b.name!r}")
         if result.dq.shape[2] != nv:
             raise ModelError(f"beam_stress: dc has {nv} design variables, result.dq has "
                              f"{result.dq.shape[2]}")
