@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from flexmbs.analysis.adaptive import choose_steps, subdivide
+from flexmbs.analysis.adaptive import choose_steps
 from flexmbs.problem import Problem
 
 # (label, case, overrides, designs continued from (the case's units))
@@ -63,7 +63,6 @@ def measure(label, case, over, designs, log):
     base.steps()                                  # frozen at the start design
     for x in designs:
         for f in FACTORS:
-            out_h = ts.grid_h / f
             # reference at x on the grid of spacing output / f
             fixed = {k: v for k, v in over.items() if k not in ("time.h", "time.tol", "time.rtol")}
             fx = [Problem(case, {**fixed, "time.h": ts.grid_h / k}).evaluate(x, gradient=False)

@@ -83,7 +83,8 @@ def test_adjoint_equals_direct_on_random_designs(case, t_end, u):
     """Property: on random designs within the bounds (every component drawn between its lower
     and upper bound, the max_step rows free to be violated) of the tapered press (10 rod
     diameters, 5-60 mm) and the hollow tapered robot (64 diameters and walls), over 0.02 to
-    0.05 s, the adjoint Jacobian of the KS rows equals direct differentiation's to 1e-8
+    0.05 s, the constraint rows agree to the Newton tolerance accumulated over the steps and
+    the adjoint Jacobian of the KS rows equals direct differentiation's to 1e-8
     relative per row (the Newton tolerance at 1e-12 for both, as in
     tests/test_adjoint.py::test_stress_responses: the two differ by the tangent taken one
     Newton iteration apart)."""
@@ -93,7 +94,12 @@ def test_adjoint_equals_direct_on_random_designs(case, t_end, u):
     direct = p.evaluate(x, gradient="used", method="direct")
     adj = p.evaluate(x, gradient="used", method="adjoint")
     assert adj.gradient_method == "adjoint"
-    assert adj.constraints == pytest.approx(direct.constraints, rel=1e-10, abs=1e-12)
+    # the two forward runs (modified Newton for direct differentiation, full Newton for the
+    # adjoint's tape) each stop within the Newton tolerance per step: their values may drift
+    # apart by up to that tolerance once per step, accumulated over the run (relative to the
+    # limits, as the rows are)
+    steps = p.mechanism.t.size - 1
+    assert adj.constraints == pytest.approx(direct.constraints, rel=1e-10, abs=1e-12 * steps)
     for i, name in enumerate(direct.constraint_names):
         scale = np.abs(direct.jacobian[i]).max()
         assert scale > 0, name
