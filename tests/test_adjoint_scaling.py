@@ -94,10 +94,10 @@ def test_adjoint_equals_direct_on_random_designs(case, t_end, u):
     direct = p.evaluate(x, gradient="used", method="direct")
     adj = p.evaluate(x, gradient="used", method="adjoint")
     assert adj.gradient_method == "adjoint"
-    # the two forward runs (modified Newton for direct differentiation, full Newton for the
-    # adjoint's tape) each stop within the Newton tolerance per step: their values may drift
-    # apart by up to that tolerance once per step, accumulated over the run (relative to the
-    # limits, as the rows are)
+    # the two forward runs (direct differentiation's, and the adjoint's, whose states are
+    # polished further for its tape) each stop within the Newton tolerance per step: their
+    # values may drift apart by up to that tolerance once per step, accumulated over the run
+    # (relative to the limits, as the rows are)
     steps = p.mechanism.t.size - 1
     assert adj.constraints == pytest.approx(direct.constraints, rel=1e-10, abs=1e-12 * steps)
     for i, name in enumerate(direct.constraint_names):
