@@ -6,6 +6,7 @@ from __future__ import annotations
 import threading
 import weakref
 from enum import IntEnum
+from typing import NamedTuple
 
 import numpy as np
 
@@ -16,7 +17,7 @@ from flexmbs.resources import format_bytes, limit_source
 from flexmbs.resources import memory_limit as _memory_limit
 
 __all__ = ["Status", "SolverStatus", "KluAnalysis", "core_model_args", "klu_analysis", "system_matrices",
-           "simulate_arrays", "simulate_adjoint_arrays", "beam_element"]
+           "simulate_arrays", "simulate_adjoint_arrays", "beam_element", "RunOutput", "AdjointOutput"]
 
 class Status(IntEnum):
     """What a compiled run returns: the GA_* codes of fortran/generalized_alpha.f90 (one table
@@ -175,7 +176,7 @@ def system_matrices(model: Model, q, qdd=None, mu=None, t=0.0, *, cm=0.0, ck=1.0
     # the core tabulates laws on a grid from 0; t itself is a grid point
     grid = np.array([0.0, float(t)]) if t > 0 else np.array([0.0, 1e-6])
     margs = core_model_args(model, "dense", grid, props)
-    r, vals, _, status = _core.system_matrices(**margs, q=q, qdd=qdd, mu=mu_arr, t=float(t),
+    r, vals, _phimax, status = _core.system_matrices(**margs, q=q, qdd=qdd, mu=mu_arr, t=float(t),
                                                cm=float(cm), ck=float(ck), kscale=float(kscale),
                                                pen=float(penalty), qd=qd, cc=float(cc))
     if status != 0:
@@ -185,17 +186,54 @@ def system_matrices(model: Model, q, qdd=None, mu=None, t=0.0, *, cm=0.0, ck=1.0
 
 
 # ----------------------------------------------------------------------------- compiled runs
-def simulate_arrays(**kwargs):
+class RunOutput(NamedTuple):
+    """The outputs of the compiled generalized-alpha run (fortran/flexmbs_api.f90 `simulate`),
+    by name; arrays in the core's layout (coordinates first, time last)."""
+    q: np.ndarray            #: (nout, nsteps + 1) stored coordinates
+    qd: np.ndarray           #: (nout, nsteps + 1) their velocities
+    qdd: np.ndarray          #: (nout, nsteps + 1) their accelerations
+    mu: np.ndarray           #: (max(nc, 1), nsteps + 1) multipliers
+    stats: np.ndarray        #: (8,) counters (see the Fortran interface)
+    status: int              #: a Status code
+    info: np.ndarray         #: (4,) time, increment or residual, iterations, extra
+    dq: np.ndarray           #: (nsens, nva, nsteps + 1) dq/dp
+    dmu: np.ndarray          #: (ndmu, nva, nsteps + 1) dmu/dp
+    tape_q: np.ndarray       #: (ndof, ntape) the adjoint's tape: coordinates of every sub-step
+    tape_qd: np.ndarray      #: (ndof, ntape) velocities
+    tape_qdd: np.ndarray     #: (ndof, ntape) accelerations
+    tape_mu: np.ndarray      #: (max(nc, 1), ntape) multipliers
+    tape_h: np.ndarray       #: (ntape,) step leading to a column
+    tape_grid: np.ndarray    #: (nsteps + 1,) column of every grid point
+    ntape_used: int          #: tape columns used
+    checkpoints: np.ndarray  #: (nckr, nck) states at the checkpoints
+
+    def tape(self, nc):
+        """The columns of the tape the run used, as Result.tape: q, qd, qdd, mu (nc rows), h
+        and grid."""
+        n = int(self.ntape_used)
+        return dict(q=self.tape_q[:, :n], qd=self.tape_qd[:, :n], qdd=self.tape_qdd[:, :n],
+                    mu=self.tape_mu[:nc, :n], h=self.tape_h[:n], grid=np.asarray(self.tape_grid))
+
+
+class AdjointOutput(NamedTuple):
+    """The outputs of the compiled backward pass (fortran/flexmbs_api.f90 `simulate_adjoint`)."""
+    grad: np.ndarray         #: (nv, nf) gradients through the core's dprop
+    gprop: np.ndarray        #: (5, nela, nf) dG_f/d[EA, kGA, EI, rhoA, rhoI] per element
+    status: int              #: a Status code
+    info: np.ndarray         #: (4,) as RunOutput.info
+    adj_out: np.ndarray      #: (ndof, nf, 4) the adjoint state at the segment's start
+
+
+def simulate_arrays(**kwargs) -> RunOutput:
     """The compiled generalized-alpha run (fortran/flexmbs_api.f90 `simulate`) on a model's
-    arrays (`core_model_args`) and the run's settings; its outputs in the order of the
-    Fortran interface (flexmbs.analysis.simulate unpacks them)."""
-    return _core.simulate(**kwargs)
+    arrays (`core_model_args`) and the run's settings; its outputs by name."""
+    return RunOutput(*_core.simulate(**kwargs))
 
 
-def simulate_adjoint_arrays(**kwargs):
+def simulate_adjoint_arrays(**kwargs) -> AdjointOutput:
     """The compiled forward run with the discrete adjoint's backward pass
-    (fortran/flexmbs_api.f90 `simulate_adjoint`; flexmbs.analysis.adjoint unpacks it)."""
-    return _core.simulate_adjoint(**kwargs)
+    (fortran/flexmbs_api.f90 `simulate_adjoint`); its outputs by name."""
+    return AdjointOutput(*_core.simulate_adjoint(**kwargs))
 
 
 def beam_element(length, stiffness, qref, q, eta, qd):
