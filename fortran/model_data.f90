@@ -1,7 +1,10 @@
-!> The mechanism as the core sees it: flat arrays built once per design by
+!> The mechanism as the core sees it: flat arrays built once per mechanism by
 !! flexmbs.model (Python), copied into one `mbs_model` value that the caller
-!! owns. No module-level state: two models can be simulated side by side.
+!! owns (flexmbs_api.f90 model_create: behind an opaque handle). A run works on its
+!! own copy (model_for_run) with the design's element properties and the time grid's
+!! law tables. No module-level state: two models can be simulated side by side.
 module model_data
+    use iso_c_binding, only: c_int64_t, c_ptr, c_loc, c_f_pointer, c_associated
     use flexmbs_kinds, only: wp
     use beam2d, only: beam_mass, beam_reference_strains, MAX_EDOF, MAX_GAUSS
     use constraints, only: MAX_CDOF, CON_LINEAR
@@ -57,7 +60,8 @@ module model_data
         real(wp) :: qscale = 1.0_wp              !! length scale of the convergence test
     end type mbs_model
 
-    public :: model_finish, model_from_arrays, model_free
+    public :: model_finish, model_from_arrays, model_free, model_for_run
+    public :: model_address, model_at, model_of_run
 
 contains
 
@@ -218,6 +222,143 @@ contains
         m%qscale = max(1.0_wp, maxval(abs(m%qref)))
         if (m%nel > 0) m%qscale = max(m%qscale, maxval(m%el_len(1:m%nel)))
     end subroutine model_finish
+
+    !> The model of one run: a copy of `base` (a model_from_arrays model, read only here:
+    !! runs in parallel threads share it) with the design's element properties el_prop
+    !! (5, >= nel) and the law tables of the run's time grid. The element mass matrices are
+    !! those of model_finish (linear in rhoA, rhoI). status = 0, or 1 when an allocation
+    !! failed (nbytes: the size asked for; nothing of m stays allocated).
+    subroutine model_for_run(m, base, el_prop, law_h, law_val, law_der, law_dd0, status, nbytes)
+        type(mbs_model), intent(out) :: m
+        type(mbs_model), intent(in) :: base
+        real(wp), intent(in) :: el_prop(:, :)
+        real(wp), intent(in) :: law_h, law_val(:, :), law_der(:, :), law_dd0(:)
+        integer, intent(out) :: status           !! 0 ok, 1 out of memory
+        real(wp), intent(out) :: nbytes          !! bytes asked for when status = 1
+        integer :: e, ne, nca, nld, nsa, ierr
+        ne = size(base%el_nen)
+        nca = size(base%c_kind)
+        nld = size(base%ld_dof)
+        nsa = size(base%sd_prop, 2)
+        status = 0
+        nbytes = 0
+        allocate (m%qref(base%ndof), m%lumped(base%ndof), m%gacc(base%ndof), m%map_diag(base%ndof), &
+                  m%el_nen(ne), m%el_dofs(size(base%el_dofs, 1), ne), m%el_len(ne), &
+                  m%el_prop(size(base%el_prop, 1), ne), m%el_eta(ne), &
+                  m%el_mass(MAX_EDOF, MAX_EDOF, ne), m%el_mass_a(MAX_EDOF, MAX_EDOF, ne), &
+                  m%el_mass_i(MAX_EDOF, MAX_EDOF, ne), m%el_eref(3, MAX_GAUSS, ne), &
+                  m%map_el(MAX_EDOF, MAX_EDOF, ne), &
+                  m%ld_dof(nld), m%ld_law(nld), m%ld_amp(nld), &
+                  m%c_kind(nca), m%c_dofs(size(base%c_dofs, 1), nca), &
+                  m%c_coef(size(base%c_coef, 1), nca), m%c_c0(nca), m%c_law(nca), m%c_lawcoef(nca), &
+                  m%map_cq(size(base%map_cq, 1), nca), m%map_qc(size(base%map_qc, 1), nca), &
+                  m%map_qq(MAX_CDOF, MAX_CDOF, nca), &
+                  m%law_val(size(law_val, 1), size(law_val, 2)), &
+                  m%law_der(size(law_der, 1), size(law_der, 2)), m%law_dd0(size(law_dd0)), &
+                  m%sd_dofs(4, nsa), m%sd_prop(SD_NPROP, nsa), m%map_sd(4, 4, nsa), stat=ierr)
+        if (ierr /= 0) then
+            nbytes = 8.0_wp * (4.0_wp * base%ndof + real(ne, wp) * (2 + size(base%el_dofs, 1) + 1 &
+                     + size(base%el_prop, 1) + 4 * MAX_EDOF**2 + 3 * MAX_GAUSS) + 3.0_wp * nld &
+                     + real(nca, wp) * (4 + size(base%c_dofs, 1) + size(base%c_coef, 1) &
+                     + 2 * size(base%map_cq, 1) + MAX_CDOF**2) + 2.0_wp * size(law_val) &
+                     + size(law_dd0) + real(nsa, wp) * (4 + SD_NPROP + 16))
+            call model_free(m)
+            status = 1
+            return
+        end if
+        m%ndof = base%ndof
+        m%nc = base%nc
+        m%n = base%n
+        m%nel = base%nel
+        m%nload = base%nload
+        m%nlaw = base%nlaw
+        m%nnz = base%nnz
+        m%nsd = base%nsd
+        m%damped = base%damped
+        m%linear_constraints = base%linear_constraints
+        m%qscale = base%qscale
+        m%qref = base%qref
+        m%lumped = base%lumped
+        m%gacc = base%gacc
+        m%map_diag = base%map_diag
+        m%el_nen = base%el_nen
+        m%el_dofs = base%el_dofs
+        m%el_len = base%el_len
+        m%el_eta = base%el_eta
+        m%el_mass_a = base%el_mass_a
+        m%el_mass_i = base%el_mass_i
+        m%el_eref = base%el_eref
+        m%map_el = base%map_el
+        m%ld_dof = base%ld_dof
+        m%ld_law = base%ld_law
+        m%ld_amp = base%ld_amp
+        m%c_kind = base%c_kind
+        m%c_dofs = base%c_dofs
+        m%c_coef = base%c_coef
+        m%c_c0 = base%c_c0
+        m%c_law = base%c_law
+        m%c_lawcoef = base%c_lawcoef
+        m%map_cq = base%map_cq
+        m%map_qc = base%map_qc
+        m%map_qq = base%map_qq
+        m%sd_dofs = base%sd_dofs
+        m%sd_prop = base%sd_prop
+        m%map_sd = base%map_sd
+        m%el_prop = el_prop(:, 1:ne)
+        m%law_h = law_h
+        m%law_val = law_val
+        m%law_der = law_der
+        m%law_dd0 = law_dd0
+        ! the consistent mass is linear in (rhoA, rhoI), as in model_finish
+        do e = 1, ne
+            m%el_mass(:, :, e) = m%el_prop(4, e) * m%el_mass_a(:, :, e) + m%el_prop(5, e) * m%el_mass_i(:, :, e)
+        end do
+    end subroutine model_for_run
+
+    !> The opaque address of a model allocated by the caller (flexmbs_api.f90 model_create),
+    !! as a 64-bit integer for Python to hold; model_at turns it back into the model.
+    function model_address(p) result(handle)
+        type(mbs_model), pointer, intent(in) :: p
+        integer(c_int64_t) :: handle
+        handle = transfer(c_loc(p), handle)
+    end function model_address
+
+    !> The model at an address from model_address (null for 0).
+    function model_at(handle) result(p)
+        integer(c_int64_t), intent(in) :: handle
+        type(mbs_model), pointer :: p
+        type(c_ptr) :: cp
+        p => null()
+        if (handle == 0) return
+        cp = transfer(handle, cp)
+        if (c_associated(cp)) call c_f_pointer(cp, p)
+    end function model_at
+
+    !> The model of one run of the model at `handle` (model_for_run; the handle's model is
+    !! only read). The caller's extents are checked against it: ndof coordinates, nca
+    !! multiplier rows (max(nc, 1)), at least max(nel, 1) element columns of el_prop (5 rows),
+    !! at least max(nlaw, 1) law rows on at least 2 grid points. status 0 ok, 1 out of
+    !! memory (nbytes: the size asked for), 2 a null handle or extents of another model.
+    subroutine model_of_run(m, handle, ndof, nca, el_prop, law_h, law_val, law_der, law_dd0, &
+                            status, nbytes)
+        type(mbs_model), intent(out) :: m
+        integer(c_int64_t), intent(in) :: handle
+        integer, intent(in) :: ndof, nca
+        real(wp), intent(in) :: el_prop(:, :)
+        real(wp), intent(in) :: law_h, law_val(:, :), law_der(:, :), law_dd0(:)
+        integer, intent(out) :: status
+        real(wp), intent(out) :: nbytes
+        type(mbs_model), pointer :: base
+        nbytes = 0
+        status = 2
+        base => model_at(handle)
+        if (.not. associated(base)) return
+        if (ndof /= base%ndof .or. nca /= size(base%c_kind) .or. size(el_prop, 1) /= 5 &
+            .or. size(el_prop, 2) < size(base%el_nen) .or. size(law_val, 1) < max(base%nlaw, 1) &
+            .or. size(law_val, 2) < 2 .or. any(shape(law_der) /= shape(law_val)) &
+            .or. size(law_dd0) /= size(law_val, 1)) return
+        call model_for_run(m, base, el_prop, law_h, law_val, law_der, law_dd0, status, nbytes)
+    end subroutine model_of_run
 
     !> Release every array of a model (safe on a partly allocated one).
     subroutine model_free(m)
