@@ -298,8 +298,9 @@ class AdjointOutput(NamedTuple):
 
 
 def simulate_arrays(**kwargs) -> RunOutput:
-    """The compiled generalized-alpha run (fortran/flexmbs_api.f90 `simulate`) on a model's
-    arrays (`core_model_args`) and the run's settings; its outputs by name."""
+    """The compiled generalized-alpha run (fortran/flexmbs_api.f90 `simulate`) of a model's
+    handle with its design and law tables (`core_model_args`) and the run's settings; its
+    outputs by name."""
     return RunOutput(*_core.simulate(**kwargs))
 
 
