@@ -326,7 +326,6 @@ def _segment_tape(model, result, margs, pat, x_start, j0, nseg):
     cm = model.compile()
     st = result.settings
     nel = cm.el_dofs.shape[1]
-    nca = max(cm.nc, 1)
     ncol = segment_columns(nseg)
     for attempt in range(2):
         out = call_with_stack(

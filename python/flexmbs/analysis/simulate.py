@@ -749,7 +749,8 @@ def simulate(model: Model, t_end, h=5e-4, *, rho_inf=0.5, start="rest", store="a
                               iterations=int(info[2]), code=int(status))
     dq_t = np.transpose(core_out.dq[:, :nv, :], (2, 0, 1)) if nv else None
     dmu_t = np.transpose(core_out.dmu[:cm.nc, :nv, :], (2, 0, 1)) if want_dmu else None
-    q_out, qd_out, qdd_out, mu_out = core_out.q.T, core_out.qd.T, core_out.qdd.T, core_out.mu[:cm.nc].T
+    q_out, qd_out, qdd_out = core_out.q.T, core_out.qd.T, core_out.qdd.T
+    mu_out = core_out.mu[:cm.nc].T
     if tg is not None:       # from the step grid to the output grid
         w = interpolation_matrix(tg, t)
         q_out, qd_out, qdd_out, mu_out = (w @ a for a in (q_out, qd_out, qdd_out, mu_out))
