@@ -13,6 +13,10 @@ module model_data
     private
     public :: mbs_model, law_value, law_rate, law_accel0
 
+    !> The arrays that depend on neither the design nor the time grid are pointers: those of a
+    !! run's model (model_for_run) point to the arrays of the model it was made from, which
+    !! runs in parallel threads share and only read; the design's element properties and
+    !! masses and the law tables are allocatable, each run's own.
     type :: mbs_model
         integer :: ndof = 0                      !! coordinates (3 per node)
         integer :: nc = 0                        !! constraint rows (multipliers)
@@ -22,42 +26,47 @@ module model_data
         integer :: nlaw = 0                      !! tabulated time laws
         integer :: nnz = 0                       !! stored values of the iteration matrix
         integer :: nsd = 0                       !! spring-dampers (force_elements.f90)
-        real(wp), allocatable :: qref(:)         !! reference (stress-free) configuration
-        real(wp), allocatable :: lumped(:)       !! lumped diagonal masses (point masses, inertias)
-        real(wp), allocatable :: gacc(:)         !! gravity acceleration per coordinate
-        integer, allocatable :: el_nen(:)        !! nodes per element
-        integer, allocatable :: el_dofs(:, :)    !! (MAX_EDOF, nel) global coordinate indices
-        real(wp), allocatable :: el_len(:)       !! reference lengths
+        real(wp), pointer, contiguous :: qref(:) => null()         !! reference (stress-free) configuration
+        real(wp), pointer, contiguous :: lumped(:) => null()       !! lumped diagonal masses (point masses, inertias)
+        real(wp), pointer, contiguous :: gacc(:) => null()         !! gravity acceleration per coordinate
+        integer, pointer, contiguous :: el_nen(:) => null()        !! nodes per element
+        integer, pointer, contiguous :: el_dofs(:, :) => null()    !! (MAX_EDOF, nel) global coordinate indices
+        real(wp), pointer, contiguous :: el_len(:) => null()       !! reference lengths
         real(wp), allocatable :: el_prop(:, :)   !! (5, nel): EA, kGA, EI, rhoA, rhoI
-        real(wp), allocatable :: el_eta(:)       !! (nel) Kelvin–Voigt time of the material (s)
+        real(wp), pointer, contiguous :: el_eta(:) => null()       !! (nel) Kelvin–Voigt time of the material (s)
         logical :: damped = .false.              !! some element has eta > 0 (beam2d.f90)
         real(wp), allocatable :: el_mass(:, :, :)!! (MAX_EDOF, MAX_EDOF, nel) element mass matrices
-        real(wp), allocatable :: el_mass_a(:, :, :) !! element mass matrices per unit rhoA (rhoI = 0)
-        real(wp), allocatable :: el_mass_i(:, :, :) !! element mass matrices per unit rhoI (rhoA = 0)
-        real(wp), allocatable :: el_eref(:, :, :)   !! (3, MAX_GAUSS, nel) reference strains
-        integer, allocatable :: ld_dof(:)        !! loaded coordinate
-        integer, allocatable :: ld_law(:)        !! law of the load (0: constant)
-        real(wp), allocatable :: ld_amp(:)       !! amplitude of the load
-        integer, allocatable :: c_kind(:)        !! CON_* kind of each row
-        integer, allocatable :: c_dofs(:, :)     !! (MAX_CDOF, nc) coordinates (0: unused)
-        real(wp), allocatable :: c_coef(:, :)    !! (MAX_CDOF, nc) coefficients / offsets
-        real(wp), allocatable :: c_c0(:)         !! constant terms
-        integer, allocatable :: c_law(:)         !! law of the row (0: none)
-        real(wp), allocatable :: c_lawcoef(:)    !! multiplier of the law
+        real(wp), pointer, contiguous :: el_mass_a(:, :, :) => null() !! element mass matrices per unit rhoA (rhoI = 0)
+        real(wp), pointer, contiguous :: el_mass_i(:, :, :) => null() !! element mass matrices per unit rhoI (rhoA = 0)
+        real(wp), pointer, contiguous :: el_eref(:, :, :) => null()   !! (3, MAX_GAUSS, nel) reference strains
+        integer, pointer, contiguous :: ld_dof(:) => null()        !! loaded coordinate
+        integer, pointer, contiguous :: ld_law(:) => null()        !! law of the load (0: constant)
+        real(wp), pointer, contiguous :: ld_amp(:) => null()       !! amplitude of the load
+        integer, pointer, contiguous :: c_kind(:) => null()        !! CON_* kind of each row
+        integer, pointer, contiguous :: c_dofs(:, :) => null()     !! (MAX_CDOF, nc) coordinates (0: unused)
+        real(wp), pointer, contiguous :: c_coef(:, :) => null()    !! (MAX_CDOF, nc) coefficients / offsets
+        real(wp), pointer, contiguous :: c_c0(:) => null()         !! constant terms
+        integer, pointer, contiguous :: c_law(:) => null()         !! law of the row (0: none)
+        real(wp), pointer, contiguous :: c_lawcoef(:) => null()    !! multiplier of the law
         logical :: linear_constraints = .true.   !! all rows CON_LINEAR (constant gradient)
         real(wp) :: law_h = 1.0_wp               !! grid step of the tabulated laws
         real(wp), allocatable :: law_val(:, :)   !! (nlaw, npts) values on the grid
         real(wp), allocatable :: law_der(:, :)   !! (nlaw, npts) first derivatives on the grid
         real(wp), allocatable :: law_dd0(:)      !! second derivatives at t = 0
-        integer, allocatable :: sd_dofs(:, :)    !! (4, nsd) coordinates x_a, y_a, x_b, y_b
-        real(wp), allocatable :: sd_prop(:, :)   !! (SD_NPROP, nsd) k, c, l0, f0
-        integer, allocatable :: map_sd(:, :, :)  !! (4, 4, nsd) value positions of the spring blocks
-        integer, allocatable :: map_el(:, :, :)  !! (MAX_EDOF, MAX_EDOF, nel) value positions
-        integer, allocatable :: map_diag(:)      !! (ndof) positions of the diagonal
-        integer, allocatable :: map_cq(:, :)     !! (MAX_CDOF, nc) positions of (ndof+r, dof)
-        integer, allocatable :: map_qc(:, :)     !! (MAX_CDOF, nc) positions of (dof, ndof+r)
-        integer, allocatable :: map_qq(:, :, :)  !! (MAX_CDOF, MAX_CDOF, nc) positions of (dof, dof)
+        integer, pointer, contiguous :: sd_dofs(:, :) => null()    !! (4, nsd) coordinates x_a, y_a, x_b, y_b
+        real(wp), pointer, contiguous :: sd_prop(:, :) => null()   !! (SD_NPROP, nsd) k, c, l0, f0
+        integer, pointer, contiguous :: map_sd(:, :, :) => null()  !! (4, 4, nsd) value positions of the spring blocks
+        integer, pointer, contiguous :: map_el(:, :, :) => null()  !! (MAX_EDOF, MAX_EDOF, nel) value positions
+        integer, pointer, contiguous :: map_diag(:) => null()      !! (ndof) positions of the diagonal
+        integer, pointer, contiguous :: map_cq(:, :) => null()     !! (MAX_CDOF, nc) positions of (ndof+r, dof)
+        integer, pointer, contiguous :: map_qc(:, :) => null()     !! (MAX_CDOF, nc) positions of (dof, ndof+r)
+        integer, pointer, contiguous :: map_qq(:, :, :) => null()  !! (MAX_CDOF, MAX_CDOF, nc) positions of (dof, dof)
         real(wp) :: qscale = 1.0_wp              !! length scale of the convergence test
+        !> .true.: the arrays behind the pointers are this model's (model_from_arrays: freed by
+        !! model_free); .false.: a run's model (model_for_run), whose pointers share them with
+        !! the model it was made from; its allocatable arrays (design, law tables, element
+        !! masses) are its own
+        logical :: owner = .false.
     end type mbs_model
 
     public :: model_finish, model_from_arrays, model_free, model_for_run
@@ -124,10 +133,12 @@ contains
                      + real(nca, wp) * (4 + size(c_dofs, 1) + size(c_coef, 1) + 2 * size(map_cq, 1) &
                      + MAX_CDOF**2) + 2.0_wp * size(law_val) + size(law_dd0) &
                      + real(nsa, wp) * (4 + SD_NPROP + 16))
+            m%owner = .true.
             call model_free(m)
             status = 1
             return
         end if
+        m%owner = .true.
         m%qref = qref(1:ndof)
         m%lumped = lumped(1:ndof)
         m%gacc = gacc(1:ndof)
@@ -183,8 +194,10 @@ contains
         status = 0
         nbytes = 0
         m%n = m%ndof + m%nc
-        if (allocated(m%el_mass)) deallocate (m%el_mass, m%el_mass_a, m%el_mass_i)
-        if (allocated(m%el_eref)) deallocate (m%el_eref)
+        if (allocated(m%el_mass)) deallocate (m%el_mass)
+        if (associated(m%el_mass_a)) deallocate (m%el_mass_a)
+        if (associated(m%el_mass_i)) deallocate (m%el_mass_i)
+        if (associated(m%el_eref)) deallocate (m%el_eref)
         allocate (m%el_mass(MAX_EDOF, MAX_EDOF, max(m%nel, 1)), &
                   m%el_mass_a(MAX_EDOF, MAX_EDOF, max(m%nel, 1)), &
                   m%el_mass_i(MAX_EDOF, MAX_EDOF, max(m%nel, 1)), &
@@ -192,9 +205,9 @@ contains
         if (ierr /= 0) then
             nbytes = 8.0_wp * real(max(m%nel, 1), wp) * (3 * MAX_EDOF**2 + 3 * MAX_GAUSS)
             if (allocated(m%el_mass)) deallocate (m%el_mass)
-            if (allocated(m%el_mass_a)) deallocate (m%el_mass_a)
-            if (allocated(m%el_mass_i)) deallocate (m%el_mass_i)
-            if (allocated(m%el_eref)) deallocate (m%el_eref)
+            if (associated(m%el_mass_a)) deallocate (m%el_mass_a)
+            if (associated(m%el_mass_i)) deallocate (m%el_mass_i)
+            if (associated(m%el_eref)) deallocate (m%el_eref)
             status = 1
             return
         end if
@@ -216,18 +229,18 @@ contains
             m%el_mass(:, :, e) = m%el_prop(4, e) * m%el_mass_a(:, :, e) + m%el_prop(5, e) * m%el_mass_i(:, :, e)
         end do
         m%damped = .false.
-        if (m%nel > 0 .and. allocated(m%el_eta)) m%damped = any(m%el_eta(1:m%nel) /= 0)
+        if (m%nel > 0 .and. associated(m%el_eta)) m%damped = any(m%el_eta(1:m%nel) /= 0)
         m%linear_constraints = .true.
         if (m%nc > 0) m%linear_constraints = all(m%c_kind(1:m%nc) == CON_LINEAR)
         m%qscale = max(1.0_wp, maxval(abs(m%qref)))
         if (m%nel > 0) m%qscale = max(m%qscale, maxval(m%el_len(1:m%nel)))
     end subroutine model_finish
 
-    !> The model of one run: a copy of `base` (a model_from_arrays model, read only here:
-    !! runs in parallel threads share it) with the design's element properties el_prop
-    !! (5, >= nel) and the law tables of the run's time grid. The element mass matrices are
-    !! those of model_finish (linear in rhoA, rhoI). status = 0, or 1 when an allocation
-    !! failed (nbytes: the size asked for; nothing of m stays allocated).
+    !> The model of one run: `base` (a model_from_arrays model, read only here: runs in
+    !! parallel threads share it; its arrays are pointed to, not copied) with its own design's
+    !! element properties el_prop (5, >= nel), element mass matrices (those of model_finish,
+    !! linear in rhoA, rhoI) and the law tables of the run's time grid. status = 0, or 1 when
+    !! an allocation failed (nbytes: the size asked for; nothing of m stays allocated).
     subroutine model_for_run(m, base, el_prop, law_h, law_val, law_der, law_dd0, status, nbytes)
         type(mbs_model), intent(out) :: m
         type(mbs_model), intent(in) :: base
@@ -235,37 +248,21 @@ contains
         real(wp), intent(in) :: law_h, law_val(:, :), law_der(:, :), law_dd0(:)
         integer, intent(out) :: status           !! 0 ok, 1 out of memory
         real(wp), intent(out) :: nbytes          !! bytes asked for when status = 1
-        integer :: e, ne, nca, nld, nsa, ierr
+        integer :: e, ne, ierr
         ne = size(base%el_nen)
-        nca = size(base%c_kind)
-        nld = size(base%ld_dof)
-        nsa = size(base%sd_prop, 2)
         status = 0
         nbytes = 0
-        allocate (m%qref(base%ndof), m%lumped(base%ndof), m%gacc(base%ndof), m%map_diag(base%ndof), &
-                  m%el_nen(ne), m%el_dofs(size(base%el_dofs, 1), ne), m%el_len(ne), &
-                  m%el_prop(size(base%el_prop, 1), ne), m%el_eta(ne), &
-                  m%el_mass(MAX_EDOF, MAX_EDOF, ne), m%el_mass_a(MAX_EDOF, MAX_EDOF, ne), &
-                  m%el_mass_i(MAX_EDOF, MAX_EDOF, ne), m%el_eref(3, MAX_GAUSS, ne), &
-                  m%map_el(MAX_EDOF, MAX_EDOF, ne), &
-                  m%ld_dof(nld), m%ld_law(nld), m%ld_amp(nld), &
-                  m%c_kind(nca), m%c_dofs(size(base%c_dofs, 1), nca), &
-                  m%c_coef(size(base%c_coef, 1), nca), m%c_c0(nca), m%c_law(nca), m%c_lawcoef(nca), &
-                  m%map_cq(size(base%map_cq, 1), nca), m%map_qc(size(base%map_qc, 1), nca), &
-                  m%map_qq(MAX_CDOF, MAX_CDOF, nca), &
+        allocate (m%el_prop(size(base%el_prop, 1), ne), m%el_mass(MAX_EDOF, MAX_EDOF, ne), &
                   m%law_val(size(law_val, 1), size(law_val, 2)), &
-                  m%law_der(size(law_der, 1), size(law_der, 2)), m%law_dd0(size(law_dd0)), &
-                  m%sd_dofs(4, nsa), m%sd_prop(SD_NPROP, nsa), m%map_sd(4, 4, nsa), stat=ierr)
+                  m%law_der(size(law_der, 1), size(law_der, 2)), m%law_dd0(size(law_dd0)), stat=ierr)
         if (ierr /= 0) then
-            nbytes = 8.0_wp * (4.0_wp * base%ndof + real(ne, wp) * (2 + size(base%el_dofs, 1) + 1 &
-                     + size(base%el_prop, 1) + 4 * MAX_EDOF**2 + 3 * MAX_GAUSS) + 3.0_wp * nld &
-                     + real(nca, wp) * (4 + size(base%c_dofs, 1) + size(base%c_coef, 1) &
-                     + 2 * size(base%map_cq, 1) + MAX_CDOF**2) + 2.0_wp * size(law_val) &
-                     + size(law_dd0) + real(nsa, wp) * (4 + SD_NPROP + 16))
+            nbytes = 8.0_wp * (real(ne, wp) * (size(base%el_prop, 1) + MAX_EDOF**2) &
+                     + 2.0_wp * size(law_val) + size(law_dd0))
             call model_free(m)
             status = 1
             return
         end if
+        m%owner = .false.
         m%ndof = base%ndof
         m%nc = base%nc
         m%n = base%n
@@ -277,33 +274,33 @@ contains
         m%damped = base%damped
         m%linear_constraints = base%linear_constraints
         m%qscale = base%qscale
-        m%qref = base%qref
-        m%lumped = base%lumped
-        m%gacc = base%gacc
-        m%map_diag = base%map_diag
-        m%el_nen = base%el_nen
-        m%el_dofs = base%el_dofs
-        m%el_len = base%el_len
-        m%el_eta = base%el_eta
-        m%el_mass_a = base%el_mass_a
-        m%el_mass_i = base%el_mass_i
-        m%el_eref = base%el_eref
-        m%map_el = base%map_el
-        m%ld_dof = base%ld_dof
-        m%ld_law = base%ld_law
-        m%ld_amp = base%ld_amp
-        m%c_kind = base%c_kind
-        m%c_dofs = base%c_dofs
-        m%c_coef = base%c_coef
-        m%c_c0 = base%c_c0
-        m%c_law = base%c_law
-        m%c_lawcoef = base%c_lawcoef
-        m%map_cq = base%map_cq
-        m%map_qc = base%map_qc
-        m%map_qq = base%map_qq
-        m%sd_dofs = base%sd_dofs
-        m%sd_prop = base%sd_prop
-        m%map_sd = base%map_sd
+        m%qref => base%qref
+        m%lumped => base%lumped
+        m%gacc => base%gacc
+        m%el_nen => base%el_nen
+        m%el_dofs => base%el_dofs
+        m%el_len => base%el_len
+        m%el_eta => base%el_eta
+        m%el_mass_a => base%el_mass_a
+        m%el_mass_i => base%el_mass_i
+        m%el_eref => base%el_eref
+        m%ld_dof => base%ld_dof
+        m%ld_law => base%ld_law
+        m%ld_amp => base%ld_amp
+        m%c_kind => base%c_kind
+        m%c_dofs => base%c_dofs
+        m%c_coef => base%c_coef
+        m%c_c0 => base%c_c0
+        m%c_law => base%c_law
+        m%c_lawcoef => base%c_lawcoef
+        m%sd_dofs => base%sd_dofs
+        m%sd_prop => base%sd_prop
+        m%map_sd => base%map_sd
+        m%map_el => base%map_el
+        m%map_diag => base%map_diag
+        m%map_cq => base%map_cq
+        m%map_qc => base%map_qc
+        m%map_qq => base%map_qq
         m%el_prop = el_prop(:, 1:ne)
         m%law_h = law_h
         m%law_val = law_val
@@ -360,10 +357,40 @@ contains
         call model_for_run(m, base, el_prop, law_h, law_val, law_der, law_dd0, status, nbytes)
     end subroutine model_of_run
 
-    !> Release every array of a model (safe on a partly allocated one).
+    !> Release every array of a model (safe on a partly allocated one); a run's model
+    !! (model_for_run) releases its own arrays only.
     subroutine model_free(m)
         type(mbs_model), intent(inout) :: m
         type(mbs_model) :: empty
+        if (m%owner) then
+            if (associated(m%qref)) deallocate (m%qref)
+            if (associated(m%lumped)) deallocate (m%lumped)
+            if (associated(m%gacc)) deallocate (m%gacc)
+            if (associated(m%el_nen)) deallocate (m%el_nen)
+            if (associated(m%el_dofs)) deallocate (m%el_dofs)
+            if (associated(m%el_len)) deallocate (m%el_len)
+            if (associated(m%el_eta)) deallocate (m%el_eta)
+            if (associated(m%el_mass_a)) deallocate (m%el_mass_a)
+            if (associated(m%el_mass_i)) deallocate (m%el_mass_i)
+            if (associated(m%el_eref)) deallocate (m%el_eref)
+            if (associated(m%ld_dof)) deallocate (m%ld_dof)
+            if (associated(m%ld_law)) deallocate (m%ld_law)
+            if (associated(m%ld_amp)) deallocate (m%ld_amp)
+            if (associated(m%c_kind)) deallocate (m%c_kind)
+            if (associated(m%c_dofs)) deallocate (m%c_dofs)
+            if (associated(m%c_coef)) deallocate (m%c_coef)
+            if (associated(m%c_c0)) deallocate (m%c_c0)
+            if (associated(m%c_law)) deallocate (m%c_law)
+            if (associated(m%c_lawcoef)) deallocate (m%c_lawcoef)
+            if (associated(m%sd_dofs)) deallocate (m%sd_dofs)
+            if (associated(m%sd_prop)) deallocate (m%sd_prop)
+            if (associated(m%map_sd)) deallocate (m%map_sd)
+            if (associated(m%map_el)) deallocate (m%map_el)
+            if (associated(m%map_diag)) deallocate (m%map_diag)
+            if (associated(m%map_cq)) deallocate (m%map_cq)
+            if (associated(m%map_qc)) deallocate (m%map_qc)
+            if (associated(m%map_qq)) deallocate (m%map_qq)
+        end if
         m = empty
     end subroutine model_free
 
