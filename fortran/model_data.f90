@@ -259,7 +259,8 @@ contains
                   m%law_val(size(law_val, 1), size(law_val, 2)), &
                   m%law_der(size(law_der, 1), size(law_der, 2)), m%law_dd0(size(law_dd0)), stat=ierr)
         if (ierr /= 0) then
-            nbytes = 8.0_wp * (real(ne, wp) * (size(base%el_prop, 1) + MAX_EDOF**2) &
+            nbytes = 8.0_wp * (real(ne, wp) * (size(base%el_prop, 1) + 3 * MAX_EDOF**2 + 3 &
+                     + size(base%el_dofs, 1) + 3 * MAX_GAUSS) + base%ndof &
                      + 2.0_wp * size(law_val) + size(law_dd0))
             call model_free(m)
             status = 1
