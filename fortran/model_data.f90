@@ -18,7 +18,8 @@ module model_data
     !! from, which runs in parallel threads share and only read. The rest is allocatable, each
     !! run's own: the design's element properties and masses, the law tables, and a copy of
     !! the per-element arrays that the element loops of the adjoint and the sensitivities
-    !! read (measured: read through pointers, the robot's backward pass took 6 % longer).
+    !! read, the lumped masses and the constraints' coordinates (measured: read through
+    !! pointers, the robot's backward pass took 6 % longer).
     type :: mbs_model
         integer :: ndof = 0                      !! coordinates (3 per node)
         integer :: nc = 0                        !! constraint rows (multipliers)
@@ -29,7 +30,7 @@ module model_data
         integer :: nnz = 0                       !! stored values of the iteration matrix
         integer :: nsd = 0                       !! spring-dampers (force_elements.f90)
         real(wp), allocatable :: qref(:)         !! reference (stress-free) configuration
-        real(wp), pointer, contiguous :: lumped(:) => null()       !! lumped diagonal masses (point masses, inertias)
+        real(wp), allocatable :: lumped(:)       !! lumped diagonal masses (point masses, inertias)
         real(wp), pointer, contiguous :: gacc(:) => null()         !! gravity acceleration per coordinate
         integer, allocatable :: el_nen(:)        !! nodes per element
         integer, allocatable :: el_dofs(:, :)    !! (MAX_EDOF, nel) global coordinate indices
@@ -45,7 +46,7 @@ module model_data
         integer, pointer, contiguous :: ld_law(:) => null()        !! law of the load (0: constant)
         real(wp), pointer, contiguous :: ld_amp(:) => null()       !! amplitude of the load
         integer, pointer, contiguous :: c_kind(:) => null()        !! CON_* kind of each row
-        integer, pointer, contiguous :: c_dofs(:, :) => null()     !! (MAX_CDOF, nc) coordinates (0: unused)
+        integer, allocatable :: c_dofs(:, :)     !! (MAX_CDOF, nc) coordinates (0: unused)
         real(wp), pointer, contiguous :: c_coef(:, :) => null()    !! (MAX_CDOF, nc) coefficients / offsets
         real(wp), pointer, contiguous :: c_c0(:) => null()         !! constant terms
         integer, pointer, contiguous :: c_law(:) => null()         !! law of the row (0: none)
@@ -253,14 +254,15 @@ contains
         status = 0
         nbytes = 0
         allocate (m%el_prop(size(base%el_prop, 1), ne), m%el_mass(MAX_EDOF, MAX_EDOF, ne), &
-                  m%qref(base%ndof), m%el_nen(ne), m%el_dofs(size(base%el_dofs, 1), ne), &
+                  m%qref(base%ndof), m%lumped(base%ndof), m%c_dofs(size(base%c_dofs, 1), size(base%c_dofs, 2)), &
+                  m%el_nen(ne), m%el_dofs(size(base%el_dofs, 1), ne), &
                   m%el_len(ne), m%el_eta(ne), m%el_mass_a(MAX_EDOF, MAX_EDOF, ne), &
                   m%el_mass_i(MAX_EDOF, MAX_EDOF, ne), m%el_eref(3, MAX_GAUSS, ne), &
                   m%law_val(size(law_val, 1), size(law_val, 2)), &
                   m%law_der(size(law_der, 1), size(law_der, 2)), m%law_dd0(size(law_dd0)), stat=ierr)
         if (ierr /= 0) then
             nbytes = 8.0_wp * (real(ne, wp) * (size(base%el_prop, 1) + 3 * MAX_EDOF**2 + 3 &
-                     + size(base%el_dofs, 1) + 3 * MAX_GAUSS) + base%ndof &
+                     + size(base%el_dofs, 1) + 3 * MAX_GAUSS) + 2.0_wp * base%ndof + size(base%c_dofs) &
                      + 2.0_wp * size(law_val) + size(law_dd0))
             call model_free(m)
             status = 1
@@ -278,13 +280,11 @@ contains
         m%damped = base%damped
         m%linear_constraints = base%linear_constraints
         m%qscale = base%qscale
-        m%lumped => base%lumped
         m%gacc => base%gacc
         m%ld_dof => base%ld_dof
         m%ld_law => base%ld_law
         m%ld_amp => base%ld_amp
         m%c_kind => base%c_kind
-        m%c_dofs => base%c_dofs
         m%c_coef => base%c_coef
         m%c_c0 => base%c_c0
         m%c_law => base%c_law
@@ -298,6 +298,8 @@ contains
         m%map_qc => base%map_qc
         m%map_qq => base%map_qq
         m%qref = base%qref
+        m%lumped = base%lumped
+        m%c_dofs = base%c_dofs
         m%el_nen = base%el_nen
         m%el_dofs = base%el_dofs
         m%el_len = base%el_len
@@ -367,13 +369,11 @@ contains
         type(mbs_model), intent(inout) :: m
         type(mbs_model) :: empty
         if (m%owner) then
-            if (associated(m%lumped)) deallocate (m%lumped)
             if (associated(m%gacc)) deallocate (m%gacc)
             if (associated(m%ld_dof)) deallocate (m%ld_dof)
             if (associated(m%ld_law)) deallocate (m%ld_law)
             if (associated(m%ld_amp)) deallocate (m%ld_amp)
             if (associated(m%c_kind)) deallocate (m%c_kind)
-            if (associated(m%c_dofs)) deallocate (m%c_dofs)
             if (associated(m%c_coef)) deallocate (m%c_coef)
             if (associated(m%c_c0)) deallocate (m%c_c0)
             if (associated(m%c_law)) deallocate (m%c_law)
