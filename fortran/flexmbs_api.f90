@@ -145,11 +145,113 @@ subroutine klu_analysis_free(handle)
     call fx_klu_analysis_free(p)
 end subroutine klu_analysis_free
 
-!> Simulate a mechanism (see flexmbs.model for the meaning of every array).
+!> The model of a mechanism (see flexmbs.model for the meaning of every array), built once
+!! and held by Python behind an opaque address (flexmbs.core.CoreModel): the arrays that do
+!! not depend on the design or the time grid, with the per-element mass matrices per unit
+!! rhoA and rhoI and the reference strains. `simulate`, `simulate_adjoint` and
+!! `system_matrices` take the handle and only read its model (runs in parallel threads may
+!! share it). handle: 0 on failure; released by model_destroy. status 0 ok, 1 out of
+!! memory (nbytes: the size asked for).
+subroutine model_create(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, &
+                        qref, lumped, gacc, el_nen, el_dofs, el_len, el_eta, &
+                        ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, c_c0, c_law, c_lawcoef, &
+                        map_el, map_diag, map_cq, map_qc, map_qq, &
+                        nsd, nsda, sd_dofs, sd_prop, map_sd, handle, status, nbytes)
+    use iso_c_binding, only: c_double, c_int, c_int64_t
+    use model_data, only: mbs_model, model_from_arrays, model_address
+    !f2py threadsafe
+    implicit none
+    integer(c_int), intent(in) :: ndof, nc, nel, nload, nlaw, nnz   !! true counts
+    integer(c_int), intent(in) :: nela, nca, nlda                   !! array extents (>= 1)
+    real(c_double), intent(in) :: qref(ndof), lumped(ndof), gacc(ndof)
+    integer(c_int), intent(in) :: el_nen(nela), el_dofs(9, nela)
+    real(c_double), intent(in) :: el_len(nela)
+    real(c_double), intent(in) :: el_eta(nela)          !! Kelvin-Voigt time per element (s)
+    integer(c_int), intent(in) :: ld_dof(nlda), ld_law(nlda)
+    real(c_double), intent(in) :: ld_amp(nlda)
+    integer(c_int), intent(in) :: c_kind(nca), c_dofs(5, nca), c_law(nca)
+    real(c_double), intent(in) :: c_coef(5, nca), c_c0(nca), c_lawcoef(nca)
+    integer(c_int), intent(in) :: map_el(81, nela), map_diag(ndof)
+    integer(c_int), intent(in) :: map_cq(5, nca), map_qc(5, nca), map_qq(25, nca)
+    integer(c_int), intent(in) :: nsd, nsda                 !! spring-dampers, extent (>= 1)
+    integer(c_int), intent(in) :: sd_dofs(4, nsda)          !! x_a, y_a, x_b, y_b (1-based)
+    real(c_double), intent(in) :: sd_prop(4, nsda)          !! k, c, l0, f0
+    integer(c_int), intent(in) :: map_sd(16, nsda)          !! value positions of the 4 x 4 blocks
+    integer(c_int64_t), intent(out) :: handle
+    integer(c_int), intent(out) :: status
+    real(c_double), intent(out) :: nbytes
+    type(mbs_model), pointer :: p
+    real(c_double), allocatable :: no_prop(:, :)
+    real(c_double) :: no_law(1, 2), no_dd0(1)
+    integer :: stat
+    handle = 0
+    status = 1
+    nbytes = 0
+    ! the design's properties and the grid's law tables come with each run (model_of_run)
+    allocate (no_prop(5, nela), stat=stat)
+    if (stat /= 0) then
+        nbytes = 8.0_c_double * 5 * nela
+        return
+    end if
+    allocate (p, stat=stat)
+    if (stat /= 0) then
+        nbytes = -1
+        return
+    end if
+    no_prop = 0
+    no_law = 0
+    no_dd0 = 0
+    call model_from_arrays(p, int(ndof), int(nc), int(nel), int(nload), int(nlaw), int(nnz), &
+                           qref, lumped, gacc, el_nen, el_dofs, el_len, no_prop, &
+                           ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, &
+                           c_c0, c_law, c_lawcoef, 1.0_c_double, no_law, no_law, no_dd0, &
+                           map_el, map_diag, map_cq, map_qc, map_qq, stat, nbytes, &
+                           int(nsd), int(sd_dofs), sd_prop, int(map_sd), el_eta)
+    if (stat /= 0) then
+        deallocate (p)
+        return
+    end if
+    status = 0
+    handle = model_address(p)
+end subroutine model_create
+
+!> Release a model made by model_create (no run may be using it). 0 is ignored.
+subroutine model_destroy(handle)
+    use iso_c_binding, only: c_int64_t
+    use model_data, only: mbs_model, model_at, model_free
+    !f2py threadsafe
+    implicit none
+    integer(c_int64_t), intent(in) :: handle
+    type(mbs_model), pointer :: p
+    p => model_at(handle)
+    if (.not. associated(p)) return
+    call model_free(p)
+    deallocate (p)
+end subroutine model_destroy
+
+!> The counts of the model at a handle from model_create: ndof, nc, nel, nload, nlaw, nnz,
+!! nsd and n = ndof + nc (all 0 for the null handle).
+subroutine model_counts(handle, counts)
+    use iso_c_binding, only: c_int, c_int64_t
+    use model_data, only: mbs_model, model_at
+    !f2py threadsafe
+    implicit none
+    integer(c_int64_t), intent(in) :: handle
+    integer(c_int), intent(out) :: counts(8)
+    type(mbs_model), pointer :: p
+    counts = 0
+    p => model_at(handle)
+    if (.not. associated(p)) return
+    counts = int([p%ndof, p%nc, p%nel, p%nload, p%nlaw, p%nnz, p%nsd, p%n], c_int)
+end subroutine model_counts
+
+!> Simulate a mechanism: the model at a handle from model_create, the design's element
+!! properties el_prop and the laws tabulated on the run's grid (flexmbs.core.core_model_args).
 !! status: 0 ok, 1 Newton failed after step cuts, 2 singular iteration matrix,
 !! 3 static equilibrium failed, 4 singular initial system, 5 inconsistent initial
 !! configuration, 6 non-finite values, 7 bad settings, 8 linear solver set-up,
-!! 9 an allocation failed (nothing is left allocated).
+!! 9 an allocation failed (nothing is left allocated); 7 also for a null model handle or
+!! extents (ndof, nca, nela, law rows) of another model.
 !! info: time, scaled increment or residual, iterations, extra (row / code);
 !! for status 9: time, bytes asked for (-1: unknown), 0, what (1 iteration matrix,
 !! 2 dense LU factors, 3 KLU factorization, 4 state vectors, 5 sensitivity work
@@ -157,38 +259,28 @@ end subroutine klu_analysis_free
 !! stats: newton iterations, factorizations, residual evaluations, step cuts,
 !! static iterations, steps completed, factorizations made for the sensitivities
 !! (included in the factorizations), KLU symbolic analyses run (0 when borrowed).
-subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npts, nout, nsteps, &
-                    qref, q0, qd0, lumped, gacc, el_nen, el_dofs, el_len, el_prop, el_eta, &
-                    ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, c_c0, c_law, c_lawcoef, &
-                    law_h, law_val, law_der, law_dd0, &
-                    map_el, map_diag, map_cq, map_qc, map_qq, nap, nai, ap, ai, &
+subroutine simulate(model, ndof, nca, nela, nlawa, npts, nout, nsteps, q0, qd0, el_prop, &
+                    law_h, law_val, law_der, law_dd0, nap, nai, ap, ai, &
                     h, rho_inf, tol, max_iter, max_cuts, solver, newton, static_start, &
                     kscale, penalty, out_dofs, q_out, qd_out, qdd_out, mu_out, stats, status, info, &
-                    nv, nva, nsens, dprop, sens_dofs, dq_out, &
-                    nsd, nsda, sd_dofs, sd_prop, map_sd, want_dmu, ndmu, dmu_out, polish, &
+                    nv, nva, nsens, dprop, sens_dofs, dq_out, want_dmu, ndmu, dmu_out, polish, &
                     ntape, tape_q, tape_qd, tape_qdd, tape_mu, tape_h, tape_grid, ntape_used, &
                     nckr, nck, ckpt_every, ckpt, restart, x_start, j_start, klu_analysis, ntg, tg)
-    use iso_c_binding, only: c_double, c_int
-    use model_data, only: mbs_model, model_from_arrays
+    use iso_c_binding, only: c_double, c_int, c_int64_t
+    use model_data, only: mbs_model, model_of_run
     use generalized_alpha, only: ga_settings, ga_stats, ga_simulate, ga_set_grid, &
                                  GA_NO_MEMORY, MEM_MODEL, &
                                  GA_BAD_INPUT
     !f2py threadsafe
     implicit none
-    integer(c_int), intent(in) :: ndof, nc, nel, nload, nlaw, nnz   !! true counts
-    integer(c_int), intent(in) :: nela, nca, nlda, nlawa, npts      !! array extents (>= 1)
-    integer(c_int), intent(in) :: nout, nsteps
-    real(c_double), intent(in) :: qref(ndof), q0(ndof), qd0(ndof), lumped(ndof), gacc(ndof)
-    integer(c_int), intent(in) :: el_nen(nela), el_dofs(9, nela)
-    real(c_double), intent(in) :: el_len(nela), el_prop(5, nela)
-    real(c_double), intent(in) :: el_eta(nela)          !! Kelvin-Voigt time per element (s)
-    integer(c_int), intent(in) :: ld_dof(nlda), ld_law(nlda)
-    real(c_double), intent(in) :: ld_amp(nlda)
-    integer(c_int), intent(in) :: c_kind(nca), c_dofs(5, nca), c_law(nca)
-    real(c_double), intent(in) :: c_coef(5, nca), c_c0(nca), c_lawcoef(nca)
+    integer(c_int64_t), intent(in) :: model    !! the model (model_create)
+    integer(c_int), intent(in) :: ndof, nca    !! its coordinates and multiplier rows (max(nc, 1))
+    integer(c_int), intent(in) :: nela, nlawa, npts     !! extents: elements, laws (>= 1), grid
+    real(c_double), intent(in) :: q0(ndof), qd0(ndof)   !! initial state
+    real(c_double), intent(in) :: el_prop(5, nela)      !! the design: EA, kGA, EI, rhoA, rhoI
+    !> the laws tabulated on the run's grid (step law_h): values, rates, d2/dt2 at t = 0
     real(c_double), intent(in) :: law_h, law_val(nlawa, npts), law_der(nlawa, npts), law_dd0(nlawa)
-    integer(c_int), intent(in) :: map_el(81, nela), map_diag(ndof)
-    integer(c_int), intent(in) :: map_cq(5, nca), map_qc(5, nca), map_qq(25, nca)
+    integer(c_int), intent(in) :: nout, nsteps
     integer(c_int), intent(in) :: nap, nai
     integer(c_int), intent(in) :: ap(nap), ai(nai)
     real(c_double), intent(in) :: h, rho_inf, tol, kscale, penalty
@@ -204,10 +296,6 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     real(c_double), intent(in) :: dprop(5, nela, nva)       !! d[EA,kGA,EI,rhoA,rhoI]/dp per element
     integer(c_int), intent(in) :: sens_dofs(nsens)          !! coordinates whose dq/dp is returned
     real(c_double), intent(out) :: dq_out(nsens, nva, nsteps + 1)  !! dq/dp on the grid
-    integer(c_int), intent(in) :: nsd, nsda                 !! spring-dampers, extent (>= 1)
-    integer(c_int), intent(in) :: sd_dofs(4, nsda)          !! x_a, y_a, x_b, y_b (1-based)
-    real(c_double), intent(in) :: sd_prop(4, nsda)          !! k, c, l0, f0
-    integer(c_int), intent(in) :: map_sd(16, nsda)          !! value positions of the 4 x 4 blocks
     integer(c_int), intent(in) :: want_dmu                  !! 1: return d(mu)/dp (needs nv > 0)
     integer(c_int), intent(in) :: ndmu                      !! extent: nca when want_dmu, else 1
     real(c_double), intent(out) :: dmu_out(ndmu, nva, nsteps + 1)  !! d(mu)/dp on the grid
@@ -246,15 +334,11 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
     ckpt = 0
     tgrid = 0
     tused = 0
-    call model_from_arrays(m, int(ndof), int(nc), int(nel), int(nload), int(nlaw), int(nnz), &
-                           qref, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
-                           ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, &
-                           c_c0, c_law, c_lawcoef, law_h, law_val, law_der, law_dd0, &
-                           map_el, map_diag, map_cq, map_qc, map_qq, stat, nbytes, &
-                           int(nsd), int(sd_dofs), sd_prop, int(map_sd), el_eta)
+    call model_of_run(m, model, int(ndof), int(nca), el_prop, law_h, law_val, law_der, law_dd0, &
+                      stat, nbytes)
     if (stat /= 0) then
-        status = int(GA_NO_MEMORY, c_int)
-        info = [0.0_c_double, nbytes, 0.0_c_double, real(MEM_MODEL, c_double)]
+        status = int(merge(GA_NO_MEMORY, GA_BAD_INPUT, stat == 1), c_int)
+        if (stat == 1) info = [0.0_c_double, nbytes, 0.0_c_double, real(MEM_MODEL, c_double)]
         return
     end if
     s = ga_settings(h=h, rho_inf=rho_inf, tol=tol, nsteps=int(nsteps), max_iter=int(max_iter), &
@@ -267,7 +351,7 @@ subroutine simulate(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npt
         status = int(stat, c_int)
         return
     end if
-    if (nv > 0 .and. want_dmu /= 0 .and. ndmu >= nc) then
+    if (nv > 0 .and. want_dmu /= 0 .and. ndmu >= m%nc) then
         call ga_simulate(m, s, int(ap), int(ai), q0, qd0, int(out_dofs), q_out, qd_out, qdd_out, &
                          mu_out, st, stat, info, dprop(:, :, 1:nv), int(sens_dofs), dq_out(:, 1:nv, :), &
                          dmu_out(:, 1:nv, :), tape_q=tape_q, tape_qd=tape_qd, tape_qdd=tape_qdd, &
@@ -309,44 +393,28 @@ end subroutine simulate
 !! of the nsteps steps from grid point j_start, gq and gmu over the whole run's ntot points,
 !! with have_in = 1 the adjoint state adj_in from the later segment, adj_out for the earlier
 !! one, gprop_in the later segments' gprop (added to).
-subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npts, nsteps, &
-                   qref, q0, qd0, lumped, gacc, el_nen, el_dofs, el_len, el_prop, el_eta, &
-                   ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, c_c0, c_law, c_lawcoef, &
-                   law_h, law_val, law_der, law_dd0, &
-                   map_el, map_diag, map_cq, map_qc, map_qq, nap, nai, ap, ai, &
+subroutine simulate_adjoint(model, ndof, nca, nela, nlawa, npts, nsteps, q0, qd0, el_prop, &
+                   law_h, law_val, law_der, law_dd0, nap, nai, ap, ai, &
                    h, rho_inf, tol, max_iter, max_cuts, solver, static_start, kscale, penalty, &
-                   nsd, nsda, sd_dofs, sd_prop, map_sd, &
                    ncol, qt, qdt, qddt, mut, th, grid, nf, gq, gmu, nv, dprop, grad, gprop, &
                    status, info, ntot, j_start, have_in, adj_in, adj_out, gprop_in, klu_analysis, &
                    ntg, tg)
-    use iso_c_binding, only: c_double, c_int
-    use model_data, only: mbs_model, model_from_arrays
-    use generalized_alpha, only: ga_settings, ga_set_grid, GA_NO_MEMORY, MEM_MODEL
+    use iso_c_binding, only: c_double, c_int, c_int64_t
+    use model_data, only: mbs_model, model_of_run
+    use generalized_alpha, only: ga_settings, ga_set_grid, GA_NO_MEMORY, MEM_MODEL, GA_BAD_INPUT
     use adjoint, only: ga_adjoint
     !f2py threadsafe
     implicit none
-    integer(c_int), intent(in) :: ndof, nc, nel, nload, nlaw, nnz   !! true counts
-    integer(c_int), intent(in) :: nela, nca, nlda, nlawa, npts      !! array extents (>= 1)
-    integer(c_int), intent(in) :: nsteps
-    real(c_double), intent(in) :: qref(ndof), q0(ndof), qd0(ndof), lumped(ndof), gacc(ndof)
-    integer(c_int), intent(in) :: el_nen(nela), el_dofs(9, nela)
-    real(c_double), intent(in) :: el_len(nela), el_prop(5, nela)
-    real(c_double), intent(in) :: el_eta(nela)          !! Kelvin-Voigt time per element (s)
-    integer(c_int), intent(in) :: ld_dof(nlda), ld_law(nlda)
-    real(c_double), intent(in) :: ld_amp(nlda)
-    integer(c_int), intent(in) :: c_kind(nca), c_dofs(5, nca), c_law(nca)
-    real(c_double), intent(in) :: c_coef(5, nca), c_c0(nca), c_lawcoef(nca)
+    integer(c_int64_t), intent(in) :: model             !! as `simulate`'s
+    integer(c_int), intent(in) :: ndof, nca, nela, nlawa, npts
+    real(c_double), intent(in) :: q0(ndof), qd0(ndof)
+    real(c_double), intent(in) :: el_prop(5, nela)
     real(c_double), intent(in) :: law_h, law_val(nlawa, npts), law_der(nlawa, npts), law_dd0(nlawa)
-    integer(c_int), intent(in) :: map_el(81, nela), map_diag(ndof)
-    integer(c_int), intent(in) :: map_cq(5, nca), map_qc(5, nca), map_qq(25, nca)
+    integer(c_int), intent(in) :: nsteps
     integer(c_int), intent(in) :: nap, nai
     integer(c_int), intent(in) :: ap(nap), ai(nai)
     real(c_double), intent(in) :: h, rho_inf, tol, kscale, penalty
     integer(c_int), intent(in) :: max_iter, max_cuts, solver, static_start
-    integer(c_int), intent(in) :: nsd, nsda
-    integer(c_int), intent(in) :: sd_dofs(4, nsda)
-    real(c_double), intent(in) :: sd_prop(4, nsda)
-    integer(c_int), intent(in) :: map_sd(16, nsda)
     integer(c_int), intent(in) :: ncol                               !! tape columns
     real(c_double), intent(in) :: qt(ndof, ncol), qdt(ndof, ncol)    !! the forward run's tape
     real(c_double), intent(in) :: qddt(ndof, ncol), mut(nca, ncol)
@@ -374,15 +442,11 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
     integer :: stat
     real(c_double) :: nbytes
     grad = 0; gprop = gprop_in; info = 0; adj_out = 0
-    call model_from_arrays(m, int(ndof), int(nc), int(nel), int(nload), int(nlaw), int(nnz), &
-                           qref, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
-                           ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, &
-                           c_c0, c_law, c_lawcoef, law_h, law_val, law_der, law_dd0, &
-                           map_el, map_diag, map_cq, map_qc, map_qq, stat, nbytes, &
-                           int(nsd), int(sd_dofs), sd_prop, int(map_sd), el_eta)
+    call model_of_run(m, model, int(ndof), int(nca), el_prop, law_h, law_val, law_der, law_dd0, &
+                      stat, nbytes)
     if (stat /= 0) then
-        status = int(GA_NO_MEMORY, c_int)
-        info = [0.0_c_double, nbytes, 0.0_c_double, real(MEM_MODEL, c_double)]
+        status = int(merge(GA_NO_MEMORY, GA_BAD_INPUT, stat == 1), c_int)
+        if (stat == 1) info = [0.0_c_double, nbytes, 0.0_c_double, real(MEM_MODEL, c_double)]
         return
     end if
     s = ga_settings(h=h, rho_inf=rho_inf, tol=tol, nsteps=int(nsteps), max_iter=int(max_iter), &
@@ -396,11 +460,11 @@ subroutine simulate_adjoint(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nl
     end if
     if (have_in /= 0) then
         call ga_adjoint(m, s, int(ap), int(ai), q0, qd0, qt, qdt, qddt, mut, th, int(grid), gq, gmu, &
-                        dprop(:, 1:max(nel, 0), :), grad, gprop(:, 1:max(nel, 0), :), stat, info, &
+                        dprop(:, 1:max(m%nel, 0), :), grad, gprop(:, 1:max(m%nel, 0), :), stat, info, &
                         j_start=int(j_start), adj_in=adj_in, adj_out=adj_out, accumulate=.true.)
     else
         call ga_adjoint(m, s, int(ap), int(ai), q0, qd0, qt, qdt, qddt, mut, th, int(grid), gq, gmu, &
-                        dprop(:, 1:max(nel, 0), :), grad, gprop(:, 1:max(nel, 0), :), stat, info, &
+                        dprop(:, 1:max(m%nel, 0), :), grad, gprop(:, 1:max(m%nel, 0), :), stat, info, &
                         j_start=int(j_start), adj_out=adj_out, accumulate=.true.)
     end if
     status = int(stat, c_int)
@@ -437,55 +501,37 @@ end subroutine beam_element_mass
 !> Residual of eq. (1) and iteration matrix of eq. (7) of a model at one state
 !! (dense storage: vals is the n x n matrix, column-major). With cm = 0, ck = 1,
 !! cc = 0, kscale = 0, pen = 0 and mu = 0 the leading ndof x ndof block is K_t.
-subroutine system_matrices(ndof, nc, nel, nload, nlaw, nnz, nela, nca, nlda, nlawa, npts, &
-                           qref, lumped, gacc, el_nen, el_dofs, el_len, el_prop, el_eta, &
-                           ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, c_c0, c_law, c_lawcoef, &
+subroutine system_matrices(model, ndof, nc, nca, nela, nlawa, npts, nnz, el_prop, &
                            law_h, law_val, law_der, law_dd0, &
-                           map_el, map_diag, map_cq, map_qc, map_qq, &
-                           q, qdd, mu, t, cm, ck, kscale, pen, r, vals, phimax, status, &
-                           nsd, nsda, sd_dofs, sd_prop, map_sd, qd, cc)
-    use iso_c_binding, only: c_double, c_int
-    use model_data, only: mbs_model, model_from_arrays
+                           q, qdd, mu, t, cm, ck, kscale, pen, r, vals, phimax, status, qd, cc)
+    use iso_c_binding, only: c_double, c_int, c_int64_t
+    use model_data, only: mbs_model, model_of_run
     use assembly, only: residual, iteration_matrix, mass_times
     !f2py threadsafe
     implicit none
-    integer(c_int), intent(in) :: ndof, nc, nel, nload, nlaw, nnz
-    integer(c_int), intent(in) :: nela, nca, nlda, nlawa, npts
-    real(c_double), intent(in) :: qref(ndof), lumped(ndof), gacc(ndof)
-    integer(c_int), intent(in) :: el_nen(nela), el_dofs(9, nela)
-    real(c_double), intent(in) :: el_len(nela), el_prop(5, nela)
-    real(c_double), intent(in) :: el_eta(nela)          !! Kelvin-Voigt time per element (s)
-    integer(c_int), intent(in) :: ld_dof(nlda), ld_law(nlda)
-    real(c_double), intent(in) :: ld_amp(nlda)
-    integer(c_int), intent(in) :: c_kind(nca), c_dofs(5, nca), c_law(nca)
-    real(c_double), intent(in) :: c_coef(5, nca), c_c0(nca), c_lawcoef(nca)
+    integer(c_int64_t), intent(in) :: model                          !! as `simulate`'s
+    integer(c_int), intent(in) :: ndof, nc, nca, nela, nlawa, npts
+    integer(c_int), intent(in) :: nnz                                !! the model's stored values
+    real(c_double), intent(in) :: el_prop(5, nela)
     real(c_double), intent(in) :: law_h, law_val(nlawa, npts), law_der(nlawa, npts), law_dd0(nlawa)
-    integer(c_int), intent(in) :: map_el(81, nela), map_diag(ndof)
-    integer(c_int), intent(in) :: map_cq(5, nca), map_qc(5, nca), map_qq(25, nca)
     real(c_double), intent(in) :: q(ndof), qdd(ndof), mu(nca), t   !! state
     real(c_double), intent(in) :: cm, ck, kscale, pen                !! coefficients (see assembly.f90)
     real(c_double), intent(out) :: r(ndof + nc)                      !! residual
     real(c_double), intent(out) :: vals(nnz)                         !! iteration matrix values
     real(c_double), intent(out) :: phimax                            !! max |Phi|
-    integer(c_int), intent(out) :: status                            !! 0 ok, 9 out of memory
-    integer(c_int), intent(in) :: nsd, nsda                          !! spring-dampers, extent (>= 1)
-    integer(c_int), intent(in) :: sd_dofs(4, nsda)
-    real(c_double), intent(in) :: sd_prop(4, nsda)
-    integer(c_int), intent(in) :: map_sd(16, nsda)
+    integer(c_int), intent(out) :: status          !! 0 ok, 7 extents of another model, 9 out of memory
     real(c_double), intent(in) :: qd(ndof)                           !! velocities (spring-dampers)
     real(c_double), intent(in) :: cc                                 !! coefficient of C_t (gamma')
     type(mbs_model) :: m
     real(c_double) :: fgrav(ndof), nbytes
     integer :: stat
     r = 0; vals = 0; phimax = 0
-    call model_from_arrays(m, int(ndof), int(nc), int(nel), int(nload), int(nlaw), int(nnz), &
-                           qref, lumped, gacc, el_nen, el_dofs, el_len, el_prop, &
-                           ld_dof, ld_law, ld_amp, c_kind, c_dofs, c_coef, &
-                           c_c0, c_law, c_lawcoef, law_h, law_val, law_der, law_dd0, &
-                           map_el, map_diag, map_cq, map_qc, map_qq, stat, nbytes, &
-                           int(nsd), int(sd_dofs), sd_prop, int(map_sd), el_eta)
-    status = int(stat * 9, c_int)
+    call model_of_run(m, model, int(ndof), int(nca), el_prop, law_h, law_val, law_der, law_dd0, &
+                      stat, nbytes)
+    if (stat == 0 .and. (nc /= m%nc .or. nnz /= m%nnz)) stat = 2
+    status = int(merge(9, 7, stat == 1), c_int)
     if (stat /= 0) return
+    status = 0
     call mass_times(m, m%gacc, fgrav)
     call residual(m, q, qd, qdd, mu(1:max(nc, 0)), t, fgrav, cm, kscale, pen, r, phimax)
     call iteration_matrix(m, q, qd, mu(1:max(nc, 0)), t, cm, ck, cc, kscale, pen, vals)

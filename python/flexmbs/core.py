@@ -1,11 +1,14 @@
-"""The layer over the compiled Fortran core (flexmbs._core): a model's arrays as the core's
-keyword arguments, and the residual and iteration matrix at a state. `simulate` (simulate.py)
+"""The layer over the compiled Fortran core (flexmbs._core): a model sent to the core once
+(CoreModel, an opaque handle) and a run's arguments (the design, the law tables of its time
+grid), the compiled runs with their outputs by name, and the residual and iteration matrix at
+a state. `simulate` (simulate.py)
 and the diagnoses of failed runs (validity.py) both build on it."""
 from __future__ import annotations
 
 import threading
 import weakref
 from enum import IntEnum
+from typing import NamedTuple
 
 import numpy as np
 
@@ -15,8 +18,9 @@ from flexmbs.model.arrays import Model
 from flexmbs.resources import format_bytes, limit_source
 from flexmbs.resources import memory_limit as _memory_limit
 
-__all__ = ["Status", "SolverStatus", "KluAnalysis", "core_model_args", "klu_analysis", "system_matrices",
-           "simulate_arrays", "simulate_adjoint_arrays", "beam_element"]
+__all__ = ["Status", "SolverStatus", "KluAnalysis", "CoreModel", "core_model", "core_model_args",
+           "klu_analysis", "system_matrices",
+           "simulate_arrays", "simulate_adjoint_arrays", "beam_element", "RunOutput", "AdjointOutput"]
 
 class Status(IntEnum):
     """What a compiled run returns: the GA_* codes of fortran/generalized_alpha.f90 (one table
@@ -100,15 +104,88 @@ def klu_analysis(model: Model, storage) -> int:
     return pat["analysis"].handle()
 
 
+class CoreModel:
+    """A model as the core holds it (fortran/flexmbs_api.f90 model_create): the arrays of a
+    compiled model and one matrix storage's value positions that do not depend on the design
+    or the time grid, sent once and built into the core's model (with the element mass
+    matrices per unit rhoA and rhoI and the reference strains). Every run of the model
+    (`simulate`, `simulate_adjoint`, `system_matrices`) passes its address with what changes
+    per call: the element properties of the design and the law tables of the time grid. Made
+    on first use, owned here and released with this object (as KluAnalysis); the core only
+    reads it during a run (a run copies it into its own model with the design), so runs in
+    parallel threads share one; a copy (pickle, deepcopy) makes its own on first use.
+    `builds` counts the models built (1 after the first use)."""
+
+    def __init__(self, arrays: dict):
+        self._arrays = dict(arrays)
+        self.nlaw = int(self._arrays["nlaw"])
+        self._handle = 0
+        self._release = None
+        self._lock = threading.Lock()
+        self.builds = 0
+
+    @classmethod
+    def of(cls, cm, pat, nlaw):
+        """The CoreModel of a compiled model `cm` (Model.compile) with the pattern `pat`
+        (Model.pattern) and nlaw time laws."""
+        return cls(dict(
+            ndof=cm.ndof, nc=cm.nc, nel=cm.nel, nload=cm.nload, nlaw=nlaw, nnz=pat["nnz"],
+            qref=cm.qref, lumped=cm.lumped, gacc=cm.gacc, el_nen=cm.el_nen, el_dofs=cm.el_dofs,
+            el_len=cm.el_len, el_eta=cm.el_eta, ld_dof=cm.ld_dof, ld_law=cm.ld_law,
+            ld_amp=cm.ld_amp, c_kind=cm.c_kind, c_dofs=cm.c_dofs, c_coef=cm.c_coef, c_c0=cm.c_c0,
+            c_law=cm.c_law, c_lawcoef=cm.c_lawcoef, map_el=pat["map_el"],
+            map_diag=pat["map_diag"], map_cq=pat["map_cq"], map_qc=pat["map_qc"],
+            map_qq=pat["map_qq"], nsd=cm.nsd, sd_dofs=cm.sd_dofs, sd_prop=cm.sd_prop,
+            map_sd=pat["map_sd"]))
+
+    def handle(self) -> int:
+        """The core's address of the model (built now on first use)."""
+        if self._handle == 0:
+            with self._lock:
+                if self._handle == 0:
+                    handle, status, nbytes = _core.model_create(**self._arrays)
+                    if status != 0 or handle == 0:
+                        raise ResourceError(f"out of memory in the core: could not allocate the "
+                                            f"model arrays ({self._arrays['nel']} elements, "
+                                            f"{self._arrays['ndof'] + self._arrays['nc']} unknowns"
+                                            f"; {format_bytes(nbytes) if nbytes > 0 else 'size unknown'})",
+                                            required=float(nbytes) if nbytes > 0 else None)
+                    self._release = weakref.finalize(self, _core.model_destroy, handle)
+                    self.builds += 1
+                    self._handle = int(handle)
+        return self._handle
+
+    def counts(self) -> dict:
+        """The counts the core's model holds (fortran/flexmbs_api.f90 model_counts)."""
+        names = ("ndof", "nc", "nel", "nload", "nlaw", "nnz", "nsd", "n")
+        return dict(zip(names, (int(v) for v in _core.model_counts(self.handle()))))
+
+    def __reduce__(self):
+        return (CoreModel, (self._arrays,))
+
+
+def core_model(model: Model, storage) -> CoreModel:
+    """The CoreModel of `model` with matrix storage `storage` ('dense' or 'klu'), made on first
+    use and kept with the model's pattern (a change of the model's structure makes a new one)."""
+    pat = model.pattern(storage)
+    nlaw = len(model.laws())
+    key = ("core_model", nlaw)
+    found = pat.get(key)
+    if found is None:
+        # setdefault: threads racing here keep one (a replaced one could be freed mid-run)
+        found = pat.setdefault(key, CoreModel.of(model.compile(), pat, nlaw))
+    return found
+
+
 def core_model_args(model: Model, storage, t, props=None):
-    """Keyword arguments describing `model` to the Fortran core (flexmbs_api.f90).
+    """Keyword arguments of a run of `model` in the Fortran core (flexmbs_api.f90): the
+    address of its CoreModel (`model`), its extents, the design and the law tables.
 
     storage: 'dense' or 'klu' (matrix layout); t: the time grid on which the
     laws are tabulated (uniform); props: (5, nel) element properties (default:
     the model's current sections).
     """
     cm = model.compile()
-    pat = model.pattern(storage)
     if props is None:
         props = model.element_properties()
     props = np.asarray(props, float)
@@ -136,16 +213,9 @@ def core_model_args(model: Model, storage, t, props=None):
         law_val = np.zeros((1, t.size), order="F")
         law_der = np.zeros((1, t.size), order="F")
         law_dd0 = np.zeros(1)
-    return dict(
-        nc=cm.nc, nel=cm.nel, nload=cm.nload, nlaw=len(laws), nnz=pat["nnz"],
-        qref=cm.qref, lumped=cm.lumped, gacc=cm.gacc,
-        el_nen=cm.el_nen, el_dofs=cm.el_dofs, el_len=cm.el_len, el_prop=np.asfortranarray(props),
-        el_eta=cm.el_eta,
-        ld_dof=cm.ld_dof, ld_law=cm.ld_law, ld_amp=cm.ld_amp,
-        c_kind=cm.c_kind, c_dofs=cm.c_dofs, c_coef=cm.c_coef, c_c0=cm.c_c0, c_law=cm.c_law,
-        c_lawcoef=cm.c_lawcoef, law_h=law_h, law_val=law_val, law_der=law_der, law_dd0=law_dd0,
-        map_el=pat["map_el"], map_diag=pat["map_diag"], map_cq=pat["map_cq"], map_qc=pat["map_qc"],
-        map_qq=pat["map_qq"], nsd=cm.nsd, sd_dofs=cm.sd_dofs, sd_prop=cm.sd_prop, map_sd=pat["map_sd"])
+    return dict(model=core_model(model, storage).handle(), ndof=cm.ndof, nca=max(cm.nc, 1),
+                el_prop=np.asfortranarray(props), law_h=law_h, law_val=law_val, law_der=law_der,
+                law_dd0=law_dd0)
 
 
 def system_matrices(model: Model, q, qdd=None, mu=None, t=0.0, *, cm=0.0, ck=1.0, kscale=0.0,
@@ -175,27 +245,69 @@ def system_matrices(model: Model, q, qdd=None, mu=None, t=0.0, *, cm=0.0, ck=1.0
     # the core tabulates laws on a grid from 0; t itself is a grid point
     grid = np.array([0.0, float(t)]) if t > 0 else np.array([0.0, 1e-6])
     margs = core_model_args(model, "dense", grid, props)
-    r, vals, _, status = _core.system_matrices(**margs, q=q, qdd=qdd, mu=mu_arr, t=float(t),
-                                               cm=float(cm), ck=float(ck), kscale=float(kscale),
-                                               pen=float(penalty), qd=qd, cc=float(cc))
-    if status != 0:
+    r, vals, _phimax, status = _core.system_matrices(**margs, nc=c.nc, nnz=c.n * c.n, q=q, qdd=qdd,
+                                                     mu=mu_arr, t=float(t), cm=float(cm),
+                                                     ck=float(ck), kscale=float(kscale),
+                                                     pen=float(penalty), qd=qd, cc=float(cc))
+    if status == Status.NO_MEMORY:
         raise ResourceError(f"out of memory in the core: could not allocate the model arrays "
                             f"({c.nel} elements, {c.n} unknowns)")
+    if status != 0:
+        raise ModelError(f"system_matrices: the core rejected the model's arrays (status "
+                         f"{int(status)}: extents of another model)")
     return r, vals.reshape(c.n, c.n, order="F")
 
 
 # ----------------------------------------------------------------------------- compiled runs
-def simulate_arrays(**kwargs):
-    """The compiled generalized-alpha run (fortran/flexmbs_api.f90 `simulate`) on a model's
-    arrays (`core_model_args`) and the run's settings; its outputs in the order of the
-    Fortran interface (flexmbs.analysis.simulate unpacks them)."""
-    return _core.simulate(**kwargs)
+class RunOutput(NamedTuple):
+    """The outputs of the compiled generalized-alpha run (fortran/flexmbs_api.f90 `simulate`),
+    by name; arrays in the core's layout (coordinates first, time last)."""
+    q: np.ndarray            #: (nout, nsteps + 1) stored coordinates
+    qd: np.ndarray           #: (nout, nsteps + 1) their velocities
+    qdd: np.ndarray          #: (nout, nsteps + 1) their accelerations
+    mu: np.ndarray           #: (max(nc, 1), nsteps + 1) multipliers
+    stats: np.ndarray        #: (8,) counters (see the Fortran interface)
+    status: int              #: a Status code
+    info: np.ndarray         #: (4,) time, increment or residual, iterations, extra
+    dq: np.ndarray           #: (nsens, nva, nsteps + 1) dq/dp
+    dmu: np.ndarray          #: (ndmu, nva, nsteps + 1) dmu/dp
+    tape_q: np.ndarray       #: (ndof, ntape) the adjoint's tape: coordinates of every sub-step
+    tape_qd: np.ndarray      #: (ndof, ntape) velocities
+    tape_qdd: np.ndarray     #: (ndof, ntape) accelerations
+    tape_mu: np.ndarray      #: (max(nc, 1), ntape) multipliers
+    tape_h: np.ndarray       #: (ntape,) step leading to a column
+    tape_grid: np.ndarray    #: (nsteps + 1,) column of every grid point
+    ntape_used: int          #: tape columns used
+    checkpoints: np.ndarray  #: (nckr, nck) states at the checkpoints
+
+    def tape(self, nc):
+        """The columns of the tape the run used, as Result.tape: q, qd, qdd, mu (nc rows), h
+        and grid."""
+        n = int(self.ntape_used)
+        return dict(q=self.tape_q[:, :n], qd=self.tape_qd[:, :n], qdd=self.tape_qdd[:, :n],
+                    mu=self.tape_mu[:nc, :n], h=self.tape_h[:n], grid=np.asarray(self.tape_grid))
 
 
-def simulate_adjoint_arrays(**kwargs):
+class AdjointOutput(NamedTuple):
+    """The outputs of the compiled backward pass (fortran/flexmbs_api.f90 `simulate_adjoint`)."""
+    grad: np.ndarray         #: (nv, nf) gradients through the core's dprop
+    gprop: np.ndarray        #: (5, nela, nf) dG_f/d[EA, kGA, EI, rhoA, rhoI] per element
+    status: int              #: a Status code
+    info: np.ndarray         #: (4,) as RunOutput.info
+    adj_out: np.ndarray      #: (ndof, nf, 4) the adjoint state at the segment's start
+
+
+def simulate_arrays(**kwargs) -> RunOutput:
+    """The compiled generalized-alpha run (fortran/flexmbs_api.f90 `simulate`) of a model's
+    handle with its design and law tables (`core_model_args`) and the run's settings; its
+    outputs by name."""
+    return RunOutput(*_core.simulate(**kwargs))
+
+
+def simulate_adjoint_arrays(**kwargs) -> AdjointOutput:
     """The compiled forward run with the discrete adjoint's backward pass
-    (fortran/flexmbs_api.f90 `simulate_adjoint`; flexmbs.analysis.adjoint unpacks it)."""
-    return _core.simulate_adjoint(**kwargs)
+    (fortran/flexmbs_api.f90 `simulate_adjoint`); its outputs by name."""
+    return AdjointOutput(*_core.simulate_adjoint(**kwargs))
 
 
 def beam_element(length, stiffness, qref, q, eta, qd):

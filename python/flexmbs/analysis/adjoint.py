@@ -266,7 +266,7 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
         ncol = tp["h"].size
         mut = np.zeros((nca, ncol), order="F")
         mut[:cm.nc] = tp["mu"]
-        _, gp, status, info, adj_out = simulate_adjoint_arrays(
+        back = simulate_adjoint_arrays(
             **margs, nsteps=nseg, q0=np.asarray(result.initial.q0, float),
             qd0=np.asarray(result.initial.qd0, float), ap=pat["ap"], ai=pat["ai"],
             **_integrator_args(result), static_start=int(st.start == "static"),
@@ -276,11 +276,11 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
             grid=np.asarray(tp["grid"], np.int32), nf=nf, gq=gq_f, gmu=gmu_f,
             nv=1, dprop=dprop_f, ntot=nt, j_start=j0, have_in=int(have_in),
             adj_in=adj, gprop_in=gprop, klu_analysis=klu_analysis(model, solver))
-        if status != 0:
-            _core_failure(status, info, "", f"the backward pass failed at t = {info[0]:.6g} s "
-                          f"(core status {int(status)}, code {int(info[3])}): a singular "
-                          "transposed iteration matrix")
-        return gp, adj_out
+        if back.status != 0:
+            _core_failure(back.status, back.info, "", f"the backward pass failed at t = "
+                          f"{back.info[0]:.6g} s (core status {int(back.status)}, code "
+                          f"{int(back.info[3])}): a singular transposed iteration matrix")
+        return back.gprop, back.adj_out
 
     if tape is not None:
         gprop, _ = backward(tape, 0, nt - 1, False, st.kscale or 0.0, st.penalty or 0.0)
@@ -338,7 +338,6 @@ def _segment_tape(model, result, margs, pat, x_start, j0, nseg):
     cm = model.compile()
     st = result.settings
     nel = cm.el_dofs.shape[1]
-    nca = max(cm.nc, 1)
     ncol = segment_columns(nseg)
     for attempt in range(2):
         out = call_with_stack(
@@ -352,7 +351,7 @@ def _segment_tape(model, result, margs, pat, x_start, j0, nseg):
             polish=int(st.polish), ntape=ncol, nckr=x_start.size, nck=1,
             ckpt_every=0, restart=1, x_start=x_start, j_start=int(j0),
             klu_analysis=klu_analysis(model, st.solver))
-        status, info = int(out[5]), out[6]
+        status, info = int(out.status), out.info
         if status == Status.TAPE_FULL and attempt == 0:
             ncol = nseg * 2 ** int(st.max_cuts) + 1
             continue
@@ -362,7 +361,4 @@ def _segment_tape(model, result, margs, pat, x_start, j0, nseg):
                       f"{j0 * st.h:.6g} s", f"the re-run of the segment from its checkpoint "
                       f"at t = {j0 * st.h:.6g} s failed at t = {info[0]:.6g} s (core status "
                       f"{status}), although the first run converged")
-    tq, tqd, tqdd, tmu, th, tgrid, nused = out[9:16]
-    nused = int(nused)
-    return dict(q=tq[:, :nused], qd=tqd[:, :nused], qdd=tqdd[:, :nused],
-                mu=tmu[:nca, :nused][:cm.nc], h=th[:nused], grid=np.asarray(tgrid))
+    return out.tape(cm.nc)

@@ -789,15 +789,13 @@ def simulate(model: Model, t_end, h=5e-4, settings=None, *, initial=None, deriva
             tg=np.zeros(1) if tg is None else tg)
 
     try:
-        (q_out, qd_out, qdd_out, mu_out, stats, status, info, dq_out, dmu_out, *tape_out,
-         ckpt_out) = run(ntape)
-        if status == Status.TAPE_FULL:
+        core_out = run(ntape)
+        if core_out.status == Status.TAPE_FULL:
             # more sub-steps than room: once more with room for every step cut max_cuts times
             ntape = ncore * 2 ** int(max_cuts) + 1
             est.parts[TAPE_PART] = tape_bytes(ntape)
             check_memory(est, memory_limit, what=f"simulate with a tape of {ntape} sub-steps")
-            (q_out, qd_out, qdd_out, mu_out, stats, status, info, dq_out, dmu_out,
-             *tape_out, ckpt_out) = run(ntape)
+            core_out = run(ntape)
     except MemoryError as exc:    # the wrapper could not allocate the output arrays
         if isinstance(exc, ResourceError):
             raise
@@ -808,7 +806,8 @@ def simulate(model: Model, t_end, h=5e-4, settings=None, *, initial=None, deriva
     st = dict(zip(("newton_iterations", "factorizations", "residual_evaluations", "step_cuts",
                    "static_iterations", "steps", "sensitivity_factorizations",
                    "symbolic_analyses"),
-                  (int(v) for v in stats)))
+                  (int(v) for v in core_out.stats)))
+    status, info = core_out.status, core_out.info
     st["newton"] = newton
     st["solver"] = solver
     st["unknowns"] = cm.n
@@ -828,9 +827,10 @@ def simulate(model: Model, t_end, h=5e-4, settings=None, *, initial=None, deriva
         raise SimulationError(message,
                               time=float(info[0]), residual=float(info[1]),
                               iterations=int(info[2]), code=int(status))
-    dq_t = np.transpose(dq_out[:, :nv, :], (2, 0, 1)) if nv else None
-    dmu_t = np.transpose(dmu_out[:cm.nc, :nv, :], (2, 0, 1)) if want_dmu else None
-    q_out, qd_out, qdd_out, mu_out = q_out.T, qd_out.T, qdd_out.T, mu_out[:cm.nc].T
+    dq_t = np.transpose(core_out.dq[:, :nv, :], (2, 0, 1)) if nv else None
+    dmu_t = np.transpose(core_out.dmu[:cm.nc, :nv, :], (2, 0, 1)) if want_dmu else None
+    q_out, qd_out, qdd_out = core_out.q.T, core_out.qd.T, core_out.qdd.T
+    mu_out = core_out.mu[:cm.nc].T
     if tg is not None:       # from the step grid to the output grid
         w = interpolation_matrix(tg, t)
         q_out, qd_out, qdd_out, mu_out = (w @ a for a in (q_out, qd_out, qdd_out, mu_out))
@@ -848,12 +848,9 @@ def simulate(model: Model, t_end, h=5e-4, settings=None, *, initial=None, deriva
                   sens_dofs=sdofs if nv else None, dq=dq_t, dmu=dmu_t,
                   steps=None if tg is None else dict(t=tg, matrix=w))
     if tape:
-        tq, tqd, tqdd, tmu, th, tgrid, nused = tape_out
-        nused = int(nused)
-        res.tape = dict(q=tq[:, :nused], qd=tqd[:, :nused], qdd=tqdd[:, :nused],
-                        mu=tmu[:cm.nc, :nused], h=th[:nused], grid=np.asarray(tgrid))
+        res.tape = core_out.tape(cm.nc)
     if checkpoints:
-        res.checkpoints = dict(every=checkpoints, states=ckpt_out)
+        res.checkpoints = dict(every=checkpoints, states=core_out.checkpoints)
     res.validity = check_result(model, res, limits, law_val=margs["law_val"][:, ::law_k],
                                 tol=float(tol),
                                 props=props)
