@@ -10,6 +10,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
+from flexmbs.analysis.settings import SimulationSettings
 from flexmbs.analysis.simulate import simulate, system_matrices
 from flexmbs.core import CoreModel, Status, core_model, core_model_args, simulate_arrays
 from flexmbs.errors import ModelError
@@ -22,7 +23,8 @@ def _robot(t_end=0.01):
 
 
 def _run(model, rho_inf, t_end=0.01):
-    r = simulate(model, t_end, 5e-4, rho_inf=rho_inf, start="rest", newton="full", solver="klu")
+    r = simulate(model, t_end, 5e-4, SimulationSettings(rho_inf=rho_inf, start="rest",
+                                                        newton="full", solver="klu"))
     return r.q, r.mu
 
 
