@@ -9,6 +9,7 @@ import ast
 import inspect
 import json
 import pathlib
+import warnings
 
 import numpy as np
 import pytest
@@ -303,3 +304,22 @@ def test_case_weakly_table_is_used_and_validated():
     assert res.iterations == 1 and res.details["options"]["max_cycles"] == 1
     with pytest.raises(CaseError, match=r"optimize.weakly.damping"):
         _robot(**{"optimize.weakly.damping": 1.5})
+
+
+def test_stored_start_with_other_limits_runs_again(tmp_path):
+    """docs/optimizers.md: a stored multi-start start is reused with the same options, and run
+    again (a warning naming the starts) when max_iterations differs: its result then stops at
+    the new limit (2 MMA iterations, not the stored 1; the robot's objective still falls by
+    60 % in the first, so neither start converges earlier)."""
+    kw = dict(options=dict(starts=2, optimizer="mma", verify=False), workers=1,
+              store=tmp_path / "starts")
+    multistart(_robot(), fully=dict(max_iterations=1), **kw)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")              # reused: no warning, no start run
+        same = multistart(_robot(), fully=dict(max_iterations=1), **kw)
+    assert all("maximum number of iterations (1) reached" in o["reason"] for o in same.optima)
+    with pytest.warns(UserWarning, match=r"2 stored result\(s\) answer another question, their "
+                                         r"jobs run again: .*start000.json \(option options."
+                                         r"max_iterations: 1 -> 2\)"):
+        more = multistart(_robot(), fully=dict(max_iterations=2), **kw)
+    assert all("maximum number of iterations (2) reached" in o["reason"] for o in more.optima)
