@@ -9,11 +9,12 @@ import ast
 import inspect
 import json
 import pathlib
+import warnings
 
 import numpy as np
 import pytest
 
-from flexmbs.errors import CaseError, ModelError
+from flexmbs.errors import CaseError, ModelError, SettingWarning
 from flexmbs.methods.fully import OPTIMIZERS
 from flexmbs.model.options import (build, doc_rows, FullyOptions, markdown_table, MMAOptions,
                                    MultistartOptions, NLoptOptions, OPTIMIZER_OPTIONS,
@@ -87,6 +88,17 @@ def test_defaults_are_those_of_the_code_they_configure():
     (WeaklyOptions, dict(esl_blend=1.0), "option esl_blend = 1.0: Input should be less than 1"),
     (MultistartOptions, dict(sampler="halton"), "option sampler = 'halton': Input should be 'sobol' or 'lhs'"),
     (MultistartOptions, dict(starts=0), "option starts = 0: Input should be greater than or equal to 1"),
+    (MultistartOptions, dict(start_range=[[float("nan"), 1.0], [2.0, 3.0]]), "option start_range.0.0 = nan: Input should be a finite number"),
+    (MultistartOptions, dict(start_range=[[1.0, 1.0], [2.0]]), "option start_range = [[1.0, 1.0], [2.0]]: the lower and the upper design must have as many values"),
+    (MultistartOptions, dict(start_range=[[], []]), "option start_range.0 = []: List should have at least 1 item"),
+    (NLoptOptions, dict(params={"x": float("nan")}), "option params.x = nan: Input should be a finite number"),
+    (MMAOptions, dict(move=1.5), "option move = 1.5: Input should be less than or equal to 1"),
+    (MMAOptions, dict(asyincr=1.0), "option asyincr = 1.0: Input should be greater than 1"),
+    (MMAOptions, dict(asydecr=1.0), "option asydecr = 1.0: Input should be less than 1"),
+    (MMAOptions, dict(asydecr=0.0), "option asydecr = 0.0: Input should be greater than 0"),
+    (MMAOptions, dict(albefa=1.0), "option albefa = 1.0: Input should be less than 1"),
+    (FullyOptions, {"mma": {"move": 0.3}, "move": 0.2}, "option move = 0.2 and option mma.move = 0.3 differ; give it once"),
+    (FullyOptions, {"sqp": SQPOptions(trust_radius=0.1), "trust_radius": 0.3}, "option trust_radius = 0.3 and option sqp.trust_radius = 0.1 differ"),
 ], ids=lambda v: v if isinstance(v, str) else "")
 def test_validation_names_the_option(kind, data, text):
     """A bad value is a ModelError naming the option (its table), the value and what is
@@ -96,18 +108,82 @@ def test_validation_names_the_option(kind, data, text):
     assert text in str(err.value)
 
 
+def test_flat_option_equal_to_its_table_is_taken():
+    """The same option flat and in its table with one value is that value (not an error)."""
+    assert build(FullyOptions, {"mma": {"move": 0.3}, "move": 0.3}).mma.move == 0.3
+
+
 def test_option_of_another_optimizer_is_refused():
-    """An SQP option given to a run of MMA (flat or in its table), or an NLopt option to a run
-    of the SQP, is a ModelError naming the option and the optimizer it belongs to, before any
-    simulation."""
+    """An SQP option given in options= (flat, or by the old keyword) to a run whose optimizer
+    the call names ('mma') is a ModelError naming the option, the optimizer it belongs to and
+    the one run (once: "mma (as asked)"), before any simulation."""
     robot = _robot()
     with pytest.raises(ModelError, match=r"option sqp.trust_radius = 0.1 belongs to optimizer "
-                                         r"'sqp', but the run uses 'mma'"):
+                                         r"'sqp', but the run uses mma \(as asked\); leave") as e:
         optimize_fully(robot, optimizer="mma", options={"trust_radius": 0.1})
-    with pytest.raises(ModelError, match=r"option nlopt.screen = None belongs to optimizer "
-                                         r"'nlopt-mma' / 'nlopt-ccsaq' / 'nlopt-slsqp', but "
-                                         r"the run uses 'sqp' \(sqp \(auto"):
-        optimize_fully(robot, options=FullyOptions(nlopt=NLoptOptions(screen=None)))
+    assert "(mma (as asked))" not in str(e.value)
+    with pytest.warns(DeprecationWarning), pytest.raises(ModelError, match=r"option sqp.trust_"
+                                                         r"radius = 0.1 belongs to optimizer"):
+        optimize_fully(robot, optimizer="mma", trust_radius=0.1)
+
+
+def test_option_of_another_optimizer_is_set_aside_with_a_warning():
+    """optimizer 'auto' (the SQP on the robot's 4 variables) with an NLopt option (the old
+    keyword screen=-0.2): a SettingWarning naming nlopt.screen and the SQP, and the run's
+    iterates are bitwise those of the same run without that option (it is not used); the
+    result records the SQP's table only."""
+    with pytest.warns(SettingWarning, match=r"option nlopt.screen = -0.2 belongs to optimizer "
+                                            r"'nlopt-mma' / 'nlopt-ccsaq' / 'nlopt-slsqp', but "
+                                            r"the run uses sqp \(auto: 4 design variables"), \
+            pytest.warns(DeprecationWarning):
+        old = optimize_fully(_robot(), screen=-0.2, max_iterations=1, verify=False)
+    new = optimize_fully(_robot(), options=dict(max_iterations=1, verify=False))
+    assert [r["design"] for r in old.history] == [r["design"] for r in new.history]
+    assert "nlopt" not in old.details["options"] and old.details["optimizer"] == "sqp"
+
+
+def test_case_table_of_another_optimizer_warns():
+    """A case's [optimize.sqp] table in a run of MMA (optimizer='mma' in the call, options
+    from the case) is set aside with a SettingWarning naming it and MMA, not refused: the
+    run goes on to the start's check (a start outside the bounds, here: ModelError)."""
+    prob = _robot(**{"optimize.optimizer": "sqp", "optimize.sqp.trust_radius": 0.1})
+    with pytest.warns(SettingWarning, match=r"option sqp.trust_radius = 0.1 belongs to "
+                                            r"optimizer 'sqp', but the run uses mma \(as "
+                                            r"asked\): not used"), \
+            pytest.raises(ModelError, match=r"lies outside its bounds"):
+        optimize_fully(prob, np.full(4, 1e6), optimizer="mma")
+
+
+def test_multistart_checks_another_optimizers_table_before_drawing(monkeypatch):
+    """A multi-start (default optimizer nlopt-mma) of a case with an [optimize.sqp] table: one
+    SettingWarning naming it, before any start is drawn; with fully= holding that table and
+    options= naming the optimizer, a ModelError, before any start is drawn (the sampler is
+    replaced by one that fails when called)."""
+    import flexmbs.methods.multistart as ms
+
+    def drawn(*args, **kwargs):
+        raise AssertionError("starts drawn")
+    monkeypatch.setattr(ms, "start_designs", drawn)
+    prob = _robot(**{"optimize.sqp.trust_radius": 0.1})
+    with pytest.warns(SettingWarning, match=r"option sqp.trust_radius = 0.1 belongs to "
+                                            r"optimizer 'sqp', but the run uses nlopt-mma "
+                                            r"\(the multi-start's optimizer\)") as rec, \
+            pytest.raises(AssertionError, match="starts drawn"):
+        multistart(prob, 2, workers=1)
+    assert sum(issubclass(w.category, SettingWarning) for w in rec) == 1
+    with pytest.raises(ModelError, match=r"option sqp.trust_radius = 0.1 belongs to optimizer "
+                                         r"'sqp', but the run uses mma \(the multi-start's "
+                                         r"optimizer\); leave"):
+        multistart(_robot(), options=dict(starts=2, optimizer="mma"),
+                   fully={"sqp": {"trust_radius": 0.1}}, workers=1)
+
+
+def test_case_start_range_has_one_value_per_variable():
+    """[optimize.multistart] start_range with 1 value per design for the robot's 4 variables
+    is a CaseError naming the key and the variables."""
+    with pytest.raises(CaseError, match=r"optimize.multistart.start_range: .* one value per "
+                                        r"design variable \(4: "):
+        _robot(**{"optimize.multistart.start_range": [[10.0], [60.0]]})
 
 
 def test_options_are_frozen():
@@ -184,6 +260,24 @@ def test_set_optimize_reaches_the_optimizer(capsys):
     assert out["options"]["sqp"]["trust_radius"] == 0.05
 
 
+def test_command_line_optimizer_sets_aside_the_cases_table(capsys):
+    """`flexmbs optimize --optimizer mma --set optimize.sqp.trust_radius=0.05`: a
+    SettingWarning on stderr naming the SQP's option, and one MMA iteration (its table
+    recorded, not the SQP's)."""
+    from flexmbs.cli.main import main
+
+    code = main(["optimize", "robot_2dof", "--t-end", "0.1", "--method", "fully", "--json",
+                 "--no-verify", "--no-progress", "--optimizer", "mma", "--set",
+                 "optimize.max_iterations=1", "--set", "optimize.sqp.trust_radius=0.05"])
+    captured = capsys.readouterr()
+    assert ("SettingWarning: option sqp.trust_radius = 0.05 belongs to optimizer 'sqp', but the "
+            "run uses mma (as asked): not used") in captured.err
+    out = json.loads(captured.out)
+    assert code in (0, 1)
+    assert out["optimizer"] == "mma" and out["iterations"] == 1
+    assert "sqp" not in out["options"] and "mma" in out["options"]
+
+
 def test_options_recorded_in_history_and_resume_refuses_another(tmp_path):
     """A history's first line holds the options used whole; resuming it with another option
     (the SQP's trust_radius) is refused, naming the option; with more iterations it is not."""
@@ -210,3 +304,22 @@ def test_case_weakly_table_is_used_and_validated():
     assert res.iterations == 1 and res.details["options"]["max_cycles"] == 1
     with pytest.raises(CaseError, match=r"optimize.weakly.damping"):
         _robot(**{"optimize.weakly.damping": 1.5})
+
+
+def test_stored_start_with_other_limits_runs_again(tmp_path):
+    """docs/optimizers.md: a stored multi-start start is reused with the same options, and run
+    again (a warning naming the starts) when max_iterations differs: its result then stops at
+    the new limit (2 MMA iterations, not the stored 1; the robot's objective still falls by
+    60 % in the first, so neither start converges earlier)."""
+    kw = dict(options=dict(starts=2, optimizer="mma", verify=False), workers=1,
+              store=tmp_path / "starts")
+    multistart(_robot(), fully=dict(max_iterations=1), **kw)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")              # reused: no warning, no start run
+        same = multistart(_robot(), fully=dict(max_iterations=1), **kw)
+    assert all("maximum number of iterations (1) reached" in o["reason"] for o in same.optima)
+    with pytest.warns(UserWarning, match=r"2 stored result\(s\) answer another question, their "
+                                         r"jobs run again: .*start000.json \(option options."
+                                         r"max_iterations: 1 -> 2\)"):
+        more = multistart(_robot(), fully=dict(max_iterations=2), **kw)
+    assert all("maximum number of iterations (2) reached" in o["reason"] for o in more.optima)

@@ -101,6 +101,30 @@ def test_bad_study_names_file_and_key(tmp_path, extra, text):
     assert text in str(err.value) and str(f) in str(err.value)
 
 
+def test_old_optimizer_table_keys_warn_and_map_to_the_tables(tmp_path):
+    """A variant's fully coupled options with the old keys mma_options / nlopt_options warn
+    (DeprecationWarning naming the new key) and give the job of the tables mma / nlopt with
+    the same values; both spellings of one table at once are a CaseError."""
+    variant = ('\n[[tables.1.variants]]\nkey = "v"\nlabel = "v"\nmethod = "fully"\n'
+               'options = {{ optimizer = "mma", {mma} = {{ move = 0.2 }}, '
+               '{nlopt} = {{ screen = -0.2 }} }}\n')
+    want = load_study(_user_study(tmp_path, 1.0, variant.format(mma="mma", nlopt="nlopt")))
+    with pytest.warns(DeprecationWarning) as rec:
+        got = load_study(_user_study(tmp_path, 1.0, variant.format(mma="mma_options",
+                                                                   nlopt="nlopt_options")))
+    text = [str(w.message) for w in rec if issubclass(w.category, DeprecationWarning)]
+    for old, new in (("mma_options", "mma"), ("nlopt_options", "nlopt")):
+        assert any(f"key 'tables.1.variants[0].options.{old}' is deprecated: give it as "
+                   f"'tables.1.variants[0].options.{new}'" in t for t in text)
+    job = want.tables[1].variants[0].job()
+    assert got.tables[1].variants[0].job() == job
+    assert dict(want.tables[1].variants[0].options)["mma"] == {"move": 0.2}
+    with pytest.raises(CaseError, match=r"keys 'tables.1.variants\[0\].options.mma_options' "
+                                        r"and 'tables.1.variants\[0\].options.mma' are the "
+                                        r"same table"):
+        load_study(_user_study(tmp_path, 1.0, variant.format(mma="mma_options", nlopt="mma")))
+
+
 def test_bad_check_and_start(tmp_path):
     """A check of an unknown type lists the types; a start with the wrong number of values
     names the table's key and the case's variables (CaseError naming the file)."""

@@ -44,7 +44,7 @@ from flexmbs.batch import check_dask
 from flexmbs.cli.common import (add_case_arguments, design_from_text, figure_file, nonnegative_int,
                                 output_file, path_text, print_json, problem_from_args)
 from flexmbs.errors import CaseError, ModelError
-from flexmbs.methods.fully import optimize_fully, OPTIMIZERS
+from flexmbs.methods.fully import choose_optimizer, optimize_fully, OPTIMIZERS
 from flexmbs.methods.multistart import multistart
 from flexmbs.methods.result import HistoryWriter
 from flexmbs.methods.weakly import optimize_weakly
@@ -353,11 +353,12 @@ def run_fully(args, problem):
     if args.starts is not None:
         return _run_multistart(args, problem)
 
-    opts = _fully_options(args, section)
+    optimizer = args.optimizer or section.optimizer
+    opts = _used_tables(_fully_options(args, section), optimizer, problem)
     with _Reporter(args, opts.max_iterations, "iterations", describe_iteration,
                    _iteration_line) as report:
         return optimize_fully(problem, design_from_text(args.start, problem, "--start"),
-                              optimizer=args.optimizer or section.optimizer, options=opts,
+                              optimizer=optimizer, options=opts,
                               history=args.history, progress=report, resume=args.resume)
 
 
@@ -366,6 +367,14 @@ def _fully_options(args, section):
     return _options(FullyOptions, section.fully(), args, dict(
         kkt_tol=args.kkt_tol, max_iterations=args.max_iterations,
         design_rel_change=args.design_rel_change))
+
+
+def _used_tables(opts, optimizer, problem):
+    """The fully coupled method's options with the case's tables of another optimizer than
+    the one run set aside (a SettingWarning naming them: the command line may choose another
+    optimizer than the case's)."""
+    chosen, why = choose_optimizer(optimizer, len(problem.variables))
+    return opts.check_optimizer(chosen, why)
 
 
 def _iteration_line(rec):
@@ -393,6 +402,6 @@ def _run_multistart(args, problem):
     ms = _options(MultistartOptions, section.multistart, args, dict(
         starts=args.starts, optimizer=args.optimizer, sampler=args.sampler, seed=args.seed,
         candidates=args.candidates))
-    fully = _fully_options(args, section)
+    fully = _used_tables(_fully_options(args, section), ms.optimizer, problem)
     return multistart(problem, options=ms, fully=fully, workers=args.workers, dask=args.dask,
                       store=args.store, progress=bool(args.progress), resume=args.resume)

@@ -432,7 +432,8 @@ def optimize_fully(problem, x0=None, *, optimizer=None, options=None, history=No
         `verify`, and the optimizers' tables (sqp, mma, slsqp, nlopt); a dict may give an
         optimizer's option flat ({"trust_radius": 0.1}). One table each in
         `flexmbs.model.options` and docs/optimizers.md. An option of another optimizer than
-        the one run is a ModelError naming the optimizer it belongs to. Default: the case's
+        the one run is not used, with a SettingWarning naming it and the optimizer run; a
+        ModelError when `optimizer` names the optimizer too (not 'auto'). Default: the case's
         ``[optimize]`` table, else the defaults. `verify` (default True) verifies the final
         design at converged resolution (`flexmbs.methods.verified`,
         `flexmbs.analysis.accuracy.verify`): re-simulated at h/2, h/4, ... until the
@@ -493,6 +494,9 @@ def optimize_fully(problem, x0=None, *, optimizer=None, options=None, history=No
         raise ModelError(f"optimizer must be 'auto' or one of {', '.join(OPTIMIZERS)}, got "
                          f"{optimizer!r}")
     opts = None if options is None else build(FullyOptions, options)
+    # the caller named the optimizer and gave the options: another optimizer's table is an
+    # error; otherwise (the case's table, 'auto') it is set aside with a SettingWarning
+    explicit = opts is not None and optimizer not in (None, "auto")
     check_progress(progress)
     if not isinstance(resume, bool):
         raise ModelError(f"resume must be True or False, got {resume!r}")
@@ -505,7 +509,7 @@ def optimize_fully(problem, x0=None, *, optimizer=None, options=None, history=No
     if optimizer is None:
         optimizer = "auto" if section is None else section.optimizer
     optimizer, optimizer_reason = choose_optimizer(optimizer, len(problem.variables))
-    opts.check_optimizer(optimizer, optimizer_reason)
+    opts = opts.check_optimizer(optimizer, optimizer_reason, explicit)
     verify = opts.verify
     table = getattr(opts, OPTIMIZER_OPTIONS[optimizer])
     used = opts.record(optimizer)

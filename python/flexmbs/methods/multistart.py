@@ -36,7 +36,7 @@ from flexmbs.analysis.accuracy import describe_verification
 from flexmbs.batch import check_dask, run_batch, StoredResult
 from flexmbs.errors import ModelError, ResourceError, SimulationError
 from flexmbs.files import jsonable, save_figure
-from flexmbs.methods.fully import optimize_fully
+from flexmbs.methods.fully import choose_optimizer, optimize_fully
 from flexmbs.methods.result import OptimizationResult
 from flexmbs.methods.verified import check_verify, finish
 from flexmbs.model.fingerprint import fingerprint
@@ -335,7 +335,10 @@ def multistart(case, starts=None, *, options=None, fully=None, workers=None, das
         best['continued_from']; details['verification']).
     fully : flexmbs.model.options.FullyOptions or dict, optional
         The options of every start's `optimize_fully` (its verify is not used: multistart
-        verifies the best design only); default: the case's ``[optimize]`` table.
+        verifies the best design only); default: the case's ``[optimize]`` table. Another
+        optimizer's table than that of the multi-start's optimizer is not used (a
+        SettingWarning, before any start is drawn), or a ModelError when the call gives both
+        `fully` and options.optimizer (not 'auto').
     workers, dask, store : as `flexmbs.batch.run_batch` (store: one JSON file per start, so
         an interrupted multi-start resumes where it stopped: starts already in the store are
         not run again, unless their fingerprint (flexmbs.model.fingerprint: the case as resolved,
@@ -364,6 +367,9 @@ def multistart(case, starts=None, *, options=None, fully=None, workers=None, das
         options, fully = _from_keywords(options, fully, keywords)
     opts = None if options is None else build(MultistartOptions, options, "options")
     run = None if fully is None else build(FullyOptions, fully, "fully")
+    # the caller named the optimizer and gave the starts' options (as optimize_fully's rule)
+    explicit = (run is not None and opts is not None and "optimizer" in opts.model_fields_set
+                and opts.optimizer != "auto")
     check_progress(progress)
     check_dask(dask)
     if not isinstance(resume, bool):
@@ -380,6 +386,12 @@ def multistart(case, starts=None, *, options=None, fully=None, workers=None, das
     if starts is not None:
         opts = build(MultistartOptions, dict(opts.as_dict(), starts=starts), "starts")
     optimizer, starts, sampler, seed = opts.optimizer, opts.starts, opts.sampler, opts.seed
+    # another optimizer's table: checked once, here, before any start is drawn (not in the
+    # workers); the starts run with it at its defaults
+    chosen, why = choose_optimizer(optimizer, len(problem.variables))
+    if optimizer != "auto":
+        why = f"{chosen} (the multi-start's optimizer)"
+    run = run.check_optimizer(chosen, why, explicit)
     start_range, candidates, verify = opts.start_range, opts.candidates, opts.verify
     best_tolerance, feasibility_tol = opts.best_tolerance, opts.feasibility_tol
     # every start's options, as plain data for the workers (unverified: the best is verified)

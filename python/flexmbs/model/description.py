@@ -812,6 +812,16 @@ class Description(_Strict):
         return v
 
     @model_validator(mode="after")
+    def _start_range_size(self):
+        """[optimize.multistart] start_range: one value per design variable."""
+        rng = None if self.optimize is None else self.optimize.multistart.start_range
+        if rng is not None and len(rng[0]) != len(self.design):
+            raise ValueError(f"optimize.multistart.start_range: the lower and the upper design "
+                             f"must have one value per design variable ({len(self.design)}: "
+                             f"{', '.join(v.name for v in self.design)}), got {len(rng[0])}")
+        return self
+
+    @model_validator(mode="after")
     def check_references(self):
         """Every name used is defined, once."""
         def unique(kind, names):

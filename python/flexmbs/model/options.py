@@ -18,8 +18,10 @@ Every object is built from a dict (a case file's ``[optimize]`` table, a study's
 call's ``options=``) by `build`, which turns pydantic's errors into a ModelError naming the
 option, its value and what is allowed. A FullyOptions dict may give an optimizer's option
 flat (``{"trust_radius": 0.1}``) or in its table (``{"sqp": {"trust_radius": 0.1}}``);
-`FullyOptions.check_optimizer` refuses an option of another optimizer than the one run,
-naming the optimizer it belongs to. `OptimizeSection` is the case file's ``[optimize]`` table
+the same option both flat and in its table with two values is an error naming both.
+`FullyOptions.check_optimizer` sets aside the table of another optimizer than the one run
+(a SettingWarning naming the option and the optimizer run), or refuses it (ModelError) when
+the caller named both the optimizer and that table. `OptimizeSection` is the case file's ``[optimize]`` table
 (docs/case-format.md).
 """
 from __future__ import annotations
@@ -30,7 +32,7 @@ from typing import Annotated, Literal, Union
 from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, ValidationError,
                       field_validator)
 
-from flexmbs.errors import ModelError
+from flexmbs.errors import ModelError, SettingWarning
 
 __all__ = ["FullyOptions", "SQPOptions", "MMAOptions", "SLSQPOptions", "NLoptOptions",
            "WeaklyOptions", "MultistartOptions", "OptimizeSection", "OPTIMIZER_TABLES",
@@ -47,6 +49,7 @@ Pos = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 Count = Annotated[int, Field(ge=1)]
 Whole = Annotated[int, Field(ge=0)]
 Fraction = Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
+Finite = Annotated[float, Field(allow_inf_nan=False)]
 FrameKind = Literal["auto", "tangent", "chord"]
 #: `verify`: True, False, 'check' or a relative accuracy in (0, 0.1]
 Verify = Union[bool, Literal["check"], Annotated[float, Field(gt=0, le=0.1)]]
@@ -109,22 +112,27 @@ class MMAOptions(_Options):
     option        default   meaning
     ============  ========  ===================================================================
     conservative  True      GCMMA: inner iterations until the approximations are conservative
-    move          0.5       move limit, a fraction of the variable's range per iteration
+    move          0.5       move limit, a fraction of the variable's range per iteration,
+                            in (0, 1]
     asyinit       0.5       initial asymptote distance, a fraction of the range
-    asyincr       1.2       asymptote widening when a variable moves the same way twice
-    asydecr       0.7       asymptote narrowing when a variable oscillates
-    albefa        0.1       the subproblem's bounds alpha, beta this far inside the asymptotes
+    asyincr       1.2       asymptote widening when a variable moves the same way twice, > 1
+    asydecr       0.7       asymptote narrowing when a variable oscillates, in (0, 1)
+    albefa        0.1       the subproblem's bounds alpha, beta this far inside the
+                            asymptotes, a fraction of x - asymptote in (0, 1)
     c             1000.0    penalty of the elastic variables (infeasible subproblems)
     check_below   -0.05     constraints below this value are not checked for conservatism
     max_inner     20        GCMMA inner iterations per outer iteration at most
     ============  ========  ===================================================================
     """
     conservative: bool = True
-    move: Pos = 0.5
+    # bounds that flexmbs.optimizers.mma.MMA needs: a step of at most move x range (more
+    # than the range is no limit); asyincr widens and asydecr narrows the asymptotes;
+    # albefa < 1 keeps alpha between the lower asymptote and x (beta likewise)
+    move: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 0.5
     asyinit: Pos = 0.5
-    asyincr: Pos = 1.2
-    asydecr: Pos = 0.7
-    albefa: Pos = 0.1
+    asyincr: Annotated[float, Field(gt=1, allow_inf_nan=False)] = 1.2
+    asydecr: Annotated[float, Field(gt=0, lt=1, allow_inf_nan=False)] = 0.7
+    albefa: Annotated[float, Field(gt=0, lt=1, allow_inf_nan=False)] = 0.1
     c: Pos = 1000.0
     check_below: Annotated[float, Field(le=0, allow_inf_nan=False)] = -0.05
     max_inner: Count = 20
@@ -171,7 +179,7 @@ class NLoptOptions(_Options):
     log_scale: bool = True
     initial_step: Annotated[float, Field(gt=0, le=1)] | None = None
     max_restarts: Whole = 20
-    params: dict[str, float] = {}
+    params: dict[str, Finite] = {}
     feasibility_phase: bool = True
 
 
@@ -213,7 +221,7 @@ class FullyOptions(_Options):
     nlopt                 NLoptOptions()    NLopt's optimizers' options
     ====================  ================  ========================================================
 
-    Only the table of the optimizer run may differ from its defaults (`check_optimizer`).
+    Only the table of the optimizer run is used (`check_optimizer`).
     """
     max_iterations: Count = 100
     max_simulations: Count = 1000
@@ -241,33 +249,63 @@ class FullyOptions(_Options):
         return v
 
     @classmethod
-    def routed(cls, data):
-        """`data` (a dict) with every optimizer's option given flat moved into its table."""
+    def routed(cls, data, where="options"):
+        """`data` (a dict) with every optimizer's option given flat moved into its table;
+        ModelError when an option is given both flat and in its table with two values."""
         data = dict(data)
         for table, kind in OPTIMIZER_TABLES.items():
             flat = {k: data.pop(k) for k in list(data) if k in kind.model_fields
                     and k not in cls.model_fields}
             if flat:
                 inner = data.get(table, {})
-                inner = inner.as_dict() if isinstance(inner, _Options) else dict(inner)
+                inner = inner.as_dict() if isinstance(inner, _Options) else inner
+                if not isinstance(inner, dict):     # pydantic names the bad table
+                    data[table] = inner
+                    continue
+                for k, v in flat.items():
+                    if k in inner and _plain(inner[k]) != _plain(v):
+                        raise ModelError(f"{where}: option {k} = {v!r} and option {table}.{k} "
+                                         f"= {inner[k]!r} differ; give it once")
                 data[table] = {**inner, **flat}
         return data
 
-    def check_optimizer(self, optimizer, why=None):
-        """ModelError when an optimizer's table other than `optimizer`'s differs from its
-        defaults, naming the option and the optimizer it belongs to."""
+    def unused(self, optimizer):
+        """[(table.option, value, owners)] of the options in another optimizer's table than
+        `optimizer`'s that differ from their defaults."""
         mine = OPTIMIZER_OPTIONS.get(optimizer)
+        out = []
         for table, kind in OPTIMIZER_TABLES.items():
             if table == mine:
                 continue
-            given = getattr(self, table)
-            for name in kind.model_fields:
-                if getattr(given, name) != getattr(kind(), name):
-                    owners = [o for o, t in OPTIMIZER_OPTIONS.items() if t == table]
-                    raise ModelError(
-                        f"option {table}.{name} = {getattr(given, name)!r} belongs to optimizer "
-                        f"{' / '.join(repr(o) for o in owners)}, but the run uses {optimizer!r}"
-                        + (f" ({why})" if why else "") + "; leave it out or choose that optimizer")
+            given, default = getattr(self, table), kind()
+            owners = " / ".join(repr(o) for o, t in OPTIMIZER_OPTIONS.items() if t == table)
+            out += [(f"{table}.{name}", getattr(given, name), owners)
+                    for name in kind.model_fields if getattr(given, name) != getattr(default,
+                                                                                      name)]
+        return out
+
+    def check_optimizer(self, optimizer, why=None, explicit=False, stacklevel=3):
+        """These options for a run of `optimizer`, with every other optimizer's table at its
+        defaults. An option of such a table that differs from its default is not used: a
+        SettingWarning names it, the optimizer it belongs to and the one run (`why`: the
+        optimizer and why it runs, e.g. "sqp (auto: 3 design variables ...)"), or a
+        ModelError saying the same when `explicit` (the caller named the optimizer and gave
+        these options)."""
+        unused = self.unused(optimizer)
+        if not unused:
+            return self
+        items = "; ".join(f"option {name} = {value!r} belongs to optimizer {owners}"
+                          for name, value, owners in unused)
+        runs = why or repr(optimizer)
+        if explicit:
+            raise ModelError(f"{items}, but the run uses {runs}; leave it out or choose that "
+                             f"optimizer")
+        import warnings
+        warnings.warn(f"{items}, but the run uses {runs}: not used", SettingWarning,
+                      stacklevel=stacklevel)
+        mine = OPTIMIZER_OPTIONS.get(optimizer)
+        return self.model_copy(update={t: kind() for t, kind in OPTIMIZER_TABLES.items()
+                                       if t != mine})
 
     def record(self, optimizer):
         """The options a run of `optimizer` used, as plain data: the method's and the
@@ -352,8 +390,8 @@ class MultistartOptions(_Options):
                        "nlopt-slsqp"] = "nlopt-mma"
     sampler: Literal["sobol", "lhs"] = "sobol"
     seed: Whole = 0
-    start_range: Annotated[list[list[float]], BeforeValidator(_plain),
-                           Field(min_length=2, max_length=2)] | None = None
+    start_range: Annotated[list[Annotated[list[Finite], Field(min_length=1)]],
+                           BeforeValidator(_plain), Field(min_length=2, max_length=2)] | None = None
     candidates: Count | None = None
     best_tolerance: Pos = 0.003
     feasibility_tol: Pos = 1e-6
@@ -366,6 +404,14 @@ class MultistartOptions(_Options):
         if isinstance(v, tuple):
             v = [list(_plain(x)) if isinstance(_plain(x), (list, tuple)) else _plain(x)
                  for x in v]
+        return v
+
+    @field_validator("start_range")
+    @classmethod
+    def _range_sizes(cls, v):
+        if v is not None and len(v[0]) != len(v[1]):
+            raise ValueError(f"the lower and the upper design must have as many values (one "
+                             f"per design variable), got {len(v[0])} and {len(v[1])}")
         return v
 
 
@@ -443,7 +489,7 @@ def build(kind, data, where="options"):
                          f"{data!r}")
     data = {k: _plain(v) for k, v in data.items()}
     if issubclass(kind, FullyOptions):
-        data = kind.routed(data)
+        data = kind.routed(data, where)
     try:
         return kind(**data)
     except ValidationError as exc:

@@ -541,6 +541,29 @@ def _refuse_run_options(options, where, source):
                             f"{options[opt]!r}; allowed: the optimizer's other options")
 
 
+#: keys a variant's fully coupled options held before the optimizers' tables: key -> table
+OLD_TABLE_KEYS = {"mma_options": "mma", "nlopt_options": "nlopt"}
+
+
+def _rename_old_tables(method, opts, where, source):
+    """`opts` (a variant's options, changed in place) with the old keys mma_options and
+    nlopt_options renamed to the tables mma and nlopt, with a DeprecationWarning naming the
+    new key; CaseError when the old key and its table are both given."""
+    import warnings
+
+    if method != "fully":
+        return
+    for old, new in OLD_TABLE_KEYS.items():
+        if old not in opts:
+            continue
+        if new in opts:
+            raise CaseError(f"{source}: keys '{where}.{old}' and '{where}.{new}' are the same "
+                            f"table (the first deprecated): give '{new}' only")
+        warnings.warn(f"{source}: key '{where}.{old}' is deprecated: give it as '{where}.{new}'",
+                      DeprecationWarning, stacklevel=4)
+        opts[new] = opts.pop(old)
+
+
 def _check_options(options, where, source):
     for method, opts in options.items():
         allowed = _optimizer_keywords(method)
@@ -630,6 +653,7 @@ def _variant(n, k, v, t, case, names, source):
     """A table's variant (`Variant`), checked: its method's options, its start, its multi-start
     settings."""
     where = f"tables.{n}.variants[{k}]"
+    _rename_old_tables(v.method, v.options, f"{where}.options", source)
     allowed = _optimizer_keywords(v.method)
     _refuse_run_options(v.options, f"{where}.options", source)
     for k in v.options:
