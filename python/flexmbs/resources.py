@@ -36,8 +36,9 @@ CHUNK_VALUES = 250_000
 CHECK_WORK_BYTES = 6 * 8 * CHUNK_VALUES
 
 __all__ = ["MAX_STEPS", "time_steps", "MemoryEstimate", "estimate_memory", "available_memory",
-           "memory_limit", "check_memory", "limit_source", "limit_hint", "CaseLimit", "format_bytes", "format_seconds",
-           "call_with_stack", "stack_limit", "DENSE_MAX_ORDER", "STACK_BYTES_PER_UNKNOWN"]
+           "memory_limit", "check_memory", "limit_source", "limit_hint", "CaseLimit",
+           "format_bytes", "format_seconds", "call_with_stack", "stack_limit", "DENSE_MAX_ORDER",
+           "STACK_BYTES_PER_UNKNOWN"]
 
 #: Largest order of a dense system: the core indexes the n x n values with 32-bit integers.
 DENSE_MAX_ORDER = 46340
