@@ -190,7 +190,8 @@ def test_checkpoint_bad_input():
         simulate(model, 0.01, 5e-4, checkpoints=True)
     with pytest.raises(ModelError, match="checkpoints= is not allowed with tape=True"):
         simulate(model, 0.01, 5e-4, checkpoints=4, tape=True)
-    with pytest.raises(ModelError, match="checkpoints= is not allowed .*design_derivatives"):
+    with pytest.raises(ModelError, match=r"checkpoints= is not allowed .*design derivatives "
+                                         r"\(DesignDerivatives.properties"):
         simulate(model, 0.01, 5e-4, derivatives=DesignDerivatives(properties=dprop), checkpoints=4)
 
 

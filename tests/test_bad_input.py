@@ -411,7 +411,8 @@ def test_numpy_scalars_are_numbers():
     (dict(start=None), "start must be 'rest' or 'static', got None"),
     (dict(q0="a"), "q0 must be an array of numbers, got 'a'"),
     (dict(reuse_jacobian="no"), "reuse_jacobian must be True or False, got 'no'"),
-    (dict(design_derivatives="a"), "design_derivatives must be an array of numbers, got 'a'"),
+    (dict(design_derivatives="a"),
+     "DesignDerivatives.properties must be an array of numbers, got 'a'"),
 ], ids=lambda v: v if isinstance(v, str) else "")
 def test_simulate_setting_types(kw, text):
     """simulate's own settings: integers are integers, numbers are numbers, by name."""
@@ -608,7 +609,7 @@ def test_result_and_model_accessors():
         m.pattern(["klu"])
     with pytest.raises(fx.ModelError, match=r"row_label: expected a constraint row index \(int\), got None"):
         m.row_label(None)
-    with pytest.raises(fx.ModelError, match=r"sensitivity_dofs must be an array of numbers, got \[1\.5\]"):
+    with pytest.raises(fx.ModelError, match=r"DesignDerivatives.dofs must be an array of numbers, got \[1\.5\]"):
         fx.simulate(m, 0.003, 1e-3,
                     derivatives=DesignDerivatives(properties=np.zeros((5, 2, 1)), dofs=[1.5]))
     with pytest.raises(fx.ModelError, match=r"store must be 'all' or a list of nodes/bodies, got None"):

@@ -132,3 +132,42 @@ def test_shipped_reproduction_answers_the_shipped_study():
         for r in t.runs():
             stored = json.loads((store / f"{r.name}.json").read_text()).get("fingerprint")
             assert differences(stored, job_fingerprint(optimization_job, r.job())) == [], r.name
+
+
+def test_what_cannot_change_an_answer_keeps_the_fingerprint():
+    """[solver] memory_limit and the validity checks' mode and limits cannot change an answer
+    (a limit decides whether a run starts, the checks warn about or refuse a result): the
+    fingerprint of fourbar with them changed has no difference from the case's own; a changed
+    tol, linear_solver or kscale does (the description's 'solver'). A Description and its
+    JSON dict give the same digests."""
+    from flexmbs.model.fingerprint import description_digest
+    base = fingerprint(Problem("fourbar").description, "fully", {})
+    for change in ({"solver.memory_limit": 8e9}, {"solver.validity": "error"},
+                   {"solver.drift_warn": 1e-7, "solver.energy_fail": 0.5}):
+        assert differences(base, fingerprint(Problem("fourbar", change).description,
+                                             "fully", {})) == [], change
+    for change in ({"solver.tol": 1e-12}, {"solver.linear_solver": "dense"},
+                   {"solver.kscale": 1e5, "solver.memory_limit": 8e9}):
+        assert differences(base, fingerprint(Problem("fourbar", change).description,
+                                             "fully", {})) == ["the case description's solver"]
+    d = Problem("fourbar", {"solver.tol": 1e-12}).description
+    assert description_digest(d) == description_digest(
+        d.model_dump(mode="json", by_alias=True, exclude_defaults=True))
+
+
+def test_fingerprint_records_the_settings_as_they_run():
+    """The fingerprint's settings record is the settings that run, keyed as
+    SimulationSettings.to_dict(): time.reuse_jacobian = true records newton 'reuse' (what
+    Problem.settings runs), linear_solver as 'solver'; every field that can change an answer
+    equals the problem's SimulationSettings."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        p = Problem("fourbar", {"time.reuse_jacobian": True, "solver.linear_solver": "dense",
+                                "solver.kscale": 1e5})
+    record = fingerprint(p.description, "fully", {})["settings"]
+    resolved = p.settings.to_dict()
+    assert record["newton"] == resolved["newton"] == "reuse"
+    for k in ("rho_inf", "start", "newton", "tol", "max_iter", "max_cuts", "solver", "kscale",
+              "penalty", "polish"):
+        assert record[k] == resolved[k], k
+    assert set(record) <= set(resolved)

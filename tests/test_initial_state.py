@@ -144,3 +144,28 @@ def test_a_deflection_that_breaks_a_joint_is_named():
     p = _case({"beams": [{"body": "rod", "s": [0, 1], "deflection": [0.0, 0.01]}]})
     with pytest.raises(ModelError, match="violate constraint 'clamp node 0 phi' by 0.01"):
         p.evaluate(gradient=False)
+
+
+def test_static_loads_solve_with_the_case_settings(monkeypatch):
+    """[initial] static_loads with [solver] tol = 1e-13 and linear_solver = 'dense': the
+    static solve that makes the start state runs with the case's settings (the
+    SimulationSettings of the problem with start 'static', validity 'off', store 'all'), not
+    with the defaults (tol 1e-10, solver 'auto'); the run from it with the case's own."""
+    import flexmbs.problem as problem
+    seen, run = [], problem.simulate
+
+    def spy(model, t_end, h, settings=None, **kw):
+        seen.append(settings)
+        return run(model, t_end, h, settings, **kw)
+
+    monkeypatch.setattr(problem, "simulate", spy)
+    p0 = _case({"static_loads": [{"body": "rod", "at": "B", "fy": -P}]}, load=False)
+    d = p0.description.model_dump(mode="json", by_alias=True, exclude_defaults=True)
+    d["solver"] = {"tol": 1e-13, "linear_solver": "dense"}
+    p = Problem(d)
+    p.evaluate(gradient=False)
+    static = [s for s in seen if s.start == "static"]
+    assert len(static) == 1 and len(seen) == 2
+    assert static[0] == p.settings.replace(start="static", validity="off", store="all")
+    assert (static[0].tol, static[0].solver) == (1e-13, "dense")
+    assert (seen[1].start, seen[1].tol, seen[1].solver) == ("rest", 1e-13, "dense")

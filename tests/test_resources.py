@@ -211,3 +211,45 @@ def test_memory_limit_environment_variable(monkeypatch):
         fx.simulate(model, 1e-3, 5e-4)
     monkeypatch.setenv("FLEXMBS_MEMORY_LIMIT", "none")
     assert fx.simulate(model, 1e-3, 5e-4).q.shape == (3, model.ndof)
+
+
+def test_case_memory_limit_reaches_the_adjoint_and_the_rigid_reference(monkeypatch):
+    """[solver] memory_limit reaches every check of a Problem, not only simulate's: with no
+    limit (FLEXMBS_MEMORY_LIMIT=none) the adjoint's plan keeps the tape of every state
+    (checkpoints None); under a case limit of half that plan's estimate it checkpoints (an
+    interval K) and its estimate fits the limit; a case limit of 1 MB refuses the adjoint's
+    per-step partials (about 1 GB for fourbar), and one of 1 kB the rigid reference (336 kB),
+    each message naming '[solver] memory_limit' as what sets the limit."""
+    monkeypatch.setenv("FLEXMBS_MEMORY_LIMIT", "none")
+    free = Problem("fourbar", gradient_method="adjoint")
+    k, est = free._adjoint_plan(free.start, free._timed())
+    assert k is None
+    half = Problem("fourbar", {"solver.memory_limit": est.total / 2}, gradient_method="adjoint")
+    k, est_k = half._adjoint_plan(half.start, half._timed())
+    assert k is not None and est_k.total < est.total
+    small = Problem("fourbar", {"solver.memory_limit": 1e6}, gradient_method="adjoint")
+    with pytest.raises(ResourceError, match=r"more than the memory limit \(1 MB\).*"
+                                            r"\[solver\] memory_limit \(bytes\) sets the limit"):
+        small.evaluate(small.start, gradient=True)
+    tiny = Problem("fourbar", {"solver.memory_limit": 1e3})
+    with pytest.raises(ResourceError, match=r"rigid reference.*more than the memory limit "
+                                            r"\(1 kB\).*\[solver\] memory_limit"):
+        tiny.mechanism.reference
+
+
+def test_limit_hint_names_where_the_limit_came_from(monkeypatch):
+    """The hint of a refused run names what set its limit: SimulationSettings(memory_limit=)
+    for a limit given in Python, the environment variable FLEXMBS_MEMORY_LIMIT (and not the
+    Python setting) for one from there, [solver] memory_limit for a case's."""
+    model, _ = clamped_beam(2)
+    with pytest.raises(ResourceError, match=r"SimulationSettings\(memory_limit=bytes\) sets"):
+        fx.simulate(model, 1e-3, 5e-4, SimulationSettings(memory_limit=1e3))
+    monkeypatch.setenv("FLEXMBS_MEMORY_LIMIT", "1k")
+    with pytest.raises(ResourceError, match=r"\(1 kB\): .*\. FLEXMBS_MEMORY_LIMIT sets") as ei:
+        fx.simulate(model, 1e-3, 5e-4)
+    assert "SimulationSettings" not in str(ei.value)
+    monkeypatch.delenv("FLEXMBS_MEMORY_LIMIT")
+    p = Problem("fourbar", {"solver.memory_limit": 4e5, "time.t_end": 0.01})
+    with pytest.raises(ResourceError, match=r"\[solver\] memory_limit \(bytes\) sets") as ei:
+        p.evaluate(p.start, gradient=False)
+    assert "SimulationSettings" not in str(ei.value)

@@ -373,7 +373,7 @@ def test_constraint_force_derivatives_are_only_computed_when_asked():
     r = prob.simulate(p, gradient=True, responses=["deviation_28"])
     assert r.dmu is None and r.dq is not None
     assert prob.simulate(p, gradient=True, responses=["torque_elbow"]).dmu is not None
-    with pytest.raises(ModelError, match="constraint_force_derivatives=True needs "
-                                         "design_derivatives"):
+    with pytest.raises(ModelError, match="DesignDerivatives.constraint_forces=True needs "
+                                         "DesignDerivatives.properties"):
         simulate(prob.mechanism.model, 10 * prob.mechanism.h,
                  derivatives=DesignDerivatives(constraint_forces=True), h=prob.mechanism.h)

@@ -55,17 +55,26 @@ def test_the_defaults_are_simulates_former_defaults():
 
 
 def test_settings_none_is_the_former_run_and_the_old_keywords_warn_and_agree():
-    """settings=None, SimulationSettings() and the former keywords spelled out (each with a
-    DeprecationWarning naming settings=SimulationSettings) give bit-for-bit the same run;
-    q0=/qd0= and design_derivatives=/sensitivity_dofs= warn naming InitialConditions and
-    DesignDerivatives and give the same states and dq/dp."""
+    """settings=None and SimulationSettings() give bit-for-bit the same run; every former
+    setting keyword, each at a value other than its default (with a DeprecationWarning naming
+    settings=SimulationSettings), gives bit-for-bit the run of the SimulationSettings of the
+    same values, and the run records each of these values (a keyword that was dropped on its
+    way would record its default); q0=/qd0= and design_derivatives=/sensitivity_dofs= warn
+    naming InitialConditions and DesignDerivatives and give the same states and dq/dp."""
     m, arm = _arm()
     ref = fx.simulate(m, 0.02, 1e-3)
     assert _same(ref, fx.simulate(m, 0.02, 1e-3, SimulationSettings()))
+    values = dict(rho_inf=0.8, start="static", newton="full", tol=1e-11, max_iter=15,
+                  max_cuts=4, solver="dense", kscale=2.0e6, penalty=3.0e6, polish=True,
+                  validity="off", memory_limit=1e12, store=[arm.last])
+    settings = SimulationSettings(**values)
+    assert all(getattr(settings, k) != getattr(SimulationSettings(), k) for k in values)
+    assert sorted(values) == sorted(f.name for f in dataclasses.fields(SimulationSettings))
     with pytest.warns(DeprecationWarning, match=r"settings=SimulationSettings\(rho_inf=..., "):
-        old = fx.simulate(m, 0.02, 1e-3, rho_inf=0.5, start="rest", newton="auto", tol=1e-10,
-                          max_iter=20, max_cuts=6, solver="auto", store="all")
-    assert _same(ref, old)
+        old = fx.simulate(m, 0.02, 1e-3, **values)
+    assert _same(fx.simulate(m, 0.02, 1e-3, settings), old)
+    assert {k: getattr(old.settings, k) for k in values} == \
+        {k: getattr(settings, k) for k in values}
     q0 = m.reference_coordinates()
     with pytest.warns(DeprecationWarning, match=r"initial=InitialConditions\(q0=...\)"):
         old = fx.simulate(m, 0.02, 1e-3, q0=q0)
@@ -89,6 +98,47 @@ def test_result_records_the_settings_that_ran():
     assert np.array_equal(r.initial.q0, m.reference_coordinates())
     with pytest.warns(DeprecationWarning, match=r"use Result.settings.tol"):
         assert r.settings["tol"] == 1e-12
+
+
+def test_result_settings_read_as_the_former_dict():
+    """The deprecated dict reading of Result.settings answers as the former dict did, each
+    read with a DeprecationWarning: kscale and penalty 0.0 when automatic (the dict held
+    float(kscale or 0.0)), 'steps' the non-uniform step grid given (None on the uniform one),
+    'q0'/'qd0' the initial state, get() with its default for a key the dict did not hold,
+    'in' for the dict's keys only."""
+    m, _ = _arm()
+    grid = np.array([0.0, 5e-4, 2e-3, 4e-3])
+    r = fx.simulate(m, 0.004, 1e-3, SimulationSettings(kscale=3e6))
+    rs = fx.simulate(m, 0.004, 1e-3, steps=grid)
+    with pytest.warns(DeprecationWarning, match=r"Result.settings\['kscale'\] is deprecated"):
+        assert r.settings["kscale"] == 3e6
+    with pytest.warns(DeprecationWarning, match=r"Result.settings\['penalty'\] is deprecated"):
+        assert r.settings["penalty"] == 0.0
+    with pytest.warns(DeprecationWarning, match="Result.steps"):
+        assert r.settings["steps"] is None
+    with pytest.warns(DeprecationWarning, match="Result.steps"):
+        assert np.array_equal(rs.settings["steps"], grid)
+    with pytest.warns(DeprecationWarning, match="Result.initial.q0"):
+        assert np.array_equal(r.settings["q0"], r.initial.q0)
+    with pytest.warns(DeprecationWarning):
+        assert np.array_equal(r.settings.get("qd0"), r.initial.qd0)
+    with pytest.warns(DeprecationWarning):
+        assert r.settings.get("polish", True) is False and r.settings.get("nope", 7) == 7
+    with pytest.warns(DeprecationWarning):
+        assert "polish" in r.settings and "h" in r.settings and "nope" not in r.settings
+    with pytest.warns(DeprecationWarning), pytest.raises(KeyError, match="nope"):
+        r.settings["nope"]
+
+
+@pytest.mark.parametrize("settings", [
+    SimulationSettings(), SimulationSettings(memory_limit=math.inf),
+    SimulationSettings(memory_limit=2e9, validity=ValidityLimits(mode="error", drift_warn=1e-8),
+                       store=[0, 2], kscale=1e5, newton="reuse")])
+def test_to_dict_round_trips_through_coerce(settings):
+    """SimulationSettings.coerce(s.to_dict()) == s (to_dict's validity table and memory_limit
+    'inf' are taken back), also through JSON (the JSON output's resolution.settings)."""
+    assert SimulationSettings.coerce(settings.to_dict()) == settings
+    assert SimulationSettings.coerce(json.loads(json.dumps(settings.to_dict()))) == settings
 
 
 @pytest.mark.parametrize("field, value, allowed", [

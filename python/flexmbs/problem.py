@@ -40,7 +40,7 @@ from flexmbs.model.description import Beam, Deviation, Description, Mass, Statio
 from flexmbs.model.mechanism import Mechanism
 from flexmbs.output import max_gradient_warning, resolution, run_statistics
 from flexmbs.output import units as unit_table
-from flexmbs.resources import format_bytes, limit_source, memory_limit
+from flexmbs.resources import CaseLimit, format_bytes, limit_hint, limit_source, memory_limit
 from flexmbs.responses.aggregate import aggregate, aggregate_weights
 from flexmbs.responses.kinds import kind_of
 from flexmbs.responses.station import locate
@@ -423,9 +423,10 @@ class Problem:
         dnodes = self._nodes_needed(diff)
         differentiated = bool(mech.variables) and (
             bool(tape or checkpoints) or (gradient and bool(dnodes or forces)))
-        q0, qd0 = mech.start_state(x, gradient=differentiated,
-                                     static=partial(_static_state, h=ts.grid_h))    # [initial], if any
         settings = self.settings
+        q0, qd0 = mech.start_state(x, gradient=differentiated,      # [initial], if any
+                                     static=partial(_static_state, h=ts.grid_h,
+                                                    settings=settings))
         kw = dict(initial=InitialConditions(q0=q0, qd0=None if ts.start == "static" else qd0))
         if tape:     # the discrete adjoint's forward run: every state kept, converged fully
             kw.update(tape=True)
@@ -716,7 +717,7 @@ class Problem:
         est.parts[ADJOINT_PART] = adjoint_memory(cm.ndof, cm.nc, nsteps + 1,
                                                  self.gradient_functionals(), cm.nel)
         if checkpoints is None:
-            avail = memory_limit()
+            avail = memory_limit(self.settings.memory_limit)
             if est.total <= avail:
                 est.checkpoints = None
                 return None, est
@@ -736,10 +737,11 @@ class Problem:
         """The checkpoint interval of the adjoint's forward run (None: the tape of every
         state; `_adjoint_plan`), or ResourceError, naming what to change, when its memory
         (the tape, or the checkpoints and one segment's tape, and the backward pass's
-        per-step partials) exceeds the memory limit (flexmbs.resources.memory_limit:
-        FLEXMBS_MEMORY_LIMIT, else the memory available)."""
+        per-step partials) exceeds the memory limit (the settings' memory_limit: [solver]
+        memory_limit, else FLEXMBS_MEMORY_LIMIT, else the memory available)."""
         k, est = self._adjoint_plan(x, timed, run=run)
-        need, avail = est.total, memory_limit()
+        limit = self.settings.memory_limit
+        need, avail = est.total, memory_limit(limit)
         if need <= avail:
             return k
         nt, nf = self.mechanism.t.size, self.gradient_functionals()
@@ -748,11 +750,12 @@ class Problem:
         raise ResourceError(
             f"evaluate(method='adjoint'): {what} and the per-step partials of "
             f"{nf} functionals over {nt} time points need about {format_bytes(need)} "
-            f"({est.largest()}), more than {limit_source()} ({format_bytes(avail)}): use "
+            f"({est.largest()}), more than {limit_source(limit)} ({format_bytes(avail)}): use "
             "method='direct' (gradient_method='direct', --gradient-method direct: no tape), a "
             "coarser step h or a shorter t_end, or fewer functionals (constraints aggregated "
             "over time, over = 'ks' or 'pnorm', instead of 'every_step': one per step)"
-            + ("" if k is not None else ", or checkpoints ('auto' or an interval)"),
+            + ("" if k is not None else ", or checkpoints ('auto' or an interval)")
+            + f". {limit_hint(limit, setting='[solver] memory_limit')}",
             required=need, available=avail)
 
     def _evaluate_adjoint(self, x, timed, t0, store=None):
@@ -826,7 +829,8 @@ class Problem:
                     gmu[:, :, idx] += p.dmu[:, :, None] * W[:, None, :]
                 if p.design is not None:
                     out[np.asarray(live)[idx]] += W.T @ p.design
-            out[live] += adjoint_gradient(model, result, dprop, gq, gmu).T
+            out[live] += adjoint_gradient(model, result, dprop, gq, gmu,
+                                          memory_limit=self.settings.memory_limit).T
         jac = jac + out[:len(names)]
         if obj is not None:
             df = np.asarray(df, float) + out[-1]
@@ -989,9 +993,6 @@ def simulation_settings(description):
     A limit set against the other's default (a warning limit above the default failure
     limit) is a CaseError naming it."""
     ts, so = description.time, description.solver
-    newton = ts.newton
-    if ts.reuse_jacobian is not None and newton == "auto":    # the deprecated spelling
-        newton = "reuse" if ts.reuse_jacobian else "full"
     given = {f"{k}_{w}": getattr(so, f"{k}_{w}") for k in ("strain", "drift", "energy")
              for w in ("warn", "fail")}
     try:
@@ -999,20 +1000,23 @@ def simulation_settings(description):
                                 **{k: v for k, v in given.items() if v is not None})
     except ModelError as exc:
         raise CaseError(f"[solver]: {exc}") from None
-    return SimulationSettings(rho_inf=ts.rho_inf, start=ts.start, newton=newton, tol=so.tol,
-                              max_iter=so.max_iter, max_cuts=so.max_cuts,
+    return SimulationSettings(rho_inf=ts.rho_inf, start=ts.start, newton=ts.newton_strategy,
+                              tol=so.tol, max_iter=so.max_iter, max_cuts=so.max_cuts,
                               solver=so.linear_solver, kscale=so.kscale, penalty=so.penalty,
                               polish=so.polish, validity=limits,
-                              memory_limit=so.memory_limit)
+                              memory_limit=(None if so.memory_limit is None
+                                            else CaseLimit(so.memory_limit)))
 
 
-def _static_state(model, q0, h):
+def _static_state(model, q0, h, settings):
     """Every coordinate of the static equilibrium at t = 0 of a built model from q0 (the core's
-    static start, one step h): the [initial] static_loads deformation (Mechanism.start_state).
+    static start, one step h): the [initial] static_loads deformation (Mechanism.start_state),
+    solved with the case's settings (its tolerance, linear solver, scaling...; start
+    'static', every coordinate stored, no validity checks of the one step).
     The static start's own advice about drives moving at t = 0 is not the case's: it starts
     from 'rest' with this deformation."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", SettingWarning)
-        r = simulate(model, h, h, SimulationSettings(start="static", validity="off"),
+        r = simulate(model, h, h, settings.replace(start="static", validity="off", store="all"),
                      initial=InitialConditions(q0=q0))
     return np.array(r.q[0], float)

@@ -12,7 +12,9 @@ whether a run can fit, not how much it costs to the byte.
 The limit: ``SimulationSettings(memory_limit=...)`` (a case: ``[solver] memory_limit``) in
 bytes; None (default) reads the environment variable FLEXMBS_MEMORY_LIMIT (bytes, suffixes
 k, M, G, T allowed, e.g. "8G"; "none" or "inf" disables the check), and without it the memory available now (MemAvailable of /proc/meminfo,
-else sysconf, bounded by the process's address-space limit, RLIMIT_AS).
+else sysconf, bounded by the process's address-space limit, RLIMIT_AS). A limit that a case
+file set is a `CaseLimit` (a float naming its key), so that the messages name the key to change
+(`limit_hint`).
 """
 from __future__ import annotations
 
@@ -34,8 +36,9 @@ CHUNK_VALUES = 250_000
 CHECK_WORK_BYTES = 6 * 8 * CHUNK_VALUES
 
 __all__ = ["MAX_STEPS", "time_steps", "MemoryEstimate", "estimate_memory", "available_memory",
-           "memory_limit", "check_memory", "limit_source", "format_bytes", "format_seconds",
-           "call_with_stack", "stack_limit", "DENSE_MAX_ORDER", "STACK_BYTES_PER_UNKNOWN"]
+           "memory_limit", "check_memory", "limit_source", "limit_hint", "CaseLimit",
+           "format_bytes", "format_seconds", "call_with_stack", "stack_limit", "DENSE_MAX_ORDER",
+           "STACK_BYTES_PER_UNKNOWN"]
 
 #: Largest order of a dense system: the core indexes the n x n values with 32-bit integers.
 DENSE_MAX_ORDER = 46340
@@ -243,6 +246,37 @@ _GRID_PARTS = ("stored q, qd, qdd", "constraint forces mu", "time grid and laws"
                "design derivatives dq/dp")
 
 
+class CaseLimit(float):
+    """A memory limit (bytes) that a case file set: a float that also names its key
+    (`setting`, e.g. '[solver] memory_limit') for the messages of `limit_hint`."""
+
+    def __new__(cls, value, setting="[solver] memory_limit"):
+        self = super().__new__(cls, value)
+        self.setting = setting
+        return self
+
+    def __reduce__(self):
+        return (CaseLimit, (float(self), self.setting))
+
+
+def limit_hint(limit=None, setting=None):
+    """What sets the limit, for the end of a message: the case key of a CaseLimit, the
+    SimulationSettings field for another explicit limit, FLEXMBS_MEMORY_LIMIT when the
+    environment variable set it, and when the limit is the memory available, `setting` (what
+    the caller's user sets, e.g. a case key; default the SimulationSettings field) or the
+    environment variable."""
+    if isinstance(limit, CaseLimit):
+        return f"{limit.setting} (bytes) sets the limit"
+    if limit is not None:
+        return "SimulationSettings(memory_limit=bytes) sets the limit (math.inf: no check)"
+    if os.environ.get("FLEXMBS_MEMORY_LIMIT", "").strip():
+        return "FLEXMBS_MEMORY_LIMIT sets the limit ('none': no check)"
+    if setting is not None:
+        return f"{setting} (bytes) or FLEXMBS_MEMORY_LIMIT sets the limit"
+    return ("SimulationSettings(memory_limit=bytes) or FLEXMBS_MEMORY_LIMIT sets the limit "
+            "(math.inf / 'none': no check)")
+
+
 def limit_source(limit=None):
     """'the memory limit' (explicit or FLEXMBS_MEMORY_LIMIT) or 'the memory available'."""
     if limit is not None or os.environ.get("FLEXMBS_MEMORY_LIMIT", "").strip():
@@ -275,9 +309,7 @@ def check_memory(est: MemoryEstimate, limit=None, what="this run"):
     raise ResourceError(
         f"{what} needs about {format_bytes(total)} ({est.largest()}; and roughly "
         f"{format_seconds(est.seconds)} of computing), more than {src} "
-        f"({format_bytes(avail)}): " + "; or ".join(hints)
-        + ". SimulationSettings(memory_limit=bytes) or FLEXMBS_MEMORY_LIMIT sets the limit "
-          "(math.inf / 'none': no check)",
+        f"({format_bytes(avail)}): " + "; or ".join(hints) + f". {limit_hint(limit)}",
         required=total, available=avail)
 
 

@@ -34,6 +34,10 @@ LINEAR_SOLVERS = ("auto", "dense", "klu")
 STARTS = ("rest", "static")
 
 
+_MISSING = object()
+_ABSENT = object()
+
+
 def _real(v):
     return (isinstance(v, (int, float, np.floating, np.integer))
             and not isinstance(v, (bool, np.bool_)))
@@ -147,13 +151,22 @@ class SimulationSettings:
     @classmethod
     def coerce(cls, value):
         """SimulationSettings from simulate's `settings` argument: an instance, a dict of its
-        fields, or None (the defaults)."""
+        fields (to_dict's output among them: validity as a table of ValidityLimits's fields,
+        memory_limit 'inf'), or None (the defaults)."""
         if value is None:
             return cls()
         if isinstance(value, cls):
             return value
         if isinstance(value, dict):
-            return cls(**_known(cls, value, "settings"))
+            value = dict(_known(cls, value, "settings"))
+            # to_dict's JSON forms: validity as its limits' table, memory_limit 'inf'
+            if isinstance(value.get("validity"), dict):
+                value["validity"] = ValidityLimits(**_known(ValidityLimits, value["validity"],
+                                                            "settings validity"))
+            if isinstance(value.get("memory_limit"), str) and \
+                    value["memory_limit"].strip().lower() == "inf":
+                value["memory_limit"] = math.inf
+            return cls(**value)
         raise ModelError(f"settings must be a SimulationSettings, a dict of its fields or None, "
                          f"got {type(value).__name__}")
 
@@ -181,15 +194,42 @@ class SimulationSettings:
             out[f.name] = v
         return out
 
+    #: the keys of the former dict Result.settings (the deprecated dict reading)
+    _DICT_KEYS = ("h", "t_end", "rho_inf", "start", "solver", "newton", "tol", "max_iter",
+                  "max_cuts", "kscale", "penalty", "q0", "qd0", "polish", "steps")
+
+    def _as_dict(self, key, default=_MISSING):
+        """The deprecated dict reading of Result.settings: the value the former dict held
+        under key (kscale and penalty 0.0 when automatic; q0, qd0 the run's initial state,
+        steps its non-uniform step grid or None), with a DeprecationWarning naming the
+        attribute that replaces it."""
+        import warnings
+        where = {"q0": "Result.initial.q0", "qd0": "Result.initial.qd0",
+                 "steps": "Result.steps"}.get(key, f"Result.settings.{key}")
+        warnings.warn(f"Result.settings[{key!r}] is deprecated: use {where} "
+                      "(Result.settings is a SimulationSettings)", DeprecationWarning,
+                      stacklevel=3)
+        run = getattr(self, "_run", {})
+        if key in self._DICT_KEYS and key in run:
+            return run[key]
+        if key in self._DICT_KEYS and key not in ("q0", "qd0", "steps") and hasattr(self, key):
+            v = getattr(self, key)
+            return float(v or 0.0) if key in ("kscale", "penalty") else v
+        if default is _MISSING:
+            raise KeyError(key)
+        return default
+
     def __getitem__(self, key):
         """Deprecated: the former dict Result.settings; use the attribute."""
-        import warnings
-        warnings.warn(f"Result.settings[{key!r}] is deprecated: use Result.settings.{key} "
-                      "(Result.settings is a SimulationSettings)", DeprecationWarning,
-                      stacklevel=2)
-        if key in ("q0", "qd0"):
-            raise KeyError(f"{key}: see Result.initial")
-        return getattr(self, key)
+        return self._as_dict(key)
+
+    def get(self, key, default=None):
+        """Deprecated: the former dict Result.settings' get; use the attribute."""
+        return self._as_dict(key, default)
+
+    def __contains__(self, key):
+        """Deprecated: a key of the former dict Result.settings."""
+        return self._as_dict(key, _ABSENT) is not _ABSENT
 
 
 @dataclass(frozen=True)

@@ -173,7 +173,8 @@ class Result:
     def position_derivative(self, node):
         """(nt, 2, nv) design derivatives of a node's position (needs design_derivatives)."""
         if self.dq is None:
-            raise ModelError("no design derivatives: simulate with design_derivatives=...")
+            raise ModelError("no design derivatives: simulate with "
+                             "derivatives=DesignDerivatives(properties=...)")
         node = self._node(node)
         cols = []
         for d in (3 * node, 3 * node + 1):
@@ -483,6 +484,9 @@ def memory_estimate(model: Model, t_end, h=5e-4, settings=None, *, initial=None,
 _SETTING_KEYWORDS = ("rho_inf", "start", "store", "solver", "newton", "tol", "max_iter",
                      "max_cuts", "kscale", "penalty", "memory_limit", "validity", "polish")
 _INITIAL_KEYWORDS = {"q0": "q0", "qd0": "qd0"}
+#: the error of a request of d(mu)/dp without the design's property derivatives
+_FORCES_NEED_PROPERTIES = ("DesignDerivatives.constraint_forces=True needs "
+                           "DesignDerivatives.properties (the design's property derivatives)")
 _DERIVATIVE_KEYWORDS = {"design_derivatives": "properties", "sensitivity_dofs": "dofs",
                         "constraint_force_derivatives": "constraint_forces"}
 
@@ -532,7 +536,7 @@ def _arguments(where, settings, initial, derivatives, old):
             raise ModelError(f"constraint_force_derivatives must be True or False, got {cf!r}")
         if der.get("properties") is None:
             if cf:
-                raise ModelError("constraint_force_derivatives=True needs design_derivatives=...")
+                raise ModelError(_FORCES_NEED_PROPERTIES)
         else:
             derivatives = DesignDerivatives(**der)
     derivatives = DesignDerivatives.coerce(derivatives)
@@ -703,8 +707,9 @@ def simulate(model: Model, t_end, h=5e-4, settings=None, *, initial=None, deriva
             raise ModelError(f"checkpoints must be an integer >= 1 (time points between "
                              f"checkpoints) or None, got {checkpoints!r}")
         if tape or design_derivatives is not None:
-            raise ModelError("checkpoints= is not allowed with tape=True or design_derivatives "
-                             "(a checkpointed run replaces the tape of the adjoint)")
+            raise ModelError("checkpoints= is not allowed with tape=True or design derivatives "
+                             "(DesignDerivatives.properties; a checkpointed run replaces the "
+                             "tape of the adjoint)")
         checkpoints = int(checkpoints)
     if not model._nodes:
         raise ModelError("the model has no nodes")
@@ -717,10 +722,10 @@ def simulate(model: Model, t_end, h=5e-4, settings=None, *, initial=None, deriva
     out = stored_dofs(model, store)
     # memory: estimated and checked before anything of the model's or the grid's size is built
     if not isinstance(constraint_force_derivatives, (bool, np.bool_)):
-        raise ModelError(f"constraint_force_derivatives must be True or False, got "
+        raise ModelError(f"DesignDerivatives.constraint_forces must be True or False, got "
                          f"{constraint_force_derivatives!r}")
     if constraint_force_derivatives and design_derivatives is None:
-        raise ModelError("constraint_force_derivatives=True needs design_derivatives=...")
+        raise ModelError(_FORCES_NEED_PROPERTIES)
     want_dmu = bool(constraint_force_derivatives)
     est = _estimate(model, max(nsteps, ncore), out, solver, design_derivatives, sensitivity_dofs,
                     want_dmu)
@@ -761,14 +766,16 @@ def simulate(model: Model, t_end, h=5e-4, settings=None, *, initial=None, deriva
 
     nel = cm.el_dofs.shape[1]
     if design_derivatives is not None:
-        dprop = _numeric_array("design_derivatives", design_derivatives)
+        dprop = _numeric_array("DesignDerivatives.properties", design_derivatives)
         if dprop.ndim != 3 or dprop.shape[:2] != (5, cm.nel) or not np.all(np.isfinite(dprop)):
-            raise ModelError(f"design_derivatives must be a finite array of shape (5, {cm.nel}, nv)")
+            raise ModelError(f"DesignDerivatives.properties must be a finite array of shape "
+                             f"(5, {cm.nel}, nv), got shape {dprop.shape}")
         nv = dprop.shape[2]
         sdofs = out if sensitivity_dofs is None else np.unique(
-            _numeric_array("sensitivity_dofs", sensitivity_dofs, int))
+            _numeric_array("DesignDerivatives.dofs", sensitivity_dofs, int))
         if sdofs.size == 0 or sdofs.min() < 0 or sdofs.max() >= cm.ndof:
-            raise ModelError(f"sensitivity_dofs must be coordinates in [0, {cm.ndof})")
+            raise ModelError(f"DesignDerivatives.dofs must be coordinates in [0, {cm.ndof}), "
+                             f"got {sdofs.tolist()!r:.80}")
         dprop_f = np.zeros((5, nel, max(nv, 1)), order="F")
         dprop_f[:, :cm.nel, :nv] = dprop
     else:
@@ -838,12 +845,14 @@ def simulate(model: Model, t_end, h=5e-4, settings=None, *, initial=None, deriva
             dq_t = (w @ dq_t.reshape(tg.size, -1)).reshape(t.size, *dq_t.shape[1:])
         if want_dmu:
             dmu_t = (w @ dmu_t.reshape(tg.size, -1)).reshape(t.size, *dmu_t.shape[1:])
+    run_settings = RunSettings(**{**{k: getattr(settings, k) for k in
+                                     settings.__dataclass_fields__},
+                                  "solver": solver, "newton": newton, "h": h, "t_end": t_end})
+    # what the former dict Result.settings also held (its deprecated dict reading)
+    object.__setattr__(run_settings, "_run", {"q0": q_init, "qd0": qd_init, "steps": tg})
     res = Result(t=t, q=q_out, qd=qd_out, qdd=qdd_out, mu=mu_out, dofs=out,
                   stats=st, wall_time=time.perf_counter() - t_start,
-                  settings=RunSettings(**{**{k: getattr(settings, k) for k in
-                                             settings.__dataclass_fields__},
-                                          "solver": solver, "newton": newton, "h": h,
-                                          "t_end": t_end}),
+                  settings=run_settings,
                   initial=InitialConditions(q0=q_init, qd0=qd_init),
                   sens_dofs=sdofs if nv else None, dq=dq_t, dmu=dmu_t,
                   steps=None if tg is None else dict(t=tg, matrix=w))

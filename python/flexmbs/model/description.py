@@ -674,6 +674,14 @@ class TimeSettings(_Strict):
             return self.output if self.output is not None else 5e-4
         return self.h
 
+    @property
+    def newton_strategy(self):
+        """The Newton strategy that runs: newton, or the one the deprecated reuse_jacobian
+        names (true: 'reuse', false: 'full') when newton is left at 'auto'."""
+        if self.reuse_jacobian is not None and self.newton == "auto":
+            return "reuse" if self.reuse_jacobian else "full"
+        return self.newton
+
     @model_validator(mode="after")
     def _newton_alias(self):
         if self.reuse_jacobian is not None:

@@ -8,12 +8,21 @@ fingerprint is a JSON dict of
     method       what was run (e.g. 'weakly', 'fully', 'start', a job function's name)
     options      the method's options (JSON values; the start design among them)
     description  {top-level key of the case description: SHA-256 of its JSON}, of the
-                 description as resolved (case file read, overrides applied, validated)
-    settings     the simulation settings of the case, whole (readable; its [time]'s
-                 rho_inf, start, newton and its [solver] table, every key (null: the
-                 default of SimulationSettings or ValidityLimits):
-                 flexmbs.analysis.settings.SimulationSettings); compared through the
-                 description's digests, which cover them
+                 description as resolved (case file read, overrides applied, validated),
+                 without what cannot change an answer (ANSWER_NEUTRAL)
+    settings     the simulation settings of the case as they run (readable; the fields of
+                 flexmbs.analysis.settings.SimulationSettings.to_dict() that a case sets:
+                 [time]'s rho_inf, start and newton, its deprecated reuse_jacobian resolved
+                 to the newton it names, and [solver]'s, linear_solver as 'solver', the
+                 validity mode and limits as a table, null: the default); compared through
+                 the description's digests
+
+The digests leave out the [solver] keys that cannot change an answer, ANSWER_NEUTRAL: the
+memory limit (it only decides whether a run may start) and the validity checks' mode and
+limits (they only warn about a result or refuse it; a result that was stored passed them).
+A stored result computed under another memory limit or validity check is the same answer
+and is reused. The keys that can change an answer stay in: tol, max_iter, max_cuts,
+linear_solver, kscale, penalty, polish (and all of [time]).
 
 and `differences(stored, current)` names what differs, for messages: a resumed history that
 differs is refused (flexmbs.methods.result.HistoryWriter.check_fingerprint), a stored
@@ -36,6 +45,10 @@ __all__ = ["fingerprint", "description_digest", "differences", "run_options", "c
 NOT_OPTIONS = ("problem", "history", "progress", "resume", "max_iterations", "max_simulations",
                "max_cycles")
 
+#: [solver] keys that cannot change an answer (module docstring): left out of the digests
+ANSWER_NEUTRAL = ("memory_limit", "validity", "strain_warn", "strain_fail", "drift_warn",
+                  "drift_fail", "energy_warn", "energy_fail")
+
 
 def canonical(obj):
     """obj as plain JSON data (what a JSON round trip gives back: tuples -> lists, numpy ->
@@ -51,14 +64,18 @@ def description_digest(description):
         # keys left at their defaults are left out: a key added to the format with a
         # default (the same question) does not change the fingerprint of older results
         data = description.model_dump(mode="json", by_alias=True, exclude_defaults=True)
-        # the [optimize] table is the run's options, fingerprinted as such (a resumed run
-        # may raise its limits)
-        data.pop("optimize", None)
     elif isinstance(description, dict):
         data = description
     else:
         return {"object": type(description).__qualname__}
     data = canonical(data)
+    # the [optimize] table is the run's options, fingerprinted as such (a resumed run may
+    # raise its limits)
+    data.pop("optimize", None)
+    if isinstance(data.get("solver"), dict):
+        data["solver"] = {k: v for k, v in data["solver"].items() if k not in ANSWER_NEUTRAL}
+        if not data["solver"]:       # as a case without [solver]
+            del data["solver"]
     return {k: hashlib.sha256(json.dumps(v, sort_keys=True).encode()).hexdigest()[:16]
             for k, v in sorted(data.items())}
 
@@ -80,13 +97,19 @@ def fingerprint(description, method, options=None):
 
 
 def simulation_settings_record(description):
-    """The simulation settings of a Description as plain JSON data: [time]'s rho_inf, start
-    and newton and every key of [solver] (defaults included); None for anything else."""
+    """The simulation settings of a Description as they run, as plain JSON data keyed as
+    SimulationSettings.to_dict() (module docstring: newton resolved from the deprecated
+    reuse_jacobian, linear_solver as 'solver', validity as {mode, limits}; null: the
+    default); None for anything else."""
     time, solver = getattr(description, "time", None), getattr(description, "solver", None)
     if not hasattr(solver, "model_dump") or time is None:
         return None
-    return canonical({"rho_inf": time.rho_inf, "start": time.start, "newton": time.newton,
-                      **solver.model_dump(mode="json")})
+    so = solver.model_dump(mode="json")
+    validity = {"mode": so.pop("validity")}
+    validity.update({k: so.pop(k) for k in ANSWER_NEUTRAL if k.endswith(("_warn", "_fail"))})
+    so["solver"] = so.pop("linear_solver")
+    return canonical({"rho_inf": time.rho_inf, "start": time.start,
+                      "newton": time.newton_strategy, **so, "validity": validity})
 
 
 def differences(stored, current):

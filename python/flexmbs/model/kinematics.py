@@ -45,7 +45,7 @@ Examples
 >>> ref = rigid_reference(m, np.linspace(0.0, 0.1, 11))
 >>> round(float(ref.q[-1, 3 * rod.last]), 6)        # 0.1 cos 1 + sqrt(0.3^2 - 0.1^2 sin^2 1)
 0.341987
->>> qd0 = drive_velocities(m, m.reference_coordinates())   # use as simulate(..., qd0=qd0)
+>>> qd0 = drive_velocities(m, m.reference_coordinates())   # InitialConditions(qd0=qd0)
 >>> round(float(qd0[3 * crank.last + 1]), 6)                # 10 rad/s x 0.1 m
 1.0
 """
@@ -939,7 +939,9 @@ def drive_velocities(model, q, t=0.0):
     Every rigid group (each beam, rigid body, lone node) moves rigidly about its centroid in q;
     the pose rates solve J zd = -Phi_t (minimum norm in the node metric: directions the drives
     leave free get no velocity). Use it to start a moving mechanism from rest without exciting
-    its flexible bodies: ``simulate(model, t_end, qd0=drive_velocities(model, q0))``.
+    its flexible bodies: ``simulate(model, t_end, h,
+    initial=InitialConditions(q0=q0, qd0=drive_velocities(model, q0)))``
+    (flexmbs.analysis.settings.InitialConditions).
     """
     P = _poses(model)
     q = np.asarray(q, float)

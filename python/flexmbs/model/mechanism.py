@@ -28,7 +28,7 @@ from flexmbs.model.kinematics import assemble, drive_velocities, reference_memor
 from flexmbs.model.laws import TimeLaw
 from flexmbs.model.sections import Circle, GivenSection, Material, Rectangle, Tube, has_complex
 from flexmbs.resources import MAX_STEPS, time_steps
-from flexmbs.resources import format_bytes, limit_source, memory_limit
+from flexmbs.resources import CaseLimit, format_bytes, limit_hint, limit_source, memory_limit
 
 __all__ = ["Mechanism", "make_law", "section_at"]
 
@@ -464,18 +464,21 @@ class Mechanism:
     def _check_reference_memory(self, ref):
         """ResourceError, before the rigid reference is computed, when its memory over the
         time grid (flexmbs.model.kinematics.reference_memory) exceeds the memory limit
-        (flexmbs.resources.memory_limit: FLEXMBS_MEMORY_LIMIT, else the memory available)."""
+        ([solver] memory_limit, else flexmbs.resources.memory_limit: FLEXMBS_MEMORY_LIMIT, else
+        the memory available)."""
         d = self.description
         following = sum(dr.law.type == "reference" for dr in d.drives)
         need = reference_memory(ref, self.t.size, following)
-        avail = memory_limit()
+        limit = None if d.solver.memory_limit is None else CaseLimit(d.solver.memory_limit)
+        avail = memory_limit(limit)
         if need > avail:
+            hint = limit_hint(limit, setting="[solver] memory_limit")
             raise ResourceError(
                 f"case {d.case.name!r}: the rigid reference over {self.t.size} time points "
                 f"(time.t_end = {d.time.t_end:g} s, time.h = {d.time.grid_h:g} s) needs about "
-                f"{format_bytes(need)}, more than {limit_source()} ({format_bytes(avail)}), "
-                "before any simulation: use a coarser time.h or a shorter time.t_end "
-                "(FLEXMBS_MEMORY_LIMIT sets the limit)", required=need, available=avail)
+                f"{format_bytes(need)}, more than {limit_source(limit)} ({format_bytes(avail)}), "
+                f"before any simulation: use a coarser time.h or a shorter time.t_end ({hint})",
+                required=need, available=avail)
 
     @property
     def reference(self):

@@ -20,7 +20,7 @@ Jourawski's distributions only where tau is the largest shear stress (it is not:
 a solid circle is 4/3 Q/A); use it as a design measure, not as a local stress analysis.
 
 Design gradients (`dc` given): from the design derivatives of the coordinates, Result.dq, of
-the body's elements (simulate with design_derivatives and sensitivity_dofs covering them) and
+the body's elements (simulate with DesignDerivatives' properties and dofs covering them) and
 from the explicit dependence of c on the design, dc/dp (nel_body, nv), which the caller builds
 from its design variables (c = d/2 of a diameter variable: dc/dd = 1/2). E is a material
 constant, not a design variable:
@@ -113,7 +113,8 @@ def beam_stress(model, result, body, *, stations="gauss", shear=False, dc=None, 
     ----------
     model : flexmbs.Model
     result : flexmbs.Result
-        Must hold the coordinates of the beam's nodes (simulate(store=...)).
+        Must hold the coordinates of the beam's nodes (simulate(...,
+        settings=SimulationSettings(store=...))).
     body : str or Body
         A beam with a Material and sections with a depth (Circle, Tube, Rectangle).
     stations : {'gauss', 'nodes'} or array of xi in [-1, 1], default 'gauss'
@@ -178,7 +179,8 @@ def beam_stress(model, result, body, *, stations="gauss", shear=False, dc=None, 
         scols = columns(result.sens_dofs, edofs)
         if np.any(scols < 0):
             raise ModelError(f"beam_stress: coordinates of beam {b.name!r} are not among the "
-                             "sensitivity coordinates (simulate(sensitivity_dofs=...))")
+                             "sensitivity coordinates (DesignDerivatives.dofs of "
+                             "simulate(..., derivatives=...))")
 
     jac = 0.5 * cm.el_len[ids]
     n, dn = shape(nen, xi)
