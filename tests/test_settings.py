@@ -207,7 +207,7 @@ def test_set_solver_tol_reaches_the_core(capsys):
 def test_fingerprint_covers_the_settings():
     """A changed solver.tol changes the fingerprint of a stored result (its description's
     'solver' digest) and the fingerprint records the settings whole; a case without [solver]
-    keeps the fingerprint it had before the table existed (no 'solver' digest)."""
+    has no 'solver' digest (its fingerprint is that of a description without the table)."""
     base = Problem("fourbar").description
     tight = Problem("fourbar", {"solver.tol": 1e-12}).description
     fa, fb = fingerprint(base, "weakly"), fingerprint(tight, "weakly")
