@@ -178,8 +178,10 @@ def core_model(model: Model, storage) -> CoreModel:
 
 
 def core_model_args(model: Model, storage, t, props=None):
-    """Keyword arguments of a run of `model` in the Fortran core (flexmbs_api.f90): the
-    address of its CoreModel (`model`), its extents, the design and the law tables.
+    """Keyword arguments of a run of `model` in the Fortran core (flexmbs_api.f90): its
+    CoreModel (`model`: the compiled calls below pass its address and hold the object until
+    the core returns, so the model cannot be freed under a run), its extents, the design and
+    the law tables.
 
     storage: 'dense' or 'klu' (matrix layout); t: the time grid on which the
     laws are tabulated (uniform); props: (5, nel) element properties (default:
@@ -213,7 +215,7 @@ def core_model_args(model: Model, storage, t, props=None):
         law_val = np.zeros((1, t.size), order="F")
         law_der = np.zeros((1, t.size), order="F")
         law_dd0 = np.zeros(1)
-    return dict(model=core_model(model, storage).handle(), ndof=cm.ndof, nca=max(cm.nc, 1),
+    return dict(model=core_model(model, storage), ndof=cm.ndof, nca=max(cm.nc, 1),
                 el_prop=np.asfortranarray(props), law_h=law_h, law_val=law_val, law_der=law_der,
                 law_dd0=law_dd0)
 
@@ -245,10 +247,12 @@ def system_matrices(model: Model, q, qdd=None, mu=None, t=0.0, *, cm=0.0, ck=1.0
     # the core tabulates laws on a grid from 0; t itself is a grid point
     grid = np.array([0.0, float(t)]) if t > 0 else np.array([0.0, 1e-6])
     margs = core_model_args(model, "dense", grid, props)
+    owner, margs = _with_handle(margs)     # `owner` keeps the model alive through the call
     r, vals, _phimax, status = _core.system_matrices(**margs, nc=c.nc, nnz=c.n * c.n, q=q, qdd=qdd,
                                                      mu=mu_arr, t=float(t), cm=float(cm),
                                                      ck=float(ck), kscale=float(kscale),
                                                      pen=float(penalty), qd=qd, cc=float(cc))
+    del owner
     if status == Status.NO_MEMORY:
         raise ResourceError(f"out of memory in the core: could not allocate the model arrays "
                             f"({c.nel} elements, {c.n} unknowns)")
@@ -297,17 +301,33 @@ class AdjointOutput(NamedTuple):
     adj_out: np.ndarray      #: (ndof, nf, 4) the adjoint state at the segment's start
 
 
+def _with_handle(kwargs):
+    """(owner, kwargs with `model` as the core's address): the CoreModel given as `model` is
+    returned as `owner`, which the caller holds until the compiled call returns (the address
+    alone would not keep the model alive: a model edited meanwhile drops its CoreModel)."""
+    owner = kwargs.get("model")
+    if isinstance(owner, CoreModel):
+        kwargs = dict(kwargs, model=owner.handle())
+    return owner, kwargs
+
+
 def simulate_arrays(**kwargs) -> RunOutput:
     """The compiled generalized-alpha run (fortran/flexmbs_api.f90 `simulate`) of a model's
     handle with its design and law tables (`core_model_args`) and the run's settings; its
     outputs by name."""
-    return RunOutput(*_core.simulate(**kwargs))
+    owner, kwargs = _with_handle(kwargs)
+    out = RunOutput(*_core.simulate(**kwargs))
+    del owner
+    return out
 
 
 def simulate_adjoint_arrays(**kwargs) -> AdjointOutput:
     """The compiled forward run with the discrete adjoint's backward pass
     (fortran/flexmbs_api.f90 `simulate_adjoint`); its outputs by name."""
-    return AdjointOutput(*_core.simulate_adjoint(**kwargs))
+    owner, kwargs = _with_handle(kwargs)
+    out = AdjointOutput(*_core.simulate_adjoint(**kwargs))
+    del owner
+    return out
 
 
 def beam_element(length, stiffness, qref, q, eta, qd):

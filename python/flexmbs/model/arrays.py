@@ -518,6 +518,7 @@ class Model:
     def set_gravity(self, gx, gy):
         """Uniform gravity acceleration (m/s^2), any direction; acts on beams and masses."""
         self._gravity = (real_number("set_gravity: gx", gx), real_number("set_gravity: gy", gy))
+        self._changed()
 
     def add_load(self, node, fx=0.0, fy=0.0, moment=0.0, law=None):
         """Nodal force (N) and moment (N m), multiplied by law(t) if given (constant otherwise)."""
