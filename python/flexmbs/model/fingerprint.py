@@ -17,12 +17,13 @@ fingerprint is a JSON dict of
                  validity mode and limits as a table, null: the default); compared through
                  the description's digests
 
-The digests leave out the [solver] keys that cannot change an answer, ANSWER_NEUTRAL: the
-memory limit (it only decides whether a run may start) and the validity checks' mode and
-limits (they only warn about a result or refuse it; a result that was stored passed them).
-A stored result computed under another memory limit or validity check is the same answer
-and is reused. The keys that can change an answer stay in: tol, max_iter, max_cuts,
-linear_solver, kscale, penalty, polish (and all of [time]).
+The digests leave out the [solver] key that cannot change an answer, ANSWER_NEUTRAL: the
+memory limit (it only decides whether a run may start, and whether the adjoint keeps its
+states or checkpoints, whose gradients agree to rounding). A stored result computed under
+another memory limit is the same answer and is reused. Everything else stays in: tol,
+max_iter, max_cuts, linear_solver, kscale, penalty, polish (and all of [time]), and the
+validity checks' mode and limits, since a result stored under looser checks may be one that
+the current checks refuse.
 
 and `differences(stored, current)` names what differs, for messages: a resumed history that
 differs is refused (flexmbs.methods.result.HistoryWriter.check_fingerprint), a stored
@@ -46,8 +47,10 @@ NOT_OPTIONS = ("problem", "history", "progress", "resume", "max_iterations", "ma
                "max_cycles")
 
 #: [solver] keys that cannot change an answer (module docstring): left out of the digests
-ANSWER_NEUTRAL = ("memory_limit", "validity", "strain_warn", "strain_fail", "drift_warn",
-                  "drift_fail", "energy_warn", "energy_fail")
+ANSWER_NEUTRAL = ("memory_limit",)
+#: [solver]'s validity limits (the record gathers them under 'validity')
+VALIDITY_LIMITS = ("strain_warn", "strain_fail", "drift_warn", "drift_fail", "energy_warn",
+                   "energy_fail")
 
 
 def canonical(obj):
@@ -106,7 +109,7 @@ def simulation_settings_record(description):
         return None
     so = solver.model_dump(mode="json")
     validity = {"mode": so.pop("validity")}
-    validity.update({k: so.pop(k) for k in ANSWER_NEUTRAL if k.endswith(("_warn", "_fail"))})
+    validity.update({k: so.pop(k) for k in VALIDITY_LIMITS})
     so["solver"] = so.pop("linear_solver")
     return canonical({"rho_inf": time.rho_inf, "start": time.start,
                       "newton": time.newton_strategy, **so, "validity": validity})
