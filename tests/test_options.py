@@ -186,6 +186,18 @@ def test_case_start_range_has_one_value_per_variable():
         _robot(**{"optimize.multistart.start_range": [[10.0], [60.0]]})
 
 
+def test_case_start_range_counts_element_wise_variables():
+    """robot_2dof_tapered has 2 [[design]] entries of 8 element-wise diameters each: a
+    start_range of 16 values per side is accepted, one of 2 is a CaseError counting 16."""
+    from flexmbs.problem import Problem
+    p = Problem("robot_2dof_tapered", {"optimize.multistart.start_range": [[20.0] * 16,
+                                                                            [40.0] * 16]})
+    assert len(p.description.optimize.multistart.start_range[0]) == len(p.mechanism.variables)
+    with pytest.raises(CaseError, match=r"one value per design variable \(16: "):
+        Problem("robot_2dof_tapered", {"optimize.multistart.start_range": [[20.0] * 2,
+                                                                            [40.0] * 2]})
+
+
 def test_options_are_frozen():
     """An options object cannot be changed after it is built (a run's record stays true)."""
     o = FullyOptions()

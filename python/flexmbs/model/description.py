@@ -823,10 +823,20 @@ class Description(_Strict):
     def _start_range_size(self):
         """[optimize.multistart] start_range: one value per design variable."""
         rng = None if self.optimize is None else self.optimize.multistart.start_range
-        if rng is not None and len(rng[0]) != len(self.design):
+        if rng is None:
+            return self
+        try:
+            layout = design_layout(self)
+        except ValueError:
+            return self             # check_references names what is wrong with the layout
+        # an element-wise variable is one variable per element or group
+        n = sum(layout[v.name][0] for v in self.design)
+        if len(rng[0]) != n:
+            names = ", ".join(v.name if layout[v.name][0] == 1 else
+                              f"{v.name} x {layout[v.name][0]}" for v in self.design)
             raise ValueError(f"optimize.multistart.start_range: the lower and the upper design "
-                             f"must have one value per design variable ({len(self.design)}: "
-                             f"{', '.join(v.name for v in self.design)}), got {len(rng[0])}")
+                             f"must have one value per design variable ({n}: {names}), got "
+                             f"{len(rng[0])}")
         return self
 
     @model_validator(mode="after")
