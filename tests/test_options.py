@@ -335,3 +335,11 @@ def test_stored_start_with_other_limits_runs_again(tmp_path):
                                          r"max_iterations: 1 -> 2\)"):
         more = multistart(_robot(), fully=dict(max_iterations=2), **kw)
     assert all("maximum number of iterations (2) reached" in o["reason"] for o in more.optima)
+
+
+def test_flat_option_overrides_a_table_of_defaults():
+    """A flat option over a table that holds only defaults (FullyOptions().as_dict(), or an
+    SQPOptions() object) is taken (trust_radius 0.3), not refused as given twice."""
+    base = build(FullyOptions, {}).as_dict()
+    assert build(FullyOptions, dict(base, trust_radius=0.3)).sqp.trust_radius == 0.3
+    assert build(FullyOptions, {"trust_radius": 0.3, "sqp": SQPOptions()}).sqp.trust_radius == 0.3

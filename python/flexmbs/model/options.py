@@ -251,7 +251,8 @@ class FullyOptions(_Options):
     @classmethod
     def routed(cls, data, where="options"):
         """`data` (a dict) with every optimizer's option given flat moved into its table;
-        ModelError when an option is given both flat and in its table with two values."""
+        ModelError when an option is given both flat and in its table with two values, the
+        table's not its default."""
         data = dict(data)
         for table, kind in OPTIMIZER_TABLES.items():
             flat = {k: data.pop(k) for k in list(data) if k in kind.model_fields
@@ -262,8 +263,12 @@ class FullyOptions(_Options):
                 if not isinstance(inner, dict):     # pydantic names the bad table
                     data[table] = inner
                     continue
+                default = kind()
                 for k, v in flat.items():
-                    if k in inner and _plain(inner[k]) != _plain(v):
+                    # a table holding the option's default (a whole table of defaults, from
+                    # as_dict or an options object) gives way to the flat value
+                    if k in inner and _plain(inner[k]) != _plain(v) \
+                            and _plain(inner[k]) != _plain(getattr(default, k)):
                         raise ModelError(f"{where}: option {k} = {v!r} and option {table}.{k} "
                                          f"= {inner[k]!r} differ; give it once")
                 data[table] = {**inner, **flat}
