@@ -18,8 +18,8 @@ module model_data
     !! from, which runs in parallel threads share and only read. The rest is allocatable, each
     !! run's own: the design's element properties and masses, the law tables, and a copy of
     !! the per-element arrays that the element loops of the adjoint and the sensitivities
-    !! read, the lumped masses and the constraints' coordinates (measured: read through
-    !! pointers, the robot's backward pass took 6 % longer).
+    !! read, the lumped masses and the constraints' coordinates (read through pointers, they
+    !! make the robot's backward pass about 6 % slower).
     type :: mbs_model
         integer :: ndof = 0                      !! coordinates (3 per node)
         integer :: nc = 0                        !! constraint rows (multipliers)
