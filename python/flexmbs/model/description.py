@@ -820,26 +820,6 @@ class Description(_Strict):
         return v
 
     @model_validator(mode="after")
-    def _start_range_size(self):
-        """[optimize.multistart] start_range: one value per design variable."""
-        rng = None if self.optimize is None else self.optimize.multistart.start_range
-        if rng is None:
-            return self
-        try:
-            layout = design_layout(self)
-        except ValueError:
-            return self             # check_references names what is wrong with the layout
-        # an element-wise variable is one variable per element or group
-        n = sum(layout[v.name][0] for v in self.design)
-        if len(rng[0]) != n:
-            names = ", ".join(v.name if layout[v.name][0] == 1 else
-                              f"{v.name} x {layout[v.name][0]}" for v in self.design)
-            raise ValueError(f"optimize.multistart.start_range: the lower and the upper design "
-                             f"must have one value per design variable ({n}: {names}), got "
-                             f"{len(rng[0])}")
-        return self
-
-    @model_validator(mode="after")
     def check_references(self):
         """Every name used is defined, once."""
         def unique(kind, names):
@@ -980,7 +960,8 @@ class Description(_Strict):
                 for b in (r.bodies or []):
                     if b not in bodies or not isinstance(bodies[b], Beam):
                         raise ValueError(f"{where}: {b!r} is not a beam")
-        design_layout(self)          # element-wise variables: their beams and groups agree
+        layout = design_layout(self)   # element-wise variables: their beams and groups agree
+        self._check_start_range(layout)
         if self.objective is not None and self.objective.response not in responses:
             raise ValueError(f"objective: unknown response {self.objective.response!r} "
                              f"(responses: {', '.join(sorted(responses)) or 'none'})")
@@ -989,6 +970,20 @@ class Description(_Strict):
                 raise ValueError(f"constraint: unknown response {c.response!r} "
                                  f"(responses: {', '.join(sorted(responses)) or 'none'})")
         return self
+
+    def _check_start_range(self, layout):
+        """[optimize.multistart] start_range: one value per design variable (an element-wise
+        variable is one per element or group: `layout`, design_layout's)."""
+        rng = None if self.optimize is None else self.optimize.multistart.start_range
+        if rng is None:
+            return
+        n = sum(layout[v.name][0] for v in self.design)
+        if len(rng[0]) != n:
+            names = ", ".join(v.name if layout[v.name][0] == 1 else
+                              f"{v.name} x {layout[v.name][0]}" for v in self.design)
+            raise ValueError(f"optimize.multistart.start_range: the lower and the upper design "
+                             f"must have one value per design variable ({n}: {names}), got "
+                             f"{len(rng[0])}")
 
 
 def design_layout(description):
