@@ -73,8 +73,12 @@ def child(n_short, n_eval, n_adjoint, elements):
         finally:
             inside.append(cpu() - t0)
 
+    # KLU in the settings object; a build without SimulationSettings (commit 3cacae5) takes it
+    # as simulate's keyword
+    klu = (dict(settings=fx.SimulationSettings(solver="klu"))
+           if hasattr(fx, "SimulationSettings") else dict(solver="klu"))
     simulate_module.simulate_arrays = timed
-    out = dict(short=per_call(lambda k: fx.simulate(model, 3 * h, h, solver="klu"), n_short))
+    out = dict(short=per_call(lambda k: fx.simulate(model, 3 * h, h, **klu), n_short))
     blocks = np.array(inside[1:1 + 5 * (n_short // 5)]).reshape(5, -1)
     out["short_core"] = float(blocks.mean(axis=1).min())
     simulate_module.simulate_arrays = real

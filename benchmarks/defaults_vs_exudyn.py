@@ -45,8 +45,8 @@ def fx_run(model, tip, h, kw):
     import flexmbs as fx
     n = steps_for(h, T_END)
     c0 = time.process_time()
-    res = fx.simulate(model, n * h, h, settings=SimulationSettings(start="static", store=[tip]),
-                      **kw)
+    res = fx.simulate(model, n * h, h,
+                      settings=SimulationSettings(start="static", store=[tip], **kw))
     return time.process_time() - c0, res
 
 
