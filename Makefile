@@ -15,7 +15,8 @@ demo: setup
 test: setup
 	$(PY) -m pytest -q $(PYTEST_ARGS)
 
-# the API reference from the docstrings, strict (a warning fails it): build/docs/index.html
+# the documentation (docs/*.md) and the API reference from the docstrings, strict (a warning
+# fails it): build/docs/index.html
 docs: setup
 	$(PY) -m mkdocs build --strict --quiet
 

@@ -194,7 +194,7 @@ def test_cli_check_and_evaluate_error():
 
 
 def test_simulate_with_error_against_the_true_error():
-    """A driven flexible arm with a tip mass (the README's example): the estimated error of
+    """A driven flexible arm with a tip mass (docs/python.md's example): the estimated error of
     its stored coordinates (largest over coordinates and time points) within [0.5, 4] x the
     true error, the largest difference from a run at h/16 at the same time points."""
     from flexmbs import Material, Model, TimeLaw, Tube, simulate, simulate_with_error

@@ -1,5 +1,6 @@
-"""The API reference (`make docs`: mkdocs + mkdocstrings, mkdocs.yml, docs/api/) builds in
-strict mode with no warning, and covers the package: every module and every public name."""
+"""The documentation site (`make docs`: mkdocs + mkdocstrings, mkdocs.yml, docs/) builds in
+strict mode with no warning, has every page of docs/ in its navigation, and its API reference
+(docs/api/) covers the package: every module and every public name."""
 import importlib.util
 import re
 import subprocess
@@ -12,7 +13,8 @@ import flexmbs
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "python" / "flexmbs"
-PAGES = ROOT / "docs" / "api"
+DOCS = ROOT / "docs"
+PAGES = DOCS / "api"
 
 
 def _documented_modules():
@@ -36,10 +38,36 @@ def test_every_module_has_a_page():
     assert not missing, f"modules on no page of docs/api/: {missing}"
 
 
+def _nav_pages(entries):
+    """Every page (a path relative to docs/) named in mkdocs.yml's nav, at any depth."""
+    found = set()
+    for entry in entries:
+        items = entry.values() if isinstance(entry, dict) else [entry]
+        for item in items:
+            found.update(_nav_pages(item) if isinstance(item, list) else {item})
+    return found
+
+
+def test_every_page_is_in_the_navigation():
+    """Each Markdown page under docs/ (but the reproduction's stored jobs, which mkdocs.yml
+    excludes) is named in mkdocs.yml's nav, and each nav entry is a page that exists: a page
+    is reachable from the site's home page. docs_dir is docs/ itself, so the guide's pages
+    and the API reference build into one site."""
+    import yaml
+    config = yaml.safe_load((ROOT / "mkdocs.yml").read_text())
+    assert config["docs_dir"] == "docs"
+    pages = {p.relative_to(DOCS).as_posix() for p in DOCS.rglob("*.md")
+             if "jobs" not in p.relative_to(DOCS).parts}
+    nav = _nav_pages(config["nav"])
+    assert not sorted(pages - nav), f"pages of docs/ not in mkdocs.yml's nav: {sorted(pages - nav)}"
+    assert not sorted(nav - pages), f"nav entries with no page: {sorted(nav - pages)}"
+
+
 def test_strict_build_has_no_warning(tmp_path):
-    """`mkdocs build --strict` (as `make docs`) exits 0 with no WARNING line, and its index page
-    has an entry (anchor id="flexmbs.NAME") for every name of flexmbs.__all__: the docstrings
-    parse (numpydoc sections, Markdown prose) and the public API is all there."""
+    """`mkdocs build --strict` (as `make docs`) exits 0 with no WARNING line, and the API
+    reference's index page (api/index.html) has an entry (anchor id="flexmbs.NAME") for every
+    name of flexmbs.__all__: the docstrings parse (numpydoc sections, Markdown prose), the
+    guide's links resolve, and the public API is all there."""
     missing = [m for m in ("mkdocs", "mkdocstrings") if importlib.util.find_spec(m) is None]
     if missing:     # a failure, not a skip: `make test` installs the docs extra
         pytest.fail(f"the docs extra is not installed (no {', '.join(missing)}): run "
@@ -51,7 +79,7 @@ def test_strict_build_has_no_warning(tmp_path):
     log = run.stdout + run.stderr
     warnings = [line for line in log.splitlines() if "WARNING" in line or "ERROR" in line]
     assert run.returncode == 0 and not warnings, "\n".join(warnings) or log[-3000:]
-    index = (site / "index.html").read_text()
+    index = (site / "api" / "index.html").read_text()
     names = [n for n in flexmbs.__all__ if n != "__version__"]
     absent = [n for n in names if f'id="flexmbs.{n}"' not in index]
     assert not absent, f"public names missing from the reference's index: {absent}"

@@ -1,4 +1,4 @@
-"""The package's layers (README, "Layout"): every import of a flexmbs module, at the top of a
+"""The package's layers (docs/layout.md): every import of a flexmbs module, at the top of a
 module or inside a function, goes to the same layer or one listed before it; no modules import
 each other in a circle; only flexmbs.core imports the compiled extension flexmbs._core."""
 from __future__ import annotations
@@ -62,7 +62,7 @@ def _imports():
 def test_every_module_has_a_layer():
     """Each module of the package (but its face, flexmbs/__init__.py) is in a layer."""
     lost = [m for m in _imports() if m != "flexmbs" and _layer(m) is None]
-    assert not lost, f"modules in no layer of tests/test_layers.py (and the README): {lost}"
+    assert not lost, f"modules in no layer of tests/test_layers.py (and docs/layout.md): {lost}"
 
 
 def test_no_import_goes_up():
