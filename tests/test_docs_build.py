@@ -63,6 +63,17 @@ def test_every_page_is_in_the_navigation():
     assert not sorted(nav - pages), f"nav entries with no page: {sorted(nav - pages)}"
 
 
+def test_home_page_links_every_guide_page():
+    """docs/index.md, the site's home, links each page of docs/ (the API reference through its
+    own index, api/index.md, whose pages link one another)."""
+    home = (DOCS / "index.md").read_text(encoding="utf-8")
+    linked = set(re.findall(r"\]\(([^)#\s]+\.md)\)", home))
+    pages = {p.relative_to(DOCS).as_posix() for p in DOCS.rglob("*.md")
+             if "jobs" not in p.relative_to(DOCS).parts and p.parent != PAGES
+             and p.name != "index.md"} | {"api/index.md"}
+    assert not sorted(pages - linked), f"pages not linked from docs/index.md: {sorted(pages - linked)}"
+
+
 def test_strict_build_has_no_warning(tmp_path):
     """`mkdocs build --strict` (as `make docs`) exits 0 with no WARNING line, and the API
     reference's index page (api/index.html) has an entry (anchor id="flexmbs.NAME") for every
