@@ -343,11 +343,17 @@ def describe_verification(record):
     worst = max((v.get("constraints") or {}).items(), key=lambda kv: kv[1]["value"],
                 default=None)
     if worst is not None:
-        text += f" ({worst[0]} ± {worst[1]['error']:.3g}, {worst[1]['status']})"
+        # g = (r - limit) / |limit|: its error is a fraction of the limit
+        text += (f" ({worst[0]}: g ± {worst[1]['error']:.3g}, g and its error relative to the "
+                 f"limit, {worst[1]['status']})")
+    else:
+        text += " (g relative to the limits)"
     c = record.get("continued_from")
     if c:
+        unit = record.get("objective_unit")
         text += (f"; continued on a finer step from the design of objective "
-                 f"{c['objective']:.6g} found at h = {c['h']:.4g} s, infeasible at h = "
+                 f"{c['objective']:.6g}{' ' + unit if unit else ''} found at h = {c['h']:.4g} s, "
+                 f"infeasible at h = "
                  f"{c['verification']['h']:.4g} s by {c['verification']['max_violation']:.3g}")
     return text
 
@@ -407,7 +413,8 @@ class ConvergenceCheck:
     """A case's responses at its own resolution beside their changes under refinement
     (`convergence_check`).
 
-    rows : one dict per response: name, value (a history: its maximum), time (ErrorEstimate
+    rows : one dict per response: name, value (a history: its maximum), unit (of the value,
+        the changes and the error; None when unknown), time (ErrorEstimate
         from h, h/2, h/4), mesh_change (value with twice the elements of every beam minus value;
         None when the mesh was not refined), verdict.
     h : the case's step; rtol : the relative accuracy asked; mesh_note : why the mesh was not
@@ -428,13 +435,13 @@ class ConvergenceCheck:
         lines = [f"convergence check of {self.case}: step h = {self.h:g} s against h/2 and "
                  f"h/4" + ("" if self.mesh_note else ", mesh against twice the elements")
                  + f", accuracy asked {self.rtol:g} (relative)",
-                 f"  {'response':18s} {'value':>12s} {'change h/2':>11s} {'est. error':>10s} "
-                 f"{'change mesh':>11s}  verdict"]
+                 f"  {'response':18s} {'value':>12s} {'unit':6s} {'change h/2':>11s} "
+                 f"{'est. error':>10s} {'change mesh':>11s}  verdict"]
         for r in self.rows:
             e = r["time"]
             mesh = "-" if r["mesh_change"] is None else f"{r['mesh_change']:.3g}"
-            lines.append(f"  {r['name']:18s} {r['value']:12.6g} {-e.changes[0]:11.3g} "
-                         f"{e.error:10.3g} {mesh:>11s}  {r['verdict']}")
+            lines.append(f"  {r['name']:18s} {r['value']:12.6g} {r.get('unit') or '-':6s} "
+                         f"{-e.changes[0]:11.3g} {e.error:10.3g} {mesh:>11s}  {r['verdict']}")
         if self.mesh_note:
             lines.append(f"  mesh not refined: {self.mesh_note}")
         lines.append("  verdict: " + ("every response converged to the accuracy asked"
@@ -444,7 +451,8 @@ class ConvergenceCheck:
     def to_json(self):
         return {"case": self.case, "h": self.h, "rtol": self.rtol, "converged": self.converged,
                 "mesh_note": self.mesh_note,
-                "responses": {r["name"]: {"value": r["value"], "time": r["time"].to_json(),
+                "responses": {r["name"]: {"value": r["value"], "unit": r.get("unit"),
+                                          "time": r["time"].to_json(),
                                           "mesh_change": r["mesh_change"],
                                           "verdict": r["verdict"]} for r in self.rows}}
 
@@ -475,7 +483,8 @@ def convergence_check(problem, x=None, rtol=1e-2):
         if dmesh is not None and abs(dmesh) > rtol * scale:
             bad.append("mesh not converged")
         rows.append(dict(name=name, value=value, time=e, mesh_change=dmesh,
-                         verdict="; ".join(bad) or "converged"))
+                         verdict="; ".join(bad) or "converged",
+                         unit=((ev.units or {}).get("responses") or {}).get(name)))
     return ConvergenceCheck(case=problem.description.case.name,
                             h=float(problem.description.time.grid_h), rtol=float(rtol), rows=rows,
                             mesh_note=note)

@@ -295,9 +295,14 @@ def print_evaluation(prob, ev, source=None, motion=None):
         print(line)
     if ev.constraints.size:
         state = "feasible" if ev.feasible else "INFEASIBLE"
-        print(f"  constraints     {state}: largest g = {ev.max_violation:.4g} "
-              f"({ev.constraints.size} rows g <= 0, relative to the limits; feasible when "
+        worst = int(np.argmax(ev.constraints))
+        names = list(ev.constraint_names or [])
+        of = f", {names[worst]}'s" if worst < len(names) else ""
+        print(f"  constraints     {state}: largest g = {ev.max_violation:.4g}{of} "
+              f"({ev.constraints.size} rows g = (value - limit) / |limit| <= 0; feasible when "
               f"g <= {FEASIBILITY_TOL:g})")
+        if not ev.feasible:
+            print(f"  note            {step_hint(prob, ev)}")
     for w in ev.gradient_warnings():
         print(f"  warning         {printable(w)}")
     if motion is not None:
@@ -331,6 +336,30 @@ def print_evaluation(prob, ev, source=None, motion=None):
     else:
         print(f"  time            wall {ev.wall_time:.3f} s, CPU {ev.cpu_time:.3f} s (nothing "
               f"simulated: no response needs the motion)")
+
+
+def step_hint(prob, ev):
+    """What an infeasible verdict at the case's step does not know: a constraint whose
+    estimated error (--error) exceeds its violation may hold at a finer step; without --error,
+    the verdict is the case's step's alone (an optimized design is verified at a finer one)."""
+    h = f"h = {prob.description.time.grid_h:g} s"
+    errs = ev.constraint_errors or {}
+    if errs:
+        over = {n: e for n, e in errs.items() if e.value > FEASIBILITY_TOL}
+        loose = [n for n, e in over.items() if not e.reliable]
+        close = [n for n, e in over.items() if e.reliable and e.error >= e.value]
+        if loose:
+            return (f"the verdict may change at a finer step: {', '.join(loose)} not in the "
+                    f"asymptotic range at {h}, so the error estimate is no bound (refine "
+                    f"time.h)")
+        if close:
+            return (f"the verdict depends on the step: {', '.join(close)} exceed their limits "
+                    f"by less than their estimated error at {h} (refine time.h)")
+        return (f"the violations exceed their estimated errors at {h} (asymptotic range): "
+                f"infeasible at finer steps too")
+    return (f"the verdict is at the case's {h}; a finer step can change it: --error estimates "
+            f"each value's error, and a design verified by `flexmbs optimize` is re-checked at "
+            f"its verified step (the command it prints)")
 
 
 def printable(text, keep_newlines=False):

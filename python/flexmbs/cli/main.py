@@ -2,6 +2,7 @@
 
 Usage::
 
+    flexmbs --version
     flexmbs simulate CASE [--design P1,P2,...] [--t-end T] [--h H] [--rho-inf R]
                           [--set KEY=VALUE ...] [--out result.npz] [--plot FILE.png] [--json]
     flexmbs animate CASE [--design P1,P2,...] [--set KEY=VALUE ...] --out motion.gif|.mp4|.pvd
@@ -42,6 +43,7 @@ from flexmbs.cli import reproduce
 from flexmbs.cli import simulate
 from flexmbs.cli.common import printable
 from flexmbs.errors import FlexmbsError
+from flexmbs.version import __version__
 
 __all__ = ["main", "build_parser", "COMMANDS"]
 
@@ -93,6 +95,8 @@ def build_parser():
     parser.add_argument("--debug", action="store_true",
                         help="print the traceback of an error (also: FLEXMBS_DEBUG=1); "
                              "accepted after the subcommand too")
+    parser.add_argument("--version", action="version", version=f"flexmbs {__version__}",
+                        help="print the version of flexmbs and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for register in COMMANDS:
         register(sub)

@@ -28,16 +28,23 @@ Progress: a tqdm bar on stderr (iteration or cycle, simulations, mass, constrain
 with --starts: starts done, best feasible objective), on by default when stderr is a terminal
 (--progress / --no-progress).
 
-Exit status: 0 when the method converged, 1 when it stopped without converging (maximum
-number of cycles, oscillation), 2 on bad input or a failed simulation, 130 when stopped by
+Summary and JSON: the verdicts of docs/json-output.md ("What `optimize` reports"); after a
+verified optimum, the step it was verified on and the command that simulates it there
+(`check_command`: ``flexmbs simulate CASE --design=... --set time.h=H``).
+
+Exit status: 0 when the method converged (with --starts: the best start's run), 1 when it
+stopped without converging (maximum number of cycles, oscillation; with --starts, also when no
+start ended feasible), 2 on bad input or a failed simulation, 130 when stopped by
 Ctrl-C (one line on stderr names the history file, says that the same command with --resume
 continues the run, and gives the --start of its last design analysed).
 """
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib
 import os
+import shlex
 import sys
 
 from flexmbs.batch import check_dask
@@ -47,13 +54,14 @@ from flexmbs.errors import CaseError, ModelError
 from flexmbs.methods.fully import choose_optimizer, optimize_fully, OPTIMIZERS
 from flexmbs.methods.multistart import multistart
 from flexmbs.methods.result import HistoryWriter
+from flexmbs.methods.verified import objective_unit
 from flexmbs.methods.weakly import optimize_weakly
 from flexmbs.model.options import (build, FullyOptions, MultistartOptions, OptimizeSection,
                                    WeaklyOptions)
 from flexmbs.optimizers.library import preload
 from flexmbs.progress import Bar, describe_cycle, describe_iteration
 
-__all__ = ["register", "run_optimize", "run_weakly", "add_weakly_options", "run_fully",
+__all__ = ["register", "run_optimize", "check_command", "run_weakly", "add_weakly_options", "run_fully",
            "add_fully_options", "METHODS", "METHOD_OPTIONS"]
 
 #: Optimization methods: name -> "module:function(args, problem) -> OptimizationResult".
@@ -155,7 +163,8 @@ def run_weakly(args, problem):
         eps=args.eps, max_cycles=args.max_cycles, confirm_cycles=args.confirm_cycles,
         move_limit=args.move_limit, damping=args.damping, esl_blend=args.esl_blend,
         design_tol=args.design_tol, frame_kind=_frame_option(args.frame)))
-    with _Reporter(args, opts.max_cycles, "cycles", describe_cycle, _cycle_line) as report:
+    line = functools.partial(_cycle_line, units=_units(problem))
+    with _Reporter(args, opts.max_cycles, "cycles", describe_cycle, line) as report:
         return optimize_weakly(problem, design_from_text(args.start, problem, "--start"),
                                options=opts, history=args.history, progress=report,
                                resume=args.resume)
@@ -210,22 +219,31 @@ class _Reporter:
 LINE_VARIABLES = 8
 
 
-def _design_text(design):
+def _design_text(design, units=None):
     """The design for a progress line: every value up to LINE_VARIABLES, else the count and
-    the range (a line per iteration with 128 numbers is read by nobody)."""
+    the range (a line per iteration with 128 numbers is read by nobody); followed by the
+    variables' unit when they share one."""
     d = [float(v) for v in design]
+    shared = sorted(set(units or []))
+    unit = f" {shared[0]}" if len(shared) == 1 and shared[0] else ""
     if len(d) <= LINE_VARIABLES:
-        return "[" + ", ".join(f"{v:.4g}" for v in d) + "]"
-    return f"({len(d)} values in [{min(d):.4g}, {max(d):.4g}])"
+        return "[" + ", ".join(f"{v:.4g}" for v in d) + "]" + unit
+    return f"({len(d)} values in [{min(d):.4g}, {max(d):.4g}]{unit})"
 
 
-def _cycle_line(rec):
-    p = _design_text(rec["design"])
+def _units(problem):
+    """(the design variables' units, the objective's unit or '') of `problem`."""
+    return list(getattr(problem.mechanism, "units", [])), objective_unit(problem) or ""
+
+
+def _cycle_line(rec, units=((), "")):
+    p = _design_text(rec["design"], units[0])
+    ou = f" {units[1]}" if units[1] else ""
     ch = rec.get("esl_change")
     chg = "-" if ch is None else f"{ch:.3g}"
     inner = rec.get("inner_iterations")
     viol = rec.get("max_violation")
-    return (f"cycle {rec['iteration']:3d}  x = {p}  objective {rec['objective']:.6g}  "
+    return (f"cycle {rec['iteration']:3d}  x = {p}  objective {rec['objective']:.6g}{ou}  "
             + ("" if viol is None else f"max g {viol:+.2e}  ")
             + f"ESL change {chg}" + ("" if inner is None else f"  inner {inner}"))
 
@@ -287,8 +305,10 @@ def run_optimize(args):
         args.history = history_path
     if args.plot:
         result.plot(args.plot, limit_m=problem.deviation_limit())
+    check = check_command(args, problem, result)
     if args.json:
         out = result.to_dict()
+        out["check_command"] = check
         if args.history:
             out["history_file"] = args.history
         if args.plot:
@@ -299,11 +319,43 @@ def run_optimize(args):
         pred = result.details.get("predicted_max_violation")
         if pred is not None:
             print(f"  largest g predicted by the last static problem {pred:+.3e}")
+        if check:
+            h = _verified_step(result)
+            print(f"  re-check at the verified step h = {h:.4g} s:")
+            print(f"    {check}")
         for what, f in (("history", args.history), ("figure", args.plot)):
             if f:
                 print(f"  {what:<8s} {f}")
     sys.stdout.flush()
     return 0 if result.converged else 1
+
+
+def _verified_step(result):
+    """The step (s) the result's design was verified on, None when it was not."""
+    rec = result.best if hasattr(result, "best") else result.details
+    v = (rec or {}).get("verification")
+    return None if not v else float(v["h"])
+
+
+def check_command(args, problem, result):
+    """The command that simulates the result's design at its verified step
+    (``flexmbs simulate CASE --design=... --set time.h=H`` with the run's other overrides), or
+    None: not verified, or an adaptive case (its verification subdivides the frozen grid,
+    which a fixed step does not reproduce)."""
+    h = _verified_step(result)
+    design = getattr(result, "design", None)
+    if h is None or design is None or problem.description.time.adaptive:
+        return None
+    words = ["flexmbs", "simulate", args.case,
+             "--design=" + ",".join(repr(float(v)) for v in design)]
+    for item in args.set:
+        if item.partition("=")[0].strip() != "time.h":
+            words += ["--set", item]
+    for option, value in (("--t-end", args.t_end), ("--rho-inf", args.rho_inf)):
+        if value is not None:
+            words += [option, repr(value)]
+    words += ["--set", f"time.h={h!r}"]
+    return " ".join(shlex.quote(w) for w in words)
 
 
 # ----------------------------------------------------------------------------- fully coupled
@@ -355,8 +407,9 @@ def run_fully(args, problem):
 
     optimizer = args.optimizer or section.optimizer
     opts = _used_tables(_fully_options(args, section), optimizer, problem)
+    line = functools.partial(_iteration_line, units=_units(problem))
     with _Reporter(args, opts.max_iterations, "iterations", describe_iteration,
-                   _iteration_line) as report:
+                   line) as report:
         return optimize_fully(problem, design_from_text(args.start, problem, "--start"),
                               optimizer=optimizer, options=opts,
                               history=args.history, progress=report, resume=args.resume)
@@ -377,9 +430,10 @@ def _used_tables(opts, optimizer, problem):
     return opts.check_optimizer(chosen, why)
 
 
-def _iteration_line(rec):
-    p = _design_text(rec["design"])
-    return (f"iteration {rec['iteration']:3d}  x = {p}  objective {rec['objective']:.6g}  "
+def _iteration_line(rec, units=((), "")):
+    p = _design_text(rec["design"], units[0])
+    ou = f" {units[1]}" if units[1] else ""
+    return (f"iteration {rec['iteration']:3d}  x = {p}  objective {rec['objective']:.6g}{ou}  "
             f"violation {rec['max_violation']:.1e}  KKT {rec['kkt_residual']:.1e}  "
             f"simulations {rec['simulations']}")
 

@@ -591,6 +591,12 @@ def optimize_fully(problem, x0=None, *, optimizer=None, options=None, history=No
     details["optimizer_share"] = max(0.0, 1.0 - P.evaluate_time_s / wall) if wall > 0 else 0.0
     converged = mon.converged and is_feasible(viol, opts.constraint_violation)
     reason = mon.reason or "stopped"
+    if last is not mon.iterates[-1]:
+        # the reason's numbers are the last iterate's: say which design is returned instead
+        k = next(i for i, e in enumerate(mon.iterates) if e is last)
+        reason += (f"; the design returned is iteration {k}'s, the "
+                   + ("lightest feasible iterate" if last.violation < opts.constraint_violation
+                      else f"least violated iterate (constraint violation {last.violation:.1e})"))
     if mon.converged and not converged:
         reason += f"; but the re-simulated final design violates a constraint by {viol:.1e}"
     result = OptimizationResult(

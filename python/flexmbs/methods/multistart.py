@@ -38,7 +38,7 @@ from flexmbs.errors import ModelError, ResourceError, SimulationError
 from flexmbs.files import jsonable, save_figure
 from flexmbs.methods.fully import choose_optimizer, optimize_fully
 from flexmbs.methods.result import OptimizationResult
-from flexmbs.methods.verified import check_verify, finish
+from flexmbs.methods.verified import check_verify, finish, objective_unit
 from flexmbs.model.fingerprint import fingerprint
 from flexmbs.model.options import build, from_keywords, FullyOptions, MultistartOptions
 from flexmbs.problem import load_problem
@@ -208,6 +208,12 @@ class MultistartResult:
     reached_best : how many starts ended feasible within best_tolerance of the best objective.
     best_tolerance : relative (0.003). wall_time_s. simulations : all starts' simulations and
         the re-checks.
+    details : seed, candidates, verification, start_lower/start_upper, options, multistart
+        (its options, with feasibility_tol).
+
+    Every optimum has ``h``: the step its objective and max_violation were simulated on (the
+    case's; the best after a continuation on a finer step: that step). `to_dict` repeats the
+    best's verdicts at the top level (`VERDICTS`, docs/json-output.md).
     """
     case: str
     variables: list
@@ -222,10 +228,38 @@ class MultistartResult:
     simulations: int
     details: dict = field(default_factory=dict)
 
+    #: the verdicts of the best local optimum repeated at the top level of `to_dict`
+    VERDICTS = ("design", "objective", "max_violation", "feasible", "converged", "reason",
+                "verified", "verified_h", "h")
+
     @property
     def converged(self):
-        """A feasible design was found."""
-        return self.best is not None
+        """The best local optimum's run passed its stopping test (False without a feasible
+        local optimum)."""
+        return self.best is not None and bool(self.best["converged"])
+
+    @property
+    def feasible(self):
+        """A feasible local optimum was found (the best one: its max_violation <=
+        feasibility_tol, re-simulated)."""
+        return self.best is not None and bool(self.best["feasible"])
+
+    @property
+    def verified(self):
+        """The best design's verification verdict (None: not verified, or no best)."""
+        v = None if self.best is None else self.best.get("verification")
+        return None if not v else bool(v["verified"])
+
+    def verdicts(self):
+        """{key: value} of `VERDICTS`: the best local optimum's (None, False when there is
+        none); feasibility_tol the multi-start's."""
+        b = self.best or {}
+        v = b.get("verification") or {}
+        return dict(design=b.get("design"), objective=b.get("objective"),
+                    max_violation=b.get("max_violation"), feasible=self.feasible,
+                    converged=self.converged,
+                    reason=b.get("reason", "no start ended feasible"),
+                    verified=self.verified, verified_h=v.get("h"), h=b.get("h"))
 
     @property
     def design(self):
@@ -246,8 +280,8 @@ class MultistartResult:
                  starts=len(self.optima), best=self.best, optima=self.optima,
                  reached_best=self.reached_best, best_tolerance=self.best_tolerance,
                  feasible_starts=sum(o["feasible"] for o in self.optima),
-                 wall_time_s=self.wall_time_s, simulations=self.simulations,
-                 converged=self.converged)
+                 wall_time_s=self.wall_time_s, simulations=self.simulations)
+        d.update(self.verdicts())
         d.update(self.details)
         return jsonable(d)
 
@@ -256,19 +290,28 @@ class MultistartResult:
 
     def summary(self):
         n = len(self.optima)
+        unit = self.details.get("objective_unit")
+        unit = f" {unit}" if unit else ""
         lines = [f"fully coupled, {n} starts ({self.sampler}), optimizer {self.optimizer}, "
                  f"case {self.case}: {sum(o['feasible'] for o in self.optima)} of {n} ended "
                  f"feasible (re-simulated)"]
         if self.best is None:
             lines.append("  no feasible design found")
         else:
-            p = ", ".join(f"{v:.5g}" for v in self.best["design"])
-            lines.append(f"  best design [{p}] {self.units[0] if self.units else ''}, objective "
-                         f"{self.best['objective']:.6g}, violation "
-                         f"{self.best['max_violation']:.1e}")
+            b = self.best
+            p = ", ".join(f"{n} = {v:.5g}{' ' + u if u else ''}"
+                          for n, v, u in zip(self.variables, b["design"], self.units))
+            lines.append(f"  best design {p}")
+            at = "" if b.get("h") is None else f" at h = {b['h']:.4g} s"
+            lines.append(f"  objective {b['objective']:.6g}{unit}{at}, "
+                         f"{'feasible' if b['feasible'] else 'INFEASIBLE'}: max violation "
+                         f"{b['max_violation']:.1e} (the largest g above 0, g relative to the "
+                         f"limits); {'converged' if b['converged'] else 'NOT converged'} "
+                         f"({b['reason']})")
             lines.append(f"  {self.reached_best} of {n} starts reached it (within "
                          f"{self.best_tolerance * 100:.1f} %)")
-            ver = describe_verification(self.best)
+            ver = describe_verification(dict(self.best, objective_unit=self.details.get(
+                "objective_unit")))
             if ver:
                 lines.append(f"  {ver}")
         for k, o in enumerate(self.optima):
@@ -276,7 +319,7 @@ class MultistartResult:
                 lines.append(f"  start {k}: {o['reason']}")
                 continue
             grid = o.get("grid")
-            lines.append(f"  start {k}: objective {o['objective']:.6g}, violation "
+            lines.append(f"  start {k}: objective {o['objective']:.6g}{unit}, max violation "
                          f"{o['max_violation']:.1e}, {o['simulations']} simulations"
                          + ("" if grid is None else f", {grid['steps']} steps (grid chosen at "
                             f"the start, {_tolerance(grid)})")
@@ -297,7 +340,8 @@ class MultistartResult:
             ax.plot(k, o["objective"], "o" if o["feasible"] else "x",
                     color="C0" if o["feasible"] else "C3")
         ax.set_xlabel("start")
-        ax.set_ylabel("objective of the local optimum")
+        unit = self.details.get("objective_unit")
+        ax.set_ylabel(f"objective of the local optimum{f' [{unit}]' if unit else ''}")
         ax.set_yscale("log")
         ax.set_title("multi-start: local optima (x: infeasible)")
         ax.grid(True, alpha=0.3)
@@ -483,6 +527,7 @@ def multistart(case, starts=None, *, options=None, fully=None, workers=None, das
         o["max_violation"] = float(max(0.0, g.max())) if g.size else 0.0
         o["objective"] = float(ev.objective)
         o["feasible"] = o["max_violation"] <= feasibility_tol
+        o["h"] = case_step(problem)
         optima.append(o)
     feas = [o for o in optima if o["feasible"]]
     best = min(feas, key=lambda o: o["objective"]) if feas else None
@@ -493,7 +538,8 @@ def multistart(case, starts=None, *, options=None, fully=None, workers=None, das
         if adaptive(problem):            # verified on the grid chosen at the best design
             problem.adapt(best["design"])
             sims += PILOT_SIMULATIONS
-        best, verification, extra = _verified_best(problem, best, optimizer, options, verify)
+        best, verification, extra = _verified_best(problem, best, optimizer, options, verify,
+                                                   feasibility_tol)
         sims += extra
     desc = problem.description
     return MultistartResult(
@@ -502,6 +548,8 @@ def multistart(case, starts=None, *, options=None, fully=None, workers=None, das
         sampler=sampler, best=best, optima=optima, reached_best=int(reached),
         best_tolerance=best_tolerance, wall_time_s=time.perf_counter() - t0,
         simulations=sims, details=dict(seed=seed, candidates=candidates,
+                                       objective_unit=objective_unit(problem),
+                                       feasibility_tol=feasibility_tol,
                                        verification=verification,
                                        start_lower=np.asarray(lo).tolist(),
                                        start_upper=np.asarray(hi).tolist(),
@@ -525,12 +573,18 @@ def _from_keywords(options, fully, keywords):
     return options, fully
 
 
+def case_step(problem):
+    """The step (s) `problem` simulates on (its time.grid_h), None for a problem without one."""
+    h = getattr(getattr(getattr(problem, "description", None), "time", None), "grid_h", None)
+    return None if h is None else float(h)
+
+
 def _tolerance(grid):
     """'rtol 0.01' / 'tol 1e-05' / both, of a grid summary."""
     return ", ".join(f"{k} {grid[k]:g}" for k in ("tol", "rtol") if grid.get(k) is not None)
 
 
-def _verified_best(problem, best, optimizer, options, verify):
+def _verified_best(problem, best, optimizer, options, verify, feasibility_tol):
     """(best, its verification as JSON or None, simulations run): the best local optimum
     verified at converged resolution, continued at the finer step when infeasible there
     (flexmbs.methods.verified)."""
@@ -552,7 +606,12 @@ def _verified_best(problem, best, optimizer, options, verify):
         return best, None, 0
     best = dict(best, verification=res.details["verification"])
     if res is not stub:                 # continued on the finer step
+        # the continued run's verdicts, on the step it ran on (its h)
         best.update(design=[float(v) for v in res.design], objective=float(res.objective),
                     max_violation=float(res.max_violation), converged=bool(res.converged),
+                    feasible=bool(res.max_violation <= feasibility_tol),
+                    h=res.details.get("h"),
                     reason=res.reason, continued_from=res.details["continued_from"])
+    else:
+        best["reason"] = res.reason             # with the verification's words, if any
     return best, best["verification"], int(res.simulations)

@@ -48,7 +48,7 @@ from flexmbs.analysis.accuracy import describe_verification
 from flexmbs.errors import ModelError
 from flexmbs.files import check_regular_file, jsonable, save_figure
 from flexmbs.model.fingerprint import differences
-from flexmbs.problem import is_feasible
+from flexmbs.problem import FEASIBILITY_TOL, is_feasible
 
 __all__ = ["OptimizationResult", "HistoryWriter", "read_history", "jsonable", "open_history"]
 
@@ -320,6 +320,19 @@ class OptimizationResult:
         (flexmbs.problem, relative to the limits)."""
         return is_feasible(self.max_violation)
 
+    @property
+    def verified(self):
+        """The verification's verdict (details' ``verification``: the objective and every
+        constraint settled to its rtol at a finer step), None when the run was not verified."""
+        v = self.details.get("verification")
+        return None if not v else bool(v["verified"])
+
+    @property
+    def verified_h(self):
+        """The step (s) the verification settled the values on, None without a verification."""
+        v = self.details.get("verification")
+        return None if not v else float(v["h"])
+
     def to_dict(self, history=True):
         """A JSON-ready dict: the fields above, `details` merged at the top level."""
         d = dict(method=self.method, case=self.case, variables=self.variables, units=self.units,
@@ -328,7 +341,9 @@ class OptimizationResult:
                  max_violation=self.max_violation, max_deviation_m=self.max_deviation_m,
                  iterations=self.iterations, inner_iterations=self.inner_iterations,
                  evaluations=self.evaluations, simulations=self.simulations,
-                 converged=self.converged, reason=self.reason, wall_time_s=self.wall_time_s)
+                 converged=self.converged, reason=self.reason, wall_time_s=self.wall_time_s,
+                 feasible=self.feasible, feasibility_tol=FEASIBILITY_TOL,
+                 verified=self.verified, verified_h=self.verified_h)
         for k, v in self.details.items():
             d.setdefault(k, v)
         if history:
@@ -345,14 +360,20 @@ class OptimizationResult:
                       zip(self.variables, np.asarray(self.design, float), self.units))
         inner = ("" if self.inner_iterations is None
                  else f", {self.inner_iterations} inner iterations")
+        unit = self.details.get("objective_unit")
+        h = self.details.get("h")
+        at = "" if h is None else f" at h = {h:.4g} s"
         lines = [f"{self.method} coupled, case {self.case}: "
                  f"{'converged' if self.converged else 'NOT converged'} ({self.reason})",
                  f"  design {p}",
                  f"  objective {self.objective_name} = {self.objective:.6g}"
-                 + ("" if self.max_violation is None else
-                    f", constraint violation {self.max_violation:.2e} (simulated)"),
-                 f"  {self.iterations} iterations{inner}, {self.simulations} simulations, "
-                 f"{self.wall_time_s:.2f} s"]
+                 f"{' ' + unit if unit else ''}{at}"]
+        if self.max_violation is not None:
+            lines.append(f"  constraints {'feasible' if self.feasible else 'INFEASIBLE'}{at}: "
+                         f"max violation {self.max_violation:.2e} (the largest g above 0, g "
+                         f"relative to the limits; feasible when <= {FEASIBILITY_TOL:g})")
+        lines.append(f"  {self.iterations} iterations{inner}, {self.simulations} simulations, "
+                     f"{self.wall_time_s:.2f} s")
         if self.details.get("optimizer_reason"):
             lines.append(f"  optimizer: {self.details['optimizer_reason']}")
         if self.details.get("gradient_method_reason"):
@@ -368,7 +389,7 @@ class OptimizationResult:
         if self.max_deviation_m is not None:
             lines.append(f"  max deviation in the full simulation "
                          f"{self.max_deviation_m * 1e3:.4f} mm")
-        ver = describe_verification(self.details)
+        ver = describe_verification(self.details)   # with objective_unit
         if ver:
             lines.append(f"  {ver}")
         return "\n".join(lines)
@@ -422,7 +443,9 @@ class OptimizationResult:
             else "objective"
         ax1.plot(its, [r.get(key) for r in self.history], "o-")
         ax1.set_xlabel("cycle" if self.method == "weakly" else "iteration")
-        ax1.set_ylabel("mass [kg]" if key == "mass_kg" else self.objective_name)
+        unit = self.details.get("objective_unit")
+        ax1.set_ylabel("mass [kg]" if key == "mass_kg" else
+                       f"{self.objective_name}{f' [{unit}]' if unit else ''}")
         ax1.set_title(f"{self.method} coupled: objective history")
         ax1.grid(True, alpha=0.3)
         if self.t is not None and self.deviation is not None:

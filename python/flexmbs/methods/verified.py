@@ -8,8 +8,9 @@ to `rtol`) and, when the design is infeasible there, continues the same optimiza
 step from the design, then verifies again (a continued design infeasible on a still finer step
 is continued there once more). A design whose responses do not settle (not in their asymptotic
 range down to the finest step) is not continued: the result says it is not verified. The
-result states the verification (`OptimizationResult.verification`, details["verification"])
-and, after a continuation, the coarse run it started from (details["continued_from"]) and each
+result states the verification (`OptimizationResult.verification`, details["verification"]),
+the step its objective and max_violation were simulated on (details["h"]: the case's, or the
+last continuation's) and, after a continuation, the coarse run it started from (details["continued_from"]) and each
 continuation (details["continuations"]).
 """
 from __future__ import annotations
@@ -18,9 +19,10 @@ import numpy as np
 
 from flexmbs.analysis.accuracy import VERIFY_RTOL, verify as verify_design
 from flexmbs.model.options import check_verify_value
+from flexmbs.output import response_unit
 from flexmbs.responses.kinds import kind_of
 
-__all__ = ["finish", "check_verify", "verify_rtol", "MAX_CONTINUATIONS"]
+__all__ = ["finish", "check_verify", "verify_rtol", "objective_unit", "MAX_CONTINUATIONS"]
 
 #: continuations on finer steps at most (each on a finer step than the one before)
 MAX_CONTINUATIONS = 2
@@ -41,6 +43,20 @@ def verify_rtol(verify):
     return VERIFY_RTOL if verify is True or verify == "check" else float(verify)
 
 
+def objective_unit(problem):
+    """The unit of `problem`'s objective (flexmbs.output.units: 'kg' for a mass, '... s' for
+    an integral), None when unknown."""
+    d = getattr(problem, "description", None)
+    obj = getattr(d, "objective", None)
+    if obj is None:
+        return None
+    r = next((r for r in getattr(d, "responses", ()) if r.name == obj.response), None)
+    unit = None if r is None else response_unit(r, d)
+    if unit is not None and getattr(obj, "over", None) == "integral":
+        unit = f"{unit} s"
+    return unit
+
+
 def _can_verify(problem):
     """A Problem with a time step and at least one simulated response."""
     if not hasattr(problem, "refined") or not hasattr(problem, "used_responses"):
@@ -57,6 +73,11 @@ def finish(problem, result, rerun, verify, coarse=None):
     continued once more there (at most MAX_CONTINUATIONS in all).
     """
     rtol = verify_rtol(verify)
+    time = getattr(getattr(problem, "description", None), "time", None)
+    if hasattr(time, "grid_h"):
+        # the step the result's objective and max_violation were simulated on
+        result.details["h"] = float(time.grid_h)
+    result.details.setdefault("objective_unit", objective_unit(problem))
     if rtol is None or not _can_verify(problem):
         return result
     v = verify_design(problem, result.design, rtol=rtol, coarse=coarse)

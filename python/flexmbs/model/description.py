@@ -726,26 +726,33 @@ class SolverSettings(_Strict):
         return self
 
 
+#: The fields of an [[initial.beams]] entry given at its stations.
+INITIAL_FIELDS = ("deflection", "deflection_rate", "axial", "axial_rate")
+
+
 class InitialBeam(_Strict):
     """A beam's initial deflection and its rate, given at stations: `deflection` (m) and
     `deflection_rate` (m/s) normal to the beam's axis (positive on its left, from `from` to
-    `to`), at the fractions `s` of its length (default: at its nodes, from `from`; then one
-    value per node). Between the stations a cubic spline (scipy's CubicSpline, not-a-knot;
-    a line through 2 stations) gives each node's value and slope: the node moves by the
-    deflection along the axis' normal and turns by atan(slope) (its rate by
-    rate' / (1 + slope^2))."""
+    `to`), `axial` (m) and `axial_rate` (m/s) along it (positive towards `to`), at the
+    fractions `s` of its length (default: at its nodes, from `from`; then one value per node).
+    Between the stations a cubic spline (scipy's CubicSpline, not-a-knot; a line through 2
+    stations) gives each node's value and slope: the node moves by the deflection along the
+    axis' normal and by the axial value along the axis, and turns by atan(slope of the
+    deflection) (its rate by rate' / (1 + slope^2))."""
     body: Name
     s: Annotated[list[Annotated[float, NoBool, Field(ge=0.0, le=1.0, allow_inf_nan=False)]],
                  Field(min_length=2)] | None = None
     deflection: Annotated[list[Finite], Field(min_length=2)] | None = None
     deflection_rate: Annotated[list[Finite], Field(min_length=2)] | None = None
+    axial: Annotated[list[Finite], Field(min_length=2)] | None = None
+    axial_rate: Annotated[list[Finite], Field(min_length=2)] | None = None
 
     @model_validator(mode="after")
     def _values(self):
-        given = [k for k in ("deflection", "deflection_rate") if getattr(self, k) is not None]
+        given = [k for k in INITIAL_FIELDS if getattr(self, k) is not None]
         if not given:
-            raise ValueError(f"initial beam {self.body!r}: give deflection and/or "
-                             "deflection_rate")
+            raise ValueError(f"initial beam {self.body!r}: give deflection, deflection_rate, "
+                             "axial and/or axial_rate")
         if self.s is not None:
             if any(b <= a for a, b in zip(self.s, self.s[1:])):
                 raise ValueError(f"initial beam {self.body!r}: s = {self.s} must increase "
@@ -776,9 +783,11 @@ class InitialState(_Strict):
     def _something(self):
         if self.static_loads is None and not self.beams:
             raise ValueError("[initial] needs static_loads or beams")
-        if self.static_loads is not None and any(b.deflection is not None for b in self.beams):
-            raise ValueError("[initial]: the deflection comes either from static_loads or from "
-                             "beams' deflection, not both (beams may add deflection_rate)")
+        if self.static_loads is not None and any(b.deflection is not None or b.axial is not None
+                                                 for b in self.beams):
+            raise ValueError("[initial]: the deformation comes either from static_loads or from "
+                             "beams' deflection and axial, not both (beams may add "
+                             "deflection_rate and axial_rate)")
         return self
 
 
@@ -921,7 +930,7 @@ class Description(_Strict):
                     raise ValueError(f"{where}: given twice")
                 seen.add(b.body)
                 nodes = bodies[b.body].elements * bodies[b.body].order + 1
-                for key in ("deflection", "deflection_rate"):
+                for key in INITIAL_FIELDS:
                     v = getattr(b, key)
                     if b.s is None and v is not None and len(v) != nodes:
                         raise ValueError(f"{where}: {key} has {len(v)} values; without s it "

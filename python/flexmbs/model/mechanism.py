@@ -535,7 +535,7 @@ class Mechanism:
             q0 = self._static_start(x, static)
         for b in ini.beams:
             self._deflect(b, q0, qd0)
-        if any(b.deflection is not None for b in ini.beams):
+        if any(b.deflection is not None or b.axial is not None for b in ini.beams):
             self._check_joined(q0)
         return q0, qd0
 
@@ -566,7 +566,8 @@ class Mechanism:
         return static(model, q0)
 
     def _deflect(self, spec, q0, qd0):
-        """Add an InitialBeam's deflection and rate to q0, qd0 (in place)."""
+        """Add an InitialBeam's deflection, axial displacement and their rates to q0, qd0
+        (in place)."""
         from scipy.interpolate import CubicSpline
         body = self.model.body(spec.body)
         nodes = np.asarray(body.nodes)
@@ -575,6 +576,11 @@ class Mechanism:
         s = sn if spec.s is None else np.asarray(spec.s, float)
         a = q0[3 * nodes[0] + 2]                      # the beam's axis angle
         nx, ny = -math.sin(a), math.cos(a)            # its left normal
+        for values, q in ((spec.axial, q0), (spec.axial_rate, qd0)):
+            if values is not None:                    # along the axis, towards `to`
+                u = CubicSpline(s, np.asarray(values, float))(sn)
+                q[3 * nodes] += u * ny
+                q[3 * nodes + 1] -= u * nx
         for values, q, rate in ((spec.deflection, q0, False), (spec.deflection_rate, qd0, True)):
             if values is None:
                 continue

@@ -189,8 +189,8 @@ class _Monitor:
                            f"{self.constraint_violation:g} and KKT residual {kkt:.1e} < "
                            f"{self.kkt_tol:g}")
         else:
-            self.reason = (f"{why}, but not a converged point (constraint violation "
-                           f"{ev.violation:.1e}, KKT residual {kkt:.1e})")
+            self.reason = (f"{why}, but not a converged point (the last iterate's constraint "
+                           f"violation {ev.violation:.1e}, KKT residual {kkt:.1e})")
 
     @property
     def iteration(self):
@@ -238,8 +238,9 @@ class _Monitor:
                 return True
         self.stalled = self.stalled + 1 if (des_change is not None and des_change < 1e-10) else 0
         if self.stalled >= 5:
-            self.reason = ("no progress: the design did not change in 5 iterations (KKT residual "
-                           f"{kkt:.1e}, constraint violation {ev.violation:.1e})")
+            self.reason = ("no progress: the design did not change in 5 iterations (the last "
+                           f"iterate's KKT residual {kkt:.1e}, constraint violation "
+                           f"{ev.violation:.1e})")
             return True
         if k >= self.max_iterations:
             self.reason = f"maximum number of iterations ({self.max_iterations}) reached"

@@ -370,9 +370,11 @@ def plot_overview(problem, result, evaluation, file=None, *, magnification=None)
     d = problem.description
     design = ", ".join(f"{n} = {v:.4g} {u}" for n, v, u in
                        zip(problem.variables, evaluation.x, problem.mechanism.units))
+    unit = (getattr(evaluation, "units", None) or {}).get("objective")
     obj = "" if evaluation.objective is None else \
-        f", {d.objective.response} {evaluation.objective:.4g}"
+        f", {d.objective.response} {evaluation.objective:.4g}{' ' + unit if unit else ''}"
     state = ("" if not evaluation.constraints.size else
-             ", feasible" if evaluation.feasible else ", INFEASIBLE")
+             (", feasible" if evaluation.feasible else ", INFEASIBLE")
+             + f" at h = {d.time.grid_h:g} s")
     fig.suptitle(f"{d.case.name}: {design}{obj}{state}", fontsize=11)
     return _save(fig, file)
