@@ -16,6 +16,7 @@ import sys
 import threading
 import time
 
+import numpy as np
 import pytest
 
 import flexmbs.analysis.simulate as simulate_module
@@ -210,3 +211,52 @@ def test_an_mp4_read_back_short_of_frames_is_refused(tmp_path, monkeypatch):
     with pytest.raises(ResourceError, match="x.mp4.*3 of its 10 frames"):
         A.animate(prob, res, out, frames=10)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_an_adjoint_optimization_interrupted_in_the_core_resumes_to_the_same_design(
+        tmp_path, monkeypatch):
+    """A fully coupled MMA run with adjoint gradients (the robot of cases/robot_2dof.toml over
+    0.1 s) interrupted by Ctrl-C while its 6th backward pass runs (the core returns
+    Status.INTERRUPTED; the optimization raises KeyboardInterrupt) keeps a valid history, and
+    resumed from it ends at the design of the uninterrupted run (1e-12 relative, the criterion
+    of tests/test_resume.py) after replaying every recorded analysis."""
+    import flexmbs.analysis.adjoint as adjoint_module
+    from flexmbs.optimize import optimize_fully, read_history
+
+    def robot():
+        return Problem("robot_2dof", {"time.t_end": 0.1}, gradient_method="adjoint")
+
+    ref = optimize_fully(robot(), optimizer="mma")
+    real, calls, seen = adjoint_module.run_interruptible, [], []
+
+    def ctrl_c_in_sixth_backward_pass(fn, stack_bytes=0, **kwargs):
+        if fn is not adjoint_module.simulate_adjoint_arrays:
+            return real(fn, stack_bytes, **kwargs)
+        calls.append(1)
+        if len(calls) != 6:
+            return real(fn, stack_bytes, **kwargs)
+
+        def pressed(**kw):      # Ctrl-C, then the backward pass starts
+            _thread.interrupt_main()
+            time.sleep(0.3)
+            try:
+                return fn(**kw)
+            except BaseException as exc:
+                seen.append(exc)
+                raise
+
+        return real(pressed, stack_bytes, **kwargs)
+
+    h = tmp_path / "h.jsonl"
+    monkeypatch.setattr(adjoint_module, "run_interruptible", ctrl_c_in_sixth_backward_pass)
+    with pytest.raises(KeyboardInterrupt):
+        optimize_fully(robot(), optimizer="mma", history=h)
+    monkeypatch.undo()
+    assert len(calls) == 6 and len(seen) == 1 and isinstance(seen[0], Interrupted)
+    recs = read_history(h)
+    recorded = sum(len(r["evaluations"]) for r in recs)
+    assert recs and recorded >= 1
+    res = optimize_fully(robot(), optimizer="mma", history=h, resume=True)
+    np.testing.assert_allclose(res.design, ref.design, rtol=1e-12, atol=0)
+    assert res.iterations == ref.iterations
+    assert res.details["replayed_simulations"] == recorded

@@ -360,8 +360,8 @@ def run_interruptible(fn, stack_bytes=0, **kwargs):
 
     Called from the main thread, the run goes to a helper thread (with a stack of at least
     stack_bytes + 16 MB when the default is smaller) while the main thread waits in short
-    timed joins, so that its signal handlers run (a join without timeout would wait for the
-    whole run). A KeyboardInterrupt (Ctrl-C, or the command line's SIGTERM) or any other
+    timed waits, so that its signal handlers run (a wait without timeout would last the whole
+    run). A KeyboardInterrupt (Ctrl-C, or the command line's SIGTERM) or any other
     exception raised in the main thread while it waits sets the flag; the core returns at its
     next step, the helper thread ends, and the exception is raised again. Called from another
     thread (which receives no signals), the run goes to a helper thread only when the stack
@@ -382,23 +382,23 @@ def run_interruptible(fn, stack_bytes=0, **kwargs):
         finally:
             done.set()
 
+    # daemon: an interpreter ended by a second Ctrl-C does not wait for it
+    th = threading.Thread(target=run, name="flexmbs-core", daemon=True)
     old = threading.stack_size()
     try:
-        if big:
-            threading.stack_size(int(math.ceil((stack_bytes + 16 * 2**20) / 65536) * 65536))
-        # daemon: an interpreter ended by a second Ctrl-C does not wait for it
-        th = threading.Thread(target=run, name="flexmbs-core", daemon=True)
-        th.start()
-    finally:
-        threading.stack_size(old)
-    # an Event, not Thread.join: CPython 3.11's join, interrupted by a signal while the thread
-    # runs, may mark the thread stopped (threading.py, _wait_for_tstate_lock)
-    try:
+        try:
+            if big:
+                threading.stack_size(int(math.ceil((stack_bytes + 16 * 2**20) / 65536) * 65536))
+            th.start()
+        finally:
+            threading.stack_size(old)
+        # an Event, not Thread.join: CPython 3.11's join, interrupted by a signal while the
+        # thread runs, may mark the thread stopped (threading.py, _wait_for_tstate_lock)
         while not done.wait(WAIT_POLL_S):
             pass
     except BaseException:
-        flag[0] = 1
-        while not done.wait(WAIT_POLL_S):
+        flag[0] = 1         # a run that starts now returns at its first step
+        while th.is_alive() and not done.wait(WAIT_POLL_S):
             pass
         raise
     if "error" in out:
