@@ -267,7 +267,8 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
         mut = np.zeros((nca, ncol), order="F")
         mut[:cm.nc] = tp["mu"]
         back = run_interruptible(
-            simulate_adjoint_arrays, STACK_BYTES_PER_UNKNOWN * cm.n, **margs, nsteps=nseg, q0=np.asarray(result.initial.q0, float),
+            simulate_adjoint_arrays, STACK_BYTES_PER_UNKNOWN * cm.n, **margs, nsteps=nseg,
+            q0=np.asarray(result.initial.q0, float),
             qd0=np.asarray(result.initial.qd0, float), ap=pat["ap"], ai=pat["ai"],
             **_integrator_args(result), static_start=int(st.start == "static"),
             kscale=float(kscale), penalty=float(penalty),
