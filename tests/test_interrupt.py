@@ -32,14 +32,14 @@ class _Captured(Exception):
     pass
 
 
-def _core_arguments(t_end, monkeypatch):
-    """(problem, arguments): the arguments `simulate` gives the compiled run of the four-bar
+def _core_arguments(t_end, monkeypatch, case="fourbar"):
+    """(problem, arguments): the arguments `simulate` gives the compiled run of the case
     over t_end (s), taken on their way to run_interruptible, without running it; the problem
     owns the KLU analysis they name by address, and must outlive their use."""
     def capture(fn, stack_bytes=0, **kwargs):
         raise _Captured(kwargs)
 
-    prob = Problem("fourbar", overrides={"time.t_end": t_end})
+    prob = Problem(case, overrides={"time.t_end": t_end})
     with monkeypatch.context() as m:
         m.setattr(simulate_module, "run_interruptible", capture)
         try:
@@ -82,6 +82,30 @@ def test_a_set_cancel_flag_ends_its_run_and_no_other(monkeypatch):
         assert 0 < outcome[k].time < LONG
     assert outcome[1].time > outcome[0].time
     del prob
+
+
+def test_a_flag_set_before_the_run_stops_the_static_start(monkeypatch):
+    """The robot of cases/robot_2dof.toml starts from static equilibrium (start = "static"):
+    with its flag set before the call, the core returns Status.INTERRUPTED at t = 0 before the
+    first static iteration (stats: 0 static iterations, 0 steps); with the flag clear the same
+    call makes static iterations and every step."""
+    import flexmbs._core as _core
+    from flexmbs.core import RunOutput, Status, _with_handle
+
+    prob, kw = _core_arguments(0.01, monkeypatch, case="robot_2dof")
+    assert kw["static_start"] == 1
+    owner, args = _with_handle(kw)
+    for value in (1, 0):
+        flag = cancel_flag()
+        flag[0] = value
+        out = RunOutput(*_core.simulate(**args, cancel=flag))
+        status, stats, info = out.status, out.stats, out.info
+        if value:
+            assert status == Status.INTERRUPTED and info[0] == 0.0
+            assert stats[4] == 0 and stats[5] == 0
+        else:
+            assert status == Status.OK and stats[4] > 0 and stats[5] == kw["nsteps"]
+    del owner, prob
 
 
 def test_ctrl_c_in_the_main_thread_ends_the_run_within_a_second():
