@@ -5,8 +5,9 @@ with one line and nothing half-written left. A film that cannot be written whole
 ResourceError and leaves no file.
 
 The runs are the four-bar (cases/fourbar.toml) over 20 s: 40 000 steps, 6 s and more of the
-core (measured at the commit that adds this file: 2.9 s for the first 20 000 steps), so that a
-run that did not stop on request would exceed every time bound below by seconds."""
+core (measured at commit dbd5ceb: 2.9 s for the first 20 000 steps, `Problem("fourbar",
+{"time.t_end": 10.0}).simulate()`, load 6 on 2 cores), so that a run that did not stop on
+request would exceed every time bound below by seconds."""
 import _thread
 import os
 import resource
