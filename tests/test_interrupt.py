@@ -208,8 +208,9 @@ def test_an_mp4_that_cannot_be_written_whole_fails_with_resource_error(tmp_path)
     out = tmp_path / "x.mp4"
     env = dict(os.environ)
     env.pop("FLEXMBS_DEBUG", None)
-    run = subprocess.run([PY, "-m", "flexmbs", "animate", "fourbar", "--t-end", "0.2", "--out",
-                          str(out), "--frames", "40"], cwd=tmp_path, env=env,
+    # 10 frames: a 77 kB film without the limit
+    run = subprocess.run([PY, "-m", "flexmbs", "animate", "fourbar", "--t-end", "0.05", "--out",
+                          str(out), "--frames", "10"], cwd=tmp_path, env=env,
                          capture_output=True, text=True, timeout=120,
                          preexec_fn=_limit_file_size)
     assert run.returncode == 2, run.stderr
