@@ -27,7 +27,8 @@ module adjoint
     use generalized_alpha, only: ga_settings, ga_stats, ga_state, ga_coefficients, &
                                  static_equilibrium, mass_scale, diagonal_scale, grid_time, GA_OK, &
                                  GA_SINGULAR, GA_NONFINITE, GA_BAD_INPUT, GA_LINEAR_SOLVER, &
-                                 GA_NO_MEMORY, GA_STATIC_FAILED, GA_INITIAL_SINGULAR
+                                 GA_NO_MEMORY, GA_STATIC_FAILED, GA_INITIAL_SINGULAR, &
+                                 GA_INTERRUPTED, ga_cancelled
     implicit none
     private
     public :: ga_adjoint
@@ -186,6 +187,11 @@ contains
         t = grid_time(s, j0 + s%nsteps)
         do j = ncol, 2, -1
             ! step from column j - 1 (state n) to column j (state n + 1), eqs. (A3)-(A7)
+            if (ga_cancelled(s)) then
+                status = GA_INTERRUPTED
+                info = [t, 0.0_wp, 0.0_wp, 0.0_wp]
+                goto 900
+            end if
             h = th(j)
             betap = (1 - alpha_m) / (beta * h**2 * (1 - alpha_f))
             gammap = gamma / (beta * h)
@@ -417,7 +423,7 @@ contains
             xs%mu = 0
             call static_equilibrium(m, s, ls, vals, fgrav, xs, sst, sstat, sinfo, ks, ps)
             if (sstat /= GA_OK) then
-                status = GA_STATIC_FAILED
+                status = merge(GA_INTERRUPTED, GA_STATIC_FAILED, sstat == GA_INTERRUPTED)
                 info = sinfo
                 return
             end if

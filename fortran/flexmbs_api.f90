@@ -250,7 +250,8 @@ end subroutine model_counts
 !! status: 0 ok, 1 Newton failed after step cuts, 2 singular iteration matrix,
 !! 3 static equilibrium failed, 4 singular initial system, 5 inconsistent initial
 !! configuration, 6 non-finite values, 7 bad settings, 8 linear solver set-up,
-!! 9 an allocation failed (nothing is left allocated); 7 also for a null model handle or
+!! 9 an allocation failed (nothing is left allocated), 10 the tape is full, 11 interrupted
+!! (the caller's cancel flag was set); 7 also for a null model handle or
 !! extents (ndof, nca, nela, law rows) of another model.
 !! info: time, scaled increment or residual, iterations, extra (row / code);
 !! for status 9: time, bytes asked for (-1: unknown), 0, what (1 iteration matrix,
@@ -265,8 +266,9 @@ subroutine simulate(model, ndof, nca, nela, nlawa, npts, nout, nsteps, q0, qd0, 
                     kscale, penalty, out_dofs, q_out, qd_out, qdd_out, mu_out, stats, status, info, &
                     nv, nva, nsens, dprop, sens_dofs, dq_out, want_dmu, ndmu, dmu_out, polish, &
                     ntape, tape_q, tape_qd, tape_qdd, tape_mu, tape_h, tape_grid, ntape_used, &
-                    nckr, nck, ckpt_every, ckpt, restart, x_start, j_start, klu_analysis, ntg, tg)
-    use iso_c_binding, only: c_double, c_int, c_int64_t
+                    nckr, nck, ckpt_every, ckpt, restart, x_start, j_start, klu_analysis, ntg, tg, &
+                    cancel)
+    use iso_c_binding, only: c_double, c_int, c_int64_t, c_loc
     use model_data, only: mbs_model, model_of_run
     use generalized_alpha, only: ga_settings, ga_stats, ga_simulate, ga_set_grid, &
                                  GA_NO_MEMORY, MEM_MODEL, &
@@ -323,6 +325,10 @@ subroutine simulate(model, ndof, nca, nela, nlawa, npts, nout, nsteps, q0, qd0, 
     !! t_0 = 0 < t_1 < ... (at least j_start + nsteps + 1); ntg = 1: the uniform grid j h
     integer(c_int), intent(in) :: ntg
     real(c_double), intent(in) :: tg(ntg)
+    !> the caller's cancel flag, passed by reference and read once per step: set to non-zero
+    !! by another thread during the run, it ends the run with status 11 (interrupted; info(1):
+    !! the time reached). Each run has its own (flexmbs.core.run_interruptible)
+    integer(c_int), intent(inout), target :: cancel(1)
     integer :: tgrid(nsteps + 1), tused
     type(mbs_model) :: m
     type(ga_settings) :: s
@@ -346,6 +352,7 @@ subroutine simulate(model, ndof, nca, nela, nlawa, npts, nout, nsteps, q0, qd0, 
                     static_start=static_start /= 0, kscale=kscale, penalty=penalty, &
                     polish=polish /= 0)
     s%klu_analysis = transfer(klu_analysis, s%klu_analysis)
+    s%cancel = c_loc(cancel)
     call ga_set_grid(s, tg, stat, info)     ! a non-uniform grid (ntg > 1), or GA_NO_MEMORY
     if (stat /= 0) then
         status = int(stat, c_int)
@@ -398,8 +405,8 @@ subroutine simulate_adjoint(model, ndof, nca, nela, nlawa, npts, nsteps, q0, qd0
                    h, rho_inf, tol, max_iter, max_cuts, solver, static_start, kscale, penalty, &
                    ncol, qt, qdt, qddt, mut, th, grid, nf, gq, gmu, nv, dprop, grad, gprop, &
                    status, info, ntot, j_start, have_in, adj_in, adj_out, gprop_in, klu_analysis, &
-                   ntg, tg)
-    use iso_c_binding, only: c_double, c_int, c_int64_t
+                   ntg, tg, cancel)
+    use iso_c_binding, only: c_double, c_int, c_int64_t, c_loc
     use model_data, only: mbs_model, model_of_run
     use generalized_alpha, only: ga_settings, ga_set_grid, GA_NO_MEMORY, MEM_MODEL, GA_BAD_INPUT
     use adjoint, only: ga_adjoint
@@ -437,6 +444,7 @@ subroutine simulate_adjoint(model, ndof, nca, nela, nlawa, npts, nsteps, q0, qd0
     integer(8), intent(in) :: klu_analysis     !! as `simulate`'s
     integer(c_int), intent(in) :: ntg          !! as `simulate`'s: the grid's times, or 1
     real(c_double), intent(in) :: tg(ntg)
+    integer(c_int), intent(inout), target :: cancel(1)     !! as `simulate`'s (read once per step)
     type(mbs_model) :: m
     type(ga_settings) :: s
     integer :: stat
@@ -453,6 +461,7 @@ subroutine simulate_adjoint(model, ndof, nca, nela, nlawa, npts, nsteps, q0, qd0
                     max_cuts=int(max_cuts), solver=int(solver), static_start=static_start /= 0, &
                     kscale=kscale, penalty=penalty)
     s%klu_analysis = transfer(klu_analysis, s%klu_analysis)
+    s%cancel = c_loc(cancel)
     call ga_set_grid(s, tg, stat, info)     ! a non-uniform grid (ntg > 1), or GA_NO_MEMORY
     if (stat /= 0) then
         status = int(stat, c_int)

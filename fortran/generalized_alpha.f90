@@ -11,7 +11,7 @@
 !! rate is good and refreshed when it is not, with the same stopping tolerance.
 !! Everything a call needs lives in its own variables: no module state.
 module generalized_alpha
-    use iso_c_binding, only: c_ptr, c_null_ptr
+    use iso_c_binding, only: c_int, c_ptr, c_null_ptr, c_associated, c_f_pointer
     use flexmbs_kinds, only: wp
     use constraints, only: MAX_CDOF
     use model_data, only: mbs_model, law_rate, law_accel0
@@ -27,13 +27,13 @@ module generalized_alpha
     private
     public :: ga_settings, ga_stats, ga_simulate, ga_coefficients, ga_set_grid
     ! for the adjoint (adjoint.f90): the static start and the scalings, recomputed exactly
-    public :: ga_state, static_equilibrium, mass_scale, diagonal_scale, grid_time
+    public :: ga_state, static_equilibrium, mass_scale, diagonal_scale, grid_time, ga_cancelled
     ! checkpoints of a run (the adjoint's segments, flexmbs/adjoint.py)
     public :: ckpt_rows
     public :: NEWTON_FULL, NEWTON_REUSE, NEWTON_AUTO
     public :: GA_OK, GA_NEWTON_FAILED, GA_SINGULAR, GA_STATIC_FAILED, GA_INITIAL_SINGULAR, &
               GA_INCONSISTENT_INITIAL, GA_NONFINITE, GA_BAD_INPUT, GA_LINEAR_SOLVER, GA_NO_MEMORY, &
-              GA_TAPE_FULL
+              GA_TAPE_FULL, GA_INTERRUPTED
     public :: MEM_MATRIX, MEM_DENSE_LU, MEM_SPARSE_LU, MEM_STATE, MEM_SENSITIVITY, MEM_MODEL
 
     integer, parameter :: GA_OK = 0                   !! simulation completed
@@ -49,6 +49,8 @@ module generalized_alpha
     integer, parameter :: GA_NO_MEMORY = 9
     !> the tape of every (sub-)step (for the adjoint) has no room left: info = [time, columns, 0, 0]
     integer, parameter :: GA_TAPE_FULL = 10
+    !> the caller's cancel flag (ga_settings%cancel) was set: info = [time reached, 0, 0, 0]
+    integer, parameter :: GA_INTERRUPTED = 11
 
     ! Newton strategies (ga_settings%newton)
     integer, parameter :: NEWTON_FULL = 0   !! iteration matrix assembled and factored every iteration
@@ -132,6 +134,11 @@ module generalized_alpha
         !! them); unallocated: the uniform grid t_j = j h (h then only sets the scaling k of
         !! eq. (1) through the automatic kscale)
         real(wp), allocatable :: tgrid(:)
+        !> the address of the caller's cancel flag, an integer(c_int) it owns and may set
+        !! from another thread during the run (flexmbs.core: one flag per run): read once per
+        !! step and per static iteration (ga_cancelled), the run returns GA_INTERRUPTED when
+        !! it is non-zero; null: no flag
+        type(c_ptr) :: cancel = c_null_ptr
     end type ga_settings
 
     !> Work counters returned with the result.
@@ -191,6 +198,18 @@ contains
         end if
         s%tgrid(:) = tg
     end subroutine ga_set_grid
+
+    !> Whether the caller's cancel flag (s%cancel) is set. The flag is volatile: another
+    !! thread sets it while the run reads it, so it is read from memory at every call.
+    function ga_cancelled(s) result(cancelled)
+        type(ga_settings), intent(in) :: s
+        logical :: cancelled
+        integer(c_int), pointer, volatile :: flag
+        cancelled = .false.
+        if (.not. c_associated(s%cancel)) return
+        call c_f_pointer(s%cancel, flag)
+        cancelled = flag /= 0
+    end function ga_cancelled
 
     !> Numbers of one checkpoint of ga_simulate (ckpt, x_start): q, qd, qdd, a, qdd_prev
     !! (ndof each), mu (nc), then h_prev and the run's scalings k and p of eq. (1).
@@ -497,6 +516,11 @@ contains
             else
                 t = (j0 + j - 1) * s%h
                 hgrid = s%h
+            end if
+            if (ga_cancelled(s)) then
+                status = GA_INTERRUPTED
+                info = [t, 0.0_wp, 0.0_wp, 0.0_wp]
+                goto 900
             end if
             nsub = 1
             icut = 0
@@ -983,6 +1007,11 @@ contains
                 lf = real(inc, wp) / nincr
                 ok = .false.
                 do it = 1, 4 * s%max_iter
+                    if (ga_cancelled(s)) then
+                        status = GA_INTERRUPTED
+                        info = 0
+                        return
+                    end if
                     call residual(m, x%q, qzero, x%qdd, x%mu, 0.0_wp, fgrav, 0.0_wp, ks, ps, r, &
                                   phimax, lf)
                     stats%residual_evaluations = stats%residual_evaluations + 1

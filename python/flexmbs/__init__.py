@@ -15,14 +15,15 @@ Public API (explicit):
                                  designs verified at converged resolution (accuracy.py)
     check_tangent, check_iteration_matrix, taylor_test   derivative checkers (checks.py)
     FlexmbsError, ModelError, SimulationError, CaseError, ResourceError,
-    InvalidResultError, ValidityWarning, SettingWarning   exceptions and warnings (errors.py)
+    InvalidResultError, Interrupted, ValidityWarning, SettingWarning   exceptions and
+                                 warnings (errors.py)
     FEASIBILITY_TOL              the one feasibility tolerance (problem.py)
 """
 from flexmbs.analysis.accuracy import convergence_check, simulate_with_error, verify
 from flexmbs.analysis.checks import check_iteration_matrix, check_tangent, taylor_test
 from flexmbs.analysis.settings import DesignDerivatives, InitialConditions, SimulationSettings
 from flexmbs.analysis.simulate import Result, simulate
-from flexmbs.errors import (CaseError, FlexmbsError, InvalidResultError, ModelError,
+from flexmbs.errors import (CaseError, FlexmbsError, Interrupted, InvalidResultError, ModelError,
                             ResourceError, SettingWarning, SimulationError, ValidityWarning)
 from flexmbs.model.arrays import Body, Model
 from flexmbs.model.laws import TimeLaw
@@ -39,5 +40,5 @@ __all__ = [
     "simulate_with_error", "verify", "convergence_check",
     "check_tangent", "check_iteration_matrix", "taylor_test",
     "FlexmbsError", "ModelError", "SimulationError", "CaseError", "ResourceError",
-    "InvalidResultError", "ValidityWarning", "SettingWarning", "FEASIBILITY_TOL",
+    "InvalidResultError", "Interrupted", "ValidityWarning", "SettingWarning", "FEASIBILITY_TOL",
 ]

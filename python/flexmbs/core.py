@@ -5,6 +5,7 @@ a state. `simulate` (simulate.py)
 and the diagnoses of failed runs (validity.py) both build on it."""
 from __future__ import annotations
 
+import math
 import threading
 import weakref
 from enum import IntEnum
@@ -13,14 +14,15 @@ from typing import NamedTuple
 import numpy as np
 
 import flexmbs._core as _core
-from flexmbs.errors import ModelError, ResourceError
+from flexmbs.errors import Interrupted, ModelError, ResourceError
 from flexmbs.model.arrays import Model
-from flexmbs.resources import format_bytes, limit_source
+from flexmbs.resources import format_bytes, limit_source, stack_limit, thread_stack
 from flexmbs.resources import memory_limit as _memory_limit
 
 __all__ = ["Status", "SolverStatus", "KluAnalysis", "CoreModel", "core_model", "core_model_args",
            "klu_analysis", "system_matrices",
-           "simulate_arrays", "simulate_adjoint_arrays", "beam_element", "RunOutput", "AdjointOutput"]
+           "simulate_arrays", "simulate_adjoint_arrays", "run_interruptible", "cancel_flag",
+           "beam_element", "RunOutput", "AdjointOutput"]
 
 class Status(IntEnum):
     """What a compiled run returns: the GA_* codes of fortran/generalized_alpha.f90 (one table
@@ -36,6 +38,7 @@ class Status(IntEnum):
     LINEAR_SOLVER = 8         #: linear solver set-up failed (info: its SolverStatus)
     NO_MEMORY = 9             #: an allocation failed (info: time, bytes, 0, what)
     TAPE_FULL = 10            #: the adjoint's tape has no room for the sub-steps of cut steps
+    INTERRUPTED = 11          #: the run's cancel flag was set (info: time reached)
 
 
 class SolverStatus(IntEnum):
@@ -311,23 +314,96 @@ def _with_handle(kwargs):
     return owner, kwargs
 
 
-def simulate_arrays(**kwargs) -> RunOutput:
+def cancel_flag():
+    """A new cancel flag of one compiled run: a one-element C int array, 0; the run
+    (`simulate_arrays`, `simulate_adjoint_arrays`: its `cancel`) reads it by reference once
+    per step and ends with Interrupted when another thread sets it to 1."""
+    return np.zeros(1, np.intc)
+
+
+def _interrupted(out, what):
+    if out.status == Status.INTERRUPTED:
+        raise Interrupted(f"{what} interrupted at t = {out.info[0]:.6g} s", time=float(out.info[0]))
+    return out
+
+
+def simulate_arrays(*, cancel=None, **kwargs) -> RunOutput:
     """The compiled generalized-alpha run (fortran/flexmbs_api.f90 `simulate`) of a model's
     handle with its design and law tables (`core_model_args`) and the run's settings; its
-    outputs by name."""
+    outputs by name. `cancel`: the run's cancel flag (`cancel_flag`; default: a flag of its
+    own that nobody sets); Interrupted when it is set during the run."""
     owner, kwargs = _with_handle(kwargs)
-    out = RunOutput(*_core.simulate(**kwargs))
+    out = RunOutput(*_core.simulate(**kwargs, cancel=cancel_flag() if cancel is None else cancel))
     del owner
-    return out
+    return _interrupted(out, "simulation")
 
 
-def simulate_adjoint_arrays(**kwargs) -> AdjointOutput:
+def simulate_adjoint_arrays(*, cancel=None, **kwargs) -> AdjointOutput:
     """The compiled forward run with the discrete adjoint's backward pass
-    (fortran/flexmbs_api.f90 `simulate_adjoint`); its outputs by name."""
+    (fortran/flexmbs_api.f90 `simulate_adjoint`); its outputs by name. `cancel` as
+    `simulate_arrays`'."""
     owner, kwargs = _with_handle(kwargs)
-    out = AdjointOutput(*_core.simulate_adjoint(**kwargs))
+    out = AdjointOutput(*_core.simulate_adjoint(
+        **kwargs, cancel=cancel_flag() if cancel is None else cancel))
     del owner
-    return out
+    return _interrupted(out, "adjoint backward pass")
+
+
+#: How often (s) the main thread, waiting on a compiled run in its helper thread, wakes to run
+#: Python's signal handlers (a signal delivered to the helper thread does not wake it).
+WAIT_POLL_S = 0.05
+
+
+def run_interruptible(fn, stack_bytes=0, **kwargs):
+    """fn(**kwargs, cancel=flag): a compiled run (`simulate_arrays`, `simulate_adjoint_arrays`)
+    with a cancel flag of its own (`cancel_flag`), that Ctrl-C ends within a step.
+
+    Called from the main thread, the run goes to a helper thread (with a stack of at least
+    stack_bytes + 16 MB when the default is smaller) while the main thread waits in short
+    timed waits, so that its signal handlers run (a wait without timeout would last the whole
+    run). A KeyboardInterrupt (Ctrl-C, or the command line's SIGTERM) or any other
+    exception raised in the main thread while it waits sets the flag; the core returns at its
+    next step, the helper thread ends, and the exception is raised again. Called from another
+    thread (which receives no signals), the run goes to a helper thread only when the stack
+    demands it; its flag is its own, so runs in parallel threads never stop each other."""
+    flag = cancel_flag()
+    main = threading.current_thread() is threading.main_thread()
+    if not main and stack_bytes <= 0.5 * stack_limit():
+        return fn(**kwargs, cancel=flag)
+    big = stack_bytes > 0.5 * thread_stack()
+    out = {}
+    done = threading.Event()
+
+    def run():
+        try:
+            out["value"] = fn(**kwargs, cancel=flag)
+        except BaseException as exc:        # re-raised in the caller
+            out["error"] = exc
+        finally:
+            done.set()
+
+    # daemon: an interpreter ended by a second Ctrl-C does not wait for it
+    th = threading.Thread(target=run, name="flexmbs-core", daemon=True)
+    old = threading.stack_size()
+    try:
+        try:
+            if big:
+                threading.stack_size(int(math.ceil((stack_bytes + 16 * 2**20) / 65536) * 65536))
+            th.start()
+        finally:
+            threading.stack_size(old)
+        # an Event, not Thread.join: CPython 3.11's join, interrupted by a signal while the
+        # thread runs, may mark the thread stopped (threading.py, _wait_for_tstate_lock)
+        while not done.wait(WAIT_POLL_S):
+            pass
+    except BaseException:
+        flag[0] = 1         # a run that starts now returns at its first step
+        while th.is_alive() and not done.wait(WAIT_POLL_S):
+            pass
+        raise
+    if "error" in out:
+        raise out["error"]
+    return out["value"]
 
 
 def beam_element(length, stiffness, qref, q, eta, qd):

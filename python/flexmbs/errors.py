@@ -1,7 +1,7 @@
 """Exceptions raised by flexmbs. Every message names the input or the time step at fault."""
 
 __all__ = ["FlexmbsError", "ModelError", "SimulationError", "CaseError", "ResourceError",
-           "InvalidResultError", "ValidityWarning", "SettingWarning"]
+           "InvalidResultError", "Interrupted", "ValidityWarning", "SettingWarning"]
 
 
 class FlexmbsError(Exception):
@@ -63,6 +63,26 @@ class InvalidResultError(FlexmbsError, RuntimeError):
     """A simulation converged numerically but its result lies outside the model's validity
     (e.g. axial strains far beyond a linear-elastic material's range); the message names the
     check, the body or element, the value and the limit."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """A run ended on request before it finished: Ctrl-C (SIGINT), SIGTERM on the command line
+    (`signal` names it), or the cancel flag of a compiled run set by another thread
+    (flexmbs.core.run_interruptible). A KeyboardInterrupt, so that every cleanup written for
+    Ctrl-C runs for it too; nothing of the unfinished run is returned or stored.
+
+    Attributes
+    ----------
+    signal : int or None
+        The signal that ended the run (signal.SIGINT, signal.SIGTERM), or None.
+    time : float or None
+        Simulated time (s) the compiled run had reached.
+    """
+
+    def __init__(self, message="interrupted", *, signal=None, time=None):
+        super().__init__(message)
+        self.signal = signal
+        self.time = time
 
 
 class ValidityWarning(UserWarning):

@@ -19,7 +19,7 @@ from flexmbs.errors import ModelError, ResourceError
 
 __all__ = ["check_regular_file", "file_kind", "jsonable", "atomic_path", "atomic_open",
            "write_atomic", "save_figure", "read_stored", "check_writable", "check_store",
-           "check_disk_space"]
+           "check_disk_space", "write_failure"]
 
 
 def file_kind(mode):
@@ -203,3 +203,27 @@ def check_disk_space(folder, required, what):
         raise ResourceError(f"{what}: about {required / 1e6:.1f} MB will be written in "
                             f"{str(folder)!r} but only {free / 1e6:.1f} MB are free",
                             required=required, available=free)
+
+
+def write_failure(path, what, reason):
+    """The ResourceError of a file that could not be written whole (`what`, e.g. "the film", at
+    `path`; `reason`: what the writer reported): with the free space of its folder and the
+    process's file size limit (RLIMIT_FSIZE, `ulimit -f`) when one is set, the two usual
+    causes."""
+    import resource
+
+    folder = Path(path).parent
+    notes = []
+    free = None
+    try:
+        free = shutil.disk_usage(folder).free
+        notes.append(f"{free / 1e6:.1f} MB free in {str(folder)!r}")
+    except OSError:
+        pass
+    soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
+    if soft != resource.RLIM_INFINITY:
+        notes.append(f"file size limit (ulimit -f) {soft} bytes")
+    reason = " ".join(str(reason).split())
+    return ResourceError(f"{what} {os.fspath(path)!r} could not be written whole: {reason:.200}"
+                         + (f" ({'; '.join(notes)})" if notes else "")
+                         + "; nothing was left under that name", available=free)

@@ -37,7 +37,7 @@ CHECK_WORK_BYTES = 6 * 8 * CHUNK_VALUES
 
 __all__ = ["MAX_STEPS", "time_steps", "MemoryEstimate", "estimate_memory", "available_memory",
            "memory_limit", "check_memory", "limit_source", "limit_hint", "CaseLimit",
-           "format_bytes", "format_seconds", "call_with_stack", "stack_limit", "DENSE_MAX_ORDER",
+           "format_bytes", "format_seconds", "stack_limit", "thread_stack", "DENSE_MAX_ORDER",
            "STACK_BYTES_PER_UNKNOWN"]
 
 #: Largest order of a dense system: the core indexes the n x n values with 32-bit integers.
@@ -46,7 +46,7 @@ DENSE_MAX_ORDER = 46340
 #: Bytes of stack per unknown: the core's work vectors of one Newton iteration (residual,
 #: increment, accelerations, forces; about 12 vectors of n doubles) are automatic arrays on the
 #: stack (-fstack-arrays). Above the calling thread's stack (8 MB: about 87 000 unknowns) the
-#: core runs in a helper thread with a stack of this size (see `call_with_stack`).
+#: core runs in a helper thread with a stack of this size (see flexmbs.core.run_interruptible).
 STACK_BYTES_PER_UNKNOWN = 12 * 8
 
 _SUFFIX = {"k": 1e3, "m": 1e6, "g": 1e9, "t": 1e12}
@@ -208,38 +208,17 @@ def stack_limit():
     main = threading.current_thread() is threading.main_thread()
     if main:
         return math.inf if soft == resource.RLIM_INFINITY else float(soft)
+    return thread_stack()
+
+
+def thread_stack():
+    """Bytes of stack a new thread gets (threading.stack_size, else glibc's default)."""
+    soft, _ = resource.getrlimit(resource.RLIMIT_STACK)
     size = threading.stack_size()
     if size:
         return float(size)
     # glibc: new threads get RLIMIT_STACK (2 MiB when unlimited)
     return 2.0 * 2**20 if soft == resource.RLIM_INFINITY else float(soft)
-
-
-def call_with_stack(fn, stack_bytes, **kwargs):
-    """fn(**kwargs), in a helper thread with a stack of at least stack_bytes (+ 16 MB) when the
-    calling thread's stack is smaller; exceptions propagate."""
-    if stack_bytes <= 0.5 * stack_limit():
-        return fn(**kwargs)
-    out = {}
-
-    def run():
-        try:
-            out["value"] = fn(**kwargs)
-        except BaseException as exc:        # re-raised in the caller
-            out["error"] = exc
-
-    size = int(math.ceil((stack_bytes + 16 * 2**20) / 65536) * 65536)
-    old = threading.stack_size()
-    try:
-        threading.stack_size(size)
-        th = threading.Thread(target=run, name="flexmbs-core")
-        th.start()
-    finally:
-        threading.stack_size(old)
-    th.join()
-    if "error" in out:
-        raise out["error"]
-    return out["value"]
 
 
 _GRID_PARTS = ("stored q, qd, qdd", "constraint forces mu", "time grid and laws",

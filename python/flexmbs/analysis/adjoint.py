@@ -38,11 +38,11 @@ import numpy as np
 
 from flexmbs.analysis.simulate import (_arguments, _tape_bytes, checkpoint_bytes, checkpoint_rows,
                                        law_times, newton_mode, NEWTON_MODES, Result, simulate)
-from flexmbs.core import (Status, core_model_args, klu_analysis, simulate_adjoint_arrays,
-                          simulate_arrays)
+from flexmbs.core import (Status, core_model_args, klu_analysis, run_interruptible,
+                          simulate_adjoint_arrays, simulate_arrays)
 from flexmbs.errors import ModelError, ResourceError, SimulationError
 from flexmbs.model.arrays import Model
-from flexmbs.resources import STACK_BYTES_PER_UNKNOWN, call_with_stack, format_bytes, limit_source
+from flexmbs.resources import STACK_BYTES_PER_UNKNOWN, format_bytes, limit_source
 from flexmbs.resources import memory_limit as _memory_limit
 from flexmbs.resources import time_steps
 
@@ -266,8 +266,9 @@ def adjoint_gradient(model: Model, result: Result, design_derivatives, dG_dq, dG
         ncol = tp["h"].size
         mut = np.zeros((nca, ncol), order="F")
         mut[:cm.nc] = tp["mu"]
-        back = simulate_adjoint_arrays(
-            **margs, nsteps=nseg, q0=np.asarray(result.initial.q0, float),
+        back = run_interruptible(
+            simulate_adjoint_arrays, STACK_BYTES_PER_UNKNOWN * cm.n, **margs, nsteps=nseg,
+            q0=np.asarray(result.initial.q0, float),
             qd0=np.asarray(result.initial.qd0, float), ap=pat["ap"], ai=pat["ai"],
             **_integrator_args(result), static_start=int(st.start == "static"),
             kscale=float(kscale), penalty=float(penalty),
@@ -340,7 +341,7 @@ def _segment_tape(model, result, margs, pat, x_start, j0, nseg):
     nel = cm.el_dofs.shape[1]
     ncol = segment_columns(nseg)
     for attempt in range(2):
-        out = call_with_stack(
+        out = run_interruptible(
             simulate_arrays, STACK_BYTES_PER_UNKNOWN * cm.n, **margs, nsteps=nseg,
             q0=np.asarray(result.initial.q0, float), qd0=np.asarray(result.initial.qd0, float),
             ap=pat["ap"], ai=pat["ai"], **_integrator_args(result),

@@ -12,14 +12,14 @@ from flexmbs.analysis.settings import (DesignDerivatives, InitialConditions, Run
                                        SimulationSettings)
 from flexmbs.analysis.settings import check_flag as _check_flag
 from flexmbs.analysis.validity import apply_validity, check_result, diagnose_failure
-from flexmbs.core import (SolverStatus, Status, core_model_args, klu_analysis, simulate_arrays,
-                          system_matrices)
+from flexmbs.core import (SolverStatus, Status, core_model_args, klu_analysis, run_interruptible,
+                          simulate_arrays, system_matrices)
 from flexmbs.errors import ModelError, ResourceError, SettingWarning, SimulationError
 from flexmbs.model.arrays import Model
 from flexmbs.model.kinematics import drive_velocities
 from flexmbs.model.sections import has_complex
 from flexmbs.resources import time_steps
-from flexmbs.resources import call_with_stack, check_memory, estimate_memory, format_bytes
+from flexmbs.resources import check_memory, estimate_memory, format_bytes
 
 __all__ = ["simulate", "Result", "DENSE_MAX_UNKNOWNS", "NEWTON_MODES", "time_grid",
            "system_matrices", "core_model_args", "newton_mode", "stored_dofs", "memory_estimate",
@@ -782,7 +782,7 @@ def simulate(model: Model, t_end, h=5e-4, settings=None, *, initial=None, deriva
         nv, sdofs = 0, np.zeros(1, int)
         dprop_f = np.zeros((5, nel, 1), order="F")
     def run(ncol):
-        return call_with_stack(
+        return run_interruptible(
             simulate_arrays, est.stack, **margs, nsteps=ncore, q0=q_init, qd0=qd_init,
             ap=pat["ap"], ai=pat["ai"], h=float(h),
             rho_inf=float(rho_inf), tol=float(tol), max_iter=int(max_iter),

@@ -16,7 +16,9 @@ written, print one line on stderr and exit with status 2 (``--debug`` before or 
 subcommand, or the environment variable ``FLEXMBS_DEBUG=1``, also prints the traceback). Output
 paths (--out, --plot, --history) are checked before the run: the folder must be writable, a
 figure's extension must be a format matplotlib writes. Files are written to a temporary name and
-renamed when complete. Ctrl-C prints one line (what is kept, how to resume) and exits with 130.
+renamed when complete. Ctrl-C prints one line (what is kept, how to resume) and exits with 130
+within a step of the simulation; SIGTERM does the same (the same cleanup, nothing half-written
+left) and exits with 143.
 
 Adding a subcommand
 -------------------
@@ -28,9 +30,12 @@ CASE, --set, --t-end, --h and --rho-inf options; `design_from_text` reads a --de
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import re
+import signal
 import sys
+import threading
 import traceback
 import warnings
 
@@ -42,7 +47,7 @@ from flexmbs.cli import optimize
 from flexmbs.cli import reproduce
 from flexmbs.cli import simulate
 from flexmbs.cli.common import printable
-from flexmbs.errors import FlexmbsError
+from flexmbs.errors import FlexmbsError, Interrupted
 from flexmbs.version import __version__
 
 __all__ = ["main", "build_parser", "COMMANDS"]
@@ -116,6 +121,30 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
           file=file or sys.stderr)
 
 
+@contextlib.contextmanager
+def _sigterm_interrupts():
+    """SIGTERM raises flexmbs.errors.Interrupted (a KeyboardInterrupt) in the main thread, as
+    Ctrl-C raises KeyboardInterrupt, so that both take the same way out: the compiled run stops
+    at its next step, temporary files are removed, finished results are kept. Yields the list
+    of the SIGTERMs received. Only where SIGTERM has its default action (a handler of the
+    program that calls `main` is kept), and restored afterwards."""
+    received = []
+    if threading.current_thread() is not threading.main_thread() \
+            or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+        yield received
+        return
+
+    def handler(signum, frame):
+        received.append(signum)
+        raise Interrupted("terminated (SIGTERM)", signal=signum)
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield received
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
 def main(argv=None):
     """Entry point of the ``flexmbs`` command; returns the exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -135,11 +164,11 @@ def main(argv=None):
     if getattr(args, "func", None) is None:
         parser.print_help(sys.stderr)
         return 2
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), _sigterm_interrupts() as terminated:
         if not debug:
             warnings.showwarning = _show_warning
         try:
-            return int(args.func(args) or 0)
+            code = int(args.func(args) or 0)
         except (FlexmbsError, OSError, MemoryError) as exc:
             if debug:
                 traceback.print_exc()
@@ -149,5 +178,8 @@ def main(argv=None):
         except KeyboardInterrupt:
             if debug:
                 traceback.print_exc()
-            print(f"flexmbs {args.command}: interrupted", file=sys.stderr)
-            return 130
+            what = "terminated (SIGTERM)" if terminated else "interrupted"
+            print(f"flexmbs {args.command}: {what}", file=sys.stderr)
+            code = 130
+        # the subcommands' own Ctrl-C handling (optimize, reproduce) returns 130 too
+        return 128 + signal.SIGTERM if terminated and code == 130 else code

@@ -16,9 +16,11 @@
 
 The frames are `frames` time steps spread evenly over the run (first and last included; a
 1301-step run at the default 100 frames shows every 13th step), played at `fps` frames per
-second. GIFs are written by matplotlib's PillowWriter, MP4s (H.264) by its FFMpegWriter with the
-ffmpeg binary that the imageio-ffmpeg package ships (`ffmpeg_exe`). The file is written under a
-temporary name beside `path` and renamed when complete.
+second. GIFs are written by Pillow, MP4s (H.264) by the ffmpeg binary that the imageio-ffmpeg
+package ships (`ffmpeg_exe`). The file is written under a temporary name beside `path` and
+renamed when complete; an MP4 is renamed only after ffmpeg has read it back with every frame.
+A film that cannot be written whole (a full disk, a file size limit) raises ResourceError and
+leaves no file; an interrupted one (Ctrl-C, SIGTERM on the command line) leaves no file either.
 """
 from __future__ import annotations
 
@@ -29,7 +31,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from flexmbs.errors import ModelError
-from flexmbs.files import atomic_path
+from flexmbs.files import atomic_path, write_failure
 from flexmbs.visual.plots import (_followed_points, _LIMIT_COLOR, _RIGID_COLOR, constrained_histories,
                            nice_magnification)
 from flexmbs.visual.scene import frame_steps, scene
@@ -196,7 +198,12 @@ def animate(problem, result, path, *, evaluation=None, frames=DEFAULT_FRAMES, fp
     fig, draw = _figure(problem, result, sc, magnification, color_by, pairs, values, rows,
                         evaluation, title, dpi)
     with atomic_path(path, suffix=ext) as tmp:
-        _WRITERS[ext](tmp, _frames(fig, draw, steps.size), fps)
+        try:
+            _WRITERS[ext](tmp, _frames(fig, draw, steps.size), fps)
+        except OSError as exc:      # ENOSPC, EFBIG; ffmpeg ended early (a broken pipe)
+            raise write_failure(path, "the film", exc) from None
+        if ext == ".mp4":
+            _check_film(path, tmp, steps.size)
     vmax = float(np.nanmax(values)) if values is not None else 0.0
     return Animation(path=os.fspath(path), frames=int(steps.size), fps=float(fps), steps=steps,
                      magnification=float(magnification), color_by=color_by, color_max=vmax,
@@ -246,6 +253,22 @@ def _write_mp4(path, frames, fps):
             out.send(f)
     finally:
         out.close()
+
+
+def _check_film(path, tmp, n):
+    """ResourceError (naming `path`) unless the MP4 written to `tmp` holds its n frames, as
+    ffmpeg reads them back: ffmpeg that cannot write (a full disk, a file size limit) may end
+    with a cut file, unplayable without its index, and imageio-ffmpeg does not report it."""
+    import imageio_ffmpeg
+
+    try:
+        got, _ = imageio_ffmpeg.count_frames_and_secs(tmp)
+    except (RuntimeError, OSError):
+        got = None
+    if got != n:
+        size = os.path.getsize(tmp) if os.path.exists(tmp) else 0
+        held = "no readable frames" if got is None else f"{got} of its {n} frames"
+        raise write_failure(path, "the film", f"ffmpeg wrote {size} bytes holding {held}")
 
 
 _WRITERS = {".gif": _write_gif, ".mp4": _write_mp4}
