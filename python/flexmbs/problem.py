@@ -696,7 +696,9 @@ class Problem:
                       for k in range(1, levels)]
         ts = self.description.time
         h = ts.grid_h
-        unresolved = self.modal_check(ev.x, ev.result).unresolved(h, ts.rho_inf)
+        # judged at the ladder's finest step (flexmbs.analysis.modes)
+        unresolved = self.modal_check(ev.x, ev.result).unresolved(h / 2 ** (levels - 1),
+                                                                    ts.rho_inf)
         if store is None:
             ev.result = None
         obj = self.description.objective
@@ -718,7 +720,9 @@ class Problem:
             result = self.simulate(x, store="all")
         nodes = {name: self._nodes_needed([name]) for name, r in self._resp.items()
                  if r.type != "mass"}
-        return modal_check(result.design_model, result, nodes, times)
+        ref = self.mechanism.reference
+        rigid = (ref.q, ref.qd) if ref.q.shape == result.q.shape else None
+        return modal_check(result.design_model, result, nodes, times, rigid=rigid)
 
     def _adjoint_plan(self, x, responses, store=None, checkpoints=_DEFAULT, run=None):
         """(K, MemoryEstimate) of the adjoint's runs: K None for the tape of every state,

@@ -26,14 +26,23 @@ step h when omega h > resolved_limit(rho_inf) and its damping ratio is below
 max(LIGHT_DAMPING, the scheme's numerical damping at omega h): the decay the answer sees
 is then mostly the integrator's.
 
-A response *sees* a mode when the nodes it reads move in it: the mode's largest translation
-at those nodes is at least SEEN_FRACTION of its largest translation anywhere; a response that
-reads no node (a motor torque, a joint reaction) sees every mode. `ModalCheck` holds the
-modes at a few times of a motion (`modal_check`) and lists, for a step h, the unresolved modes
-each response sees (`ModalCheck.unresolved`). Per response only the MAX_CHECKED lowest elastic
-modes it sees are looked at: a mode's share of a quasi-static deflection falls as 1/omega^2,
-and the higher modes are left to the Richardson estimate. The rule is a conservative one: it
-flags a mode whether or not the motion excites it.
+A response *sees* a mode when the mode vibrates with at least SEEN_FRACTION (1 %) of the
+deformation at the nodes the response reads: the deformation rate u' = qd - qd_rigid (the
+motion less the rigid reference motion) is projected on the mode, eta' = phi^T M u' /
+phi^T M phi, and the vibration amplitude |eta'| / omega times the mode's largest translation
+at those nodes is compared with the largest deformation |q - q_rigid| there over the motion
+(`vibration_shares`, at each time point with the modes of the nearest configuration checked).
+A response that reads no node (a motor torque, a joint reaction) is judged on every node. A
+mode vibrating below that share changes the response by about its share however badly the
+step integrates it; a mode's quasi-static share (its part in the deformation itself, however
+large) does not depend on the scheme. Without the rigid motion, a mode is seen when its shape
+moves the response's nodes by SEEN_FRACTION of its largest translation.
+
+`ModalCheck` holds the modes at a few times of a motion (`modal_check`) and lists, for a step
+h, the unresolved modes each response sees (`ModalCheck.unresolved`): per response the
+MAX_CHECKED lowest elastic modes it sees. A Richardson estimate from the steps h, h/2, h/4
+(flexmbs.analysis.accuracy) is judged at its finest step: a mode unresolved there is
+unresolved on every level of the ladder, and their agreement says nothing about it.
 """
 from __future__ import annotations
 
@@ -49,6 +58,7 @@ from flexmbs.errors import ModelError
 from flexmbs.model.constraints import constraint_jacobian
 
 __all__ = ["Modes", "UnresolvedMode", "ModalCheck", "modes", "modes_of_result", "modal_check",
+           "vibration_shares",
            "scheme_errors", "resolved_limit", "SCHEME_TOL", "LIGHT_DAMPING", "SEEN_FRACTION",
            "MAX_CHECKED", "MODES_COMPUTED", "ZERO_FREQUENCY"]
 
@@ -56,8 +66,8 @@ __all__ = ["Modes", "UnresolvedMode", "ModalCheck", "modes", "modes_of_result", 
 SCHEME_TOL = 0.01
 #: a mode damped below this ratio (and below the scheme's numerical damping) is lightly damped
 LIGHT_DAMPING = 0.05
-#: a response sees a mode whose largest translation at its nodes is this fraction of the largest
-SEEN_FRACTION = 0.1
+#: a response sees a mode vibrating with this fraction of the largest deformation at its nodes
+SEEN_FRACTION = 0.01
 #: the lowest elastic modes a response sees that are checked, per response and time
 MAX_CHECKED = 3
 #: elastic modes computed per time by `modal_check` (the lowest)
@@ -130,6 +140,7 @@ class Modes:
     shapes : (n, nnodes, 3) each mode's nodal displacements (dx, dy, dtheta), real, scaled
         to a largest translation of 1 (a mode moving no node: largest rotation 1).
     free : the number of motions the constraints allow (columns of the null-space basis).
+    mass : (ndof, ndof) the mass matrix M of the state (not in JSON).
     """
     t: float
     frequency: np.ndarray
@@ -137,6 +148,7 @@ class Modes:
     eigenvalue: np.ndarray = field(repr=False)
     shapes: np.ndarray = field(repr=False)
     free: int = 0
+    mass: np.ndarray | None = field(default=None, repr=False)
 
     def __len__(self):
         return int(self.frequency.size)
@@ -185,7 +197,8 @@ def modes(model, q=None, qd=None, qdd=None, mu=None, t=0.0, count=None):
     nf = z.shape[1]
     if nf == 0:
         empty = np.zeros(0)
-        return Modes(float(t), empty, empty, empty.astype(complex), np.zeros((0, ndof // 3, 3)))
+        return Modes(float(t), empty, empty, empty.astype(complex), np.zeros((0, ndof // 3, 3)),
+                     0, mass)
     mr, cr, kr = (z.T @ a @ z for a in (mass, damp, stiff))
     mr = 0.5 * (mr + mr.T)
     scale_k = max(np.abs(kr).max(initial=0.0), 1e-300)
@@ -227,7 +240,7 @@ def modes(model, q=None, qd=None, qdd=None, mu=None, t=0.0, count=None):
     damping = np.where(np.abs(damping) < 1e-9, 0.0, damping)
     shapes = np.array([_scaled_shape(z @ vec[:, i], ndof) for i in range(lam.size)])
     return Modes(float(t), absl / (2.0 * np.pi), damping, lam,
-                 shapes.reshape(lam.size, ndof // 3, 3), nf)
+                 shapes.reshape(lam.size, ndof // 3, 3), nf, mass)
 
 
 def modes_of_result(model, result, times=None, count=None):
@@ -292,8 +305,9 @@ class ModalCheck:
 
     def unresolved(self, h, rho_inf):
         """{response: [UnresolvedMode]} of the modes each response sees that step h with
-        spectral radius rho_inf leaves unresolved (module docstring): per response the lowest
-        such mode at each frequency (to 2 %), lowest first; responses with none are left out."""
+        spectral radius rho_inf leaves unresolved (module docstring): per response one mode
+        per frequency band (modes within 10 % of one listed, the same mode at another
+        configuration, are left out), lowest first; responses with none are left out."""
         limit = resolved_limit(rho_inf)
         out = {}
         for name, seen in self.seen.items():
@@ -307,7 +321,7 @@ class ModalCheck:
                     xi, _ = scheme_errors(w * h, rho_inf)
                     if zeta >= max(LIGHT_DAMPING, xi):
                         continue
-                    if any(abs(u.frequency - f) <= 0.02 * f for u in found):
+                    if any(abs(u.frequency - f) <= 0.1 * f for u in found):
                         continue
                     found.append(UnresolvedMode(name, f, zeta, md.t, w * h, limit / w,
                                                 tuple(self.bodies[k][i])))
@@ -328,28 +342,66 @@ def _moving_bodies(shape, owners):
     return tuple(n for n, v in sorted(best.items(), key=lambda kv: -kv[1]) if v >= 0.5 * top)
 
 
-def modal_check(model, result, response_nodes, times=None, count=MODES_COMPUTED):
+def vibration_shares(md, u_rate, umax, nodes):
+    """Each mode's largest vibration amplitude, relative to the largest deformation umax at
+    `nodes` (all when empty): max over the rows of u_rate (nt, ndof: deformation rates) of
+    |eta'_i| / omega_i max|phi_i| / umax, eta'_i = phi_i^T M u' / phi_i^T M phi_i (the
+    M-orthogonal projection on the mode)."""
+    phi = md.shapes.reshape(len(md), -1)                       # (n, ndof)
+    mphi = phi @ md.mass
+    etad = (np.atleast_2d(u_rate) @ mphi.T) / np.maximum(np.einsum("ij,ij->i", mphi, phi),
+                                                          1e-300)
+    nn = md.shapes.shape[1]
+    sel = np.asarray(list(nodes), int) if len(nodes) else np.arange(nn)
+    pmax = np.hypot(md.shapes[:, sel, 0], md.shapes[:, sel, 1]).max(axis=1, initial=0.0)
+    omega = 2.0 * np.pi * md.frequency
+    if umax <= 0:
+        return np.zeros(len(md))
+    return np.abs(etad).max(axis=0, initial=0.0) / np.maximum(omega, 1e-300) * pmax / umax
+
+
+def modal_check(model, result, response_nodes, times=None, count=MODES_COMPUTED, rigid=None):
     """ModalCheck of the elastic modes (the first `count` above 0 Hz) of `model` at the states
     of `result` (every coordinate kept) nearest `times` (default: the start and 3 more times
     evenly along the motion). response_nodes: {response: the nodes it reads (empty: every
-    mode is seen)}."""
+    node)}. rigid: (q, qd), each (nt, ndof), the rigid reference motion's coordinates and
+    velocities on result.t: a response sees a mode vibrating with SEEN_FRACTION of the
+    largest deformation at its nodes (`vibration_shares`, each time point judged with the
+    modes of the nearest time checked); without it, a mode whose shape moves its nodes by
+    SEEN_FRACTION of its largest translation (module docstring)."""
     if times is None:
         t0, t1 = float(result.t[0]), float(result.t[-1])
         times = np.linspace(t0, t1, 4)
+    if rigid is not None and (len(rigid) != 2 or any(np.shape(r) != np.shape(result.q)
+                                                     for r in rigid)):
+        raise ModelError(f"modal_check: rigid must be (q, qd) of the result's shape "
+                         f"{result.q.shape}")
+    times = np.asarray(times, float)
+    if rigid is not None:
+        u = (result.q - rigid[0]).reshape(result.t.size, -1, 3)
+        u_rate = result.qd - rigid[1]
+        # each time point goes with the configuration checked nearest to it
+        window = np.argmin(np.abs(result.t[:, None] - times[None, :]), axis=1)
     owners = {b.name: np.asarray(b.nodes, int) for b in model.bodies.values()}
     found, bodies = [], []
     seen = {name: [] for name in response_nodes}
     for md in modes_of_result(model, result, times):
         elastic = np.where(md.frequency > 0)[0][:count]
         md = Modes(md.t, md.frequency[elastic], md.damping[elastic], md.eigenvalue[elastic],
-                   md.shapes[elastic], md.free)
+                   md.shapes[elastic], md.free, md.mass)
         found.append(md)
         bodies.append([_moving_bodies(s, owners) for s in md.shapes])
         tr = np.hypot(md.shapes[:, :, 0], md.shapes[:, :, 1])     # (n, nnodes)
         top = tr.max(axis=1, initial=0.0)
+        k = len(found) - 1
         for name, nodes in response_nodes.items():
             nodes = np.asarray(list(nodes), int)
-            if nodes.size == 0:
+            if rigid is not None:
+                sel = nodes if nodes.size else np.arange(u.shape[1])
+                umax = float(np.hypot(u[:, sel, 0], u[:, sel, 1]).max(initial=0.0))
+                share = vibration_shares(md, u_rate[window == k], umax, nodes)
+                seen[name].append(share >= SEEN_FRACTION)
+            elif nodes.size == 0:
                 seen[name].append(np.ones(len(md), bool))
             else:
                 seen[name].append(tr[:, nodes].max(axis=1) >= SEEN_FRACTION * top)
