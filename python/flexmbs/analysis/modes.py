@@ -268,13 +268,15 @@ class UnresolvedMode:
     """A lightly damped mode a response sees that the step h does not resolve.
 
     response : the response's name; frequency (Hz) and damping (ratio) of the mode; t : the
-    time of the configuration it was found at; omega_h : 2 pi frequency h; h_resolved : the
+    time of the configuration it was found at; h : the step judged; omega_h : 2 pi frequency
+    h; h_resolved : the
     largest step that resolves it (resolved_limit / omega); bodies : the bodies that move most
     in it."""
     response: str
     frequency: float
     damping: float
     t: float
+    h: float
     omega_h: float
     h_resolved: float
     bodies: tuple = ()
@@ -284,12 +286,13 @@ class UnresolvedMode:
         damp = "undamped" if self.damping < 1e-6 else f"damping ratio {self.damping:.2g}"
         where = f" (moving {', '.join(self.bodies)})" if self.bodies else ""
         return (f"mode at {self.frequency:.4g} Hz{where}, {damp}, in {self.response}: the "
-                f"answer depends on the numerical damping (omega h = {self.omega_h:.2g}); add "
+                f"answer depends on the numerical damping (omega h = {self.omega_h:.2g} at h = "
+                f"{self.h:.3g} s); add "
                 f"material damping or use h <= {self.h_resolved:.2g} s")
 
     def to_json(self):
         return {"response": self.response, "frequency": self.frequency, "damping": self.damping,
-                "t": self.t, "omega_h": self.omega_h, "h_resolved": self.h_resolved,
+                "t": self.t, "h": self.h, "omega_h": self.omega_h, "h_resolved": self.h_resolved,
                 "bodies": list(self.bodies)}
 
 
@@ -323,7 +326,7 @@ class ModalCheck:
                         continue
                     if any(abs(u.frequency - f) <= 0.1 * f for u in found):
                         continue
-                    found.append(UnresolvedMode(name, f, zeta, md.t, w * h, limit / w,
+                    found.append(UnresolvedMode(name, f, zeta, md.t, h, w * h, limit / w,
                                                 tuple(self.bodies[k][i])))
             if found:
                 out[name] = sorted(found, key=lambda u: u.frequency)
