@@ -710,7 +710,7 @@ class Problem:
         return ev
 
     def modal_check(self, x=None, result=None, times=None):
-        """The lowest vibration modes of design x at the start and 3 more times along its
+        """The lowest vibration modes of design x at the start, the middle and the end of its
         motion, and which responses see them (flexmbs.analysis.modes.modal_check), from
         `result` when it kept every coordinate of that design's run, else from a run of
         its own. Responses that need no simulation (a mass) are left out."""

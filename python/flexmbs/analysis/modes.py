@@ -190,9 +190,13 @@ def modes(model, q=None, qd=None, qdd=None, mu=None, t=0.0, count=None):
     if count is not None and (isinstance(count, bool) or not isinstance(count, (int, np.integer))
                               or count < 1):
         raise ModelError(f"modes: count must be a positive integer, got {count!r}")
-    mass = system_matrices(model, q, qdd, mu, t, cm=1.0, ck=0.0, qd=qd)[1][:ndof, :ndof]
-    stiff = system_matrices(model, q, qdd, mu, t, cm=0.0, ck=1.0, qd=qd)[1][:ndof, :ndof]
-    damp = system_matrices(model, q, qdd, mu, t, cm=0.0, ck=0.0, qd=qd, cc=1.0)[1][:ndof, :ndof]
+    props = model.element_properties()
+    mass = system_matrices(model, q, qdd, mu, t, cm=1.0, ck=0.0, qd=qd,
+                           props=props)[1][:ndof, :ndof]
+    stiff = system_matrices(model, q, qdd, mu, t, cm=0.0, ck=1.0, qd=qd,
+                            props=props)[1][:ndof, :ndof]
+    damp = system_matrices(model, q, qdd, mu, t, cm=0.0, ck=0.0, qd=qd, cc=1.0,
+                           props=props)[1][:ndof, :ndof]
     z = sl.null_space(constraint_jacobian(cm, q)) if nc else np.eye(ndof)
     nf = z.shape[1]
     if nf == 0:
@@ -204,6 +208,7 @@ def modes(model, q=None, qd=None, qdd=None, mu=None, t=0.0, count=None):
     scale_k = max(np.abs(kr).max(initial=0.0), 1e-300)
     if np.abs(cr).max(initial=0.0) == 0.0 and np.abs(kr - kr.T).max() <= 1e-10 * scale_k:
         # undamped, symmetric: K y = omega^2 M y (scipy.linalg.eigh); lambda = i omega
+        # every eigenvalue: the largest sets the rounding level of the 0 Hz ones
         w2, y = sl.eigh(0.5 * (kr + kr.T), mr)
         w2 = np.where(np.abs(w2) <= ZERO_FREQUENCY ** 2 * max(np.abs(w2).max(), 1e-300), 0.0, w2)
         lam = np.where(w2 >= 0, 1j * np.sqrt(np.abs(w2)), np.sqrt(np.abs(w2)) + 0j)
@@ -365,8 +370,8 @@ def vibration_shares(md, u_rate, umax, nodes):
 
 def modal_check(model, result, response_nodes, times=None, count=MODES_COMPUTED, rigid=None):
     """ModalCheck of the elastic modes (the first `count` above 0 Hz) of `model` at the states
-    of `result` (every coordinate kept) nearest `times` (default: the start and 3 more times
-    evenly along the motion). response_nodes: {response: the nodes it reads (empty: every
+    of `result` (every coordinate kept) nearest `times` (default: the start, the middle and the end
+    of the motion). response_nodes: {response: the nodes it reads (empty: every
     node)}. rigid: (q, qd), each (nt, ndof), the rigid reference motion's coordinates and
     velocities on result.t: a response sees a mode vibrating with SEEN_FRACTION of the
     largest deformation at its nodes (`vibration_shares`, each time point judged with the
@@ -374,7 +379,7 @@ def modal_check(model, result, response_nodes, times=None, count=MODES_COMPUTED,
     SEEN_FRACTION of its largest translation (module docstring)."""
     if times is None:
         t0, t1 = float(result.t[0]), float(result.t[-1])
-        times = np.linspace(t0, t1, 4)
+        times = np.linspace(t0, t1, 3)
     if rigid is not None and (len(rigid) != 2 or any(np.shape(r) != np.shape(result.q)
                                                      for r in rigid)):
         raise ModelError(f"modal_check: rigid must be (q, qd) of the result's shape "
@@ -388,7 +393,8 @@ def modal_check(model, result, response_nodes, times=None, count=MODES_COMPUTED,
     owners = {b.name: np.asarray(b.nodes, int) for b in model.bodies.values()}
     found, bodies = [], []
     seen = {name: [] for name in response_nodes}
-    for md in modes_of_result(model, result, times):
+    # the 0 Hz motions come first: a few more than `count` hold `count` elastic modes
+    for md in modes_of_result(model, result, times, count=count + 6):
         elastic = np.where(md.frequency > 0)[0][:count]
         md = Modes(md.t, md.frequency[elastic], md.damping[elastic], md.eigenvalue[elastic],
                    md.shapes[elastic], md.free, md.mass)
