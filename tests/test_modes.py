@@ -11,8 +11,8 @@ import pytest
 from scipy.optimize import brentq
 
 from flexmbs import Circle, Material, Model
-from flexmbs.analysis.modes import (modes, resolved_limit, scheme_errors, _amplification,
-                                    SCHEME_TOL)
+from flexmbs.analysis.modes import (SCHEME_TOL, amplification_matrix, modes, resolved_limit,
+                                    scheme_errors)
 from flexmbs.analysis.settings import SimulationSettings
 from flexmbs.analysis.simulate import simulate
 from flexmbs.cli.main import main
@@ -99,7 +99,7 @@ def test_generalized_alpha_spectral_properties():
     1 (the trapezoidal rule), whose period error is omega h / (2 atan(omega h / 2)) - 1 in
     closed form: resolved_limit(1.0) is where that reaches SCHEME_TOL, to 1e-5."""
     for rho in (0.0, 0.5, 0.9):
-        lam = np.abs(np.linalg.eigvals(_amplification(1e6, rho)))
+        lam = np.abs(np.linalg.eigvals(amplification_matrix(1e6, rho)))
         assert lam.max() == pytest.approx(rho, abs=1e-3)
         _, p1 = scheme_errors(0.1, rho)
         _, p2 = scheme_errors(0.05, rho)

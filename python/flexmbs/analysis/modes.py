@@ -58,7 +58,7 @@ from flexmbs.errors import ModelError
 from flexmbs.model.constraints import constraint_jacobian
 
 __all__ = ["Modes", "UnresolvedMode", "ModalCheck", "modes", "modes_of_result", "modal_check",
-           "vibration_shares",
+           "vibration_shares", "moving_bodies", "amplification_matrix",
            "scheme_errors", "resolved_limit", "SCHEME_TOL", "LIGHT_DAMPING", "SEEN_FRACTION",
            "MAX_CHECKED", "MODES_COMPUTED", "ZERO_FREQUENCY"]
 
@@ -85,7 +85,7 @@ def _alphas(rho_inf):
     return am, af, gamma, beta
 
 
-def _amplification(omega_h, rho_inf):
+def amplification_matrix(omega_h, rho_inf):
     """The amplification matrix of one generalized-alpha step (Arnold & Brüls 2007, the form
     of fortran/generalized_alpha.f90) on x'' + omega^2 x = 0 with h = 1: the state (x, v, a)
     with a the pseudo-acceleration; qdd = -omega^2 x at every step."""
@@ -109,7 +109,7 @@ def scheme_errors(omega_h, rho_inf):
     eigenvalues exp(Omega_bar (-xi +- i)) of the step's amplification matrix, xi = -ln|l| /
     arg(l) and the period error omega h / arg(l) - 1. Beyond Omega h where the principal pair
     turns real (arg 0) the mode is not integrated as an oscillation: (inf, inf)."""
-    lam = np.linalg.eigvals(_amplification(float(omega_h), float(rho_inf)))
+    lam = np.linalg.eigvals(amplification_matrix(float(omega_h), float(rho_inf)))
     osc = lam[np.abs(lam.imag) > 1e-14]
     if osc.size == 0:
         return math.inf, math.inf
@@ -338,7 +338,7 @@ class ModalCheck:
         return out
 
 
-def _moving_bodies(shape, owners):
+def moving_bodies(shape, owners):
     """The bodies whose largest translation in the shape is within half of the largest."""
     tr = np.hypot(shape[:, 0], shape[:, 1])
     top = tr.max(initial=0.0)
@@ -399,7 +399,7 @@ def modal_check(model, result, response_nodes, times=None, count=MODES_COMPUTED,
         md = Modes(md.t, md.frequency[elastic], md.damping[elastic], md.eigenvalue[elastic],
                    md.shapes[elastic], md.free, md.mass)
         found.append(md)
-        bodies.append([_moving_bodies(s, owners) for s in md.shapes])
+        bodies.append([moving_bodies(s, owners) for s in md.shapes])
         tr = np.hypot(md.shapes[:, :, 0], md.shapes[:, :, 1])     # (n, nnodes)
         top = tr.max(axis=1, initial=0.0)
         k = len(found) - 1

@@ -63,7 +63,7 @@ def register(subparsers):
 
 
 def run(args):
-    from flexmbs.analysis.modes import _moving_bodies, modes_of_result, resolved_limit
+    from flexmbs.analysis.modes import moving_bodies, modes_of_result, resolved_limit
 
     plot = figure_file(args.plot, "--plot") if args.plot else None
     film = output_file(args.animate, "--animate") if args.animate else None
@@ -100,9 +100,8 @@ def run(args):
         q0 = result.q[int(abs(result.t - md.t).argmin())]
         animate_mode(model, q0, md, k, film)
     if args.json:
-        print_json({"case": prob.description.case.name, "design": list(prob.mechanism.design_values(x)
-                                                                         if x is not None else
-                                                                         prob.mechanism.start),
+        design = prob.mechanism.start if x is None else prob.mechanism.design_values(x)
+        print_json({"case": prob.description.case.name, "design": [float(v) for v in design],
                     "h": ts.grid_h, "rho_inf": ts.rho_inf,
                     "resolved_omega_h": resolved_limit(ts.rho_inf),
                     "modes": [m.to_json() for m in found],
@@ -113,11 +112,11 @@ def run(args):
           f"{ts.rho_inf:g}: resolved up to omega h = {resolved_limit(ts.rho_inf):.3g}, "
           f"{resolved_limit(ts.rho_inf) / (6.283185307179586 * ts.grid_h):.4g} Hz)")
     for md in found:
-        print(f"  t = {md.t:.4g} s ({md.free} free motions)")
+        print(f"  t = {md.t:.4g} s ({md.free} coordinates the joints leave free)")
         for i in range(len(md)):
             z = float(md.damping[i])
             damp = "undamped" if z < 1e-6 else f"damping ratio {z:.3g}"
-            moving = ", ".join(_moving_bodies(md.shapes[i], owners))
+            moving = ", ".join(moving_bodies(md.shapes[i], owners))
             print(f"    {i + 1:3d}  {md.frequency[i]:12.5g} Hz  {damp:22s} {moving}")
     if unresolved:
         print("  modes the step does not resolve:")
