@@ -151,16 +151,40 @@ def test_damped_case_reports_no_unresolved_mode():
 
 def test_modes_command(tmp_path, capsys):
     """`flexmbs modes CASE --json --at 0,0.1 --count 4`: 4 modes at each of the two times,
-    lowest first, the unresolved mode of the coupler stress listed; --plot writes a PNG; a
-    time outside the motion is one line naming it (exit status 2)."""
-    png = tmp_path / "modes.png"
+    lowest first, the unresolved mode of the coupler stress listed; --plot writes a PNG and
+    --animate a GIF of 40 frames (one period); a time outside the motion is one line naming
+    it (exit status 2)."""
+    from PIL import Image
+
+    png, gif = tmp_path / "modes.png", tmp_path / "mode.gif"
     assert main(["modes", CRANK_ROCKER, "--json", "--at", "0,0.1", "--count", "4",
-                 "--plot", str(png)]) == 0
+                 "--plot", str(png), "--animate", str(gif), "--mode", "2"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert [m["t"] for m in out["modes"]] == pytest.approx([0.0, 0.1])
     f = out["modes"][0]["frequency"]
     assert len(f) == 4 and f == sorted(f)
     assert out["unresolved"]["coupler_stress"][0]["frequency"] > 0
     assert png.stat().st_size > 0
+    with Image.open(gif) as im:
+        assert im.n_frames == 40
     assert main(["modes", CRANK_ROCKER, "--at", "5"]) == 2
     assert "time 5 s is outside the motion" in capsys.readouterr().err
+
+
+def test_verification_refuses_a_constraint_seeing_an_unresolved_mode(tmp_path):
+    """verify() of the crank-rocker with its coupler stress limited far above its value (1 GPa,
+    a margin that alone would verify it) stopped at h/4 (max_level=2): the 140 Hz mode is
+    unresolved at that finest step (omega h = 0.44 > 0.285), so the design is not verified
+    and the constraint's estimate names the mode."""
+    from flexmbs.analysis.accuracy import verify
+
+    case = tmp_path / "limited.toml"
+    case.write_text(open(CRANK_ROCKER).read() + '\n[[constraints]]\nresponse = "coupler_stress"'
+                    '\nupper = 1.0e9\nover = "every_step"\n')
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        prob = Problem(str(case))
+    v = verify(prob, None, max_level=2)
+    e = v.constraints["coupler_stress"]
+    assert e.value < 0 and e.unresolved and not v.verified
+    assert e.unresolved[0].h == pytest.approx(2e-3 / 4)
