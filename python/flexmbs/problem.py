@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from flexmbs.analysis.accuracy import estimate_errors
+from flexmbs.analysis.modes import modal_check
 from flexmbs.analysis.adaptive import choose_steps, subdivide
 from flexmbs.analysis.adjoint import (adjoint_gradient, adjoint_memory, checkpoint_interval,
                                       checkpoint_memory)
@@ -685,17 +686,43 @@ class Problem:
             raise ModelError(f"evaluate: error must be False, True (h, h/2, h/4) or 2 (h, h/2), "
                              f"got {error!r}")
         t0, c0 = _time.perf_counter(), _time.process_time()
-        ev = self.evaluate(x, gradient=gradient, method=method, store=store)
+        # every coordinate kept: the modes at states of the motion (flexmbs.analysis.modes)
+        ev = self.evaluate(x, gradient=gradient, method=method,
+                           store="all" if store is None else store)
         if not any(np.ndim(v) for v in ev.values.values()):
+            ev.result = None if store is None else ev.result
             return ev            # nothing simulated: nothing has a time-discretisation error
         evs = [ev] + [self.refined(2 ** k).evaluate(ev.x, gradient=False)
                       for k in range(1, levels)]
-        h = self.description.time.grid_h
+        ts = self.description.time
+        h = ts.grid_h
+        # judged at the ladder's finest step (flexmbs.analysis.modes)
+        unresolved = self.modal_check(ev.x, ev.result).unresolved(h / 2 ** (levels - 1),
+                                                                    ts.rho_inf)
+        if store is None:
+            ev.result = None
+        obj = self.description.objective
         ev.errors, ev.objective_error, ev.constraint_errors = estimate_errors(
-            evs, [h / 2 ** k for k in range(levels)])
+            evs, [h / 2 ** k for k in range(levels)], unresolved=unresolved,
+            objective_response=None if obj is None else obj.response)
         ev.wall_time = _time.perf_counter() - t0
         ev.cpu_time = _time.process_time() - c0
         return ev
+
+    def modal_check(self, x=None, result=None, times=None):
+        """The lowest vibration modes of design x at the start, the middle and the end of its
+        motion, and which responses see them (flexmbs.analysis.modes.modal_check), from
+        `result` when it kept every coordinate of that design's run, else from a run of
+        its own. Responses that need no simulation (a mass) are left out."""
+        full = result is not None and getattr(result, "design_model", None) is not None and \
+            np.array_equal(result.dofs, np.arange(result.design_model.compile().ndof))
+        if not full:
+            result = self.simulate(x, store="all")
+        nodes = {name: self._nodes_needed([name]) for name, r in self._resp.items()
+                 if r.type != "mass"}
+        ref = self.mechanism.reference
+        rigid = (ref.q, ref.qd) if ref.q.shape == result.q.shape else None
+        return modal_check(result.design_model, result, nodes, times, rigid=rigid)
 
     def _adjoint_plan(self, x, responses, store=None, checkpoints=_DEFAULT, run=None):
         """(K, MemoryEstimate) of the adjoint's runs: K None for the tape of every state,

@@ -82,6 +82,9 @@ class ErrorEstimate:
         level), else None.
     reference : what `relative` divides by: None for |value|, 1.0 for a constraint value g
         (already relative to its limit).
+    unresolved : the lightly damped modes the value sees that its step does not resolve
+        (flexmbs.analysis.modes.UnresolvedMode, lowest first): with any, the value depends on
+        the integrator's numerical damping and its estimate is not reliable.
     """
     value: float
     error: float
@@ -92,11 +95,13 @@ class ErrorEstimate:
     status: str
     pointwise: np.ndarray | None = field(default=None, repr=False)
     reference: float | None = None
+    unresolved: tuple = ()
 
     @property
     def reliable(self):
-        """The error is an estimate one can act on (converged or in the asymptotic range)."""
-        return self.status in ("converged", "asymptotic")
+        """The error is an estimate one can act on (converged or in the asymptotic range, and
+        no unresolved lightly damped mode in the value)."""
+        return self.status in ("converged", "asymptotic") and not self.unresolved
 
     @property
     def relative(self):
@@ -125,6 +130,8 @@ class ErrorEstimate:
         text = f"± {self.error * scale:.3g}{u} ({rel_text}, {how})"
         if self.status == "not asymptotic":
             text += ": not in its asymptotic range, refine the time step"
+        if self.unresolved:
+            text += "; NOT reliable: " + self.unresolved[0].describe()
         return text
 
     def to_json(self):
@@ -136,7 +143,8 @@ class ErrorEstimate:
                 "changes": [float(c) for c in self.changes],
                 "ratio": None if self.ratio is None or not math.isfinite(self.ratio)
                 else float(self.ratio),
-                "observed_order": self.order}
+                "observed_order": self.order,
+                "unresolved_modes": [u.to_json() for u in self.unresolved]}
 
 
 def _ratio_status(changes, floor):
@@ -251,7 +259,7 @@ def _common_points(values, nt0):
     return out
 
 
-def estimate_errors(evaluations, levels, finest=False):
+def estimate_errors(evaluations, levels, finest=False, unresolved=None, objective_response=None):
     """Error estimates of every response, the objective and each constraint's largest value
     from the Evaluations of one design at the steps `levels` (h, h/2[, h/4]).
 
@@ -259,6 +267,10 @@ def estimate_errors(evaluations, levels, finest=False):
     history: of its maximum, with point-wise errors at the coarsest grid's time points); the
     objective's (or None); {response: ErrorEstimate} of each constrained response's largest
     normalised value g (relative to its limit).
+    unresolved : {response: [UnresolvedMode]} at the step of the values estimated
+        (flexmbs.analysis.modes.ModalCheck.unresolved): put into each estimate of that
+        response (its own, its constraint's) and into the objective's when it is
+        `objective_response`'s.
     """
     first = evaluations[0]
     nt0 = np.asarray(first.t).size
@@ -284,6 +296,12 @@ def estimate_errors(evaluations, levels, finest=False):
         constraints[name] = richardson(ladder, levels, finest,
                                        floor=FLOOR_REL * max(1.0, 1.0 + abs(ladder[0])))
         constraints[name].reference = 1.0
+    for name, found in (unresolved or {}).items():
+        for est in (responses.get(name), constraints.get(name)):
+            if est is not None:
+                est.unresolved = tuple(found)
+        if objective is not None and objective_response == name:
+            objective.unresolved = tuple(found)
     return responses, objective, constraints
 
 
@@ -376,6 +394,10 @@ def verify(problem, x, rtol=VERIFY_RTOL, max_level=MAX_LEVEL, coarse=None):
         raise ModelError(f"verify: max_level must be an integer in [2, 8], got {max_level!r}")
     h = float(problem.description.time.grid_h)
     evs = [coarse if coarse is not None else problem.evaluate(x, gradient=False)]
+    # the lowest modes along the motion: a value seeing one its step leaves unresolved and
+    # lightly damped is not verified at that step (flexmbs.analysis.modes)
+    modal = problem.modal_check(x) if hasattr(problem, "modal_check") else None
+    obj = getattr(problem.description, "objective", None)
     level = 0
     est = None
     while level < max_level:
@@ -384,7 +406,11 @@ def verify(problem, x, rtol=VERIFY_RTOL, max_level=MAX_LEVEL, coarse=None):
         if level < 2:
             continue
         ladder = [h / 2 ** k for k in (level - 2, level - 1, level)]
-        est = estimate_errors(evs[-3:], ladder, finest=True)
+        est = estimate_errors(
+            evs[-3:], ladder, finest=True,
+            unresolved=None if modal is None else modal.unresolved(
+                ladder[-1], problem.description.time.rho_inf),
+            objective_response=None if obj is None else obj.response)
         if _verified(est, rtol):
             break
     responses, objective, constraints = est
@@ -399,7 +425,7 @@ def verify(problem, x, rtol=VERIFY_RTOL, max_level=MAX_LEVEL, coarse=None):
 def _verified(est, rtol):
     _, objective, constraints = est
     ok = all((e.reliable and e.error <= rtol)
-             or (e.value < 0 and e.error <= MARGIN_FRACTION * -e.value)
+             or (e.value < 0 and e.error <= MARGIN_FRACTION * -e.value and not e.unresolved)
              for e in constraints.values())
     if objective is not None:
         ok = ok and objective.reliable and objective.error <= rtol * max(abs(objective.value),
@@ -477,7 +503,9 @@ def convergence_check(problem, x=None, rtol=1e-2):
         scale = max(abs(value), 1e-300)
         dmesh = None if fine is None else _history_max(fine.values[name]) - value
         bad = []
-        if not e.reliable or e.error > rtol * scale:
+        if e.unresolved:
+            bad.append("time step not converged (" + e.unresolved[0].describe() + ")")
+        elif not e.reliable or e.error > rtol * scale:
             bad.append("time step not converged"
                        + ("" if e.reliable else " (not in its asymptotic range)"))
         if dmesh is not None and abs(dmesh) > rtol * scale:

@@ -7,6 +7,8 @@ Usage::
                           [--set KEY=VALUE ...] [--out result.npz] [--plot FILE.png] [--json]
     flexmbs animate CASE [--design P1,P2,...] [--set KEY=VALUE ...] --out motion.gif|.mp4|.pvd
                          [--frames N] [--fps F] [--magnify S] [--color-by deviation|stress|none]
+    flexmbs modes CASE [--design P1,P2,...] [--count N] [--at T[,T...]] [--plot FILE.png]
+                       [--animate FILE.gif|.mp4 [--mode K]] [--json]
     flexmbs demo [--out DIR] [--workers N]
     flexmbs reproduce [--study FILE] [--table N ...|--all] [--out DIR] [--workers N | --dask ADDRESS] [--quick]
 
@@ -43,6 +45,7 @@ import warnings
 from flexmbs.cli import animate
 from flexmbs.cli import check
 from flexmbs.cli import evaluate
+from flexmbs.cli import modes
 from flexmbs.cli import optimize
 from flexmbs.cli import reproduce
 from flexmbs.cli import simulate
@@ -53,7 +56,7 @@ from flexmbs.version import __version__
 __all__ = ["main", "build_parser", "COMMANDS"]
 
 #: Subcommand registration functions, in the order of the help text.
-COMMANDS = [simulate.register_simulate, reproduce.register_demo, evaluate.register, check.register, animate.register, optimize.register, reproduce.register]
+COMMANDS = [simulate.register_simulate, reproduce.register_demo, evaluate.register, check.register, modes.register, animate.register, optimize.register, reproduce.register]
 
 
 # ----------------------------------------------------------------------------- main
