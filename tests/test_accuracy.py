@@ -21,26 +21,74 @@ from flexmbs.errors import ModelError
 # ----------------------------------------------------------------------------- Richardson
 @pytest.mark.parametrize("order", [1, 2])
 def test_richardson_exact_for_a_pure_power_of_h(order):
-    """R(h) = R* + C h^p: the estimate of R(h)'s error is exactly C h^p (p = 1, 2: observed
-    ratios 2, 4), and that of R(h/4) exactly C (h/4)^p."""
+    """R(h) = R* + C h^p: the estimate of R(h)'s error is exactly C h^p (p = 2: observed ratio
+    4 on three levels; p = 1: ratio 2 is not clearly second order, 'unconfirmed' on three
+    levels, 'asymptotic' on four where both ratios are 2), and that of the finest value exactly
+    C (h/2^k)^p."""
     h, C, R = 1e-2, 3.7e3, 1.25
-    levels = [h, h / 2, h / 4]
+    n = 3 if order == 2 else 4
+    levels = [h / 2 ** k for k in range(n)]
     vals = [R + C * s ** order for s in levels]
+    if order == 1:
+        assert richardson(vals[:3], levels[:3]).status == "unconfirmed"
     e = richardson(vals, levels)
-    assert e.status == "asymptotic"
+    assert e.status == "asymptotic" and e.n_levels == n
     assert e.error == pytest.approx(C * h ** order, rel=1e-9)
     assert e.order == pytest.approx(order, abs=1e-9)
     fine = richardson(vals, levels, finest=True)
-    assert fine.error == pytest.approx(C * (h / 4) ** order, rel=1e-9)
+    assert fine.error == pytest.approx(C * levels[-1] ** order, rel=1e-9)
+
+
+def test_richardson_four_levels_second_order():
+    """R(h) = R* + C h^2 on h, h/2, h/4, h/8: ratios 4 and 4, 'asymptotic' on four levels; the
+    error of R(h) is exactly C h^2 (|d1| + |d2| 4/3) and that of R(h/8) exactly C (h/8)^2;
+    the JSON gives the number of levels used."""
+    h, C = 1e-2, 3.7e3
+    levels = [h / 2 ** k for k in range(4)]
+    vals = [2.0 + C * s ** 2 for s in levels]
+    e = richardson(vals, levels)
+    assert e.status == "asymptotic" and e.ratios == pytest.approx((4.0, 4.0), rel=1e-9)
+    assert e.error == pytest.approx(C * h ** 2, rel=1e-9)
+    assert richardson(vals, levels, finest=True).error == pytest.approx(C * (h / 8) ** 2,
+                                                                        rel=1e-9)
+    assert e.to_json()["n_levels"] == 4
+
+
+def test_richardson_opposite_signs_are_never_asymptotic():
+    """Changes of opposite sign (the undamped crank-rocker's coupler stress at h/2 = 2.5e-4,
+    3.5417, 3.6218, 3.6203 x 1e5 Pa at h/2, h/4, h/8: changes -8.0e3 and +1.5e2, |ratio| 55,
+    which an unsigned ratio calls asymptotic) are 'not asymptotic', and the error given is the
+    largest change seen; on four levels a sign change anywhere is too."""
+    levels = [2.5e-4, 1.25e-4, 6.25e-5]
+    e = richardson([3.5417e5, 3.6218e5, 3.6203e5], levels)
+    assert e.status == "not asymptotic" and not e.reliable and e.ratio < 0
+    assert e.error == pytest.approx(3.6218e5 - 3.5417e5, rel=1e-12)
+    four = richardson([1.0, 1.0 + 4e-3, 1.0 + 5e-3, 1.0 + 4.75e-3], [1e-3, 5e-4, 2.5e-4, 1.25e-4])
+    assert four.status == "not asymptotic"
+
+
+def test_richardson_four_levels_ratios_that_disagree():
+    """A ratio clearly second order over h, h/2, h/4 that h/8 refutes (changes 8e-2, 2e-2,
+    1.8e-2: ratios 4, 1.1) is 'not asymptotic'; ratios 3 then 6 (observed orders 1.58, 2.58,
+    differing by 1.0 > AGREE_ORDER = 0.5) too; 3.5 then 4.5 (orders 1.81, 2.17) agree."""
+    levels = [1e-3, 5e-4, 2.5e-4, 1.25e-4]
+
+    def ladder(*d):
+        return list(np.cumsum([0.0, *d]))
+
+    assert richardson(ladder(8e-2, 2e-2, 1.8e-2), levels).status == "not asymptotic"
+    assert richardson(ladder(18e-3, 6e-3, 1e-3), levels).status == "not asymptotic"
+    assert richardson(ladder(15.75e-3, 4.5e-3, 1e-3), levels).status == "asymptotic"
 
 
 def test_richardson_faster_than_second_order_is_not_trusted():
-    """R(h) = R* + C h^3 (ratio 8): the estimates are those of second order (ratio capped at
-    4), above the true errors: 8/7 -> 4/3 of |d1| for R(h) (x 7/6), |d2|/7 -> |d2|/3 for
-    R(h/4) (x 7/3)."""
+    """R(h) = R* + C h^3 (ratio 8): 'unconfirmed' on three levels (observed order 3, not
+    clearly 2), and the estimates are those of second order (ratio capped at 4), above the
+    true errors: 8/7 -> 4/3 of |d1| for R(h) (x 7/6), |d2|/7 -> |d2|/3 for R(h/4) (x 7/3)."""
     h, C = 1e-2, 3.7e3
     levels = [h, h / 2, h / 4]
     vals = [1.0 + C * s ** 3 for s in levels]
+    assert richardson(vals, levels).status == "unconfirmed"
     assert richardson(vals, levels).error == pytest.approx(C * h ** 3 * 7 / 6, rel=1e-9)
     assert richardson(vals, levels, finest=True).error == pytest.approx(
         C * (h / 4) ** 3 * 7 / 3, rel=1e-9)
@@ -86,7 +134,7 @@ def test_peak_sampling_of_a_parabola():
 
 
 def test_richardson_bad_ladder():
-    with pytest.raises(ModelError, match="2 or 3 values"):
+    with pytest.raises(ModelError, match="2, 3 or 4 values"):
         richardson([1.0], [1e-3])
 
 
