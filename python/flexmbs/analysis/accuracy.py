@@ -70,8 +70,8 @@ MAX_LEVEL = 5
 #: default accuracy a verification asks of the constraints (relative to their limits) and of
 #: the objective: 0.1 %
 VERIFY_RTOL = 1e-3
-#: a constraint far from its limit is verified when its reliable error is below this fraction
-#: of its margin -g
+#: a constraint far from its limit is verified when its error (or, not reliable, the largest
+#: change seen) is below this fraction of its margin -g
 MARGIN_FRACTION = 0.25
 
 _STATUS = ("converged", "asymptotic", "not asymptotic", "unconfirmed", "unchecked")
@@ -412,8 +412,8 @@ def verify(problem, x, rtol=VERIFY_RTOL, max_level=MAX_LEVEL, coarse=None):
     on the finest three levels (four when a ratio there is 'unconfirmed': the rule of the
     module's docstring), the objective and every constraint's largest value have a reliable
     estimated error (`richardson`, finest=True) below `rtol` (relative to the objective, to the
-    constraints' limits); a constraint far from its limit may instead have a reliable error
-    below MARGIN_FRACTION of its margin.
+    constraints' limits); a constraint far from its limit may instead have an error (or, not
+    reliable, largest change seen) below MARGIN_FRACTION of its margin.
     Returns a `Verification`; the values it reports are those of the finest level reached.
     `coarse`: the Evaluation of x at the case's h when the caller has it (saves a
     simulation).
@@ -448,8 +448,8 @@ def verify(problem, x, rtol=VERIFY_RTOL, max_level=MAX_LEVEL, coarse=None):
 
 def _verified(est, rtol):
     _, objective, constraints = est
-    ok = all(e.reliable and (e.error <= rtol
-                             or (e.value < 0 and e.error <= MARGIN_FRACTION * -e.value))
+    ok = all((e.reliable and e.error <= rtol)
+             or (e.value < 0 and e.error <= MARGIN_FRACTION * -e.value)
              for e in constraints.values())
     if objective is not None:
         ok = ok and objective.reliable and objective.error <= rtol * max(abs(objective.value),
