@@ -7,6 +7,7 @@ whole table: every reliable estimate within 0.98-1.46 of the true error on the r
 four-bar, the three-arm robot and the spin-up beam at the cases' steps and at half of them).
 """
 import json
+import pathlib
 import subprocess
 import sys
 
@@ -21,26 +22,77 @@ from flexmbs.errors import ModelError
 # ----------------------------------------------------------------------------- Richardson
 @pytest.mark.parametrize("order", [1, 2])
 def test_richardson_exact_for_a_pure_power_of_h(order):
-    """R(h) = R* + C h^p: the estimate of R(h)'s error is exactly C h^p (p = 1, 2: observed
-    ratios 2, 4), and that of R(h/4) exactly C (h/4)^p."""
+    """R(h) = R* + C h^p: the estimate of R(h)'s error is exactly C h^p (p = 2: observed ratio
+    4 on three levels; p = 1: ratio 2 is not clearly second order, 'unconfirmed' on three
+    levels, 'asymptotic' on four where both ratios are 2), and that of the finest value exactly
+    C (h/2^k)^p."""
     h, C, R = 1e-2, 3.7e3, 1.25
-    levels = [h, h / 2, h / 4]
+    n = 3 if order == 2 else 4
+    levels = [h / 2 ** k for k in range(n)]
     vals = [R + C * s ** order for s in levels]
+    if order == 1:
+        assert richardson(vals[:3], levels[:3]).status == "unconfirmed"
     e = richardson(vals, levels)
-    assert e.status == "asymptotic"
+    assert e.status == "asymptotic" and e.n_levels == n
     assert e.error == pytest.approx(C * h ** order, rel=1e-9)
     assert e.order == pytest.approx(order, abs=1e-9)
     fine = richardson(vals, levels, finest=True)
-    assert fine.error == pytest.approx(C * (h / 4) ** order, rel=1e-9)
+    assert fine.error == pytest.approx(C * levels[-1] ** order, rel=1e-9)
+
+
+def test_richardson_four_levels_second_order():
+    """R(h) = R* + C h^2 on h, h/2, h/4, h/8: ratios 4 and 4, 'asymptotic' on four levels; the
+    error of R(h) is exactly C h^2 (|d1| + |d2| 4/3) and that of R(h/8) exactly C (h/8)^2;
+    the JSON gives the number of levels used."""
+    h, C = 1e-2, 3.7e3
+    levels = [h / 2 ** k for k in range(4)]
+    vals = [2.0 + C * s ** 2 for s in levels]
+    e = richardson(vals, levels)
+    assert e.status == "asymptotic" and e.ratios == pytest.approx((4.0, 4.0), rel=1e-9)
+    assert e.error == pytest.approx(C * h ** 2, rel=1e-9)
+    assert richardson(vals, levels, finest=True).error == pytest.approx(C * (h / 8) ** 2,
+                                                                        rel=1e-9)
+    assert e.to_json()["n_levels"] == 4
+
+
+def test_richardson_opposite_signs_are_never_asymptotic():
+    """Changes of opposite sign (the undamped crank-rocker's coupler stress at h/2 = 2.5e-4,
+    3.5417, 3.6218, 3.6203 x 1e5 Pa at h/2, h/4, h/8: changes -8.0e3 and +1.5e2, |ratio| 55,
+    which an unsigned ratio calls asymptotic) are 'not asymptotic', and the error given is the
+    largest change seen; on four levels a sign change anywhere is too."""
+    levels = [2.5e-4, 1.25e-4, 6.25e-5]
+    e = richardson([3.5417e5, 3.6218e5, 3.6203e5], levels)
+    assert e.status == "not asymptotic" and not e.reliable and e.ratio < 0
+    assert e.error == pytest.approx(3.6218e5 - 3.5417e5, rel=1e-12)
+    four = richardson([1.0, 1.0 + 4e-3, 1.0 + 5e-3, 1.0 + 4.75e-3], [1e-3, 5e-4, 2.5e-4, 1.25e-4])
+    assert four.status == "not asymptotic"
+
+
+def test_richardson_four_levels_ratios_that_disagree():
+    """The rule on four levels (docs/accuracy.md, "The rule"): a ratio clearly second order
+    over h, h/2, h/4 that h/8 refutes (changes 8e-2, 2e-2, 1.8e-2: ratios 4, 1.1) is 'not
+    asymptotic'; ratios 2.2 then 5 (observed orders 1.14, 2.32: neither steady nor both near 2)
+    too; 2.2 then 2.4 (orders 1.14, 1.26: one steady order) and 12 then 37 (both falling faster
+    than order 1.5, the error capped at second order) are 'asymptotic'."""
+    levels = [1e-3, 5e-4, 2.5e-4, 1.25e-4]
+
+    def ladder(d1, r1, r2):
+        return list(np.cumsum([0.0, d1, d1 / r1, d1 / r1 / r2]))
+
+    assert richardson(ladder(8e-2, 4.0, 2e-2 / 1.8e-2), levels).status == "not asymptotic"
+    assert richardson(ladder(1e-2, 2.2, 5.0), levels).status == "not asymptotic"
+    assert richardson(ladder(1e-2, 2.2, 2.4), levels).status == "asymptotic"
+    assert richardson(ladder(1e-2, 12.0, 37.0), levels).status == "asymptotic"
 
 
 def test_richardson_faster_than_second_order_is_not_trusted():
-    """R(h) = R* + C h^3 (ratio 8): the estimates are those of second order (ratio capped at
-    4), above the true errors: 8/7 -> 4/3 of |d1| for R(h) (x 7/6), |d2|/7 -> |d2|/3 for
-    R(h/4) (x 7/3)."""
+    """R(h) = R* + C h^3 (ratio 8): 'unconfirmed' on three levels (observed order 3, not
+    clearly 2), and the estimates are those of second order (ratio capped at 4), above the
+    true errors: 8/7 -> 4/3 of |d1| for R(h) (x 7/6), |d2|/7 -> |d2|/3 for R(h/4) (x 7/3)."""
     h, C = 1e-2, 3.7e3
     levels = [h, h / 2, h / 4]
     vals = [1.0 + C * s ** 3 for s in levels]
+    assert richardson(vals, levels).status == "unconfirmed"
     assert richardson(vals, levels).error == pytest.approx(C * h ** 3 * 7 / 6, rel=1e-9)
     assert richardson(vals, levels, finest=True).error == pytest.approx(
         C * (h / 4) ** 3 * 7 / 3, rel=1e-9)
@@ -86,7 +138,7 @@ def test_peak_sampling_of_a_parabola():
 
 
 def test_richardson_bad_ladder():
-    with pytest.raises(ModelError, match="2 or 3 values"):
+    with pytest.raises(ModelError, match="2, 3 or 4 values"):
         richardson([1.0], [1e-3])
 
 
@@ -99,18 +151,19 @@ def test_refined_needs_a_power_of_two():
 ESTIMATED = [
     ("robot_2dof", None, ["deviation_28", "deviation_30"]),
     ("fourbar", [54.11, 15.14, 16.19], ["deviation_A"]),
-    ("three_arm_robot", None, ["tip_deviation", "shoulder_torque", "shoulder_reaction"]),
+    ("three_arm_robot", None, ["tip_deviation", "shoulder_torque"]),
     ("slider_crank_press_damped", None, ["ram_error"]),
 ]
+CRANK_ROCKER = str(pathlib.Path(__file__).parent / "data" / "crank_rocker_undamped.toml")
 
 
 @pytest.mark.parametrize("case,x,names", ESTIMATED, ids=[c[0] for c in ESTIMATED])
 def test_error_estimates_against_true_errors(case, x, names):
     """Each response's estimated error at the case's step against its true error (difference
-    from h/16): in its asymptotic range, and within [0.5, 4] x the true error (the estimate
-    never under-estimates by more than 2x). Measured: 1.00-1.04 (robot), 1.27 (four-bar at a
-    light design whose deviation h = 5e-4 under-predicts by 6 %), 1.02-1.28 (three-arm), 1.03
-    (the press with 2 % material damping)."""
+    from h/16): reliable, and within [0.5, 2] x the true error. Measured against h/64
+    (benchmarks/results/estimate_ratios.txt): 1.00-1.04 (robot), 1.06 (four-bar at a light
+    design whose deviation h = 5e-4 under-predicts by 6 %; ratios 12, 37 on four levels),
+    1.01-1.06 (three-arm, four levels), 1.03 (the press with 2 % material damping)."""
     prob = Problem(case)
     ev = prob.evaluate(x, gradient=False, error=True)
     ref = prob.refined(16).evaluate(x, gradient=False)
@@ -118,7 +171,54 @@ def test_error_estimates_against_true_errors(case, x, names):
         e = ev.errors[name]
         true = abs(float(np.max(ev.values[name])) - float(np.max(ref.values[name])))
         assert e.reliable, (name, e)
-        assert 0.5 * true <= e.error <= 4.0 * true, (name, e.error, true)
+        assert 0.5 * true <= e.error <= 2.0 * true, (name, e.error, true)
+
+
+def _ratios(case, ref):
+    """(level, response, estimate / true, ErrorEstimate) of every simulated response of
+    `case` at its step h and at h/2 (`evaluate(error=True)`), the true error being the
+    difference from h/ref."""
+    prob = Problem(case)
+    fine = prob.refined(ref).evaluate(gradient=False)
+    out = []
+    for f in (1, 2):
+        ev = (prob if f == 1 else prob.refined(f)).evaluate(gradient=False, error=True)
+        for name, e in ev.errors.items():
+            if np.ndim(ev.values[name]):
+                true = abs(e.value - float(np.max(fine.values[name])))
+                out.append((f, name, e.error / true, e))
+    return out
+
+
+@pytest.mark.parametrize("case", ["robot_2dof", "slider_crank_press_damped"])
+def test_reliable_estimates_within_half_and_twice_the_true_error(case):
+    """Every estimate called reliable at h and h/2 is within [0.5, 2] x its true error (the
+    difference from h/32); the robot's deviations and the damped press's ram error are
+    reliable at both. Measured: robot 1.00-1.04; damped press ram error 1.03, 1.07, rod stress
+    0.60 at h (reliable), not asymptotic at h/2 (0.87); against h/64
+    (benchmarks/results/estimate_ratios.txt) the same to 0.01."""
+    rows = _ratios(case, 32)
+    for f, name, ratio, e in rows:
+        if e.reliable:
+            assert 0.5 <= ratio <= 2.0, (f, name, ratio, e)
+    must = {"robot_2dof": {"deviation_28", "deviation_30"},
+            "slider_crank_press_damped": {"ram_error"}}[case]
+    assert all(e.reliable for f, name, ratio, e in rows if name in must)
+
+
+def test_undamped_crank_rocker_claims_no_unreliable_accuracy():
+    """The undamped crank-rocker (tests/data/crank_rocker_undamped.toml: a slender coupler
+    whose vibration only the integrator damps): no estimate at h = 5e-4 or h/2 is called
+    reliable while outside [0.5, 2] x its true error (against h/64). Measured: every estimate
+    'not asymptotic', ratios 0.30-0.60; the coupler stress at h/2 (3.5417, 3.6218, 3.6203 x 1e5
+    Pa at h/2, h/4, h/8: changes of opposite sign, |ratio| 55) is 'asymptotic' with ratio 0.43
+    (against h/128) when judged by an unsigned ratio."""
+    rows = _ratios(CRANK_ROCKER, 64)
+    assert len(rows) == 6
+    for f, name, ratio, e in rows:
+        assert not e.reliable or 0.5 <= ratio <= 2.0, (f, name, ratio, e)
+    stress = [e for f, name, ratio, e in rows if f == 2 and name == "coupler_stress"][0]
+    assert stress.status == "not asymptotic" and stress.ratio < 0
 
 
 def test_press_responses_are_not_in_their_asymptotic_range():
@@ -196,7 +296,11 @@ def test_cli_check_and_evaluate_error():
 def test_simulate_with_error_against_the_true_error():
     """A driven flexible arm with a tip mass (docs/python.md's example): the estimated error of
     its stored coordinates (largest over coordinates and time points) within [0.5, 4] x the
-    true error, the largest difference from a run at h/16 at the same time points."""
+    true error, the largest difference from a run at h/16 at the same time points. Its largest changes (1.59e-5,
+    5.80e-6, 4.70e-6 at h, h/2, h/4 against the next level: ratios 2.73, 1.23) are ambiguous on
+    three levels and do not fall steadily on four: 'not asymptotic' (the rule of
+    docs/accuracy.md), the error given being the largest change (measured 1.59e-5 against a
+    true error of 2.27e-5 from h/64)."""
     from flexmbs import Material, Model, TimeLaw, Tube, simulate, simulate_with_error
 
     def model():
@@ -214,5 +318,6 @@ def test_simulate_with_error_against_the_true_error():
     r = simulate_with_error(model(), 0.3, h)
     ref = simulate(model(), 0.3, h / 16)
     true = float(np.max(np.abs(r.q - ref.q[::16])))
-    assert r.error.reliable and r.error.pointwise.shape == r.q.shape
+    assert r.error.n_levels == 4 and r.error.status == "not asymptotic"
+    assert r.error.pointwise.shape == r.q.shape
     assert 0.5 * true <= r.error.error <= 4 * true, (r.error.error, true)

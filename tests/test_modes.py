@@ -24,7 +24,7 @@ E, NU, RHO, L, D = 210e9, 0.3, 7850.0, 1.0, 0.02
 A, I = math.pi * D ** 2 / 4, math.pi * D ** 4 / 64
 #: shear correction of a solid circle (Cowper 1966): 6 (1 + nu) / (7 + 6 nu)
 KAPPA = 6 * (1 + NU) / (7 + 6 * NU)
-CRANK_ROCKER = os.path.join(os.path.dirname(__file__), "data", "crank_rocker_undamped.toml")
+CRANK_ROCKER = os.path.join(os.path.dirname(__file__), "data", "crank_rocker_coarse_step.toml")
 
 
 def _cantilever(nel=16):

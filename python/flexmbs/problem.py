@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flexmbs.analysis.accuracy import estimate_errors
+from flexmbs.analysis.accuracy import estimate_errors, needs_fourth_level
 from flexmbs.analysis.modes import modal_check
 from flexmbs.analysis.adaptive import choose_steps, subdivide
 from flexmbs.analysis.adjoint import (adjoint_gradient, adjoint_memory, checkpoint_interval,
@@ -624,7 +624,8 @@ class Problem:
         error : False (default), True or 2
             True: also estimate every value's time-discretisation error (flexmbs.analysis.accuracy:
             the design simulated again at h/2 and h/4, without gradients; about 6 more
-            simulations' time) into Evaluation.errors, objective_error and
+            simulations' time; and at h/8, 8 more, when a value's changes fall but not
+            clearly at second order) into Evaluation.errors, objective_error and
             constraint_errors, with a verdict on whether each value is in its asymptotic
             range; 2: h/2 only (about 2 more simulations' time, no verdict)."""
         if error is not False:
@@ -702,9 +703,14 @@ class Problem:
         if store is None:
             ev.result = None
         obj = self.description.objective
-        ev.errors, ev.objective_error, ev.constraint_errors = estimate_errors(
-            evs, [h / 2 ** k for k in range(levels)], unresolved=unresolved,
-            objective_response=None if obj is None else obj.response)
+        seen = dict(unresolved=unresolved,
+                    objective_response=None if obj is None else obj.response)
+        est = estimate_errors(evs, [h / 2 ** k for k in range(levels)], **seen)
+        if levels == 3 and needs_fourth_level([*est[0].values(), est[1], *est[2].values()]):
+            # a ratio that falls but not clearly at second order: h/8 confirms or refutes it
+            evs.append(self.refined(8).evaluate(ev.x, gradient=False))
+            est = estimate_errors(evs, [h / 2 ** k for k in range(4)], **seen)
+        ev.errors, ev.objective_error, ev.constraint_errors = est
         ev.wall_time = _time.perf_counter() - t0
         ev.cpu_time = _time.process_time() - c0
         return ev

@@ -2,19 +2,24 @@
 
 Generalized-alpha (eqs. 3-6) is second-order accurate: a response computed with step h differs
 from its converged value by about C h^2 once h resolves the motion (the asymptotic range). The
-estimates here are Richardson's: the same design simulated with h, h/2 and h/4 (a *ladder*),
+estimates here are Richardson's: the same design simulated with h, h/2, h/4 (a *ladder*), and
+h/8 when those three are ambiguous,
 
-    d1 = R(h) - R(h/2),   d2 = R(h/2) - R(h/4),   r = |d1| / |d2|   (4 for order 2).
+    d_k = R(h/2^(k-1)) - R(h/2^k),   r_k = d_k / d_(k+1)   (signed; 4 at order 2).
 
-When r >= MIN_RATIO (the changes fall at least as fast as first order), the error of R(h) is
-|d1| r / (r - 1) and that of the finest value R(h/4) is |d2| / (r - 1), with r capped at
-MAX_RATIO = 4 (second order): a faster fall met by chance (a peak that moves between levels
-can show r = 19 and then rise again) never claims a smaller error than second order would.
-When r < MIN_RATIO the response is *not in its asymptotic range* (e.g. a stress peak set by
-which high modes the integrator's numerical damping lets through): the estimate says so
-(`ErrorEstimate.status`) and gives the larger of the changes seen, which is no bound. Changes
-below the rounding of the response (FLOOR_REL of its size) count as converged. Two levels
-only (h, h/2) give the estimate without that check (status 'unchecked').
+The rule (docs/accuracy.md, "The rule"): changes at the rounding of the response (FLOOR_REL of
+its size) are 'converged'; a ratio below MIN_RATIO, or negative (changes of opposite sign), is
+'not asymptotic' (the error given is the largest change seen, which is no bound); on three
+levels, a ratio whose observed order log2 r lies within CLEAR_ORDER of ORDER is 'asymptotic',
+any other ratio >= MIN_RATIO is 'unconfirmed' and asks for a fourth level; on four levels, the
+estimate is 'asymptotic' when both ratios agree: both fall at least about as fast as second
+order (observed orders >= ORDER - CLEAR_ORDER; a faster fall is capped at second order), or
+both are >= MIN_RATIO with observed orders within AGREE_ORDER of each other (one steady lower
+order); else 'not asymptotic'. In the asymptotic range the error of the finest
+value is |d_last| / (r - 1) with r the finest ratio capped at MAX_RATIO = 4 (second order: a
+faster fall met by chance never claims a smaller error than second order would), and that of
+R(h) adds the changes above it (three levels: |d1| r / (r - 1)). Two levels only (h, h/2) give
+the estimate without a check (status 'unchecked').
 
 A history is judged by its maximum over time (what limits and summaries use; the peak may move
 between the levels), and its point-wise error at the time points of the coarsest level is
@@ -40,9 +45,9 @@ from flexmbs.errors import ModelError
 
 __all__ = ["ErrorEstimate", "Verification", "ConvergenceCheck", "richardson", "estimate_errors",
            "verify", "convergence_check", "simulate_with_error", "peak_sampling",
-           "describe_verification",
-           "ORDER", "MIN_RATIO", "MAX_RATIO", "FLOOR_REL", "MAX_LEVEL", "VERIFY_RTOL",
-           "MARGIN_FRACTION"]
+           "describe_verification", "needs_fourth_level",
+           "ORDER", "MIN_RATIO", "MAX_RATIO", "CLEAR_ORDER", "AGREE_ORDER", "FLOOR_REL",
+           "MAX_LEVEL", "VERIFY_RTOL", "MARGIN_FRACTION"]
 
 #: order of accuracy of generalized-alpha (second order for any rho_inf)
 ORDER = 2
@@ -52,6 +57,12 @@ MIN_RATIO = 2.0
 #: the observed ratio is capped at the scheme's own (second order) when it extrapolates: a
 #: larger ratio met by chance would claim too small an error
 MAX_RATIO = 2.0 ** ORDER
+#: on three levels, a ratio is clearly the scheme's when its observed order log2(r) lies within
+#: this of ORDER (r in [2.83, 5.66]); any other ratio >= MIN_RATIO asks for a fourth level
+CLEAR_ORDER = 0.5
+#: on four levels, two ratios below 2^(ORDER - CLEAR_ORDER) agree when their observed orders
+#: differ by at most this
+AGREE_ORDER = 0.5
 #: changes below this fraction of a response's size are rounding (Newton's tolerance is 1e-10)
 FLOOR_REL = 1e-8
 #: the finest level of a verification ladder: h / 2**MAX_LEVEL
@@ -59,11 +70,11 @@ MAX_LEVEL = 5
 #: default accuracy a verification asks of the constraints (relative to their limits) and of
 #: the objective: 0.1 %
 VERIFY_RTOL = 1e-3
-#: a constraint far from its limit is verified when its error (or, not in the asymptotic
-#: range, the largest change seen) is below this fraction of its margin -g
+#: a constraint far from its limit is verified when its error (or, not reliable, the largest
+#: change seen) is below this fraction of its margin -g
 MARGIN_FRACTION = 0.25
 
-_STATUS = ("converged", "asymptotic", "not asymptotic", "unchecked")
+_STATUS = ("converged", "asymptotic", "not asymptotic", "unconfirmed", "unchecked")
 
 
 @dataclass
@@ -72,11 +83,15 @@ class ErrorEstimate:
 
     value : the value estimated (at step `h`).
     error : estimated |value - converged value| (same units as value).
-    h : the step of `value`; levels : the steps of the ladder used (coarsest first).
+    h : the step of `value`; levels : the steps of the ladder used (coarsest first: 2, 3 or
+        4 of them; `n_levels`).
     changes : the successive changes R(h_k-1) - R(h_k) along the ladder.
-    ratio : |first change| / |second change| (None with two levels).
-    status : 'converged' (changes at rounding), 'asymptotic' (ratio >= MIN_RATIO: the error is
-        reliable), 'not asymptotic' (the changes do not fall: the error is no bound, refine h)
+    ratio : the finest ratio d_(n-2) / d_(n-1), signed (negative: changes of opposite sign;
+        None with two levels); ratios : every successive ratio, coarsest first.
+    status : 'converged' (changes at rounding), 'asymptotic' (the rule of the module's
+        docstring holds: the error is reliable), 'not asymptotic' (the changes do not fall
+        steadily: the error is no bound, refine h), 'unconfirmed' (three levels whose ratio
+        falls but not clearly at second order: a fourth level decides, `needs_fourth_level`)
         or 'unchecked' (two levels: no ratio).
     pointwise : for a history, the error at each of its time points (those of the coarsest
         level), else None.
@@ -96,6 +111,12 @@ class ErrorEstimate:
     pointwise: np.ndarray | None = field(default=None, repr=False)
     reference: float | None = None
     unresolved: tuple = ()
+    ratios: tuple = ()
+
+    @property
+    def n_levels(self):
+        """The number of steps of the ladder the estimate used."""
+        return len(self.levels)
 
     @property
     def reliable(self):
@@ -130,6 +151,8 @@ class ErrorEstimate:
         text = f"± {self.error * scale:.3g}{u} ({rel_text}, {how})"
         if self.status == "not asymptotic":
             text += ": not in its asymptotic range, refine the time step"
+        elif self.status == "unconfirmed":
+            text += ": not confirmed by a fourth level, refine the time step"
         if self.unresolved:
             text += "; NOT reliable: " + self.unresolved[0].describe()
         return text
@@ -139,72 +162,99 @@ class ErrorEstimate:
                 "relative_error": (float(self.relative) if math.isfinite(self.relative)
                                    else None),
                 "status": self.status, "reliable": self.reliable, "h": float(self.h),
-                "levels": [float(h) for h in self.levels],
+                "levels": [float(h) for h in self.levels], "n_levels": self.n_levels,
                 "changes": [float(c) for c in self.changes],
                 "ratio": None if self.ratio is None or not math.isfinite(self.ratio)
                 else float(self.ratio),
+                "ratios": [float(r) if math.isfinite(r) else None for r in self.ratios],
                 "observed_order": self.order,
                 "unresolved_modes": [u.to_json() for u in self.unresolved]}
 
 
 def _ratio_status(changes, floor):
-    """(ratio, status) of a ladder's changes (scalars: their sizes)."""
-    a = [abs(float(c)) for c in changes]
-    if all(c <= floor for c in a):
-        return (None if len(a) < 2 else (a[0] / a[1] if a[1] > 0 else math.inf)), "converged"
-    if len(a) < 2:
-        return None, "unchecked"
-    ratio = a[-2] / a[-1] if a[-1] > 0 else math.inf
-    return ratio, ("asymptotic" if ratio >= MIN_RATIO else "not asymptotic")
+    """(ratios, status) of a ladder's changes (signed scalars; for histories their sizes):
+    the rule of the module's docstring."""
+    c = [float(x) for x in changes]
+    a = [abs(x) for x in c]
+    ratios = tuple(c[k] / c[k + 1] if c[k + 1] != 0 else math.copysign(math.inf, c[k] or 1.0)
+                   for k in range(len(c) - 1))
+    if all(x <= floor for x in a):
+        return ratios, "converged"
+    if len(c) < 2:
+        return ratios, "unchecked"
+    if a[-1] <= floor:
+        # the finest change is rounding: judged by the changes above it
+        return ratios, ("asymptotic" if all(r >= MIN_RATIO for r in ratios[:-1]) else
+                        "not asymptotic")
+    if any(not r >= MIN_RATIO for r in ratios):
+        return ratios, "not asymptotic"
+    orders = [math.log2(r) if math.isfinite(r) else math.inf for r in ratios]
+    if len(ratios) == 1:
+        return ratios, ("asymptotic" if abs(orders[0] - ORDER) <= CLEAR_ORDER
+                        else "unconfirmed")
+    steady = (min(orders) >= ORDER - CLEAR_ORDER            # both fall about as fast as order 2
+              or max(orders) - min(orders) <= AGREE_ORDER)  # or at one steady order
+    return ratios, "asymptotic" if steady else "not asymptotic"
+
+
+def needs_fourth_level(estimates):
+    """Whether any of the ErrorEstimates (an iterable; None items skipped) is 'unconfirmed'
+    on three levels and asks for a fourth (h/8)."""
+    return any(e is not None and e.status == "unconfirmed" for e in estimates)
 
 
 def richardson(values, levels, finest=False, floor=None):
     """The error estimate of one value from a ladder of steps.
 
-    values : 2 or 3 values of the same quantity at steps levels = (h, h/2[, h/4]); scalars,
-        or arrays of one shape (then judged by their largest change, with `pointwise` errors).
+    values : 2, 3 or 4 values of the same quantity at steps levels = (h, h/2[, h/4[, h/8]]);
+        scalars, or arrays of one shape (then judged by their largest change, with `pointwise`
+        errors).
     finest : False: the error of values[0] (the coarsest, what a run at h gives); True: that
         of values[-1].
     floor : changes at most this big count as rounding (default FLOOR_REL x the largest |value|).
+
+    The status follows the rule of the module's docstring; on four levels the error is that
+    of the finest three levels' extrapolation (plus, for values[0], the changes above them).
     """
-    if len(values) not in (2, 3) or len(levels) != len(values):
-        raise ModelError(f"richardson needs 2 or 3 values on as many levels, got {len(values)} "
-                         f"values and {len(levels)} levels")
+    if len(values) not in (2, 3, 4) or len(levels) != len(values):
+        raise ModelError(f"richardson needs 2, 3 or 4 values on as many levels, got "
+                         f"{len(values)} values and {len(levels)} levels")
     v = [np.asarray(a, float) for a in values]
     d = [v[k] - v[k + 1] for k in range(len(v) - 1)]
     size = max(float(np.max(np.abs(a))) if a.size else 0.0 for a in v)
     if floor is None:
         floor = FLOOR_REL * size
+    scalar = v[0].ndim == 0
     norms = [float(np.max(np.abs(c))) if c.size else 0.0 for c in d]
-    ratio, status = _ratio_status(norms, floor)
-    rc = 2.0 ** ORDER if ratio is None or status != "asymptotic" else min(ratio, MAX_RATIO)
-    if finest:
-        dk = np.abs(d[-1])
-        if status == "not asymptotic":
-            err = np.maximum(dk, np.abs(d[0]))
-        else:
-            err = dk / (rc - 1.0)
+    ratios, status = _ratio_status([float(c) for c in d] if scalar else norms, floor)
+    ratio = ratios[-1] if ratios else None
+    rc = (2.0 ** ORDER if ratio is None or status not in ("asymptotic", "unconfirmed")
+          or not ratio >= MIN_RATIO else min(ratio, MAX_RATIO))
+    if status == "not asymptotic":
+        err = np.abs(d[0])
+        for dk in d[1:]:
+            err = np.maximum(err, np.abs(dk))
+    elif finest:
+        err = np.abs(d[-1]) / (rc - 1.0)
+    elif len(d) < 3:
+        err = np.abs(d[0]) * rc / (rc - 1.0)
     else:
-        d1 = np.abs(d[0])
-        if status == "not asymptotic":
-            err = np.maximum(d1, np.abs(d[-1]))
-        else:
-            err = d1 * rc / (rc - 1.0)
+        err = np.abs(d[0]) + np.abs(d[-2]) * rc / (rc - 1.0)
     k = -1 if finest else 0
-    scalar = v[k].ndim == 0
     return ErrorEstimate(value=float(v[k]) if scalar else float(np.max(v[k])),
                          error=float(err) if scalar else float(np.max(err)),
                          h=float(levels[k]), levels=tuple(float(h) for h in levels),
                          changes=tuple(norms if not scalar else [float(c) for c in d]),
                          ratio=ratio, status=status,
-                         pointwise=None if scalar else np.asarray(err))
+                         pointwise=None if scalar else np.asarray(err), ratios=ratios)
 
 
 def simulate_with_error(model, t_end, h, levels=3, **kw):
     """`flexmbs.simulate(model, t_end, h, **kw)` with the estimated time-discretisation error
     of its stored coordinates in `Result.error` (an ErrorEstimate: point-wise errors of shape
     q's, judged by the largest change over every coordinate and time point); the model is
-    simulated again at h/2 (and h/4 with levels=3) with the same keywords."""
+    simulated again at h/2 (and h/4 with levels=3, and h/8 when those three are ambiguous:
+    the rule of the module's docstring) with the same keywords."""
 
     if isinstance(levels, bool) or levels not in (2, 3):
         raise ModelError(f"simulate_with_error: levels must be 2 or 3, got {levels!r}")
@@ -212,6 +262,9 @@ def simulate_with_error(model, t_end, h, levels=3, **kw):
     nt0 = runs[0].t.size
     common = [r.q[::2 ** k][:nt0] for k, r in enumerate(runs)]
     runs[0].error = richardson(common, [h / 2 ** k for k in range(levels)])
+    if needs_fourth_level([runs[0].error]):
+        common.append(simulate(model, t_end, h / 8, **kw).q[::8][:nt0])
+        runs[0].error = richardson(common, [h / 2 ** k for k in range(4)])
     return runs[0]
 
 
@@ -380,10 +433,11 @@ def verify(problem, x, rtol=VERIFY_RTOL, max_level=MAX_LEVEL, coarse=None):
     """Check design x of `problem` at converged resolution.
 
     The design is simulated at the case's h / 2, h / 4, ... (down to h / 2**max_level) until,
-    on the finest three levels, the objective and every constraint's largest value have an
+    on the finest three levels (four when a ratio there is 'unconfirmed': the rule of the
+    module's docstring), the objective and every constraint's largest value have a reliable
     estimated error (`richardson`, finest=True) below `rtol` (relative to the objective, to the
-    constraints' limits) in their asymptotic range; a constraint far from its limit may
-    instead have an error (or largest change seen) below MARGIN_FRACTION of its margin.
+    constraints' limits); a constraint far from its limit may instead have an error (or, not
+    reliable, largest change seen) below MARGIN_FRACTION of its margin.
     Returns a `Verification`; the values it reports are those of the finest level reached.
     `coarse`: the Evaluation of x at the case's h when the caller has it (saves a
     simulation).
@@ -406,11 +460,12 @@ def verify(problem, x, rtol=VERIFY_RTOL, max_level=MAX_LEVEL, coarse=None):
         if level < 2:
             continue
         ladder = [h / 2 ** k for k in (level - 2, level - 1, level)]
-        est = estimate_errors(
-            evs[-3:], ladder, finest=True,
-            unresolved=None if modal is None else modal.unresolved(
-                ladder[-1], problem.description.time.rho_inf),
-            objective_response=None if obj is None else obj.response)
+        seen = dict(unresolved=None if modal is None else modal.unresolved(
+                        ladder[-1], problem.description.time.rho_inf),
+                    objective_response=None if obj is None else obj.response)
+        est = estimate_errors(evs[-3:], ladder, finest=True, **seen)
+        if level >= 3 and needs_fourth_level([est[1], *est[2].values()]):
+            est = estimate_errors(evs[-4:], [h / 2 ** (level - 3)] + ladder, finest=True, **seen)
         if _verified(est, rtol):
             break
     responses, objective, constraints = est
@@ -458,8 +513,10 @@ class ConvergenceCheck:
         return all(r["verdict"] == "converged" for r in self.rows)
 
     def summary(self):
-        lines = [f"convergence check of {self.case}: step h = {self.h:g} s against h/2 and "
-                 f"h/4" + ("" if self.mesh_note else ", mesh against twice the elements")
+        eighth = any(r["time"].n_levels > 3 for r in self.rows)
+        lines = [f"convergence check of {self.case}: step h = {self.h:g} s against h/2, "
+                 f"h/4" + (" and h/8" if eighth else "")
+                 + ("" if self.mesh_note else ", mesh against twice the elements")
                  + f", accuracy asked {self.rtol:g} (relative)",
                  f"  {'response':18s} {'value':>12s} {'unit':6s} {'change h/2':>11s} "
                  f"{'est. error':>10s} {'change mesh':>11s}  verdict"]
