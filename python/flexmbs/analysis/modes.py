@@ -50,8 +50,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg as sl
-from scipy.optimize import brentq
 
 from flexmbs.core import system_matrices
 from flexmbs.errors import ModelError
@@ -124,6 +122,7 @@ def resolved_limit(rho_inf, tol=SCHEME_TOL):
     def worst(w):
         xi, per = scheme_errors(w, rho_inf)
         return max(xi, abs(per)) - tol
+    from scipy.optimize import brentq     # here: a batch worker's start-up imports no scipy
     return brentq(worst, 1e-3, 3.0, xtol=1e-6)
 
 
@@ -190,6 +189,7 @@ def modes(model, q=None, qd=None, qdd=None, mu=None, t=0.0, count=None):
     if count is not None and (isinstance(count, bool) or not isinstance(count, (int, np.integer))
                               or count < 1):
         raise ModelError(f"modes: count must be a positive integer, got {count!r}")
+    import scipy.linalg as sl             # here: a batch worker's start-up imports no scipy
     props = model.element_properties()
     mass = system_matrices(model, q, qdd, mu, t, cm=1.0, ck=0.0, qd=qd,
                            props=props)[1][:ndof, :ndof]
