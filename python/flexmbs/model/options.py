@@ -348,6 +348,8 @@ class WeaklyOptions(_Options):
     esl_blend            0.0       the static problem on (1 - b) ESL_k + b ESL_(k-1), in [0, 1)
     design_tol           None      also converged when the design changes by less than this
                                    (relative) with the design feasible
+    shrink               0.5       on an oscillation, go on with move limits that shrink by
+                                   this factor where a variable reverses (0: stop), in [0, 1)
     verify               True      verify the final design at converged resolution (as
                                    FullyOptions.verify)
     ===================  ========  ==============================================================
@@ -366,6 +368,7 @@ class WeaklyOptions(_Options):
     damping: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 1.0
     esl_blend: Annotated[float, Field(ge=0, lt=1, allow_inf_nan=False)] = 0.0
     design_tol: Pos | None = None
+    shrink: Annotated[float, Field(ge=0, lt=1, allow_inf_nan=False)] = 0.5
     verify: Annotated[Verify, BeforeValidator(_verify_field)] = True
 
 
