@@ -300,3 +300,21 @@ def test_shrinking_move_limit_converges_the_papers_oscillating_case():
     assert r.iterations <= 30
     assert abs(r.mass_kg - 1.099) < 0.01 * 1.099
     assert r.details["verification"]["feasible"], r.details["verification"]
+
+
+@pytest.mark.parametrize("diagnosis, shrink, damping, expected, absent", [
+    ("oscillating", 0.0, 1.0, ["--shrink 0.5", "--damping 0.5", "--method fully"], ["--max-cycles"]),
+    ("cap", 0.5, 1.0, ["--max-cycles 60", "--shrink 0.3", "--damping 0.5"], ["--shrink 0.5"]),
+    ("diverging", 0.5, 0.5, ["--design-tol", "--method fully"], ["--damping", "--shrink"]),
+])
+def test_what_to_try_names_the_remedies_the_run_did_not_use(diagnosis, shrink, damping,
+                                                            expected, absent):
+    """`what_to_try` after a run that did not converge (30 cycles at most): the remedies of
+    docs/optimizers.md the run did not already use, as command-line options (an oscillation
+    in the paper's cycles: a shrinking move limit; the cap: twice the cycles, a faster shrink;
+    a damped update unless damping <= 0.5); nothing after 'converged'."""
+    from flexmbs.methods.cycles import what_to_try
+    text = what_to_try(diagnosis, shrink, damping, 30)
+    assert all(e in text for e in expected), text
+    assert not any(a in text for a in absent), text
+    assert what_to_try("converged", 0.5, 1.0, 30) == ""

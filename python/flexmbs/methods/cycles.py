@@ -14,6 +14,8 @@ Every run ends with one diagnosis (`CycleControl.diagnosis`):
   shrinks the step without the cycles converging;
 * 'oscillating': the designs repeat with a period of 2 to 6 cycles (`_oscillation`; the
   paper's Table 5; OptiStruct stops when six objective values alternate around the optimum);
+  with a shrinking move limit (`ShrinkingMoveLimit`, option shrink of the weakly coupled
+  method) an oscillation is not a stop: the cycles go on with move limits that shrink;
 * 'diverging': the ESL change of eq. (25) grew in each of the last `DIVERGING_CYCLES` cycles,
   to at least twice its value before them, and the largest simulated constraint value grew in
   each of them too (`_diverging`);
@@ -21,9 +23,10 @@ Every run ends with one diagnosis (`CycleControl.diagnosis`):
 
 Whatever the diagnosis, the control keeps the best feasible design seen (`best`): the lightest
 (lowest objective) cycle design whose simulation satisfies every constraint. Remedies against
-oscillation (measured in docs/optimizers.md): relative move limits (`move_limited_bounds`), a
-damped design update (`damped_update`), and ESL averaged over the last two cycles
-(`flexmbs.methods.weakly`, option esl_blend).
+oscillation (measured in docs/optimizers.md): relative move limits (`move_limited_bounds`),
+move limits that shrink once the designs oscillate (`ShrinkingMoveLimit`), a damped design
+update (`damped_update`), and ESL averaged over the last two cycles (`flexmbs.methods.weakly`,
+option esl_blend). `what_to_try` names the remedies a run that did not converge did not use.
 """
 from __future__ import annotations
 
@@ -36,6 +39,7 @@ from flexmbs.model.sections import real_number
 from flexmbs.problem import FEASIBILITY_TOL
 
 __all__ = ["CycleControl", "check_remedies", "move_limited_bounds", "ShrinkingMoveLimit",
+           "what_to_try",
            "damped_update", "DIAGNOSES", "DIVERGING_CYCLES", "SHRINK_DESIGN_TOL"]
 
 #: the diagnoses a run of cycles ends with
@@ -114,6 +118,26 @@ def move_limited_bounds(x, lower, upper, move_limit):
     if move_limit is None:
         return lower.copy(), upper.copy()
     return np.maximum(lower, x * (1 - move_limit)), np.minimum(upper, x * (1 + move_limit))
+
+
+def what_to_try(diagnosis, shrink, damping=1.0, max_cycles=None):
+    """What to try when the cycles end with `diagnosis` other than 'converged' (a sentence for
+    the result's reason; '' for 'converged'): shrink, damping and max_cycles are the options
+    the run had (docs/optimizers.md, "Weakly coupled cycles", measures the remedies)."""
+    if diagnosis == "converged":
+        return ""
+    tips = []
+    if diagnosis == "oscillating" and shrink == 0:
+        tips.append("shrink=0.5 (--shrink 0.5: move limits that shrink on the oscillation)")
+    if diagnosis == "cap" and max_cycles is not None:
+        tips.append(f"more cycles (--max-cycles {2 * max_cycles})")
+    if shrink > 0.3 and diagnosis in ("cap", "oscillating"):
+        tips.append("a faster shrink (--shrink 0.3)")
+    if damping > 0.5:
+        tips.append("a damped update (--damping 0.5)")
+    tips.append("a design-change criterion (--design-tol 0.01)")
+    tips.append("the fully coupled method (--method fully)")
+    return "to try: " + ", ".join(tips)
 
 
 class ShrinkingMoveLimit:

@@ -67,7 +67,8 @@ import numpy as np
 
 from flexmbs.errors import CaseError, ModelError
 from flexmbs.methods.cycles import (SHRINK_DESIGN_TOL, CycleControl, ShrinkingMoveLimit,
-                                     check_remedies, damped_update, move_limited_bounds)
+                                     check_remedies, damped_update, move_limited_bounds,
+                                     what_to_try)
 from flexmbs.methods.esl import (BodyStiffness, ChordFrame, EquivalentStaticLoads, TangentFrame,
                          equivalent_static_loads, esl_change, solve_static)
 from flexmbs.methods.result import OptimizationResult, open_history
@@ -941,6 +942,8 @@ def optimize_weakly(problem, x0=None, *, options=None, history=None, progress=No
                    if best is None else
                    f"; the final design violates {names[worst]!r} by {final_violation:.3g} "
                    "(relative to its limit, simulated)")
+    if not control.converged:
+        reason += "; " + what_to_try(control.diagnosis, opts.shrink, damping, max_cycles)
     details = dict(
         predicted_max_violation=(None if pending is None or use_best
                                  else pending.max_violation),

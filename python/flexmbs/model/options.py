@@ -342,8 +342,9 @@ class WeaklyOptions(_Options):
     ftol                 1e-8      SLSQP's tolerance in the static problem
     max_inner            200       SLSQP iterations per static problem at most
     active_tol           1e-3      a row is active when g >= -active_tol
-    stop_on_oscillation  True      stop when the designs repeat (2 to 6 cycles) or the ESL
-                                   change grows cycle after cycle
+    stop_on_oscillation  True      stop when the designs repeat (2 to 6 cycles; with shrink > 0
+                                   go on with shrinking move limits) or the ESL change grows
+                                   cycle after cycle
     damping              1.0       damped update x + damping (x* - x), in (0, 1]
     esl_blend            0.0       the static problem on (1 - b) ESL_k + b ESL_(k-1), in [0, 1)
     design_tol           None      also converged when the design changes by less than this
