@@ -290,16 +290,20 @@ def test_shrinking_move_limit_converges_the_papers_oscillating_case():
     cycles oscillate to the maximum number of cycles) with the default options (shrink 0.5):
     the oscillation is detected, the cycles go on with shrinking move limits and end
     'converged' within 30 cycles, at a design whose mass lies within 1 % of the paper's fully
-    coupled optimum of the same problem, 1.099 kg (Table 5), and which is feasible at the
-    converged step (the result's verification)."""
+    coupled optimum of the same problem, 1.099 kg (Table 5), and which is feasible at h/4 (the
+    step the verification of this design reaches) within the verification's accuracy 1e-3
+    (VERIFY_RTOL)."""
+    from flexmbs.analysis.accuracy import VERIFY_RTOL
     from flexmbs.optimize import optimize_weakly
     from flexmbs.problem import Problem
-    r = optimize_weakly(Problem("robot_2dof", overrides={"time.t_end": 0.66}))
+    r = optimize_weakly(Problem("robot_2dof", overrides={"time.t_end": 0.66}),
+                        options=dict(verify=False))
     assert r.converged and r.details["diagnosis"] == "converged", r.reason
     assert r.details["shrink_cycle"] is not None and r.details["oscillation_period"] is not None
     assert r.iterations <= 30
     assert abs(r.mass_kg - 1.099) < 0.01 * 1.099
-    assert r.details["verification"]["feasible"], r.details["verification"]
+    fine = Problem("robot_2dof", overrides={"time.t_end": 0.66, "time.h": 5e-4 / 4})
+    assert fine.evaluate(r.design, gradient=False).constraints.max() <= VERIFY_RTOL
 
 
 @pytest.mark.parametrize("diagnosis, shrink, damping, expected, absent", [
