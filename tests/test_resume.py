@@ -294,3 +294,21 @@ def test_logged_analysis_round_trips_exactly():
         assert back.objective == ev.objective
         # of each response its largest value
         assert all(back.values[k] == np.max(v) for k, v in ev.values.items())
+
+
+def test_weakly_resume_after_the_move_limits_shrink(tmp_path):
+    """The paper's oscillating robot (0.66 s, Table 5; shrink 0.5, the default): the designs
+    oscillate from cycle 9 on and the cycles go on with shrinking move limits. A run
+    interrupted after cycle 11 and resumed from its history makes the same designs as the
+    uninterrupted run to the 12-cycle cap (the limits are rebuilt from the cycles in the file)."""
+    p = {"time.t_end": 0.66}
+    opts = dict(verify=False, max_cycles=12)
+    ref = optimize_weakly(_Counted("robot_2dof", p), options=opts)
+    assert ref.details["shrink_cycle"] is not None and ref.details["shrink_cycle"] < 11
+    h = tmp_path / "w.jsonl"
+    with pytest.raises(_Interrupt):
+        optimize_weakly(_Counted("robot_2dof", p), history=h, progress=_stop_at(11),
+                        options=opts)
+    res = optimize_weakly(_Counted("robot_2dof", p), history=h, resume=True, options=opts)
+    assert [r["design"] for r in res.history] == [r["design"] for r in ref.history]
+    assert res.details["move_limits"] == ref.details["move_limits"]

@@ -6,7 +6,7 @@ Usage::
                           [--set KEY=VALUE ...] [--json] [--history FILE [--resume]]
                           [--progress | --no-progress] [--plot FILE.png]
         weakly: [--eps E] [--max-cycles N] [--confirm-cycles N] [--move-limit F]
-                [--damping W] [--esl-blend B] [--design-tol TOL]
+                [--damping W] [--esl-blend B] [--design-tol TOL] [--shrink S]
                 [--frame auto|tangent|chord|BEAM=KIND,...]
         fully:  [--optimizer mma|sqp|slsqp|nlopt-mma|nlopt-ccsaq|nlopt-slsqp] [--kkt-tol TOL]
                 [--max-iterations N] [--design-rel-change TOL]
@@ -137,6 +137,10 @@ def add_weakly_options(p):
     g.add_argument("--design-tol", type=float, default=None, metavar="TOL",
                    help="also converged when the design changes by less than TOL (relative) "
                         "between cycles with the design feasible; default none")
+    g.add_argument("--shrink", type=float, default=None, metavar="S",
+                   help="on an oscillation, go on with per-variable move limits that shrink by "
+                        "S where a variable reverses direction; 0: stop on the oscillation "
+                        "(the paper's cycles); default 0.5")
     g.add_argument("--frame", default=None, metavar="KIND|BEAM=KIND,...",
                    help="corotational frame of the beams: auto (default: from each beam's "
                         "joints, tangent where its rotation is held, chord between free "
@@ -162,7 +166,7 @@ def run_weakly(args, problem):
     opts = _options(WeaklyOptions, _section(problem).weakly, args, dict(
         eps=args.eps, max_cycles=args.max_cycles, confirm_cycles=args.confirm_cycles,
         move_limit=args.move_limit, damping=args.damping, esl_blend=args.esl_blend,
-        design_tol=args.design_tol, frame_kind=_frame_option(args.frame)))
+        design_tol=args.design_tol, shrink=args.shrink, frame_kind=_frame_option(args.frame)))
     line = functools.partial(_cycle_line, units=_units(problem))
     with _Reporter(args, opts.max_cycles, "cycles", describe_cycle, line) as report:
         return optimize_weakly(problem, design_from_text(args.start, problem, "--start"),

@@ -14,6 +14,8 @@ Every run ends with one diagnosis (`CycleControl.diagnosis`):
   shrinks the step without the cycles converging;
 * 'oscillating': the designs repeat with a period of 2 to 6 cycles (`_oscillation`; the
   paper's Table 5; OptiStruct stops when six objective values alternate around the optimum);
+  with a shrinking move limit (`ShrinkingMoveLimit`, option shrink of the weakly coupled
+  method) an oscillation is not a stop: the cycles go on with move limits that shrink;
 * 'diverging': the ESL change of eq. (25) grew in each of the last `DIVERGING_CYCLES` cycles,
   to at least twice its value before them, and the largest simulated constraint value grew in
   each of them too (`_diverging`);
@@ -21,9 +23,10 @@ Every run ends with one diagnosis (`CycleControl.diagnosis`):
 
 Whatever the diagnosis, the control keeps the best feasible design seen (`best`): the lightest
 (lowest objective) cycle design whose simulation satisfies every constraint. Remedies against
-oscillation (measured in docs/optimizers.md): relative move limits (`move_limited_bounds`), a
-damped design update (`damped_update`), and ESL averaged over the last two cycles
-(`flexmbs.methods.weakly`, option esl_blend).
+oscillation (measured in docs/optimizers.md): relative move limits (`move_limited_bounds`),
+move limits that shrink once the designs oscillate (`ShrinkingMoveLimit`), a damped design
+update (`damped_update`), and ESL averaged over the last two cycles (`flexmbs.methods.weakly`,
+option esl_blend). `what_to_try` names the remedies a run that did not converge did not use.
 """
 from __future__ import annotations
 
@@ -35,13 +38,17 @@ from flexmbs.errors import ModelError
 from flexmbs.model.sections import real_number
 from flexmbs.problem import FEASIBILITY_TOL
 
-__all__ = ["CycleControl", "check_remedies", "move_limited_bounds",
-           "damped_update", "DIAGNOSES", "DIVERGING_CYCLES"]
+__all__ = ["CycleControl", "check_remedies", "move_limited_bounds", "ShrinkingMoveLimit",
+           "what_to_try",
+           "damped_update", "DIAGNOSES", "DIVERGING_CYCLES", "SHRINK_DESIGN_TOL"]
 
 #: the diagnoses a run of cycles ends with
 DIAGNOSES = ("converged", "oscillating", "diverging", "cap")
 #: 'diverging': the ESL change grew in each of this many consecutive cycles
 DIVERGING_CYCLES = 4
+#: the design-change criterion of the cycles once a shrinking move limit acts (when the run
+#: gives no design_tol): the static optimization moves no variable by 1e-3 (relative) or more
+SHRINK_DESIGN_TOL = 1e-3
 
 
 def _oscillation(designs, changes, period_max=6, ratio=0.2):
@@ -111,6 +118,80 @@ def move_limited_bounds(x, lower, upper, move_limit):
     if move_limit is None:
         return lower.copy(), upper.copy()
     return np.maximum(lower, x * (1 - move_limit)), np.minimum(upper, x * (1 + move_limit))
+
+
+def what_to_try(diagnosis, shrink, damping=1.0, max_cycles=None):
+    """What to try when the cycles end with `diagnosis` other than 'converged' (a sentence for
+    the result's reason; '' for 'converged'): shrink, damping and max_cycles are the options
+    the run had (docs/optimizers.md, "Weakly coupled cycles", measures the remedies)."""
+    if diagnosis == "converged":
+        return ""
+    tips = []
+    if diagnosis == "oscillating" and shrink == 0:
+        tips.append("shrink=0.5 (--shrink 0.5: move limits that shrink on the oscillation)")
+    if diagnosis == "cap" and max_cycles is not None:
+        tips.append(f"more cycles (--max-cycles {2 * max_cycles})")
+    if shrink > 0.3 and diagnosis in ("cap", "oscillating"):
+        tips.append("a faster shrink (--shrink 0.3)")
+    if damping > 0.5:
+        tips.append("a damped update (--damping 0.5)")
+    tips.append("a design-change criterion (--design-tol 0.01)")
+    tips.append("the fully coupled method (--method fully)")
+    return "to try: " + ", ".join(tips)
+
+
+class ShrinkingMoveLimit:
+    """Relative move limits, one per variable, that shrink where the cycles oscillate.
+
+    Off until `oscillation` is called (the cycles' designs repeat: `CycleControl.period`);
+    each call sets every limit to shrink times the smaller of its current value and the
+    oscillation's amplitude (the largest relative spread of any variable over the repeating
+    designs). From then on, `step` shrinks the limit of each variable whose change reverses
+    its direction from one cycle to the next by the factor `shrink` (a variable that keeps
+    its direction keeps its limit). A bounded sequence whose steps reverse with a limit that
+    shrinks geometrically settles: the designs converge, and the cycles' design-change
+    criterion (`CycleControl`, SHRINK_DESIGN_TOL unless design_tol is given) ends the run.
+
+    shrink in (0, 1); move_limit: the run's fixed relative move limit (None: none), the
+    limits' first value before an oscillation shrinks them.
+    """
+
+    def __init__(self, shrink, move_limit=None):
+        self.shrink, self.move_limit = float(shrink), move_limit
+        self.limits, self.cycle, self.shrinks, self.periods = None, None, 0, []
+
+    @property
+    def active(self):
+        """Whether an oscillation has set the limits."""
+        return self.limits is not None
+
+    def oscillation(self, cycle, designs, period):
+        """An oscillation of `period` cycles seen at `cycle` in the designs so far: every
+        limit becomes shrink * min(its value, the oscillation's amplitude)."""
+        recent = np.array(designs[-(period + 1):], float)
+        scale = np.maximum(np.abs(recent).max(axis=0), 1e-300)
+        amplitude = float(np.max((recent.max(axis=0) - recent.min(axis=0)) / scale))
+        current = (np.full(recent.shape[1], np.inf) if self.limits is None else self.limits)
+        if self.limits is None and self.move_limit is not None:
+            current = np.full(recent.shape[1], float(self.move_limit))
+        self.limits = self.shrink * np.minimum(current, amplitude)
+        self.cycle = cycle if self.cycle is None else self.cycle
+        self.shrinks += 1
+
+    def step(self, x_before, x_prev, x):
+        """The cycle went x_before -> x_prev -> x: the limit of every variable whose change
+        reversed its sign shrinks by `shrink`."""
+        if self.limits is None:
+            return
+        reversed_ = (np.asarray(x, float) - x_prev) * (np.asarray(x_prev, float) - x_before) < 0
+        self.limits = np.where(reversed_, self.shrink * self.limits, self.limits)
+
+    def bounds(self, x, lower, upper):
+        """The next static optimization's bounds: the variables' bounds narrowed to
+        x (1 -/+ limit) (the fixed move limit, or none, before an oscillation)."""
+        if self.limits is None:
+            return move_limited_bounds(x, lower, upper, self.move_limit)
+        return move_limited_bounds(x, lower, upper, self.limits)
 
 
 class CycleControl:

@@ -66,8 +66,9 @@ from types import SimpleNamespace
 import numpy as np
 
 from flexmbs.errors import CaseError, ModelError
-from flexmbs.methods.cycles import (CycleControl, check_remedies, damped_update,
-                                     move_limited_bounds)
+from flexmbs.methods.cycles import (SHRINK_DESIGN_TOL, CycleControl, ShrinkingMoveLimit,
+                                     check_remedies, damped_update, move_limited_bounds,
+                                     what_to_try)
 from flexmbs.methods.esl import (BodyStiffness, ChordFrame, EquivalentStaticLoads, TangentFrame,
                          equivalent_static_loads, esl_change, solve_static)
 from flexmbs.methods.result import OptimizationResult, open_history
@@ -755,6 +756,12 @@ def optimize_weakly(problem, x0=None, *, options=None, history=None, progress=No
             optimization proposed (x* - x, before damping) is below design_tol and the cycle's
             design is feasible (simulated), in 1 + confirm_cycles consecutive cycles (a criterion
             of the kind of OptiStruct's ESLM outer loop: design change and constraint violation).
+        shrink : float in [0, 1), default 0.5
+            On an oscillation the cycles go on with relative move limits per variable
+            (`flexmbs.methods.cycles.ShrinkingMoveLimit`): shrink times the oscillation's
+            amplitude, then shrunk by `shrink` for each variable whose change reverses its
+            direction; the design-change criterion (design_tol, else SHRINK_DESIGN_TOL = 1e-3)
+            ends the settled cycles. 0: stop on the oscillation (the paper's cycles).
         verify : bool, float or 'check', default True
             Verify the final design at converged resolution (as `optimize_fully`'s verify: when
             it is infeasible at the step that resolves its responses to 1e-3, the cycles continue
@@ -838,6 +845,7 @@ def optimize_weakly(problem, x0=None, *, options=None, history=None, progress=No
                                          run_options(dict(used, x0=x))), options=used)
     prev_loads, pending, x_prev = None, None, x
     control = CycleControl(eps, confirm_cycles, max_cycles, stop_on_oscillation, design_tol)
+    mover = ShrinkingMoveLimit(opts.shrink, move_limit) if opts.shrink > 0 else None
     inner_total = n_static = 0
     change = None
     values = g_dyn = names = result = None
@@ -847,7 +855,7 @@ def optimize_weakly(problem, x0=None, *, options=None, history=None, progress=No
     try:
         if resume and writer.previous:
             first, x, x_prev, prev_loads, pending, inner_total, n_static = _resume_cycles(
-                problem, static, writer, control, progress, x, max_cycles)
+                problem, static, writer, control, progress, x, max_cycles, mover)
             resumed = first - 1
         for cycle in range(first, max_cycles + 1):
             result, values, g_dyn, names, dev = _simulate_design(problem, x)
@@ -878,12 +886,14 @@ def optimize_weakly(problem, x0=None, *, options=None, history=None, progress=No
                             data=(record, values, g_dyn, names, dev),
                             step=None if pending is None else float(np.max(
                                 np.abs(pending.x - x_prev) / np.abs(x_prev))))
+            _shrink_on_oscillation(control, mover, cycle, record)
             writer.write(record)
             if progress is not None:
                 progress(writer.records[-1])
             if control.stop(cycle):
                 break
-            lo, hi = move_limited_bounds(x, lower, upper, move_limit)
+            lo, hi = (move_limited_bounds(x, lower, upper, move_limit) if mover is None
+                      else mover.bounds(x, lower, upper))
             static.set_loads(blend_loads(loads, prev_loads, esl_blend))
             pending = _optimize_static(static, x, lo, hi, screen=screen, ftol=ftol,
                                        maxiter=max_inner, active_tol=active_tol)
@@ -891,6 +901,8 @@ def optimize_weakly(problem, x0=None, *, options=None, history=None, progress=No
             n_static += 1
             prev_loads = loads
             x_prev, x = x, damped_update(x, pending.x, damping)
+            if mover is not None and len(control.designs) >= 2:
+                mover.step(control.designs[-2], x_prev, x)
     finally:
         if own_writer:
             writer.close()
@@ -908,6 +920,10 @@ def optimize_weakly(problem, x0=None, *, options=None, history=None, progress=No
     final_violation = float(g_dyn.max()) if g_dyn.size else None
     feasible = is_feasible(final_violation)
     reason = control.reason
+    if mover is not None and mover.active:
+        reason += (f"; the designs oscillated (period {mover.periods[0]}, cycle {mover.cycle}): "
+                   f"the cycles went on with move limits shrinking by {mover.shrink:g}, "
+                   f"now {np.max(mover.limits):.2g} at most")
     if use_best:
         lv = last_record["max_violation"]
         reason += (f"; returned the best feasible design seen (cycle {best.cycle}, "
@@ -926,6 +942,8 @@ def optimize_weakly(problem, x0=None, *, options=None, history=None, progress=No
                    if best is None else
                    f"; the final design violates {names[worst]!r} by {final_violation:.3g} "
                    "(relative to its limit, simulated)")
+    if not control.converged:
+        reason += "; " + what_to_try(control.diagnosis, opts.shrink, damping, max_cycles)
     details = dict(
         predicted_max_violation=(None if pending is None or use_best
                                  else pending.max_violation),
@@ -938,7 +956,11 @@ def optimize_weakly(problem, x0=None, *, options=None, history=None, progress=No
         max_deviation_responses=[r.name for r in d.responses if isinstance(r, Deviation)
                                  and r.name in {c.response for c in d.constraints}],
         paper_test_cycle=control.paper_cycle, static_optimizations=n_static,
-        oscillation_period=control.period, esl_change=change, eps=eps,
+        oscillation_period=(control.period if mover is None or not mover.periods
+                            else mover.periods[0]),
+        shrink=opts.shrink, shrink_cycle=None if mover is None else mover.cycle,
+        move_limits=None if mover is None or not mover.active else mover.limits.tolist(),
+        esl_change=change, eps=eps,
         confirm_cycles=confirm_cycles,
         move_limit=move_limit, frame=frame_kind if isinstance(frame_kind, str) else "mixed",
         frame_kinds=dict(static.kinds), frames=dict(static.entry),
@@ -968,7 +990,7 @@ def optimize_weakly(problem, x0=None, *, options=None, history=None, progress=No
                   verify)
 
 
-def _resume_cycles(problem, static, writer, control, progress, x0, max_cycles):
+def _resume_cycles(problem, static, writer, control, progress, x0, max_cycles, mover=None):
     """The state of an interrupted run after the cycles of its history (`writer.previous`):
     cycles 1 .. c-1 are taken from the file (`control` observes them, `writer` and `progress`
     get their records), the design of cycle c-1 is simulated again for its ESL (eq. (25) of
@@ -981,10 +1003,13 @@ def _resume_cycles(problem, static, writer, control, progress, x0, max_cycles):
         raise ModelError(f"history {writer.path!r} starts from design {recs[0]['design']}, "
                          f"this run from {x0.tolist()}: resume with the same start")
     c = len(recs)
-    for rec in recs[:-1]:
+    for k, rec in enumerate(recs[:-1]):
         control.observe(rec["iteration"], np.asarray(rec["design"], float),
                         rec.get("esl_change"), dict(rec), objective=rec.get("objective"),
                         violation=rec.get("max_violation"), step=rec.get("design_change"))
+        _shrink_on_oscillation(control, mover, rec["iteration"], {})
+        if mover is not None and k >= 1:
+            mover.step(*(np.asarray(r["design"], float) for r in recs[k - 1:k + 2]))
         writer.write(rec)
         if progress is not None:
             progress(rec)
@@ -1008,6 +1033,23 @@ def _resume_cycles(problem, static, writer, control, progress, x0, max_cycles):
                                   message=last.get("static_message"))
     inner = sum(r.get("inner_iterations") or 0 for r in recs[1:])
     return c, x, xp, prev_loads, pending, inner, c - 1
+
+
+def _shrink_on_oscillation(control, mover, cycle, record):
+    """An oscillation the control found at this cycle, with a shrinking move limit: the limits
+    shrink (`ShrinkingMoveLimit.oscillation`), the control goes on (its period is noted in
+    `mover.periods`, not a stop) with the design-change criterion (design_tol, else
+    SHRINK_DESIGN_TOL). `record` gets the move limits of the next static optimization."""
+    if mover is None:
+        return
+    if control.period is not None and not control.converged:
+        mover.oscillation(cycle, control.designs, control.period)
+        mover.periods.append(control.period)
+        control.period = None
+        if control.design_tol is None:
+            control.design_tol = SHRINK_DESIGN_TOL
+    if mover.active:
+        record["move_limits"] = mover.limits.tolist()
 
 
 def _cycle_data(problem, x, record):

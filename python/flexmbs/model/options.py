@@ -342,12 +342,15 @@ class WeaklyOptions(_Options):
     ftol                 1e-8      SLSQP's tolerance in the static problem
     max_inner            200       SLSQP iterations per static problem at most
     active_tol           1e-3      a row is active when g >= -active_tol
-    stop_on_oscillation  True      stop when the designs repeat (2 to 6 cycles) or the ESL
-                                   change grows cycle after cycle
+    stop_on_oscillation  True      stop when the designs repeat (2 to 6 cycles; with shrink > 0
+                                   go on with shrinking move limits) or the ESL change grows
+                                   cycle after cycle
     damping              1.0       damped update x + damping (x* - x), in (0, 1]
     esl_blend            0.0       the static problem on (1 - b) ESL_k + b ESL_(k-1), in [0, 1)
     design_tol           None      also converged when the design changes by less than this
                                    (relative) with the design feasible
+    shrink               0.5       on an oscillation, go on with move limits that shrink by
+                                   this factor where a variable reverses (0: stop), in [0, 1)
     verify               True      verify the final design at converged resolution (as
                                    FullyOptions.verify)
     ===================  ========  ==============================================================
@@ -366,6 +369,7 @@ class WeaklyOptions(_Options):
     damping: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 1.0
     esl_blend: Annotated[float, Field(ge=0, lt=1, allow_inf_nan=False)] = 0.0
     design_tol: Pos | None = None
+    shrink: Annotated[float, Field(ge=0, lt=1, allow_inf_nan=False)] = 0.5
     verify: Annotated[Verify, BeforeValidator(_verify_field)] = True
 
 
