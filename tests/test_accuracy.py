@@ -321,3 +321,27 @@ def test_simulate_with_error_against_the_true_error():
     assert r.error.n_levels == 4 and r.error.status == "not asymptotic"
     assert r.error.pointwise.shape == r.q.shape
     assert 0.5 * true <= r.error.error <= 4 * true, (r.error.error, true)
+
+
+def test_settled_values_and_the_crank_rocker_that_never_settles():
+    """`settled` (docs/accuracy.md, "The rule"): a value whose changes shrink to half their first
+    and whose whole movement and stated error are within the tolerance has settled; the
+    undamped crank-rocker's coupler stress (3.5417, 3.6218, 3.6203, 3.8682 x 1e5 Pa at h/2,
+    h/4, h/8, h/16 of tests/data/crank_rocker_undamped.toml: changes -8.0e3, +1.5e2, -2.48e4)
+    never settles, even at a 10 % tolerance, because its third change is three times its first;
+    an unresolved mode, or a stated error above the tolerance, refuses it too."""
+    from flexmbs.analysis.accuracy import ErrorEstimate, settled
+
+    def est(changes, error):
+        return ErrorEstimate(value=1.0, error=error, h=1e-3, levels=(1e-3, 5e-4, 2.5e-4, 1.25e-4),
+                             changes=tuple(changes), ratio=None, status="not asymptotic")
+
+    press = est([3.56e-8, 5.47e-9, 2.20e-9], 3.88e-8)        # the tutorial's ram deviation
+    assert settled(press, 1e-2 * 1.84e-5)
+    assert not settled(press, 1e-3 * 1.84e-5)                 # moved 4.3e-8 > 1.8e-8
+    rocker = est([-8.0e3, 1.5e2, -2.48e4], 8.0e3)
+    assert not settled(rocker, 0.1 * 3.54e5)
+    assert not settled(est([3.56e-8, 5.47e-9, 2.20e-9], 5e-7), 1e-2 * 1.84e-5)
+    seen = est([3.56e-8, 5.47e-9, 2.20e-9], 3.88e-8)
+    seen.unresolved = ("a mode",)
+    assert not settled(seen, 1e-2 * 1.84e-5)
