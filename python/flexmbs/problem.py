@@ -490,6 +490,8 @@ class Problem:
                                         checkpoints)
         result = simulate(model, t_end, h, **kw)
         result.design_model = model
+        result.design = np.array(
+            self.mechanism.start if x is None else self.mechanism.design_values(x), float)
         return result
 
     def memory_estimate(self, x=None, gradient=True, *, responses=None, store=None,
@@ -777,6 +779,7 @@ class Problem:
         if ckpt is not None:      # the full state every ckpt time points instead of the tape
             kw = dict(kw, tape=False, checkpoints=int(ckpt))
         result = simulate(model, t_end, h, **kw)
+        result.design = np.array(x, float)
         result.stats["adjoint_checkpoints"] = ckpt
         t = mech.t
         nt, nc, nv = t.size, result.mu.shape[1], len(mech.variables)
