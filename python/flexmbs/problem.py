@@ -247,6 +247,10 @@ class Problem:
     of their own (Mechanism.design_model, sharing the structure, its compiled arrays and KLU
     analysis), never into the problem's shared `mechanism.model`, so several threads may
     evaluate different designs of one Problem at once and each gets its design's values.
+    A Problem can be pickled (its laws are module-level callables, its compiled model is
+    rebuilt after unpickling), so a spawned process pool or a Dask cluster of processes can
+    take one; the copy evaluates a design to the same numbers, bit for bit
+    (tests/test_pickle.py).
     """
 
     def __init__(self, case, overrides=None, gradient_method="direct", checkpoints=None):

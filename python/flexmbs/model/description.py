@@ -33,6 +33,7 @@ from typing import Annotated, Literal, Union
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
 
 from flexmbs.model.options import OptimizeSection
+from flexmbs.resources import MAX_STEPS
 
 __all__ = ["Description", "Law", "Beam", "Rigid", "PointMass", "Joint", "Drive", "Load",
            "SpringDamper", "DesignVariable", "Deviation", "Mass", "Stress", "Torque", "Reaction",
@@ -965,9 +966,11 @@ class Description(_Strict):
                 raise ValueError(f"{where}: law 'reference' needs [[paths]] for the rigid reference")
         xy = list(self.points.values())
         size = max((math.dist(a, b) for a in xy for b in xy), default=0.0) or 1.0
+        # beyond the core's step count, Mechanism refuses the horizon itself (naming t_end, h)
+        steps_fit = self.time.t_end / self.time.grid_h <= MAX_STEPS
         for k, p in enumerate(self.paths):
             body_point(f"path {k + 1}", p.body, p.at)
-            for key in ("x", "y"):
+            for key in ("x", "y") if steps_fit else ():
                 try:
                     reach = law_bound(getattr(p, key), self.time.t_end)
                 except OverflowError:       # a power of t_end beyond double precision
