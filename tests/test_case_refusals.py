@@ -57,6 +57,11 @@ def _huge_axis(d):
     d["joints"][3]["axis"] = [1e300, 1e300]
 
 
+def _free_point_mass(d):
+    d["bodies"][3] = {"name": "mass_A", "type": "mass", "at": "A", "mass": 5.0}
+    d["joints"].append({"type": "hinge", "bodies": ["crank", "mass_A"], "at": "A"})
+
+
 def _nothing_holds(d):
     del d["joints"], d["drives"]
 
@@ -69,13 +74,15 @@ def _nothing_holds(d):
     ("robot_2dof", _long_polynomial, ["path 1: y", "inf m"]),
     ("slider_crank_press", _tiny_axis, ["joints[3]", "axis = [1e-300, 0.0]", "length 1e-300"]),
     ("slider_crank_press", _huge_axis, ["joints[3]", "axis = [1e+300, 1e+300]"]),
+    ("fourbar", _free_point_mass, ["body 'mass_A'", "inertia = 0", "give inertia > 0"]),
     ("fourbar", _nothing_holds, ["no [[joints]], no [[drives]]", "give [[joints]]"]),
 ])
 def test_bad_case_value_is_one_case_error(tmp_path, case, edit, words):
     """Each value makes the run fail (main 1b02cdb: SimulationError 'a coordinate has no mass'
     for a given section without rhoI, OverflowError for a path stroke of 5e99 m, LinAlgError
     'SVD did not converge' for a slider axis of length 1e-300, ValueError for a case with no
-    joints and no drives); reading the file is a CaseError naming the file, the key and the
+    joints and no drives, SimulationError 'under-constrained' for a point mass of its own
+    without inertia under a hinge); reading the file is a CaseError naming the file, the key and the
     value given."""
     path = _write(tmp_path, case, edit)
     with pytest.raises(CaseError) as err:

@@ -964,6 +964,19 @@ class Description(_Strict):
                 body_point(where, d.relative_to, d.at)
             if d.law.type == "reference" and not self.paths:
                 raise ValueError(f"{where}: law 'reference' needs [[paths]] for the rigid reference")
+        for b in self.bodies:
+            if isinstance(b, PointMass) and b.on is None and b.inertia == 0.0:
+                held = any(j.type in ("clamp", "weld", "slider", "prismatic")
+                           and b.name in ([j.body] if j.body is not None else j.bodies)
+                           for j in self.joints) or any(
+                    d.type == "rotation" and b.name in (d.body, d.relative_to)
+                    for d in self.drives)
+                if not held:
+                    raise ValueError(
+                        f"body {b.name!r}: a point mass of its own (no on) with inertia = 0 "
+                        f"has a rotation that no mass and no joint holds (a pin or a hinge "
+                        f"leaves it free); give inertia > 0 (kg m^2), or on = BODY to add the "
+                        f"mass to that body's node at {b.at!r}, or a weld")
         xy = list(self.points.values())
         size = max((math.dist(a, b) for a in xy for b in xy), default=0.0) or 1.0
         # beyond the core's step count, Mechanism refuses the horizon itself (naming t_end, h)
