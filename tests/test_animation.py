@@ -274,8 +274,8 @@ def test_overview_without_constraints_has_no_empty_panel():
 def test_evaluation_of_another_design_is_refused(tmp_path):
     """Problem.animate(result, path, evaluation=ev) with ev of another design of the four-bar
     (every diameter 10 mm larger): a ModelError naming `evaluation` and both designs, and no
-    film written; main 1b02cdb drew the start's motion over the other design's histories. The
-    same design evaluated again (a separate Evaluation) is accepted."""
+    film written (one design's motion is never drawn over another's histories). The same
+    design evaluated again (a separate Evaluation) is accepted."""
     prob = Problem("fourbar", overrides={"time.t_end": 3 * 5e-4})
     drawn = prob.simulate(store="all")
     other = prob.evaluate(prob.start + 10.0, gradient=False)

@@ -78,11 +78,10 @@ def _nothing_holds(d):
     ("fourbar", _nothing_holds, ["no [[joints]], no [[drives]]", "give [[joints]]"]),
 ])
 def test_bad_case_value_is_one_case_error(tmp_path, case, edit, words):
-    """Each value makes the run fail (main 1b02cdb: SimulationError 'a coordinate has no mass'
-    for a given section without rhoI, OverflowError for a path stroke of 5e99 m, LinAlgError
-    'SVD did not converge' for a slider axis of length 1e-300, ValueError for a case with no
-    joints and no drives, SimulationError 'under-constrained' for a point mass of its own
-    without inertia under a hinge); reading the file is a CaseError naming the file, the key and the
+    """Each value makes a run fail (a given section without rhoI and a point mass of its own
+    without inertia under a hinge: a coordinate without mass; a path stroke of 5e99 m: an
+    overflow of the rigid reference's substeps; a slider axis of length 1e-300: a squared
+    length that underflows; a case with no joints and no drives: no constraint equations); reading the file is a CaseError naming the file, the key and the
     value given."""
     path = _write(tmp_path, case, edit)
     with pytest.raises(CaseError) as err:
@@ -115,8 +114,8 @@ def test_case_that_is_a_broken_link_is_named_so(tmp_path):
 def test_pvd_frame_folder_that_is_a_link_is_refused_before_the_run(tmp_path, monkeypatch,
                                                                    capsys):
     """`flexmbs animate ... --out m.pvd` where m/ is a symbolic link to a folder: one error
-    line naming the link, before any simulation (main 1b02cdb: an OSError from rmtree after
-    the whole run); the link and its target are left as they were."""
+    line naming the link, before any simulation (the frames replace the folder at the end of
+    the run, which a link cannot take); the link and its target are left as they were."""
     from flexmbs.problem import Problem
 
     def forbidden(self, *a, **k):

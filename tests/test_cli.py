@@ -307,8 +307,8 @@ def test_an_option_and_a_set_of_its_key_with_two_values_are_refused(monkeypatch,
                                                                     argv, words):
     """--t-end, --h and --rho-inf stand for time.t_end, time.h and time.rho_inf: given with a
     --set of the same key (or of its table) with another value, or a key set twice with two
-    values, one error line names both before any run (main 1b02cdb kept the option's value
-    and dropped the --set, even an invalid one)."""
+    values, one error line names both before any run (neither value is dropped silently, an
+    invalid one included)."""
     _no_simulation(monkeypatch)
     assert main(["evaluate", "fourbar", *argv]) == 2
     line = _one_error_line(capsys)
@@ -326,3 +326,24 @@ def test_an_option_and_a_set_of_its_key_with_one_value_are_taken():
     prob = problem_from_args(p.parse_args(["fourbar", "--t-end", "0.01", "--set",
                                            "time.t_end=1e-2"]))
     assert prob.description.time.t_end == 0.01
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--method", "fully", "--max-iterations", "10", "--set", "optimize.max_iterations=5"],
+     ["--max-iterations 10", "optimize.max_iterations=5"]),
+    (["--method", "fully", "--starts", "3", "--set", "optimize.multistart.starts=4"],
+     ["--starts 3", "optimize.multistart.starts=4"]),
+    (["--eps", "0.01", "--set", "optimize.weakly.eps=0.02"],
+     ["--eps 0.01", "optimize.weakly.eps=0.02"]),
+])
+def test_an_optimize_option_and_a_set_of_its_key_with_two_values_are_refused(
+        monkeypatch, capsys, argv, words):
+    """The optimize options stand for keys of the case's [optimize] table (--max-iterations:
+    optimize.max_iterations, --starts: optimize.multistart.starts, --eps:
+    optimize.weakly.eps): given with a --set of that key with another value, one error line
+    names both before any run."""
+    _no_simulation(monkeypatch)
+    assert main(["optimize", "fourbar", *argv]) == 2
+    line = _one_error_line(capsys)
+    for w in [*words, "give one"]:
+        assert w in line, (w, line)

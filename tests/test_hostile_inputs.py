@@ -110,8 +110,7 @@ def test_starts_beyond_memory_are_refused_before_drawing(monkeypatch, capsys):
     """--starts 10**7 with 4 variables under a 16 GB limit: the drawn designs alone (about
     3.8 GB, multistart.sample_memory) fit, but every start keeps its job, fingerprint and
     result (START_RECORD_BYTES each): 10**7 x (4 x 4 x 8 + 250 + 10 000) bytes = 104 GB, a
-    ResourceError naming --starts, the count and that estimate, before any start is drawn (main 1b02cdb drew them and ran out of
-    memory later, a bare MemoryError)."""
+    ResourceError naming --starts, the count and that estimate, before any start is drawn."""
     import flexmbs.methods.multistart as ms
     _no_simulation(monkeypatch)
 

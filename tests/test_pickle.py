@@ -41,8 +41,7 @@ def test_pickled_problem_evaluates_bit_for_bit(case):
     """pickle.loads(pickle.dumps(problem)) of every shipped case (three time steps) gives the
     objective, constraints and response values of evaluate(start) equal bit for bit to the
     original's, and so do the gradients when the original had evaluated (and compiled its
-    model) before being pickled (main 1b02cdb: a PicklingError, the laws being local
-    lambdas)."""
+    model) before being pickled."""
     prob = _short(case)
     copy = pickle.loads(pickle.dumps(prob))
     _assert_same(_numbers(copy.evaluate(gradient=False)), _numbers(prob.evaluate(gradient=False)))

@@ -21,7 +21,8 @@ from flexmbs.resources import format_bytes
 __all__ = ["add_case_arguments", "problem_from_args", "design_from_text", "parse_values",
            "parse_set", "positive_int", "nonnegative_int", "path_text", "output_file",
            "figure_file", "print_json", "print_evaluation", "add_design_arguments", "printable",
-           "at_least_two", "needs_motion", "evaluate_case", "evaluation_json"]
+           "at_least_two", "needs_motion", "evaluate_case", "evaluation_json",
+           "check_set_conflicts", "flag_overrides"]
 
 
 # ----------------------------------------------------------------------------- shared options
@@ -116,20 +117,28 @@ def _set_value(overrides, key):
     return None
 
 
+def check_set_conflicts(args, pairs):
+    """CaseError when an option given on the command line and a --set of the case key it
+    stands for give two values; pairs: (option, value or None when not given, key)."""
+    overrides = parse_set(getattr(args, "set", None) or [])
+    for option, value, key in pairs:
+        hit = None if value is None else _set_value(overrides, key)
+        if hit is not None and not _same(hit[1], value):
+            shown = f"{value:g}" if isinstance(value, float) else str(value)
+            raise CaseError(f"{option} {shown} and --set {hit[0]}={hit[1]!r} give two "
+                            f"values of {key}: give one")
+
+
 def flag_overrides(args):
     """The overrides of the --set items and of the options standing for a key (FLAG_KEYS);
     an option and a --set of its key with two values is a CaseError naming both (one rule
     for every pair: neither wins silently)."""
+    check_set_conflicts(args, [(option, getattr(args, attr, None), key)
+                               for option, attr, key in FLAG_KEYS])
     overrides = parse_set(args.set)
     for option, attr, key in FLAG_KEYS:
         value = getattr(args, attr, None)
-        if value is None:
-            continue
-        hit = _set_value(overrides, key)
-        if hit is not None and not _same(hit[1], value):
-            raise CaseError(f"{option} {value:g} and --set {hit[0]}={hit[1]!r} give two "
-                            f"values of {key}: give one")
-        if hit is None:
+        if value is not None and _set_value(overrides, key) is None:
             overrides[key] = value
     return overrides
 

@@ -419,7 +419,7 @@ def multistart(case, starts=None, *, options=None, fully=None, workers=None, das
                              f"must lie inside the bounds {lo.tolist()}..{hi.tolist()}")
         lo, hi = slo, shi
     # every start's job, fingerprint and result are kept to the end: refused at once when
-    # they cannot fit (a MemoryError after the first minutes otherwise)
+    # they cannot fit in memory, before any start is drawn or run
     check_sample_memory(starts, lo.size, "starts", START_RECORD_BYTES)
     pre = 0
     if candidates is None:
