@@ -176,7 +176,8 @@ class Law(_Strict):
         return self
 
 
-#: how far a path may move its point, in sizes of the mechanism (the span of its points):
+#: how far a path may move its point, in sizes of the mechanism (the diagonal of the box
+#: around its points):
 #: coordinates beyond it keep fewer than 6 of double precision's 16 digits for the mechanism's
 #: own lengths, which the constraint tolerances (1e-10 of the size) need
 PATH_REACH = 1e6
@@ -977,8 +978,9 @@ class Description(_Strict):
                         f"has a rotation that no mass and no joint holds (a pin or a hinge "
                         f"leaves it free); give inertia > 0 (kg m^2), or on = BODY to add the "
                         f"mass to that body's node at {b.at!r}, or a weld")
-        xy = list(self.points.values())
-        size = max((math.dist(a, b) for a in xy for b in xy), default=0.0) or 1.0
+        xs, ys = [v[0] for v in self.points.values()], [v[1] for v in self.points.values()]
+        size = math.hypot(max(xs) - min(xs), max(ys) - min(ys)) if xs else 0.0
+        size = size if 0.0 < size < math.inf else 1.0
         # beyond the core's step count, Mechanism refuses the horizon itself (naming t_end, h)
         steps_fit = self.time.t_end / self.time.grid_h <= MAX_STEPS
         for k, p in enumerate(self.paths):
@@ -992,8 +994,8 @@ class Description(_Strict):
                     raise ValueError(
                         f"path {k + 1}: {key} moves the point by up to {reach:.3g} m "
                         f"over t_end = {self.time.t_end:g} s, more than {PATH_REACH:g} times "
-                        f"the mechanism's size ({size:.3g} m, the span of its points); give "
-                        f"a motion within {PATH_REACH * size:.3g} m")
+                        f"the mechanism's size ({size:.3g} m, the diagonal of its points' box); "
+                        f"give a motion within {PATH_REACH * size:.3g} m")
         for k, ld in enumerate(self.loads):
             body_point(f"load {k + 1}", ld.body, ld.at)
         if self.initial is not None:
