@@ -10,6 +10,7 @@ import pytest
 from PIL import Image
 
 from flexmbs.cli.main import main
+from flexmbs.errors import ModelError
 from flexmbs.model.casefile import available_cases
 from flexmbs.model.description import Beam, Rigid, Stress
 from flexmbs.problem import Problem
@@ -268,3 +269,20 @@ def test_overview_without_constraints_has_no_empty_panel():
     data.pop("constraints")
     _, fig = _overview(Problem(data))
     assert len(fig.axes) == 1 and fig.axes[0].lines
+
+
+def test_evaluation_of_another_design_is_refused(tmp_path):
+    """Problem.animate(result, path, evaluation=ev) with ev of another design of the four-bar
+    (every diameter 10 mm larger): a ModelError naming `evaluation` and both designs, and no
+    film written (one design's motion is never drawn over another's histories). The same
+    design evaluated again (a separate Evaluation) is accepted."""
+    prob = Problem("fourbar", overrides={"time.t_end": 3 * 5e-4})
+    drawn = prob.simulate(store="all")
+    other = prob.evaluate(prob.start + 10.0, gradient=False)
+    path = tmp_path / "m.gif"
+    with pytest.raises(ModelError, match=r"evaluation is of design x = \[260, 260, 260\], the "
+                                         r"motion drawn is of design \[250, 250, 250\]"):
+        prob.animate(drawn, path, evaluation=other, frames=2)
+    assert not path.exists()
+    prob.animate(drawn, path, evaluation=prob.evaluate(gradient=False), frames=2)
+    assert path.exists()

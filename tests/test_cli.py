@@ -291,3 +291,59 @@ def test_simulate_summary_names_every_response_and_the_overrides(capsys):
     assert main(["simulate", "robot_2dof", "--t-end", "0.05", "--set", "time.h=1e-3"]) == 0
     out = capsys.readouterr().out
     assert "of 50)" in out and "50 steps of h = 0.001 s" in out
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--t-end", "0.5", "--set", "time.t_end=[1,2]"],
+     ["--t-end 0.5", "time.t_end=[1, 2]", "two values of time.t_end"]),
+    (["--t-end", "0.5", "--set", "time.t_end=0.25"], ["--t-end 0.5", "time.t_end=0.25"]),
+    (["--h", "0.001", "--set", "time.h=auto"], ["--h 0.001", "time.h='auto'"]),
+    (["--rho-inf", "0.5", "--set", "time.rho_inf=0.9"], ["--rho-inf 0.5", "time.rho_inf=0.9"]),
+    (["--t-end", "0.5", "--set", "time={t_end=0.3}"], ["--t-end 0.5", "--set time=", "0.3"]),
+    (["--set", "time.h=1e-3", "--set", "time.h=2e-3"],
+     ["'time.h=1e-3'", "'time.h=2e-3'", "two values of time.h"]),
+])
+def test_an_option_and_a_set_of_its_key_with_two_values_are_refused(monkeypatch, capsys,
+                                                                    argv, words):
+    """--t-end, --h and --rho-inf stand for time.t_end, time.h and time.rho_inf: given with a
+    --set of the same key (or of its table) with another value, or a key set twice with two
+    values, one error line names both before any run (neither value is dropped silently, an
+    invalid one included)."""
+    _no_simulation(monkeypatch)
+    assert main(["evaluate", "fourbar", *argv]) == 2
+    line = _one_error_line(capsys)
+    for w in words:
+        assert w in line, (w, line)
+
+
+def test_an_option_and_a_set_of_its_key_with_one_value_are_taken():
+    """--t-end 0.01 with --set time.t_end=0.01 (the same value, 1e-2 written otherwise): the
+    problem's horizon is 0.01 s (time.t_end), so the time grid of step 5e-4 s ends there."""
+    from flexmbs.cli.common import add_case_arguments, problem_from_args
+    import argparse
+    p = argparse.ArgumentParser()
+    add_case_arguments(p)
+    prob = problem_from_args(p.parse_args(["fourbar", "--t-end", "0.01", "--set",
+                                           "time.t_end=1e-2"]))
+    assert prob.description.time.t_end == 0.01
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--method", "fully", "--max-iterations", "10", "--set", "optimize.max_iterations=5"],
+     ["--max-iterations 10", "optimize.max_iterations=5"]),
+    (["--method", "fully", "--starts", "3", "--set", "optimize.multistart.starts=4"],
+     ["--starts 3", "optimize.multistart.starts=4"]),
+    (["--eps", "0.01", "--set", "optimize.weakly.eps=0.02"],
+     ["--eps 0.01", "optimize.weakly.eps=0.02"]),
+])
+def test_an_optimize_option_and_a_set_of_its_key_with_two_values_are_refused(
+        monkeypatch, capsys, argv, words):
+    """The optimize options stand for keys of the case's [optimize] table (--max-iterations:
+    optimize.max_iterations, --starts: optimize.multistart.starts, --eps:
+    optimize.weakly.eps): given with a --set of that key with another value, one error line
+    names both before any run."""
+    _no_simulation(monkeypatch)
+    assert main(["optimize", "fourbar", *argv]) == 2
+    line = _one_error_line(capsys)
+    for w in [*words, "give one"]:
+        assert w in line, (w, line)

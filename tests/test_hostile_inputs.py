@@ -106,6 +106,26 @@ def test_candidates_beyond_memory_are_refused(monkeypatch, capsys):
         multistart("robot_2dof", 2, options=dict(candidates=10 ** 9))
 
 
+def test_starts_beyond_memory_are_refused_before_drawing(monkeypatch, capsys):
+    """--starts 10**7 with 4 variables under a 16 GB limit: the drawn designs alone (about
+    3.8 GB, multistart.sample_memory) fit, but every start keeps its job, fingerprint and
+    result (START_RECORD_BYTES each): 10**7 x (4 x 4 x 8 + 250 + 10 000) bytes = 104 GB, a
+    ResourceError naming --starts, the count and that estimate, before any start is drawn."""
+    import flexmbs.methods.multistart as ms
+    _no_simulation(monkeypatch)
+
+    def forbidden(*a, **k):
+        raise AssertionError("starts drawn although they cannot fit in memory")
+    monkeypatch.setattr(ms, "start_designs", forbidden)
+    monkeypatch.setenv("FLEXMBS_MEMORY_LIMIT", "16G")
+    assert main(["optimize", "robot_2dof", "--method", "fully", "--starts", "10000000"]) == 2
+    line = _one_error_line(capsys)
+    assert "ResourceError" in line and "--starts" in line and "10000000" in line
+    assert "records need about 104 GB" in line and "16 GB" in line, line
+    with pytest.raises(ResourceError, match="starts = 10000000"):
+        ms.multistart("robot_2dof", 10 ** 7)
+
+
 # ----------------------------------------------------------------------------- deep nesting
 DEEP = 10_000
 

@@ -174,8 +174,9 @@ def test_stations_are_checked_against_the_case():
     [0, 1] are errors naming the response and the key."""
     base = {"points": {"O": [0, 0], "B": [1, 0]},
             "bodies": [{"name": "rod", "type": "beam", "from": "O", "to": "B",
-                        "section": {"shape": "given", "EA": 1, "EI": 1, "rhoA": 1}},
-                       {"name": "m", "type": "mass", "at": "B", "mass": 1}],
+                        "section": {"shape": "given", "EA": 1, "EI": 1, "rhoA": 1, "rhoI": 1}},
+                       {"name": "m", "type": "mass", "at": "B", "mass": 1, "inertia": 1}],
+            "joints": [{"type": "pin", "body": "rod", "at": "O"}],
             "time": {"t_end": 1}}
     for resp, words in [
             ({"name": "r", "type": "deflection", "at": {"body": "m", "s": 0.5}},
@@ -214,7 +215,7 @@ def test_a_built_mechanism_refuses_a_bad_station():
         "points": {"O": [0, 0], "B": [1, 0]},
         "bodies": [{"name": "rod", "type": "beam", "from": "O", "to": "B",
                     "section": {"shape": "given", "EA": 1, "EI": 1, "rhoA": 1, "rhoI": 1}},
-                   {"name": "m", "type": "mass", "at": "B", "mass": 1}],
+                   {"name": "m", "type": "mass", "at": "B", "mass": 1, "inertia": 1}],
         "joints": [{"type": "clamp", "body": "rod", "at": "O"}],
         "time": {"t_end": 0.01, "h": 0.01}}))
     with pytest.raises(ModelError, match="s must be a number in \\[0, 1\\].*got 2"):

@@ -248,6 +248,10 @@ class Problem:
     of their own (Mechanism.design_model, sharing the structure, its compiled arrays and KLU
     analysis), never into the problem's shared `mechanism.model`, so several threads may
     evaluate different designs of one Problem at once and each gets its design's values.
+    A Problem can be pickled (its laws are module-level callables, its compiled model is
+    rebuilt after unpickling), so a spawned process pool or a Dask cluster of processes can
+    take one; the copy evaluates a design to the same numbers, bit for bit
+    (tests/test_pickle.py).
     """
 
     def __init__(self, case, overrides=None, gradient_method="direct", checkpoints=None):
@@ -491,6 +495,8 @@ class Problem:
                                         checkpoints)
         result = simulate(model, t_end, h, **kw)
         result.design_model = model
+        result.design = np.array(
+            self.mechanism.start if x is None else self.mechanism.design_values(x), float)
         return result
 
     def memory_estimate(self, x=None, gradient=True, *, responses=None, store=None,
@@ -810,6 +816,7 @@ class Problem:
         if ckpt is not None:      # the full state every ckpt time points instead of the tape
             kw = dict(kw, tape=False, checkpoints=int(ckpt))
         result = simulate(model, t_end, h, **kw)
+        result.design = np.array(x, float)
         result.stats["adjoint_checkpoints"] = ckpt
         t = mech.t
         nt, nc, nv = t.size, result.mu.shape[1], len(mech.variables)

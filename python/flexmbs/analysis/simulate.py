@@ -169,6 +169,9 @@ class Result:
     #: q (point-wise (nt, nout) errors, judged by their largest change), else None
     error: object = None
     steps: dict | None = None
+    #: the design simulated (user units, the order of Problem.variables) when the result comes
+    #: from flexmbs.problem.Problem, else None
+    design: np.ndarray | None = None
 
     def position_derivative(self, node):
         """(nt, 2, nv) design derivatives of a node's position (needs design_derivatives)."""

@@ -21,7 +21,8 @@ from flexmbs.resources import format_bytes
 __all__ = ["add_case_arguments", "problem_from_args", "design_from_text", "parse_values",
            "parse_set", "positive_int", "nonnegative_int", "path_text", "output_file",
            "figure_file", "print_json", "print_evaluation", "add_design_arguments", "printable",
-           "at_least_two", "needs_motion", "evaluate_case", "evaluation_json"]
+           "at_least_two", "needs_motion", "evaluate_case", "evaluation_json",
+           "check_set_conflicts", "flag_overrides"]
 
 
 # ----------------------------------------------------------------------------- shared options
@@ -69,27 +70,84 @@ def _checkpoints(text):
     return k
 
 
-def parse_set(items):
-    """Overrides {dotted key: value} from ``KEY=VALUE`` strings (`casefile.parse_override`)."""
+#: the options that stand for a key of the case: (option, attribute of the arguments, key)
+FLAG_KEYS = (("--t-end", "t_end", "time.t_end"), ("--h", "h", "time.h"),
+             ("--rho-inf", "rho_inf", "time.rho_inf"))
 
-    out = {}
+
+def parse_set(items):
+    """Overrides {dotted key: value} from ``KEY=VALUE`` strings (`casefile.parse_override`);
+    a key given twice with two values is a CaseError naming both."""
+
+    out, given = {}, {}
     for item in items:
         try:
             key, value = parse_override(item)
         except CaseError as exc:
             raise CaseError(f"--set {item!r}: {exc}") from None
-        out[key] = value
+        if key in out and not _same(out[key], value):
+            raise CaseError(f"--set {given[key]!r} and --set {item!r} give two values of "
+                            f"{key}: give one")
+        out[key], given[key] = value, item
     return out
 
 
-def problem_from_args(args, gradient_method="direct"):
-    """The Problem named by the arguments of `add_case_arguments`, with their overrides;
-    `gradient_method` unless --gradient-method is given."""
+def _same(a, b):
+    """Two override values are the same value (1 and 1.0 are; True and 1 are not)."""
+    if isinstance(a, bool) or isinstance(b, bool):
+        return a is b
+    return type(a) is type(b) and a == b or (
+        isinstance(a, (int, float)) and isinstance(b, (int, float)) and a == b)
 
+
+def _set_value(overrides, key):
+    """(the --set key, the value) that `overrides` gives `key` (a dotted path), directly or
+    inside a table given to one of its parents (--set time={t_end=1}); None if none does."""
+    parts = key.split(".")
+    for k in range(len(parts), 0, -1):
+        head = ".".join(parts[:k])
+        if head in overrides:
+            value = overrides[head]
+            for part in parts[k:]:
+                if not isinstance(value, dict) or part not in value:
+                    break
+                value = value[part]
+            else:
+                return head, value
+    return None
+
+
+def check_set_conflicts(args, pairs):
+    """CaseError when an option given on the command line and a --set of the case key it
+    stands for give two values; pairs: (option, value or None when not given, key)."""
+    overrides = parse_set(getattr(args, "set", None) or [])
+    for option, value, key in pairs:
+        hit = None if value is None else _set_value(overrides, key)
+        if hit is not None and not _same(hit[1], value):
+            shown = f"{value:g}" if isinstance(value, float) else str(value)
+            raise CaseError(f"{option} {shown} and --set {hit[0]}={hit[1]!r} give two "
+                            f"values of {key}: give one")
+
+
+def flag_overrides(args):
+    """The overrides of the --set items and of the options standing for a key (FLAG_KEYS);
+    an option and a --set of its key with two values is a CaseError naming both (one rule
+    for every pair: neither wins silently)."""
+    check_set_conflicts(args, [(option, getattr(args, attr, None), key)
+                               for option, attr, key in FLAG_KEYS])
     overrides = parse_set(args.set)
-    for key, value in (("t_end", args.t_end), ("h", args.h), ("rho_inf", args.rho_inf)):
-        if value is not None:
-            overrides[f"time.{key}"] = value
+    for option, attr, key in FLAG_KEYS:
+        value = getattr(args, attr, None)
+        if value is not None and _set_value(overrides, key) is None:
+            overrides[key] = value
+    return overrides
+
+
+def problem_from_args(args, gradient_method="direct"):
+    """The Problem named by the arguments of `add_case_arguments`, with their overrides
+    (`flag_overrides`); `gradient_method` unless --gradient-method is given."""
+
+    overrides = flag_overrides(args)
     return Problem(args.case, overrides=overrides or None,
                    gradient_method=getattr(args, "gradient_method", None) or gradient_method,
                    checkpoints=getattr(args, "checkpoints", None))

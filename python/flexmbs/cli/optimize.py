@@ -49,7 +49,8 @@ import sys
 
 from flexmbs.batch import check_dask
 from flexmbs.cli.common import (add_case_arguments, design_from_text, figure_file, nonnegative_int,
-                                output_file, path_text, print_json, problem_from_args)
+                                output_file, path_text, print_json, problem_from_args,
+                                check_set_conflicts)
 from flexmbs.errors import CaseError, ModelError
 from flexmbs.methods.fully import choose_optimizer, optimize_fully, OPTIMIZERS
 from flexmbs.methods.multistart import multistart
@@ -182,6 +183,11 @@ def _section(problem):
 def _options(kind, base, args, given):
     """The options of a run: the case's (`base`) with the command line's options that were
     given (not None) and its verification (--verify-rtol, --no-verify) over them."""
+    table = {WeaklyOptions: "optimize.weakly.", MultistartOptions: "optimize.multistart."}
+    # an option and a --set of the key it stands for with two values: an error (the frame,
+    # parsed from its own syntax, is left out)
+    check_set_conflicts(args, [("--" + k.replace("_", "-"), v, table.get(kind, "optimize.") + k)
+                               for k, v in given.items() if k != "frame_kind"])
     data = base.as_dict() if not isinstance(base, FullyOptions) else {
         k: getattr(base, k) for k in FullyOptions.model_fields}
     data.update({k: v for k, v in given.items() if v is not None})

@@ -58,21 +58,31 @@ SAMPLE_OVERHEAD_BYTES = 250
 SAMPLE_ARRAYS = 4
 
 
-def sample_memory(count, nv):
+#: Bytes a start keeps besides its drawn design until the multi-start returns: its job
+#: (start, options), its fingerprint for the store and its result record and optimum
+#: (`.venv/bin/python benchmarks/multistart_memory.py` at commit ad02520: 9670 bytes on the
+#: four-bar)
+START_RECORD_BYTES = 10_000
+
+
+def sample_memory(count, nv, records=0):
     """Bytes (rough upper bound) of `count` drawn designs of `nv` variables and their
-    screening (start_designs and multistart's candidates)."""
-    return float(count) * (SAMPLE_ARRAYS * 8.0 * nv + SAMPLE_OVERHEAD_BYTES)
+    screening (start_designs and multistart's candidates), plus `records` bytes per design
+    (START_RECORD_BYTES for the starts a multi-start runs)."""
+    return float(count) * (SAMPLE_ARRAYS * 8.0 * nv + SAMPLE_OVERHEAD_BYTES + records)
 
 
-def check_sample_memory(count, nv, name="starts"):
-    """ResourceError naming `name` when `count` designs of `nv` variables (`sample_memory`) do
-    not fit in the memory limit (flexmbs.resources.memory_limit)."""
-    need, avail = sample_memory(count, nv), memory_limit()
+def check_sample_memory(count, nv, name="starts", records=0):
+    """ResourceError naming `name` when `count` designs of `nv` variables (`sample_memory`,
+    with `records` bytes per design) do not fit in the memory limit
+    (flexmbs.resources.memory_limit)."""
+    need, avail = sample_memory(count, nv, records), memory_limit()
     if need > avail:
         option = {"starts": "--starts", "candidates": "--candidates"}.get(name, name)
+        what = " and their runs' records" if records else ""
         raise ResourceError(f"{name} = {count} ({option} on the command line): {count} designs "
-                            f"of {nv} variables need about {format_bytes(need)}, more than "
-                            f"{limit_source()} ({format_bytes(avail)}); draw fewer",
+                            f"of {nv} variables{what} need about {format_bytes(need)}, more "
+                            f"than {limit_source()} ({format_bytes(avail)}); draw fewer",
                             required=need, available=avail)
 
 
@@ -452,6 +462,9 @@ def multistart(case, starts=None, *, options=None, fully=None, workers=None, das
             raise ModelError(f"start_range {np.asarray(slo).tolist()}..{np.asarray(shi).tolist()} "
                              f"must lie inside the bounds {lo.tolist()}..{hi.tolist()}")
         lo, hi = slo, shi
+    # every start's job, fingerprint and result are kept to the end: refused at once when
+    # they cannot fit in memory, before any start is drawn or run
+    check_sample_memory(starts, lo.size, "starts", START_RECORD_BYTES)
     pre = 0
     if candidates is None:
         x0 = start_designs(lo, hi, starts, sampler, seed)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import os
 import sys
 import tomllib
 import types
@@ -313,6 +314,11 @@ def shipped_path(name, kind, subfolder=""):
     if p.is_dir():
         raise CaseError(f"{kind} {str(name)!r} is a folder, not a file: give the path of a "
                         f"{kind} file (.toml) or the name of a shipped {kind}")
+    if os.path.lexists(p):      # a device, FIFO or socket (or a link to one, or a broken link)
+        if check_regular_file(p, f"{kind} file", CaseError):
+            return p
+        raise CaseError(f"{kind} file {str(name)!r} is a link to {os.readlink(p)!r}, which "
+                        f"does not exist: give the path of a {kind} file (.toml)")
     if len(p.parts) == 1:
         for folder in case_folders():
             f = folder / subfolder / f"{p.name.removesuffix('.toml')}.toml"

@@ -27,11 +27,13 @@ Example (a pendulum: a beam pinned at O, driven by a ramp to 60 rpm)::
 from __future__ import annotations
 
 import math
+import sys
 from typing import Annotated, Literal, Union
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
 
 from flexmbs.model.options import OptimizeSection
+from flexmbs.resources import MAX_STEPS
 
 __all__ = ["Description", "Law", "Beam", "Rigid", "PointMass", "Joint", "Drive", "Load",
            "SpringDamper", "DesignVariable", "Deviation", "Mass", "Stress", "Torque", "Reaction",
@@ -61,6 +63,18 @@ Pair = Annotated[list[Finite], Field(min_length=2, max_length=2)]
 GROUND = "ground"
 #: a section dimension: a number (m), a design variable's name, or one of them per element
 Dimension = Union[Positive, Name, list[Union[Positive, Name]]]
+
+
+def _direction_error(axis):
+    """Why `axis` ([ax, ay]) is no direction, or None: its squared length must be a positive
+    normal double (it is normalised, and squared in the joints' equations)."""
+    if axis is None:
+        return "got none"
+    sq = axis[0] * axis[0] + axis[1] * axis[1]
+    if not (sys.float_info.min <= sq < math.inf):
+        return (f"got axis = {axis} (length {math.hypot(*axis):.3g}); give a direction whose "
+                f"length is between 1e-150 and 1e150 (e.g. [1, 0])")
+    return None
 
 
 class _Strict(BaseModel):
@@ -162,6 +176,41 @@ class Law(_Strict):
         return self
 
 
+#: how far a path may move its point, in sizes of the mechanism (the diagonal of the box
+#: around its points):
+#: coordinates beyond it keep fewer than 6 of double precision's 16 digits for the mechanism's
+#: own lengths, which the constraint tolerances (1e-10 of the size) need
+PATH_REACH = 1e6
+
+
+def law_bound(law, t_end):
+    """An upper bound of |law(t)| over 0 <= t <= t_end, from the law's parameters (float;
+    inf when they overflow); of a 'samples' law, its largest sample (a linear extrapolation
+    beyond them is not counted)."""
+    k, T = law.type, max(t_end, 1.0)
+    start0 = abs(law.start)
+    if k == "constant":
+        return abs(law.value)
+    if k == "ramp_to_speed":
+        w = law.speed if law.speed is not None else law.speed_rpm * 2 * math.pi / 60
+        return start0 + abs(w) * T
+    if k == "smooth_step":
+        return max(start0, abs(law.end))
+    if k == "harmonic":
+        return abs(law.offset) + abs(law.amplitude)
+    if k == "cycloid":
+        return start0 + abs(law.stroke) * (T / law.period + 1.0)
+    if k == "polynomial":
+        return sum(abs(c) * T ** j for j, c in enumerate(law.coefficients))
+    if k == "samples":
+        return max(abs(x) for x in law.values)
+    if k == "piecewise":
+        return max(law_bound(g.law, t_end) for g in law.segments)
+    if k == "sum":
+        return sum(law_bound(x, t_end) for x in law.laws)
+    return 0.0
+
+
 class Segment(_Strict):
     """A piece of a 'piecewise' law: `law` up to time `until` (s; from the previous segment's
     until, or from the start); the last segment has no until."""
@@ -206,7 +255,7 @@ class Section(_Strict):
       circle     diameter
       tube       diameter and thickness, or diameter and wall_ratio (thickness = ratio * d)
       rectangle  width (out of plane) and height (in the plane of bending)
-      given      EA, EI, rhoA (and optionally GA: the shear stiffness kGA, rhoI); without
+      given      EA, EI, rhoA, rhoI > 0 (and optionally GA: the shear stiffness kGA); without
                  GA the beam is shear-rigid in practice (kGA = 1e4 EA / ... see docs)
     """
     shape: Literal["circle", "tube", "rectangle", "given"]
@@ -228,6 +277,12 @@ class Section(_Strict):
         missing = [k for k in need if getattr(self, k) is None]
         if missing:
             raise ValueError(f"section shape {self.shape!r} needs {', '.join(missing)}")
+        if self.shape == "given" and not self.rhoI:
+            raise ValueError(
+                f"section shape 'given' needs rhoI > 0 (kg m, the rotary inertia per unit "
+                f"length), got {'none' if self.rhoI is None else self.rhoI}: without it a "
+                f"node's rotation has no mass; for a homogeneous section rhoI = rhoA EI / EA "
+                f"(here {self.rhoA * self.EI / self.EA:.6g})")
         if self.shape == "tube" and (self.thickness is None) == (self.wall_ratio is None):
             raise ValueError("section shape 'tube' needs exactly one of thickness, wall_ratio")
         allowed = {"circle": {"diameter"}, "tube": {"diameter", "thickness", "wall_ratio"},
@@ -324,9 +379,10 @@ class Joint(_Strict):
             raise ValueError(f"joint type {self.type!r} takes "
                              f"{'bodies' if two else 'body'}, not {'body' if two else 'bodies'}")
         if self.type in ("slider", "prismatic"):
-            if self.axis is None or math.hypot(*self.axis) == 0.0:
-                raise ValueError(f"joint type {self.type!r} needs a non-zero axis = [ax, ay], "
-                                 f"got axis = {self.axis}")
+            why = _direction_error(self.axis)
+            if why:
+                raise ValueError(f"joint type {self.type!r} needs a non-zero axis = [ax, ay]: "
+                                 f"{why}")
         if self.type == "prismatic":
             a, b = self.bodies
             if a == b:
@@ -353,8 +409,10 @@ class Drive(_Strict):
     @model_validator(mode="after")
     def _kind(self):
         if self.type == "translation":
-            if self.axis is None or math.hypot(*self.axis) == 0.0:
-                raise ValueError("drive type 'translation' needs a non-zero axis = [ax, ay]")
+            why = _direction_error(self.axis)
+            if why:
+                raise ValueError(f"drive type 'translation' needs a non-zero axis = [ax, ay]: "
+                                 f"{why}")
             if self.relative_to is not None:
                 raise ValueError("drive type 'translation' takes no relative_to")
         elif self.axis is not None:
@@ -843,6 +901,12 @@ class Description(_Strict):
         if GROUND in bodies:
             raise ValueError(f"body name {GROUND!r} is reserved for the ground (joints and "
                              f"frames name it); rename the body")
+        if not self.joints and not self.drives and not any(
+                isinstance(b, Rigid) for b in self.bodies):
+            raise ValueError("the case has no [[joints]], no [[drives]] and no rigid body: "
+                             "nothing holds or moves its bodies (the constraint equations "
+                             "are empty); give [[joints]] (e.g. a pin to the ground) or "
+                             "[[drives]]")
         dvars = unique("design variables", [v.name for v in self.design])
         responses = unique("responses", [r.name for r in self.responses])
         joints = unique("joints", [j.name for j in self.joints if j.name is not None])
@@ -910,8 +974,37 @@ class Description(_Strict):
                 body_point(where, d.relative_to, d.at)
             if d.law.type == "reference" and not self.paths:
                 raise ValueError(f"{where}: law 'reference' needs [[paths]] for the rigid reference")
+        for b in self.bodies:
+            if isinstance(b, PointMass) and b.on is None and b.inertia == 0.0:
+                held = any(j.type in ("clamp", "weld", "slider", "prismatic")
+                           and b.name in ([j.body] if j.body is not None else j.bodies)
+                           for j in self.joints) or any(
+                    d.type == "rotation" and b.name in (d.body, d.relative_to)
+                    for d in self.drives)
+                if not held:
+                    raise ValueError(
+                        f"body {b.name!r}: a point mass of its own (no on) with inertia = 0 "
+                        f"has a rotation that no mass and no joint holds (a pin or a hinge "
+                        f"leaves it free); give inertia > 0 (kg m^2), or on = BODY to add the "
+                        f"mass to that body's node at {b.at!r}, or a weld")
+        xs, ys = [v[0] for v in self.points.values()], [v[1] for v in self.points.values()]
+        size = math.hypot(max(xs) - min(xs), max(ys) - min(ys)) if xs else 0.0
+        size = size if 0.0 < size < math.inf else 1.0
+        # beyond the core's step count, Mechanism refuses the horizon itself (naming t_end, h)
+        steps_fit = self.time.t_end / self.time.grid_h <= MAX_STEPS
         for k, p in enumerate(self.paths):
             body_point(f"path {k + 1}", p.body, p.at)
+            for key in ("x", "y") if steps_fit else ():
+                try:
+                    reach = law_bound(getattr(p, key), self.time.t_end)
+                except OverflowError:       # a power of t_end beyond double precision
+                    reach = math.inf
+                if not reach <= PATH_REACH * size:
+                    raise ValueError(
+                        f"path {k + 1}: {key} moves the point by up to {reach:.3g} m "
+                        f"over t_end = {self.time.t_end:g} s, more than {PATH_REACH:g} times "
+                        f"the mechanism's size ({size:.3g} m, the diagonal of its points' box); "
+                        f"give a motion within {PATH_REACH * size:.3g} m")
         for k, ld in enumerate(self.loads):
             body_point(f"load {k + 1}", ld.body, ld.at)
         if self.initial is not None:

@@ -52,6 +52,45 @@ class _Ends:
         return np.where(below | above, 0.0, self.d2(tc))
 
 
+class _Constant:
+    """t -> c of t's shape (picklable, as the callables below: a law, and a Problem holding
+    it, can be sent to another process)."""
+
+    def __init__(self, c):
+        self.c = c
+
+    def __call__(self, t):
+        return np.full(np.shape(t), self.c) if self.c else np.zeros(np.shape(t))
+
+
+class _Pieces:
+    """Value (which = 0), rate (1) or acceleration (2) of the law of t's interval
+    (TimeLaw.piecewise)."""
+
+    def __init__(self, breaks, laws, which):
+        self.breaks, self.laws, self.which = breaks, laws, which
+
+    def __call__(self, t):
+        t = np.asarray(t, float)
+        k = np.searchsorted(self.breaks, t, side="right")
+        out = np.zeros(t.shape)
+        for i, law in enumerate(self.laws):
+            m = k == i
+            if np.any(m):
+                out[m] = law.evaluate(t[m])[self.which]
+        return out
+
+
+class _Terms:
+    """Value (which = 0), rate (1) or acceleration (2) of a sum of laws (TimeLaw.sum)."""
+
+    def __init__(self, laws, which):
+        self.laws, self.which = laws, which
+
+    def __call__(self, t):
+        return sum(law.evaluate(np.asarray(t, float))[self.which] for law in self.laws)
+
+
 class TimeLaw:
     """A scalar function of time with its first and second derivatives.
 
@@ -85,8 +124,7 @@ class TimeLaw:
     def constant(cls, c, name="constant"):
         """theta(t) = c."""
         c = real_number(f"TimeLaw.constant {name!r}: c", c)
-        return cls(lambda t: np.full(np.shape(t), c), lambda t: np.zeros(np.shape(t)),
-                   lambda t: np.zeros(np.shape(t)), name=name)
+        return cls(_Constant(c), _Constant(0.0), _Constant(0.0), name=name)
 
     @classmethod
     def samples(cls, t, values, name="samples", interpolation="cubic", extrapolate=None):
@@ -161,19 +199,7 @@ class TimeLaw:
             raise ModelError(f"TimeLaw.piecewise {name!r}: breaks must be {max(len(laws) - 1, 0)} "
                              f"finite increasing times (one fewer than the {len(laws)} laws), "
                              f"got {breaks!r}")
-
-        def part(which):
-            def f(t):
-                t = np.asarray(t, float)
-                k = np.searchsorted(b, t, side="right")
-                out = np.zeros(t.shape)
-                for i, law in enumerate(laws):
-                    m = k == i
-                    if np.any(m):
-                        out[m] = law.evaluate(t[m])[which]
-                return out
-            return f
-        return cls(part(0), part(1), part(2), name=name)
+        return cls(*(_Pieces(b, laws, which) for which in range(3)), name=name)
 
     @classmethod
     def sum(cls, laws, name="sum"):
@@ -181,12 +207,7 @@ class TimeLaw:
         laws = [as_law(law, f"{name} term {k + 1}") for k, law in enumerate(laws)]
         if not laws:
             raise ModelError(f"TimeLaw.sum {name!r}: needs at least one law")
-
-        def part(which):
-            def f(t):
-                return sum(law.evaluate(np.asarray(t, float))[which] for law in laws)
-            return f
-        return cls(part(0), part(1), part(2), name=name)
+        return cls(*(_Terms(laws, which) for which in range(3)), name=name)
 
     def _eval(self, f, t, what):
         ta = np.asarray(t, float)

@@ -45,37 +45,21 @@ def make_law(spec, name="law", shift=0.0, joined=False):
     ModelError naming the law, the break and both values; a jump of the rate (an impulsive
     change of speed) is a warning."""
     k = spec.type
-    z = np.zeros_like
     if k == "constant":
-        c = spec.value + shift
-        return TimeLaw(lambda t: c + z(t), lambda t: z(t), lambda t: z(t), name=name)
+        return _analytic(name, "constant", c=spec.value + shift)
     if k == "ramp_to_speed":
         w = spec.speed if spec.speed is not None else spec.speed_rpm * 2 * math.pi / 60
-        tr, s0 = spec.ramp_s, spec.start + shift
-        return TimeLaw(lambda t: s0 + np.where(t <= tr, 0.5 * w / tr * t * t, w * (t - 0.5 * tr)),
-                       lambda t: np.where(t <= tr, w / tr * t, w + z(t)),
-                       lambda t: np.where(t <= tr, w / tr + z(t), z(t)), name=name)
+        return _analytic(name, "ramp", w=w, tr=spec.ramp_s, s0=spec.start + shift)
     if k == "smooth_step":
-        a, b, t0, t1 = spec.start + shift, spec.end + shift, spec.t0, spec.t1
-        d = t1 - t0
-
-        def s(t):
-            return np.clip((t - t0) / d, 0.0, 1.0)
-        return TimeLaw(lambda t: a + (b - a) * s(t) ** 3 * (10 - 15 * s(t) + 6 * s(t) ** 2),
-                       lambda t: (b - a) / d * 30 * s(t) ** 2 * (1 - s(t)) ** 2,
-                       lambda t: (b - a) / d ** 2 * 60 * s(t) * (1 - s(t)) * (1 - 2 * s(t)),
-                       name=name)
+        return _analytic(name, "smooth_step", a=spec.start + shift, b=spec.end + shift,
+                         t0=spec.t0, d=spec.t1 - spec.t0)
     if k == "harmonic":
-        amp, om, ph, off = spec.amplitude, 2 * math.pi * spec.frequency_hz, spec.phase, spec.offset
-        return TimeLaw(lambda t: off + shift + amp * np.sin(om * t + ph),
-                       lambda t: amp * om * np.cos(om * t + ph),
-                       lambda t: -amp * om * om * np.sin(om * t + ph), name=name)
+        return _analytic(name, "harmonic", amp=spec.amplitude,
+                         om=2 * math.pi * spec.frequency_hz, ph=spec.phase,
+                         off=spec.offset, shift=shift)
     if k == "cycloid":
-        h, T, s0 = spec.stroke, spec.period, spec.start + shift
-        om = 2 * math.pi / T
-        return TimeLaw(lambda t: s0 + h * (t / T - np.sin(om * t) / (2 * math.pi)),
-                       lambda t: h / T * (1 - np.cos(om * t)),
-                       lambda t: h / T * om * np.sin(om * t), name=name)
+        return _analytic(name, "cycloid", h=spec.stroke, T=spec.period, s0=spec.start + shift,
+                         om=2 * math.pi / spec.period)
     if k == "polynomial":
         c = np.array(spec.coefficients, float)
         c[0] = c[0] + shift if c.size else shift
@@ -99,6 +83,68 @@ def make_law(spec, name="law", shift=0.0, joined=False):
         return total
     raise ModelError(f"{name}: a law of type {k!r} has no formula (it is computed from the "
                      "rigid reference)")
+
+
+class _Formula:
+    """Value (which = 0), rate (1) or acceleration (2) of an analytic law of `kind` with
+    parameters `p`: a module-level callable, so that a law (and a Problem) can be pickled and
+    sent to another process."""
+
+    def __init__(self, kind, which, p):
+        self.kind, self.which, self.p = kind, which, p
+
+    def __call__(self, t):
+        return getattr(self, "_" + self.kind)(t, **self.p)
+
+    def _constant(self, t, c):
+        z = np.zeros_like
+        return c + z(t) if self.which == 0 else z(t)
+
+    def _ramp(self, t, w, tr, s0):
+        z = np.zeros_like
+        if self.which == 0:
+            return s0 + np.where(t <= tr, 0.5 * w / tr * t * t, w * (t - 0.5 * tr))
+        if self.which == 1:
+            return np.where(t <= tr, w / tr * t, w + z(t))
+        return np.where(t <= tr, w / tr + z(t), z(t))
+
+    def _smooth_step(self, t, a, b, t0, d):
+        def s(t):
+            return np.clip((t - t0) / d, 0.0, 1.0)
+        if self.which == 0:
+            return a + (b - a) * s(t) ** 3 * (10 - 15 * s(t) + 6 * s(t) ** 2)
+        if self.which == 1:
+            return (b - a) / d * 30 * s(t) ** 2 * (1 - s(t)) ** 2
+        return (b - a) / d ** 2 * 60 * s(t) * (1 - s(t)) * (1 - 2 * s(t))
+
+    def _harmonic(self, t, amp, om, ph, off, shift):
+        if self.which == 0:
+            return off + shift + amp * np.sin(om * t + ph)
+        if self.which == 1:
+            return amp * om * np.cos(om * t + ph)
+        return -amp * om * om * np.sin(om * t + ph)
+
+    def _cycloid(self, t, h, T, s0, om):
+        if self.which == 0:
+            return s0 + h * (t / T - np.sin(om * t) / (2 * math.pi))
+        if self.which == 1:
+            return h / T * (1 - np.cos(om * t))
+        return h / T * om * np.sin(om * t)
+
+
+def _analytic(name, kind, **p):
+    """The TimeLaw of an analytic law (`_Formula`)."""
+    return TimeLaw(*(_Formula(kind, which, p) for which in range(3)), name=name)
+
+
+class _Interp:
+    """t -> np.interp(t, ts, values) (a picklable callable)."""
+
+    def __init__(self, ts, values):
+        self.ts, self.values = ts, values
+
+    def __call__(self, t):
+        return np.interp(t, self.ts, self.values)
 
 
 def _breaks(spec):
@@ -458,7 +504,7 @@ class Mechanism:
             r, a = motion.coordinates(sl, 1) @ ax, motion.coordinates(sl, 2) @ ax
         t = motion.t
         spline = _CubicHermite(t, v, r)
-        return TimeLaw(spline, spline.rate, lambda s: np.interp(s, t, a), name=name)
+        return TimeLaw(spline, spline.rate, _Interp(t, a), name=name)
 
     # ------------------------------------------------------------------ rigid reference
     def _check_reference_memory(self, ref):

@@ -149,6 +149,35 @@ def _history_rows(problem, evaluation):
     return rows
 
 
+def _check_evaluation(problem, result, evaluation):
+    """ModelError when `evaluation` is not of the motion `result` draws: another design (its
+    x against the result's design, Result.design), another problem's variables, or another
+    time grid."""
+    if evaluation is None:
+        return
+    names = list(getattr(evaluation, "variables", None) or [])
+    if names and names != list(problem.variables):
+        raise ModelError(f"evaluation is of the variables {names}, the problem's are "
+                         f"{list(problem.variables)}: give the evaluation of the design drawn")
+    ex = np.asarray(evaluation.x, float)
+    rx = getattr(result, "design", None)
+    if rx is not None and (ex.shape != np.shape(rx) or not np.array_equal(ex, rx)):
+        raise ModelError(f"evaluation is of design x = {_design_text(ex)}, the motion drawn "
+                         f"is of design {_design_text(rx)}: give the evaluation of the "
+                         "simulated design (Problem.evaluate(x, store='all') gives both, the "
+                         "motion as evaluation.result)")
+    t = np.asarray(evaluation.t, float)
+    if t.shape != result.t.shape or not np.array_equal(t, result.t):
+        raise ModelError(f"evaluation's time grid ({t.size} times up to "
+                         f"{t[-1] if t.size else 0:.6g} s) is not the motion's "
+                         f"({result.t.size} times up to {result.t[-1]:.6g} s): give the "
+                         "evaluation of the simulated design")
+
+
+def _design_text(x):
+    return "[" + ", ".join(f"{v:.6g}" for v in np.ravel(x)) + "]"
+
+
 def animate(problem, result, path, *, evaluation=None, frames=DEFAULT_FRAMES, fps=DEFAULT_FPS,
             magnification=None, color_by="deviation", dpi=100, title=None):
     """Write the motion of a simulated design to `path` (.gif or .mp4, see FORMATS).
@@ -160,7 +189,9 @@ def animate(problem, result, path, *, evaluation=None, frames=DEFAULT_FRAMES, fp
     path : file name; its suffix chooses the format
     evaluation : flexmbs.problem.Evaluation of the same design, optional: its constrained
         histories are drawn underneath (Problem.evaluate(x, store='all') gives both the
-        evaluation and the result, as evaluation.result)
+        evaluation and the result, as evaluation.result); one of another design (its x
+        against Result.design), of another problem's variables or on another time grid is a
+        ModelError
     frames : int >= 2 or None (every step), default DEFAULT_FRAMES
     fps : frames per second of the film, default DEFAULT_FPS
     magnification : float > 0, optional
@@ -184,6 +215,7 @@ def animate(problem, result, path, *, evaluation=None, frames=DEFAULT_FRAMES, fp
         raise ModelError(f"fps must be a number in (0, 120], got {fps!r}")
     if frames is not None and (not isinstance(frames, (int, np.integer)) or frames < 2):
         raise ModelError(f"frames must be an integer >= 2 or None (every step), got {frames!r}")
+    _check_evaluation(problem, result, evaluation)
     steps = frame_steps(result.t.size, frames)
     sc = scene(problem, result, steps)
     if magnification is None:

@@ -47,7 +47,8 @@ _FRAME = re.compile(r"frame_\d{5,}\.vtu")
 
 def frame_folder(path):
     """The folder of a .pvd's frames: its name without the suffix, beside it. ModelError when
-    `path` does not end with .pvd, or when that folder exists and holds anything but frames."""
+    `path` does not end with .pvd, or when that folder is a symbolic link, or exists and holds
+    anything but frames."""
     path = Path(path)
     if path.suffix.lower() != ".pvd":
         raise ModelError(f"{os.fspath(path)!r}: a ParaView time series is a .pvd file")
@@ -55,6 +56,10 @@ def frame_folder(path):
     if folder.name in ("", ".", ".."):
         raise ModelError(f"{os.fspath(path)!r}: give the .pvd file a name (its frames go to a "
                          "folder of that name beside it)")
+    if folder.is_symlink():     # replaced by a folder of frames: the link, not its target
+        raise ModelError(f"{os.fspath(path)!r}: its frames go to {os.fspath(folder)!r}, "
+                         f"which is a symbolic link (to {os.readlink(folder)!r}); the frames "
+                         "are written to a real folder: remove the link or give another name")
     if folder.exists():
         if not folder.is_dir():
             raise ModelError(f"{os.fspath(path)!r}: its frames go to {os.fspath(folder)!r}, "
