@@ -242,31 +242,35 @@ def needs_motion(prob):
 LONG_RUN_STEPS = 100_000
 
 
-def _note_steps(command, steps, what, prob, grid=None):
+def _note_steps(command, steps, what, prob, grid=None, each=""):
     """The line `announce_run` writes for a run of `steps` time steps (`what` tells them)."""
     from flexmbs.analysis.simulate import memory_estimate
 
     mech = prob.mechanism
     est = memory_estimate(mech.model, mech.t_end, mech.h, prob.settings, steps=grid)
     seconds = est.seconds * steps / max(est.nt - 1, 1)
-    print(f"flexmbs {command}: {steps} time steps ({what}), roughly "
-          f"{format_seconds(seconds)}", file=sys.stderr, flush=True)
+    print(f"flexmbs {command}: {steps} time steps{each} ({what}), roughly "
+          f"{format_seconds(seconds)}{each}", file=sys.stderr, flush=True)
 
 
-def announce_run(prob, command, error=False):
+def announce_run(prob, command, error=False, choose=True):
     """Before a long simulation (more than LONG_RUN_STEPS time steps in all): its time steps
     and a rough time (flexmbs.resources.estimate_memory's) on stderr, one line. With
-    error-controlled steps (time.h = "auto") the grid is chosen here (Problem.steps): the
-    pilots' steps are announced before they run, the grid's after. With `error` (the
-    --error estimate) the runs with every step halved and quartered count too (7 times the
-    steps)."""
+    error-controlled steps (time.h = "auto") the pilots' steps are announced before they
+    run, and with `choose` the grid is chosen here (Problem.steps) and its steps announced
+    after. With `error` (the --error estimate) the runs with every step halved and quartered
+    count too (7 times the steps). choose=False (an optimization, whose every simulation
+    runs on the grid or step announced): "per simulation"."""
     mech, ts = prob.mechanism, prob.description.time
     n = mech.t.size - 1
+    each = "" if choose else " per simulation"
     if ts.adaptive:
         pilots = pilot_steps(n)
         if pilots > LONG_RUN_STEPS:
             _note_steps(command, pilots, "the two pilot runs that choose the "
-                        "error-controlled steps", prob)
+                        "error-controlled steps", prob, each=" per choice" if each else "")
+        if not choose:
+            return
     grid = prob.steps() if ts.adaptive else None
     steps = n if grid is None else grid.size - 1
     factor = 7 if error else 1
@@ -275,7 +279,7 @@ def announce_run(prob, command, error=False):
                 else f"h = {ts.h:g} s to t = {mech.t_end:g} s")
         if error:
             what += ", and twice and four times as many for --error"
-        _note_steps(command, factor * steps, what, prob, grid)
+        _note_steps(command, factor * steps, what, prob, grid, each)
 
 
 def evaluate_case(prob, x, args, store=None):
@@ -386,12 +390,12 @@ def tolerance_text(grid):
     pilots estimate it, in a line."""
     given = ", ".join(f"{k} = {grid[k]:g}" for k in ("tol", "rtol") if grid.get(k))
     e = grid["estimated_error"]
-    text = (f"{given} {'reached' if grid['tolerance_reached'] else 'NOT reached'}: "
-            f"estimated error {e:.2g} of it")
+    text = (f"{given} {'reached' if grid['tolerance_reached'] else 'NOT reached'} by the "
+            f"pilots' estimate: error {e:.2g} of it")
     if grid.get("saturated"):
         text += (f"; over {100 * grid['saturated']:.3g} % of the run it asks for steps "
-                 f"shorter than the shortest allowed ({grid['shortest_step']:.3g} s), taken "
-                 "there, the other steps shortened to make up for it")
+                 f"shorter than the shortest allowed ({grid['shortest_step']:.3g} s): steps "
+                 "of that length there, the others shortened to make up for it")
     return text
 
 
