@@ -98,6 +98,20 @@ def test_a_tolerance_every_grid_reaches_runs_on_the_longest_steps(capsys, key):
     assert 20 <= grid["steps"] <= 20 * 2 ** 0.25 and grid["h_max"] <= 0.05 / 20 * (1 + 1e-9)
 
 
+def test_a_grid_of_more_steps_than_the_core_counts_is_refused_before_it_is_built(monkeypatch):
+    """A tolerance whose grid would hold more steps than the core counts (MAX_STEPS, here
+    lowered to 1000 for the robot's 0.05 s at rtol 1e-6, a grid of about 10^4 steps) is a
+    ResourceError naming time.rtol and the steps, raised before the grid is marched."""
+    import flexmbs.analysis.adaptive as adaptive
+    from flexmbs.errors import ResourceError
+
+    monkeypatch.setattr(adaptive, "MAX_STEPS", 1000)
+    p = Problem("robot_2dof", {**ROBOT, "time.rtol": 1e-6})
+    with pytest.raises(ResourceError, match=r"time.rtol = 1e-06 needs about .* steps .* "
+                                            r"more than the core's 1000"):
+        choose_steps(p)
+
+
 BAD = ["0", "-1", "nan", "inf", "-inf"]
 
 

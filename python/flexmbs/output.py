@@ -85,8 +85,9 @@ def resolution(problem):
     `adaptive`, the spacing of the response grid), end time, steps of the response grid,
     rho_inf, start, the elements of every beam, with error-controlled steps the grid's summary
     (`grid`, Problem.grid_summary: its tolerance and whether it is reached) and the whole
-    SimulationSettings of its runs (`settings`, flexmbs.analysis.settings.SimulationSettings.to_dict; each run keeps the
-    coordinates its responses read, and the adjoint's forward run is polished)."""
+    SimulationSettings of its runs (`settings`,
+    flexmbs.analysis.settings.SimulationSettings.to_dict; each run keeps the coordinates its
+    responses read, and the adjoint's forward run is polished)."""
     d = problem.description
     mech = problem.mechanism
     out = {"h": float(d.time.grid_h), "adaptive": bool(d.time.adaptive),

@@ -20,10 +20,18 @@ The choice (`choose_steps`), at one design:
    order scheme, accumulated: a phase error grows linearly in time), calibrated on the
    coarse pilot: c = e_H / (H^2 int w dt);
 4. the steps minimising their number for e = 1 (the tolerance): h(t) = K w(t)^(-1/3),
-   K^2 int w^(1/3) dt = 1 / c; bounded by h_max and H / 1024, by a growth ratio of
-   `GROWTH` between neighbours, and rounded down to the ladder H 2^(k/4), so that runs of
-   equal steps keep modified Newton's held factorizations (generalized_alpha.f90 refactors
-   when the step changes).
+   K^2 int w^(1/3) dt = 1 / c; bounded by h_max and H / 1024 (`SHORTEST`; where the
+   tolerance asks for shorter steps, the grid is *saturated*: those steps are H / 1024 and
+   K is solved again, by scipy.optimize.brentq, for e = 1 with the bounded steps), by a
+   growth ratio of `GROWTH` between neighbours, and rounded down to the ladder
+   H 2^(k/4), so that runs of equal steps keep modified Newton's held factorizations
+   (generalized_alpha.f90 refactors when the step changes).
+
+A tolerance that steps of H / 1024 throughout do not reach (e_H / 1024^2 > 1) is refused,
+a CaseError naming the tolerance they reach; one whose grid would hold more steps than the
+core counts, a ResourceError. The tolerances enter as s u (s = max(tol, rtol) a scalar, u
+of ordinary size): e_H, w and c are computed relative to u, and s only through log(s) and
+the steps' sqrt(s), so that no positive finite tolerance overflows or underflows them.
 
 Within an optimization run the grid is chosen once (at the problem's start design, or at
 another by Problem.adapt) and then frozen: the responses are then smooth functions of
@@ -37,7 +45,8 @@ from flexmbs.errors import CaseError, ResourceError
 from flexmbs.resources import MAX_STEPS
 from flexmbs.responses.aggregate import trapezoid_weights
 
-__all__ = ["choose_steps", "check_tolerance", "pilot_steps", "subdivide", "GROWTH", "LADDER", "SHORTEST"]
+__all__ = ["choose_steps", "check_tolerance", "pilot_steps", "subdivide", "GROWTH", "LADDER",
+           "SHORTEST"]
 
 #: Largest ratio of neighbouring steps.
 GROWTH = 1.5
