@@ -83,9 +83,11 @@ def units(problem):
 def resolution(problem):
     """The discretisation a Problem's runs use: step h (with error-controlled steps,
     `adaptive`, the spacing of the response grid), end time, steps of the response grid,
-    rho_inf, start, the elements of every beam and the whole SimulationSettings of its runs
-    (`settings`, flexmbs.analysis.settings.SimulationSettings.to_dict; each run keeps the
-    coordinates its responses read, and the adjoint's forward run is polished)."""
+    rho_inf, start, the elements of every beam, with error-controlled steps the grid's summary
+    (`grid`, Problem.grid_summary: its tolerance and whether it is reached) and the whole
+    SimulationSettings of its runs (`settings`,
+    flexmbs.analysis.settings.SimulationSettings.to_dict; each run keeps the coordinates its
+    responses read, and the adjoint's forward run is polished)."""
     d = problem.description
     mech = problem.mechanism
     out = {"h": float(d.time.grid_h), "adaptive": bool(d.time.adaptive),
@@ -97,6 +99,8 @@ def resolution(problem):
     settings = getattr(problem, "settings", None)
     if settings is not None:
         out["settings"] = settings.to_dict()
+    if d.time.adaptive and getattr(problem, "_steps", None) is not None:
+        out["grid"] = problem.grid_summary()
     return out
 
 

@@ -269,6 +269,7 @@ class Problem:
         # the frozen step grid of an adaptive case (time.h = "auto"): chosen once, under the
         # mechanism's lock of its lazily built parts (re-entrant: the pilots build them too)
         self._steps = None
+        self._grid_info = {}
 
     # ------------------------------------------------------------------ adaptive steps
     def steps(self):
@@ -298,7 +299,10 @@ class Problem:
         return self._steps
 
     def _choose(self, x, info=None):
-        return choose_steps(self, x, info=info)
+        info = {} if info is None else info
+        steps = choose_steps(self, x, info=info)
+        self._grid_info = info
+        return steps
 
     def values_on(self, x, steps):
         """The response histories (name -> value) of design x simulated on the step grid
@@ -342,13 +346,23 @@ class Problem:
 
     def grid_summary(self):
         """What an adaptive case's frozen grid is (a record's `grid`): steps (its number),
-        tol, rtol, h_min and h_max (s, its shortest and longest step); None for a fixed step."""
+        tol, rtol, h_min and h_max (s, its shortest and longest step), and as the pilots
+        estimate it (flexmbs.analysis.adaptive.choose_steps): estimated_error (the responses'
+        error in tolerances, at most 1 when the tolerance is reached), tolerance_reached, and
+        saturated (the fraction of the run where the tolerance asks for steps shorter than
+        the shortest allowed, shortest_step); None for a fixed step."""
         steps = self.steps()
         if steps is None:
             return None
         ts, dh = self.description.time, np.diff(steps)
-        return dict(steps=int(dh.size), tol=ts.tol, rtol=ts.rtol, h_min=float(dh.min()),
-                    h_max=float(dh.max()))
+        out = dict(steps=int(dh.size), tol=ts.tol, rtol=ts.rtol, h_min=float(dh.min()),
+                   h_max=float(dh.max()))
+        info = self._grid_info
+        if "estimated_error" in info:
+            out.update(estimated_error=info["estimated_error"],
+                       tolerance_reached=bool(info["estimated_error"] <= 1.0),
+                       saturated=info["saturated"], shortest_step=info["shortest_step"])
+        return out
 
     def refined_mesh(self):
         """(the same problem with twice the elements of every beam, None), or (None, why

@@ -7,22 +7,25 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
 
+from flexmbs.analysis.adaptive import pilot_steps
 from flexmbs.errors import CaseError, ModelError
 from flexmbs.files import check_disk_space, check_writable
 from flexmbs.model.casefile import parse_override
 from flexmbs.output import NO_RESPONSES, motion_summary
 from flexmbs.problem import FEASIBILITY_TOL, Problem
-from flexmbs.resources import format_bytes
+from flexmbs.resources import format_bytes, format_seconds
 
 __all__ = ["add_case_arguments", "problem_from_args", "design_from_text", "parse_values",
            "parse_set", "positive_int", "nonnegative_int", "path_text", "output_file",
            "figure_file", "print_json", "print_evaluation", "add_design_arguments", "printable",
            "at_least_two", "needs_motion", "evaluate_case", "evaluation_json",
-           "check_set_conflicts", "flag_overrides"]
+           "check_set_conflicts", "flag_overrides", "announce_run", "tolerance_text",
+           "LONG_RUN_STEPS"]
 
 
 # ----------------------------------------------------------------------------- shared options
@@ -293,11 +296,57 @@ def needs_motion(prob):
     return any(r.type != "mass" for r in prob.description.responses)
 
 
+#: A run of more time steps than this is announced on stderr before it starts (`announce_run`)
+LONG_RUN_STEPS = 100_000
+
+
+def _note_steps(command, steps, what, prob, grid=None, each=""):
+    """The line `announce_run` writes for a run of `steps` time steps (`what` tells them)."""
+    from flexmbs.analysis.simulate import memory_estimate
+
+    mech = prob.mechanism
+    est = memory_estimate(mech.model, mech.t_end, mech.h, prob.settings, steps=grid)
+    seconds = est.seconds * steps / max(est.nt - 1, 1)
+    print(f"flexmbs {command}: {steps} time steps{each} ({what}), roughly "
+          f"{format_seconds(seconds)}{each}", file=sys.stderr, flush=True)
+
+
+def announce_run(prob, command, error=False, choose=True):
+    """Before a long simulation (more than LONG_RUN_STEPS time steps in all): its time steps
+    and a rough time (flexmbs.resources.estimate_memory's) on stderr, one line. With
+    error-controlled steps (time.h = "auto") the pilots' steps are announced before they
+    run, and with `choose` the grid is chosen here (Problem.steps) and its steps announced
+    after. With `error` (the --error estimate) the runs with every step halved and quartered
+    count too (7 times the steps). choose=False (an optimization, whose every simulation
+    runs on the grid or step announced): "per simulation"."""
+    mech, ts = prob.mechanism, prob.description.time
+    n = mech.t.size - 1
+    each = "" if choose else " per simulation"
+    if ts.adaptive:
+        pilots = pilot_steps(n)
+        if pilots > LONG_RUN_STEPS:
+            _note_steps(command, pilots, "the two pilot runs that choose the "
+                        "error-controlled steps", prob, each=" per choice" if each else "")
+        if not choose:
+            return
+    grid = prob.steps() if ts.adaptive else None
+    steps = n if grid is None else grid.size - 1
+    factor = 7 if error else 1
+    if factor * steps > LONG_RUN_STEPS:
+        what = (f"{steps} error-controlled steps to t = {mech.t_end:g} s" if ts.adaptive
+                else f"h = {ts.h:g} s to t = {mech.t_end:g} s")
+        if error:
+            what += ", and twice and four times as many for --error"
+        _note_steps(command, factor * steps, what, prob, grid, each)
+
+
 def evaluate_case(prob, x, args, store=None):
     """(Evaluation, motion summary or None) of `simulate` and `evaluate`: the responses at
     design x as the options ask; a case whose responses need no simulation (none, or masses
-    only) has its motion simulated all the same and summarized (flexmbs.output.motion_summary)."""
+    only) has its motion simulated all the same and summarized (flexmbs.output.motion_summary).
+    A long run is announced first (`announce_run`)."""
 
+    announce_run(prob, args.command, error=args.error)
     motion = not needs_motion(prob)
     ev = prob.evaluate(x, gradient=args.gradient, store="all" if motion else store,
                        error=args.error)
@@ -380,10 +429,13 @@ def print_evaluation(prob, ev, source=None, motion=None):
         steps = s.get("steps", r.get("steps", ev.t.size - 1))
         steps = (f"{steps} error-controlled steps (outputs every {ts.grid_h:g} s)"
                  if ts.adaptive else f"{steps} steps of h = {ts.grid_h:g} s")
+        grid = r.get("grid") or {}
         print(f"  simulation      {steps} to t = "
               f"{r.get('t_end', ev.t[-1]):.10g} s: {s.get('newton_iterations', '?')} Newton "
               f"iterations, {s.get('factorizations', '?')} factorizations, "
               f"{s.get('step_cuts', '?')} step cuts")
+        if "estimated_error" in grid:
+            print("  tolerance       " + tolerance_text(grid))
         if r.get("elements"):
             print("  resolution      elements " + ", ".join(
                 f"{b} {n}" for b, n in r["elements"].items())
@@ -418,6 +470,20 @@ def step_hint(prob, ev):
     return (f"the verdict is at the case's {h}; a finer step can change it: --error estimates "
             f"each value's error, and a design verified by `flexmbs optimize` is re-checked at "
             f"its verified step (the command it prints)")
+
+
+def tolerance_text(grid):
+    """Whether an error-controlled grid (Problem.grid_summary) reaches its tolerance, as the
+    pilots estimate it, in a line."""
+    given = ", ".join(f"{k} = {grid[k]:g}" for k in ("tol", "rtol") if grid.get(k))
+    e = grid["estimated_error"]
+    text = (f"{given} {'reached' if grid['tolerance_reached'] else 'NOT reached'} by the "
+            f"pilots' estimate: error {e:.2g} of it")
+    if grid.get("saturated"):
+        text += (f"; over {100 * grid['saturated']:.3g} % of the run it asks for steps "
+                 f"shorter than the shortest allowed ({grid['shortest_step']:.3g} s): steps "
+                 "of that length there, the others shortened to make up for it")
+    return text
 
 
 def printable(text, keep_newlines=False):

@@ -48,9 +48,9 @@ import shlex
 import sys
 
 from flexmbs.batch import check_dask
-from flexmbs.cli.common import (add_case_arguments, design_from_text, figure_file, nonnegative_int,
-                                output_file, path_text, print_json, problem_from_args,
-                                check_set_conflicts)
+from flexmbs.cli.common import (add_case_arguments, announce_run, check_set_conflicts,
+                                design_from_text, figure_file, nonnegative_int, output_file,
+                                path_text, print_json, problem_from_args)
 from flexmbs.errors import CaseError, ModelError
 from flexmbs.methods.fully import choose_optimizer, optimize_fully, OPTIMIZERS
 from flexmbs.methods.multistart import multistart
@@ -302,6 +302,7 @@ def run_optimize(args):
                             "give another --history name (or delete the file)")
     if args.plot:
         args.plot = figure_file(args.plot, "--plot")
+    announce_run(problem, "optimize", choose=False)
     writer = HistoryWriter(history_path, resume=args.resume and bool(history_path))
     args.history = writer           # the methods accept a HistoryWriter for `history`
     try:
