@@ -5,20 +5,10 @@ from __future__ import annotations
 import argparse
 
 from flexmbs.cli.common import (add_case_arguments, design_from_text, figure_file, output_file,
-                                path_text, print_json, problem_from_args)
+                                path_text, positive_int, print_json, problem_from_args)
 from flexmbs.errors import ModelError
 
 __all__ = ["register", "run"]
-
-
-def _count(text):
-    try:
-        v = int(text)
-    except ValueError:
-        v = 0
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return v
 
 
 def _times(text):
@@ -46,7 +36,7 @@ def register(subparsers):
     p.add_argument("--design", metavar="X1,X2,...",
                    help="design variables in their units (one value: all of them); default: "
                         "the case's start")
-    p.add_argument("--count", type=_count, default=6, metavar="N",
+    p.add_argument("--count", type=positive_int, default=6, metavar="N",
                    help="modes printed per configuration, lowest first (default 6; a 0 Hz "
                         "motion of the mechanism counts as one)")
     p.add_argument("--at", type=_times, default=None, metavar="T[,T...]",
@@ -55,7 +45,7 @@ def register(subparsers):
                    help="draw the modes at the first time over its configuration")
     p.add_argument("--animate", type=path_text, default=None, metavar="FILE.gif|.mp4",
                    help="a film of one mode (--mode) oscillating at the first time")
-    p.add_argument("--mode", type=_count, default=None, metavar="K",
+    p.add_argument("--mode", type=positive_int, default=None, metavar="K",
                    help="the mode --animate shows, 1 = the lowest (default: the lowest above "
                         "0 Hz)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
