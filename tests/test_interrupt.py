@@ -143,7 +143,14 @@ def _cli(args, cwd, **kw):
     return subprocess.Popen([PY, "-c", _ANNOUNCED, *args], cwd=cwd, env=env, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             start_new_session=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL), **kw)
+                            preexec_fn=_default_signals, **kw)
+
+
+def _default_signals():
+    """The child starts with SIGINT and SIGTERM at their default actions, as from a shell (a
+    background job's parent may ignore them, and ignored signals are inherited)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def _signal_when(proc, ready, sig, delay=0.3):
@@ -180,7 +187,7 @@ def test_sigterm_during_animate_leaves_no_temporary_file(tmp_path, suffix):
     exists beside the output): exit 143 with one line, and the folder holds nothing but what
     was there before (no temporary film, no frame folder, no output)."""
     out = tmp_path / f"x{suffix}"
-    proc = _cli(["animate", "fourbar", "--t-end", "0.5", "--out", str(out), "--frames", "400"],
+    proc = _cli(["animate", "fourbar", "--t-end", "0.5", "--out", str(out), "--frames", "1000"],
                 tmp_path)
 
     def writing():
