@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import os
 
-from flexmbs.cli.common import (add_case_arguments, at_least_two, design_from_text, output_file,
-                                path_text, print_json, problem_from_args)
+from flexmbs.cli.common import (add_case_arguments, announce_run, at_least_two, design_from_text,
+                                output_file, path_text, print_json, problem_from_args)
 from flexmbs.errors import ModelError
 
 __all__ = ["register", "run", "OUTPUTS"]
@@ -81,6 +81,7 @@ def run(args):
         frame_folder(out)
     prob = problem_from_args(args)
     x = design_from_text(args.design, prob)
+    announce_run(prob, "animate")
     ev = prob.evaluate(x, gradient=False, store="all")
     summary = {"case": prob.description.case.name, "out": out, "design": list(ev.x)}
     if ext == ".pvd":
